@@ -1,0 +1,92 @@
+"""A robot's identity: an Ethereum key pair, kept at rest only as an encrypted keystore.
+
+The keystore is the standard Web3 Secret Storage JSON (scrypt + AES-128-CTR) written by
+eth-account, so keys move freely between robocloud and ordinary Ethereum wallets.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from eth_account import Account
+from eth_account.signers.local import LocalAccount
+from eth_utils import to_checksum_address
+
+from robocloud.errors import KeystoreError
+
+PASSPHRASE_ENV = "ROBOCLOUD_PASSPHRASE"
+KEYSTORE_ENV = "ROBOCLOUD_KEYSTORE"
+
+
+def default_keystore_path() -> Path:
+    """``$ROBOCLOUD_KEYSTORE``, else ``~/.robocloud/keystore.json``."""
+    configured = os.environ.get(KEYSTORE_ENV)
+    return Path(configured) if configured else Path.home() / ".robocloud" / "keystore.json"
+
+
+class Identity:
+    """A robot's signing key; its public identity is the checksummed address."""
+
+    def __init__(self, account: LocalAccount) -> None:
+        self.account = account
+
+    @classmethod
+    def generate(cls) -> Identity:
+        return cls(Account.create())
+
+    @classmethod
+    def from_key(cls, private_key: bytes | str) -> Identity:
+        return cls(Account.from_key(private_key))
+
+    @property
+    def address(self) -> str:
+        return str(self.account.address)
+
+    def did(self, chain_id: int) -> str:
+        """The robot's DID as used in semantic descriptions (``did:pkh``)."""
+        return f"did:pkh:eip155:{chain_id}:{self.address}"
+
+    def save(self, path: Path, passphrase: str, *, scrypt_n: int = 2**18) -> None:
+        """Write the encrypted keystore, readable by the owner only; never overwrite a key."""
+        if not passphrase:
+            raise KeystoreError("an empty passphrase would leave the key unprotected")
+        keystore = Account.encrypt(self.account.key, passphrase, kdf="scrypt", iterations=scrypt_n)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError as exc:
+            raise KeystoreError(f"{path} already exists; refusing to overwrite a key") from exc
+        with os.fdopen(fd, "w") as handle:
+            json.dump(keystore, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+
+    @classmethod
+    def load(cls, path: Path, passphrase: str) -> Identity:
+        try:
+            keystore: dict[str, Any] = json.loads(path.read_text())
+        except FileNotFoundError as exc:
+            hint = "create one with `robocloud keys new`"
+            raise KeystoreError(f"no keystore at {path}; {hint}") from exc
+        except (OSError, json.JSONDecodeError) as exc:
+            raise KeystoreError(f"{path} is not a readable keystore: {exc}") from exc
+        try:
+            key = Account.decrypt(keystore, passphrase)
+        except ValueError as exc:
+            raise KeystoreError(f"cannot decrypt {path}: wrong passphrase") from exc
+        return cls.from_key(key)
+
+    @staticmethod
+    def keystore_address(path: Path) -> str:
+        """The address stored in a keystore, readable without the passphrase."""
+        try:
+            keystore: dict[str, Any] = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise KeystoreError(f"{path} is not a readable keystore: {exc}") from exc
+        address = keystore.get("address")
+        if not isinstance(address, str):
+            raise KeystoreError(f"{path} has no address field")
+        return str(to_checksum_address("0x" + address.removeprefix("0x")))
