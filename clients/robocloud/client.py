@@ -29,7 +29,8 @@ def raise_for_error(response: httpx.Response) -> None:
         return
     if response.is_stream_consumed is False:
         response.read()
-    code, message, details, request_id = "http_error", response.reason_phrase, {}, None
+    code, message, request_id = "http_error", response.reason_phrase, None
+    details: dict[str, Any] = {}
     try:
         body = response.json()
     except ValueError:

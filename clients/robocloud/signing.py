@@ -20,7 +20,7 @@ from urllib.parse import parse_qsl, quote
 from eth_account import Account
 from eth_account.messages import encode_defunct
 from eth_account.signers.local import LocalAccount
-from eth_utils import to_checksum_address
+from eth_utils.address import to_checksum_address
 
 from robocloud.errors import SignatureError
 

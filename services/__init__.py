@@ -1,0 +1,1 @@
+"""robocloud's five HTTP services and the framework they share (``services.common``)."""

@@ -1,0 +1,5 @@
+"""The broker service.
+
+Verifiable outsourced computation:
+staked provers, blinded commitments and majority results on chain.
+"""

@@ -1,0 +1,1 @@
+"""What every robocloud service shares: settings, errors, auth, logging, metrics, app factory."""

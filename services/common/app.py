@@ -1,0 +1,202 @@
+"""The app factory: every service gets the same framework endpoints, errors and guards.
+
+``create_app`` returns a FastAPI app with ``/healthz``, ``/readyz``, ``/metrics``,
+``POST /v1/whoami``, OpenAPI docs, the JSON error model for every error (unknown routes
+included), request ids and the request guard. A service adds its routers and readiness
+checks and keeps its own state on ``app.state``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
+from contextlib import AbstractAsyncContextManager, asynccontextmanager
+from typing import Any
+
+from fastapi import APIRouter, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+import robocloud
+from services.common.auth import SignedAddress, build_authorizer
+from services.common.bodies import read_json
+from services.common.errors import ServiceError, Unavailable, error_body
+from services.common.logs import configure_logging, request_id_var
+from services.common.metrics import CONTENT_TYPE, ServiceMetrics
+from services.common.middleware import GuardConfig, RequestGuard
+from services.common.nonces import NonceStore
+from services.common.settings import ServiceSettings
+
+log = logging.getLogger("robocloud.app")
+
+ReadinessCheck = Callable[[], Awaitable[None]]
+Lifespan = Callable[[FastAPI], AbstractAsyncContextManager[None]]
+
+_HTTP_CODES = {
+    400: "bad_request",
+    404: "not_found",
+    405: "method_not_allowed",
+    413: "payload_too_large",
+    415: "unsupported_media_type",
+}
+
+
+class WhoamiRequest(BaseModel):
+    """An optional challenge the robot chooses, echoed back to bind the answer to its call."""
+
+    challenge: str | None = Field(default=None, max_length=256)
+
+
+class WhoamiResponse(BaseModel):
+    address: str
+    service: str
+    auth: str
+    challenge: str | None
+
+
+def _json_error(
+    status: int, code: str, message: str, details: dict[str, Any], headers: Mapping[str, str]
+) -> JSONResponse:
+    body = error_body(code, message, details, request_id_var.get())
+    return JSONResponse(body, status_code=status, headers=dict(headers))
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ServiceError)
+    async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
+        return _json_error(exc.status, exc.code, exc.message, exc.details, exc.headers)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = _HTTP_CODES.get(exc.status_code, "http_error")
+        message = str(exc.detail)
+        if exc.status_code == 404:
+            message = f"no route {request.method} {request.url.path}"
+        return _json_error(exc.status_code, code, message, {}, exc.headers or {})
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [
+            {
+                "field": ".".join(str(part) for part in error["loc"]),
+                "message": error["msg"],
+                "type": error["type"],
+            }
+            for error in exc.errors()
+        ]
+        message = f"invalid request: {errors[0]['field']}: {errors[0]['message']}"
+        return _json_error(422, "validation_error", message, {"errors": errors}, {})
+
+    @app.exception_handler(Exception)
+    async def unexpected(_: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error", exc_info=exc)
+        return _json_error(500, "internal_error", "internal error; see the service log", {}, {})
+
+
+def _framework_router(service: str, settings: ServiceSettings) -> APIRouter:
+    router = APIRouter(tags=["framework"])
+
+    @router.get("/healthz")
+    async def healthz() -> dict[str, str]:
+        """Liveness: the process serves requests."""
+        return {"status": "ok", "service": service, "version": robocloud.__version__}
+
+    @router.get("/readyz")
+    async def readyz(request: Request) -> dict[str, str]:
+        """Readiness: every dependency the service needs answered its check."""
+        failures: dict[str, str] = {}
+        for check in request.app.state.readiness_checks:
+            try:
+                await check()
+            except Exception as exc:
+                failures[getattr(check, "__name__", "check")] = str(exc)
+        if failures:
+            raise Unavailable(f"{service} is not ready", details={"checks": failures})
+        return {"status": "ready", "service": service, "version": robocloud.__version__}
+
+    @router.get("/metrics", response_class=Response)
+    async def metrics(request: Request) -> Response:
+        """Prometheus text exposition."""
+        return Response(request.app.state.metrics.render(), media_type=CONTENT_TYPE)
+
+    @router.post("/v1/whoami", response_model=WhoamiResponse)
+    async def whoami(request: Request, address: SignedAddress) -> WhoamiResponse:
+        """Check a signature end to end: answers the address the service verified."""
+        body = await read_json(request, WhoamiRequest, optional=True)
+        return WhoamiResponse(
+            address=address,
+            service=service,
+            auth=settings.auth,
+            challenge=body.challenge if body else None,
+        )
+
+    return router
+
+
+def create_app(
+    service: str,
+    settings: ServiceSettings,
+    *,
+    routers: Sequence[APIRouter] = (),
+    readiness_checks: Sequence[ReadinessCheck] = (),
+    lifespan: Lifespan | None = None,
+    unsigned_paths: Sequence[str] = (),
+    body_limits: Mapping[str, int] | None = None,
+    description: str = "",
+) -> FastAPI:
+    """Build a service app.
+
+    ``unsigned_paths`` are write routes that carry their own authentication (the chain's
+    JSON-RPC, whose transactions are signed by Ethereum keys). ``body_limits`` raises the
+    body limit under a path prefix (uploads) above ``settings.max_body_bytes``.
+    """
+    configure_logging(service, settings.log_level)
+    data_dir = settings.resolved_data_dir()
+    data_dir.mkdir(parents=True, exist_ok=True)
+    metrics = ServiceMetrics(service)
+    nonces = NonceStore(data_dir / "nonces.log", settings.max_clock_skew_s)
+    authorizer = build_authorizer(settings)
+
+    @asynccontextmanager
+    async def run(app: FastAPI) -> AsyncIterator[None]:
+        log.info("starting", extra={"port": settings.resolved_port(), "auth": settings.auth})
+        try:
+            if lifespan is None:
+                yield
+            else:
+                async with lifespan(app):
+                    yield
+        finally:
+            nonces.close()
+            log.info("stopped")
+
+    app = FastAPI(
+        title=f"robocloud {service}",
+        version=robocloud.__version__,
+        description=description,
+        lifespan=run,
+    )
+    app.state.settings = settings
+    app.state.metrics = metrics
+    app.state.nonces = nonces
+    app.state.authorizer = authorizer
+    app.state.readiness_checks = list(readiness_checks)
+    _install_error_handlers(app)
+    app.include_router(_framework_router(service, settings))
+    for router in routers:
+        app.include_router(router)
+    app.add_middleware(
+        RequestGuard,
+        config=GuardConfig(
+            max_body_bytes=settings.max_body_bytes,
+            max_clock_skew_s=settings.max_clock_skew_s,
+            authorizer=authorizer,
+            nonces=nonces,
+            metrics=metrics,
+            unsigned_paths=frozenset(unsigned_paths),
+            body_limits=dict(body_limits or {}),
+        ),
+    )
+    return app

@@ -1,0 +1,82 @@
+"""Who may write: signature verification state and the authorization policy.
+
+Signatures are checked by the request guard (``middleware.py``) before the body is read;
+this module holds what that check needs (the nonce store, the authorizer) and the
+``SignedAddress`` dependency through which routes receive the verified signer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Annotated, Protocol
+
+from eth_utils.address import is_address, to_checksum_address
+from fastapi import Depends, Request
+
+from robocloud.signing import VerifiedRequest
+from services.common.errors import Forbidden, Unauthorized
+from services.common.settings import ServiceSettings
+
+
+class Authorizer(Protocol):
+    """Decides whether a verified signer may write, optionally in a given role."""
+
+    async def authorize(self, address: str, role: str | None = None) -> None:
+        """Return if allowed; raise :class:`Forbidden` naming the address otherwise."""
+        ...
+
+
+class AnySigner:
+    """``ROBOCLOUD_AUTH=signed``: any valid signature may write (development, single service)."""
+
+    async def authorize(self, address: str, role: str | None = None) -> None:
+        return None
+
+
+class Allowlist:
+    """A fixed set of addresses, from ``ROBOCLOUD_ALLOWED_ADDRESSES``; roles are not modelled."""
+
+    def __init__(self, addresses: Iterable[str]) -> None:
+        self.addresses = frozenset(to_checksum_address(a) for a in addresses if is_address(a))
+
+    async def authorize(self, address: str, role: str | None = None) -> None:
+        if address not in self.addresses:
+            raise Forbidden(
+                f"address {address} is not allowed to write to this service",
+                code="address_not_allowed",
+                details={"address": address},
+            )
+
+
+def build_authorizer(settings: ServiceSettings) -> Authorizer:
+    """The authorizer the settings ask for."""
+    if settings.auth == "signed":
+        return AnySigner()
+    return Allowlist(settings.allowed_addresses)
+
+
+def verified_request(request: Request) -> VerifiedRequest:
+    """The signature the guard verified for this request; 401 if the route was not signed."""
+    verified = getattr(request.state, "signature", None)
+    if not isinstance(verified, VerifiedRequest):
+        raise Unauthorized("this route requires a signed request", code="signature_required")
+    return verified
+
+
+def signed_address(request: Request) -> str:
+    return verified_request(request).address
+
+
+SignedAddress = Annotated[str, Depends(signed_address)]
+"""A route parameter of this type receives the checksummed address that signed the request."""
+
+
+def require_role(role: str) -> object:
+    """A dependency that also checks the signer holds ``role`` (for example ``storage``)."""
+
+    async def dependency(request: Request) -> str:
+        address = signed_address(request)
+        await request.app.state.authorizer.authorize(address, role)
+        return address
+
+    return Depends(dependency)

@@ -1,0 +1,62 @@
+"""Request bodies: JSON validated into models, with clear 415 and 422 errors."""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
+
+from fastapi import Request
+from pydantic import BaseModel, ValidationError
+
+from services.common.errors import BadRequest, Unprocessable, UnsupportedMediaType
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def field_errors(exc: ValidationError, prefix: str = "body") -> list[dict[str, Any]]:
+    """Pydantic's errors as ``{"field": "body.a.0.b", "message": ...}``, naming each field."""
+    return [
+        {
+            "field": ".".join(str(part) for part in (prefix, *error["loc"])),
+            "message": error["msg"],
+            "type": error["type"],
+        }
+        for error in exc.errors()
+    ]
+
+
+def media_type(request: Request) -> str:
+    return request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+
+
+async def read_json(request: Request, model: type[M], *, optional: bool = False) -> M | None:
+    """Read and validate a JSON body; ``None`` for an empty body when ``optional``."""
+    raw = await request.body()
+    if not raw and optional:
+        return None
+    if media_type(request) != "application/json":
+        raise UnsupportedMediaType(
+            "the body must be application/json",
+            details={"header": "Content-Type", "received": request.headers.get("content-type")},
+        )
+    try:
+        return model.model_validate_json(raw)
+    except ValidationError as exc:
+        errors = field_errors(exc)
+        if any(e["type"] == "json_invalid" for e in errors):
+            raise BadRequest("the body is not valid JSON", code="invalid_json") from exc
+        raise Unprocessable(
+            f"invalid body: {errors[0]['field']}: {errors[0]['message']}",
+            details={"errors": errors},
+        ) from exc
+
+
+def json_body(model: type[M]) -> Callable[[Request], Awaitable[M]]:
+    """A dependency giving the validated body; use as ``body: M = Depends(json_body(M))``."""
+
+    async def dependency(request: Request) -> M:
+        body = await read_json(request, model)
+        assert body is not None
+        return body
+
+    return dependency

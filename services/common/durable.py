@@ -1,0 +1,70 @@
+"""Durable file writes: what a crash may interrupt, it must not leave half-written.
+
+Every write goes to a temporary file in the same directory, is fsynced, renamed over the
+target (atomic on POSIX) and the directory is fsynced so the rename itself survives a crash.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: Path, data: bytes, *, mode: int = 0o644) -> None:
+    """Replace ``path`` with ``data`` so that readers see the old or the new file, never a mix."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    try:
+        view = memoryview(data)
+        while view:
+            written = os.write(fd, view)
+            view = view[written:]
+        os.fsync(fd)
+    except BaseException:
+        os.close(fd)
+        tmp.unlink(missing_ok=True)
+        raise
+    os.close(fd)
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+class AppendLog:
+    """An append-only file of lines, fsynced per append: a journal that survives kill -9.
+
+    A torn last line (a crash mid-write) is dropped on read, since it was never acknowledged.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+
+    def append(self, line: str) -> None:
+        if "\n" in line:
+            raise ValueError("a journal line cannot contain a newline")
+        os.write(self._fd, (line + "\n").encode())
+        os.fsync(self._fd)
+
+    def read_lines(self) -> list[str]:
+        data = self.path.read_bytes()
+        complete = data[: data.rfind(b"\n") + 1]
+        return complete.decode().splitlines()
+
+    def rewrite(self, lines: list[str]) -> None:
+        """Compact the log to ``lines`` atomically."""
+        atomic_write(self.path, "".join(f"{line}\n" for line in lines).encode(), mode=0o600)
+        os.close(self._fd)
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+
+    def close(self) -> None:
+        os.close(self._fd)

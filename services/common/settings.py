@@ -1,0 +1,66 @@
+"""Settings from ``ROBOCLOUD_*`` environment variables, one model for every service.
+
+A service that needs more subclasses :class:`ServiceSettings`; defaults are the loopback
+addresses and ports fixed in ARCHITECTURE.md so ``make up`` needs no configuration.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal, TypeVar
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+DEFAULT_PORTS: dict[str, int] = {
+    "cas": 8080,
+    "ledger": 8545,
+    "storage": 8082,
+    "broker": 8083,
+    "fl": 8084,
+}
+
+
+class ServiceSettings(BaseSettings):
+    """Settings every service understands."""
+
+    model_config = SettingsConfigDict(env_prefix="ROBOCLOUD_", extra="ignore")
+
+    service: str = "robocloud"
+    host: str = "127.0.0.1"
+    port: int = Field(default=0, ge=0, le=65535)
+    data_dir: Path | None = None
+    auth: Literal["registered", "signed"] = "registered"
+    allowed_addresses: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    max_body_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
+    max_clock_skew_s: int = Field(default=300, gt=0)
+    log_level: str = "INFO"
+    cas_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['cas']}"
+    ledger_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['ledger']}"
+    storage_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['storage']}"
+    broker_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['broker']}"
+    fl_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['fl']}"
+
+    @field_validator("allowed_addresses", mode="before")
+    @classmethod
+    def _split_addresses(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [part.strip() for part in value.split(",") if part.strip()]
+        return value
+
+    def resolved_port(self) -> int:
+        return self.port or DEFAULT_PORTS.get(self.service, 8000)
+
+    def resolved_data_dir(self) -> Path:
+        return self.data_dir or Path("data") / self.service
+
+
+S = TypeVar("S", bound=ServiceSettings)
+
+
+def load_settings(service: str, cls: type[S]) -> S:
+    """Read the environment for ``service``; ``cls`` lets a service add its own fields."""
+    settings = cls(service=service)
+    settings.data_dir = settings.resolved_data_dir()
+    settings.port = settings.resolved_port()
+    return settings

@@ -1,0 +1,6 @@
+"""`python -m services.storage`: serve the storage service with settings from the environment."""
+
+from services.common.runner import run_service
+from services.storage.app import build_app
+
+run_service("storage", build_app)
