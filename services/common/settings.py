@@ -12,13 +12,7 @@ from typing import Annotated, Literal, TypeVar
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-DEFAULT_PORTS: dict[str, int] = {
-    "cas": 8080,
-    "ledger": 8545,
-    "storage": 8082,
-    "broker": 8083,
-    "fl": 8084,
-}
+from robocloud.config import SERVICES as DEFAULT_PORTS
 
 
 class ServiceSettings(BaseSettings):
