@@ -15,7 +15,7 @@ from typing import Any
 
 import httpx
 
-from robocloud.errors import ApiError, error_class_for
+from robocloud.errors import MissingIdentityError, error_class_for
 from robocloud.identity import Identity
 from robocloud.signing import EMPTY_SHA256, sign_request
 
@@ -157,7 +157,7 @@ class ServiceClient:
 
     def _sign(self, request: httpx.Request, content_sha256: str) -> None:
         if self.identity is None:
-            raise ApiError(0, "no_identity", "this request must be signed but no identity is set")
+            raise MissingIdentityError(f"{request.method} {request.url.path} must be signed")
         raw_path, _, raw_query = request.url.raw_path.partition(b"?")
         request.headers.update(
             sign_request(

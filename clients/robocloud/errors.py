@@ -31,6 +31,10 @@ class KeystoreError(RobocloudError):
     """A keystore file is missing, unreadable, or the passphrase is wrong."""
 
 
+class MissingIdentityError(RobocloudError):
+    """A request must be signed but the client was built without an identity."""
+
+
 class ApiError(RobocloudError):
     """A service answered with an error status and (usually) the JSON error model."""
 

@@ -47,7 +47,9 @@ class NonceStore:
             return True
 
     def __len__(self) -> int:
-        return len(self._expiry)
+        with self._lock:
+            self._expire(time.time())
+            return len(self._expiry)
 
     def close(self) -> None:
         self._log.close()

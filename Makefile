@@ -1,0 +1,40 @@
+# robocloud: `make up` runs the whole system locally, `make test` checks it.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: up test lint test-compose bench demo lock clean
+
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet --constraint constraints.txt --editable ".[services,dev]"
+	touch $(STAMP)
+
+up: $(STAMP)
+	$(PY) -m services.common.supervisor
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
+
+test: lint
+	$(VENV)/bin/pytest
+
+test-compose: $(STAMP)
+	bash scripts/test-compose.sh
+
+bench: $(STAMP)
+	@for script in bench/*.py; do echo "== $$script"; $(PY) $$script || exit 1; done
+
+lock:
+	rm -rf .lock-venv && $(PYTHON) -m venv .lock-venv
+	.lock-venv/bin/pip install --quiet --editable ".[services,dev]"
+	.lock-venv/bin/pip freeze --exclude-editable | sort -f > constraints.txt
+	rm -rf .lock-venv
+
+clean:
+	rm -rf $(VENV) data .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,35 @@
+"""Fixtures shared by every test layer."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from robocloud.identity import Identity
+from tests.procs import ServiceProcess
+
+ServiceFactory = Callable[..., ServiceProcess]
+
+
+@pytest.fixture
+def identity() -> Identity:
+    return Identity.generate()
+
+
+@pytest.fixture
+def service_factory(tmp_path: Path) -> Iterator[ServiceFactory]:
+    """Start real service processes; every one is stopped when the test ends, even on failure."""
+    started: list[ServiceProcess] = []
+
+    def start(
+        name: str, env: dict[str, str] | None = None, data_dir: Path | None = None
+    ) -> ServiceProcess:
+        process = ServiceProcess(name, data_dir or tmp_path / f"{name}-{len(started)}", env)
+        started.append(process)
+        return process.start()
+
+    yield start
+    for process in started:
+        process.stop()
