@@ -40,6 +40,15 @@ class Child:
         return f"http://127.0.0.1:{self.port}"
 
 
+def _die_with_parent() -> None:
+    """Run in each child before exec: if the supervisor is killed, its services go too."""
+    if sys.platform == "linux":
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -87,6 +96,7 @@ class Supervisor:
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
+                preexec_fn=_die_with_parent,
             )
             child = Child(name, self.ports[name], process)
             self.children.append(child)

@@ -86,6 +86,7 @@ def test_all_services_come_up_and_stop_on_sigterm(tmp_path: Path) -> None:
         rest = supervisor.communicate(timeout=30)[0]
     finally:
         supervisor.kill()
+        supervisor.wait()
     assert supervisor.returncode == 0
     assert "SIGTERM: stopping services" in rest
     for url in urls.values():
@@ -94,6 +95,23 @@ def test_all_services_come_up_and_stop_on_sigterm(tmp_path: Path) -> None:
         except httpx.ConnectError:
             continue
         raise AssertionError(f"{url} still answers after the supervisor stopped")
+
+
+def test_services_do_not_outlive_a_killed_supervisor(tmp_path: Path) -> None:
+    supervisor = start_supervisor(tmp_path)
+    assert supervisor.stdout is not None
+    pids: list[int] = []
+    for line in supervisor.stdout:
+        pids += [int(pid) for pid in re.findall(r"Started server process \[(\d+)\]", line)]
+        if "Ctrl-C" in line:
+            break
+    supervisor.kill()
+    supervisor.wait()
+    assert len(pids) == 5
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline and any(Path(f"/proc/{pid}").exists() for pid in pids):
+        time.sleep(0.2)
+    assert not any(Path(f"/proc/{pid}").exists() for pid in pids)
 
 
 def test_a_service_that_dies_at_start_fails_the_whole_start(tmp_path: Path) -> None:
