@@ -1,0 +1,38 @@
+"""The robot's view of the ledger: robocloud's contracts over standard Ethereum JSON-RPC.
+
+``Ledger.connect(url, identity)`` finds the contracts through the ledger service; every
+transaction is built from the ABIs shipped in this package and signed with the robot's key.
+"""
+
+from robocloud.ledger.abi import ContractAbi, decode_revert
+from robocloud.ledger.client import ContractAddresses, Ledger
+from robocloud.ledger.errors import (
+    ContractsUnavailableError,
+    LedgerError,
+    RevertError,
+    RpcError,
+    TransactionTimeoutError,
+)
+from robocloud.ledger.models import Advertised, Advertisement, Anchor, Robot, Role
+from robocloud.ledger.rpc import JsonRpcClient
+from robocloud.ledger.transactions import Receipt, Transactor
+
+__all__ = [
+    "Advertised",
+    "Advertisement",
+    "Anchor",
+    "ContractAbi",
+    "ContractAddresses",
+    "ContractsUnavailableError",
+    "JsonRpcClient",
+    "Ledger",
+    "LedgerError",
+    "Receipt",
+    "RevertError",
+    "Robot",
+    "Role",
+    "RpcError",
+    "TransactionTimeoutError",
+    "Transactor",
+    "decode_revert",
+]

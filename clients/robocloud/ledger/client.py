@@ -1,0 +1,344 @@
+"""``Ledger``: register, advertise, anchor and read robocloud's contracts from a robot.
+
+Everything goes through standard JSON-RPC with transactions signed locally, so a robot can
+check what the ledger service tells it against any Ethereum node. The ledger service is needed
+only to learn where the contracts are (``GET /v1/contracts``) and for the development faucet.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+from eth_utils.address import is_address, to_checksum_address
+from eth_utils.crypto import keccak
+
+from robocloud.client import ServiceClient
+from robocloud.config import service_url
+from robocloud.errors import MissingIdentityError
+from robocloud.identity import Identity
+from robocloud.ledger.abi import ContractAbi, DecodedLog
+from robocloud.ledger.errors import ContractsUnavailableError, LedgerError, RpcError
+from robocloud.ledger.models import Advertised, Advertisement, Anchor, Robot, Role
+from robocloud.ledger.rpc import JsonRpcClient, as_revert
+from robocloud.ledger.transactions import Receipt, Transactor, quantity
+
+ZERO_ADDRESS = "0x" + "00" * 20
+
+
+@dataclass(frozen=True)
+class ContractAddresses:
+    registry: str
+    anchor_log: str
+
+    @classmethod
+    def from_service(cls, body: Any) -> ContractAddresses:
+        """Parse ``GET /v1/contracts``: ``{"contracts": {"Registry": {"address": ...}, ...}}``."""
+        contracts = body.get("contracts") if isinstance(body, dict) else None
+        try:
+            registry = contracts["Registry"]["address"]  # type: ignore[index]
+            anchor_log = contracts["AnchorLog"]["address"]  # type: ignore[index]
+        except (KeyError, TypeError) as exc:
+            raise ContractsUnavailableError(
+                f"the ledger's /v1/contracts lacks Registry or AnchorLog addresses: {body!r}"
+            ) from exc
+        return cls(checksum(registry), checksum(anchor_log))
+
+
+def checksum(address: object) -> str:
+    if not isinstance(address, str) or not is_address(address):
+        raise ValueError(f"not an Ethereum address: {address!r}")
+    return str(to_checksum_address(address))
+
+
+def _topic_address(address: str) -> str:
+    return "0x" + "00" * 12 + checksum(address)[2:].lower()
+
+
+def _topic_uint(value: int) -> str:
+    return "0x" + value.to_bytes(32, "big").hex()
+
+
+class Ledger:
+    """robocloud's contracts on one chain, seen and driven by one (optional) identity."""
+
+    def __init__(
+        self,
+        rpc: JsonRpcClient,
+        addresses: ContractAddresses,
+        identity: Identity | None = None,
+        *,
+        service: ServiceClient | None = None,
+        receipt_timeout_s: float = 60.0,
+    ) -> None:
+        self.rpc = rpc
+        self.addresses = addresses
+        self.identity = identity
+        self.service = service
+        self.registry = ContractAbi.load("Registry")
+        self.anchor_log = ContractAbi.load("AnchorLog")
+        self._contracts = [self.registry, self.anchor_log]
+        self._transactor = (
+            Transactor(
+                rpc, identity, contracts=self._contracts, receipt_timeout_s=receipt_timeout_s
+            )
+            if identity is not None
+            else None
+        )
+
+    @classmethod
+    def connect(
+        cls,
+        ledger_url: str | None = None,
+        identity: Identity | None = None,
+        *,
+        transport: httpx.BaseTransport | None = None,
+        receipt_timeout_s: float = 60.0,
+    ) -> Ledger:
+        """Through the ledger service: its ``/rpc``, its contract addresses and its faucet."""
+        base = (ledger_url or service_url("ledger")).rstrip("/")
+        service = ServiceClient(base, identity, transport=transport)
+        addresses = ContractAddresses.from_service(service.get_json("/v1/contracts"))
+        rpc = JsonRpcClient(f"{base}/rpc", transport=transport)
+        return cls(rpc, addresses, identity, service=service, receipt_timeout_s=receipt_timeout_s)
+
+    def __enter__(self) -> Ledger:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.rpc.close()
+        if self.service is not None:
+            self.service.close()
+
+    # ----- chain -----
+
+    @property
+    def chain_id(self) -> int:
+        return quantity(self.rpc.request("eth_chainId", []))
+
+    def block_number(self) -> int:
+        return quantity(self.rpc.request("eth_blockNumber", []))
+
+    def balance(self, address: str | None = None) -> int:
+        """Balance in wei of ``address`` (default: this identity)."""
+        target = checksum(address or self._signer().address)
+        return quantity(self.rpc.request("eth_getBalance", [target, "latest"]))
+
+    def faucet(self, *, timeout_s: float = 30.0) -> Any:
+        """Ask the development chain's faucet to fund this identity; wait until it is funded.
+
+        The request is signed, so the faucet funds the key that asked and nobody else.
+        """
+        identity = self._signer()
+        if self.service is None:
+            raise LedgerError("the faucet needs the ledger service: use Ledger.connect(url)")
+        answer = self.service.post_json("/v1/faucet", {"address": identity.address})
+        deadline = time.monotonic() + timeout_s
+        while self.balance() == 0:
+            if time.monotonic() >= deadline:
+                raise LedgerError(f"the faucet did not fund {identity.address} in {timeout_s:g} s")
+            time.sleep(0.1)
+        return answer
+
+    # ----- Registry writes -----
+
+    def register(self, metadata_cid: bytes) -> Receipt:
+        """Register this identity as a robot described by ``metadata_cid`` (binary CID)."""
+        return self._send(self.registry, self.addresses.registry, "register", metadata_cid)
+
+    def update_metadata(self, metadata_cid: bytes) -> Receipt:
+        return self._send(self.registry, self.addresses.registry, "updateMetadata", metadata_cid)
+
+    def deactivate(self) -> Receipt:
+        return self._send(self.registry, self.addresses.registry, "deactivate")
+
+    def reactivate(self) -> Receipt:
+        return self._send(self.registry, self.addresses.registry, "reactivate")
+
+    def advertise(self, cid: bytes, description_cid: bytes = b"") -> Advertised:
+        """Announce that this robot holds ``cid``; ``first`` says whether nobody had before."""
+        receipt = self._send(
+            self.registry, self.addresses.registry, "advertise", cid, description_cid
+        )
+        return self._advertised(self._one_log(receipt, self.registry, "Advertised"))
+
+    def grant_role(self, account: str, role: Role) -> Receipt:
+        """Admin only."""
+        return self._send(
+            self.registry, self.addresses.registry, "grantRole", checksum(account), role.id
+        )
+
+    def revoke_role(self, account: str, role: Role) -> Receipt:
+        """Admin only."""
+        return self._send(
+            self.registry, self.addresses.registry, "revokeRole", checksum(account), role.id
+        )
+
+    def set_suspended(self, account: str, suspended: bool) -> Receipt:
+        """Admin only."""
+        return self._send(
+            self.registry, self.addresses.registry, "setSuspended", checksum(account), suspended
+        )
+
+    # ----- Registry reads -----
+
+    def robot(self, address: str) -> Robot:
+        target = checksum(address)
+        metadata, registered_at, registered, active, suspended = self._call(
+            self.registry, self.addresses.registry, "getRobot", target
+        )
+        return Robot(target, metadata, registered_at, registered, active, suspended)
+
+    def is_active(self, address: str) -> bool:
+        return bool(
+            self._call(self.registry, self.addresses.registry, "isActive", checksum(address))[0]
+        )
+
+    def has_role(self, address: str, role: Role, *, active: bool = True) -> bool:
+        """Whether ``address`` holds ``role`` (and, by default, is an active robot)."""
+        function = "isActiveWithRole" if active else "hasRole"
+        result = self._call(
+            self.registry, self.addresses.registry, function, checksum(address), role.id
+        )
+        return bool(result[0])
+
+    def admin(self) -> str:
+        return str(self._call(self.registry, self.addresses.registry, "admin")[0])
+
+    def advertisement(self, cid: bytes) -> Advertisement | None:
+        """The first advertiser and time of ``cid``, or None if nobody advertised it."""
+        first, timestamp, block, count, description = self._call(
+            self.registry, self.addresses.registry, "getAdvertisement", cid
+        )
+        if count == 0:
+            return None
+        return Advertisement(cid, first, timestamp, block, count, description)
+
+    def advertisements(
+        self, *, cid: bytes | None = None, advertiser: str | None = None, from_block: int = 0
+    ) -> list[Advertised]:
+        """Every ``Advertised`` event matching the filters, oldest first (``eth_getLogs``)."""
+        topics: list[str | None] = [
+            "0x" + self.registry.event_topic("Advertised").hex(),
+            "0x" + keccak(cid).hex() if cid is not None else None,
+            _topic_address(advertiser) if advertiser is not None else None,
+        ]
+        logs = self._logs(self.registry, self.addresses.registry, topics, from_block)
+        return [self._advertised(log) for log in logs]
+
+    # ----- AnchorLog -----
+
+    def anchor(self, epoch: int, root: bytes, record_count: int) -> Anchor:
+        """Publish this storage node's TMT root for ``epoch`` (storage-node role needed)."""
+        receipt = self._send(
+            self.anchor_log, self.addresses.anchor_log, "anchor", epoch, root, record_count
+        )
+        return self._anchored(self._one_log(receipt, self.anchor_log, "Anchored"))
+
+    def anchor_at(self, node: str, epoch: int) -> Anchor | None:
+        """``node``'s anchor for ``epoch``, or None when it anchored nothing for it."""
+        target = checksum(node)
+        root, count, timestamp, block = self._call(
+            self.anchor_log, self.addresses.anchor_log, "anchorAt", target, epoch
+        )
+        if timestamp == 0:
+            return None
+        return Anchor(target, epoch, root, count, timestamp, block)
+
+    def latest_anchor(self, node: str) -> Anchor | None:
+        target = checksum(node)
+        if self._call(self.anchor_log, self.addresses.anchor_log, "anchorCount", target)[0] == 0:
+            return None
+        epoch = self._call(self.anchor_log, self.addresses.anchor_log, "latest", target)[0]
+        return self.anchor_at(target, epoch)
+
+    def anchors(
+        self, *, node: str | None = None, epoch: int | None = None, from_block: int = 0
+    ) -> list[Anchor]:
+        """Every ``Anchored`` event matching the filters, oldest first (``eth_getLogs``)."""
+        topics: list[str | None] = [
+            "0x" + self.anchor_log.event_topic("Anchored").hex(),
+            _topic_address(node) if node is not None else None,
+            _topic_uint(epoch) if epoch is not None else None,
+        ]
+        logs = self._logs(self.anchor_log, self.addresses.anchor_log, topics, from_block)
+        return [self._anchored(log) for log in logs]
+
+    # ----- internals -----
+
+    def _signer(self) -> Identity:
+        if self.identity is None:
+            raise MissingIdentityError("this ledger operation needs the robot's identity")
+        return self.identity
+
+    def _send(self, contract: ContractAbi, address: str, function: str, *args: Any) -> Receipt:
+        if self._transactor is None:
+            raise MissingIdentityError(f"{contract.name}.{function} must be signed by a robot")
+        return self._transactor.send(address, contract.encode_call(function, *args))
+
+    def _call(
+        self, contract: ContractAbi, address: str, function: str, *args: Any
+    ) -> tuple[Any, ...]:
+        call: dict[str, str] = {
+            "to": address,
+            "data": "0x" + contract.encode_call(function, *args).hex(),
+        }
+        try:
+            result = self.rpc.request("eth_call", [call, "latest"])
+        except RpcError as exc:
+            raise as_revert(exc, self._contracts) or exc from exc
+        return contract.decode_output(function, bytes.fromhex(str(result).removeprefix("0x")))
+
+    def _logs(
+        self, contract: ContractAbi, address: str, topics: list[str | None], from_block: int
+    ) -> list[DecodedLog]:
+        while topics and topics[-1] is None:
+            topics.pop()
+        query = {
+            "address": address,
+            "topics": topics,
+            "fromBlock": hex(from_block),
+            "toBlock": "latest",
+        }
+        raw_logs = self.rpc.request("eth_getLogs", [query])
+        decoded = [contract.decode_log(log) for log in raw_logs]
+        return [log for log in decoded if log is not None]
+
+    @staticmethod
+    def _one_log(receipt: Receipt, contract: ContractAbi, event: str) -> DecodedLog:
+        for raw in receipt.logs:
+            log = contract.decode_log(raw)
+            if log is not None and log.event == event:
+                return log
+        raise LedgerError(f"transaction {receipt.tx_hash} emitted no {event} event")
+
+    @staticmethod
+    def _advertised(log: DecodedLog) -> Advertised:
+        args = log.args
+        return Advertised(
+            cid=args["cid"],
+            advertiser=args["advertiser"],
+            description_cid=args["descriptionCid"],
+            first=args["first"],
+            timestamp=args["timestamp"],
+            block_number=log.block_number,
+            tx_hash=log.tx_hash,
+        )
+
+    @staticmethod
+    def _anchored(log: DecodedLog) -> Anchor:
+        args = log.args
+        return Anchor(
+            node=args["node"],
+            epoch=args["epoch"],
+            root=args["root"],
+            record_count=args["recordCount"],
+            timestamp=args["timestamp"],
+            block_number=log.block_number,
+            tx_hash=log.tx_hash,
+        )

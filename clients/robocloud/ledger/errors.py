@@ -1,0 +1,55 @@
+"""Errors of the ledger client, under the SDK's ``RobocloudError``.
+
+A robot mostly needs to tell three things apart: the node refused the request (``RpcError``),
+the contract refused the call (``RevertError``, with the contract's own reason), and the
+transaction was sent but not mined in time (``TransactionTimeoutError``, it may still land).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from robocloud.errors import RobocloudError
+
+
+class LedgerError(RobocloudError):
+    """Base of every ledger client error."""
+
+
+class RpcError(LedgerError):
+    """The node answered a JSON-RPC error object (bad transaction, wrong chain, nonce too low)."""
+
+    def __init__(self, method: str, code: int, message: str, data: Any = None) -> None:
+        super().__init__(f"{method}: {message} (JSON-RPC error {code})")
+        self.method = method
+        self.code = code
+        self.message = message
+        self.data = data
+
+
+class RevertError(LedgerError):
+    """The contract reverted; ``reason`` is its decoded reason (``Registry: ...``).
+
+    ``tx_hash`` is set when a mined transaction reverted, and is None when the revert was found
+    before sending (by ``eth_estimateGas`` or ``eth_call``), in which case nothing was sent.
+    """
+
+    def __init__(self, reason: str, *, tx_hash: str | None = None, data: bytes = b"") -> None:
+        where = f" in transaction {tx_hash}" if tx_hash else ""
+        super().__init__(f"reverted{where}: {reason}")
+        self.reason = reason
+        self.tx_hash = tx_hash
+        self.data = data
+
+
+class TransactionTimeoutError(LedgerError):
+    """No receipt within the timeout; the transaction may still be mined later."""
+
+    def __init__(self, tx_hash: str, timeout_s: float) -> None:
+        super().__init__(f"no receipt for {tx_hash} after {timeout_s:g} s")
+        self.tx_hash = tx_hash
+        self.timeout_s = timeout_s
+
+
+class ContractsUnavailableError(LedgerError):
+    """The ledger service did not say where the contracts are deployed."""
