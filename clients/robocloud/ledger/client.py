@@ -37,14 +37,16 @@ class ContractAddresses:
     def from_service(cls, body: Any) -> ContractAddresses:
         """Parse ``GET /v1/contracts``: ``{"contracts": {"Registry": {"address": ...}, ...}}``."""
         contracts = body.get("contracts") if isinstance(body, dict) else None
-        try:
-            registry = contracts["Registry"]["address"]  # type: ignore[index]
-            anchor_log = contracts["AnchorLog"]["address"]  # type: ignore[index]
-        except (KeyError, TypeError) as exc:
+        found = {
+            name: entry.get("address")
+            for name, entry in (contracts if isinstance(contracts, dict) else {}).items()
+            if isinstance(entry, dict)
+        }
+        if not (found.get("Registry") and found.get("AnchorLog")):
             raise ContractsUnavailableError(
                 f"the ledger's /v1/contracts lacks Registry or AnchorLog addresses: {body!r}"
-            ) from exc
-        return cls(checksum(registry), checksum(anchor_log))
+            )
+        return cls(checksum(found["Registry"]), checksum(found["AnchorLog"]))
 
 
 def checksum(address: object) -> str:
