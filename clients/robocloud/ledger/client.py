@@ -25,8 +25,6 @@ from robocloud.ledger.models import Advertised, Advertisement, Anchor, Robot, Ro
 from robocloud.ledger.rpc import JsonRpcClient, as_revert
 from robocloud.ledger.transactions import Receipt, Transactor, quantity
 
-ZERO_ADDRESS = "0x" + "00" * 20
-
 
 @dataclass(frozen=True)
 class ContractAddresses:
@@ -102,7 +100,11 @@ class Ledger:
         """Through the ledger service: its ``/rpc``, its contract addresses and its faucet."""
         base = (ledger_url or service_url("ledger")).rstrip("/")
         service = ServiceClient(base, identity, transport=transport)
-        addresses = ContractAddresses.from_service(service.get_json("/v1/contracts"))
+        try:
+            addresses = ContractAddresses.from_service(service.get_json("/v1/contracts"))
+        except BaseException:
+            service.close()
+            raise
         rpc = JsonRpcClient(f"{base}/rpc", transport=transport)
         return cls(rpc, addresses, identity, service=service, receipt_timeout_s=receipt_timeout_s)
 
