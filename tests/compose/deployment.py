@@ -1,0 +1,108 @@
+"""The Compose deployment under test, as ``scripts/test-compose.sh`` describes it.
+
+The script deploys, then runs pytest with the deployment in the environment: the services'
+published URLs in the SDK's own ``ROBOCLOUD_<SERVICE>_URL`` variables, the Compose project and
+file (so tests can restart containers), and the key of the identity the deployment lets write.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+
+from robocloud.client import ServiceClient
+from robocloud.config import SERVICES, service_url
+from robocloud.identity import Identity
+
+REQUIRED_ENV = ("ROBOCLOUD_COMPOSE_PROJECT", "ROBOCLOUD_COMPOSE_FILE", "ROBOCLOUD_COMPOSE_KEY")
+
+
+class DeploymentMissingError(RuntimeError):
+    """The tests were started without a deployment; they must fail, never skip."""
+
+
+@dataclass(frozen=True)
+class Deployment:
+    """Published service URLs, the Compose project, and the identity allowed to write."""
+
+    project: str
+    compose_file: str
+    urls: dict[str, str]
+    identity: Identity
+
+    @classmethod
+    def from_env(cls) -> Deployment:
+        missing = [name for name in REQUIRED_ENV if not os.environ.get(name)]
+        if missing:
+            raise DeploymentMissingError(
+                f"{', '.join(missing)} not set: run these tests with `make test-compose`"
+            )
+        return cls(
+            project=os.environ["ROBOCLOUD_COMPOSE_PROJECT"],
+            compose_file=os.environ["ROBOCLOUD_COMPOSE_FILE"],
+            urls={name: service_url(name) for name in SERVICES},
+            identity=Identity.from_key(os.environ["ROBOCLOUD_COMPOSE_KEY"]),
+        )
+
+    def client(self, service: str, identity: Identity | None = None) -> ServiceClient:
+        """An SDK client for one service, signing as the deployment's identity by default."""
+        return ServiceClient(self.urls[service], identity or self.identity, timeout=10)
+
+    def compose(self, *args: str, timeout_s: float = 120) -> str:
+        """Run ``docker compose`` on the deployment's project; fail with its output."""
+        command = ["docker", "compose", "--project-name", self.project, "--file"]
+        result = subprocess.run(
+            [*command, self.compose_file, *args],
+            capture_output=True,
+            text=True,
+            timeout=timeout_s,
+            check=False,
+        )
+        if result.returncode != 0:
+            raise RuntimeError(f"docker compose {' '.join(args)} failed:\n{result.stderr}")
+        return result.stdout
+
+    def restart(self, services: Sequence[str] = (), timeout_s: float = 60) -> None:
+        """``docker compose restart`` (all services by default), then wait until ready."""
+        self.compose("restart", *services)
+        self.wait_ready(services or list(SERVICES), timeout_s)
+
+    def recreate(self, timeout_s: float = 180) -> None:
+        """New containers from the same image and volumes: only what is in a volume survives."""
+        self.compose(
+            "up", "--detach", "--wait", "--no-build", "--force-recreate", timeout_s=timeout_s
+        )
+        self.wait_ready(list(SERVICES))
+
+    def container(self, service: str) -> dict[str, Any]:
+        """``docker inspect`` of the service's container."""
+        container_id = self.compose("ps", "--quiet", service).strip()
+        if not container_id:
+            raise RuntimeError(f"no container for {service} in project {self.project}")
+        inspected = subprocess.run(
+            ["docker", "inspect", container_id], capture_output=True, text=True, check=True
+        )
+        return dict(json.loads(inspected.stdout)[0])
+
+    def wait_ready(self, services: Sequence[str], timeout_s: float = 60) -> None:
+        """Poll each service's ``/readyz`` through its published port."""
+        deadline = time.monotonic() + timeout_s
+        for service in services:
+            while not self._ready(service):
+                if time.monotonic() > deadline:
+                    logs = self.compose("logs", "--no-color", "--tail", "40", service)
+                    raise TimeoutError(f"{service} not ready after {timeout_s} s:\n{logs}")
+                time.sleep(0.2)
+
+    def _ready(self, service: str) -> bool:
+        try:
+            return httpx.get(f"{self.urls[service]}/readyz", timeout=2).status_code == 200
+        except httpx.HTTPError:
+            return False
