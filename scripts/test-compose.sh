@@ -108,7 +108,8 @@ run_tests() {
 main() {
     cd "${REPO_ROOT}"
     mkdir -p "${BUILD_DIR}"
-    exec 9>"${BUILD_DIR}/test-compose.lock"
+    # Machine-wide: every clone shares the one engine and the project name.
+    exec 9>"${TMPDIR:-/tmp}/robocloud-test-compose.lock"
     log "waiting for the test-compose lock"
     flock --timeout 1800 9 || die "another test-compose run held the lock for 30 minutes"
     trap finish EXIT
