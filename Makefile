@@ -4,6 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+NODE_STAMP := contracts/node_modules/.package-lock.json
 
 .PHONY: up test lint test-compose bench demo lock clean
 
@@ -13,6 +14,11 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet --constraint constraints.txt --editable ".[services,dev]"
 	touch $(STAMP)
 
+# solc-js (to check the committed contract artifacts) and anvil (a real Ethereum node for the
+# SDK and external-node tests), pinned in contracts/package-lock.json.
+$(NODE_STAMP): contracts/package-lock.json
+	npm ci --prefix contracts --no-audit --no-fund
+
 up: $(STAMP)
 	$(PY) -m services.common.supervisor
 
@@ -21,7 +27,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
-test: lint
+test: lint $(NODE_STAMP)
 	$(VENV)/bin/pytest
 
 test-compose: $(STAMP)
