@@ -7,6 +7,7 @@
 ARG BASE_IMAGE=python:3.11-slim
 
 FROM ${BASE_IMAGE} AS build
+LABEL org.robocloud.image=robocloud
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PIP_NO_CACHE_DIR=1 \
     PATH=/opt/robocloud/bin:$PATH
@@ -27,7 +28,8 @@ RUN if ls /build/wheels/*.whl >/dev/null 2>&1; then \
 
 # The runtime stage carries the venv and the source tree (for data files that services find
 # beside their code, such as contracts/build), never the wheelhouse.
-FROM ${BASE_IMAGE}
+FROM ${BASE_IMAGE} AS runtime
+LABEL org.robocloud.image=robocloud
 ENV PATH=/opt/robocloud/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     ROBOCLOUD_HOST=0.0.0.0 \

@@ -73,12 +73,19 @@ timed() {
     log "$1 took $((SECONDS - started)) s"
 }
 
+# The build stage is tagged too, so that pruning the images a rebuild left untagged never
+# removes the cached dependency layer it sits on.
 build_image() {
-    local base
+    local base stage
     base="$(ensure_base_image)"
     log "building ${ROBOCLOUD_IMAGE} on ${base}"
-    docker build --quiet --tag "${ROBOCLOUD_IMAGE}" --build-arg "BASE_IMAGE=${base}" \
-        "${REPO_ROOT}" >/dev/null || die "docker build failed"
+    for stage in build runtime; do
+        local tag="${ROBOCLOUD_IMAGE}"
+        [[ "${stage}" == build ]] && tag="${ROBOCLOUD_IMAGE}-build"
+        docker build --quiet --target "${stage}" --tag "${tag}" \
+            --build-arg "BASE_IMAGE=${base}" "${REPO_ROOT}" >/dev/null || die "docker build failed"
+    done
+    docker image prune --force --filter "label=org.robocloud.image=robocloud" >/dev/null
 }
 
 deploy() {
