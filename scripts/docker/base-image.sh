@@ -1,3 +1,4 @@
+#!/usr/bin/env bash
 # Picks the base image for the Dockerfile's BASE_IMAGE: an explicit ROBOCLOUD_BASE_IMAGE, else
 # python:3.11-slim when it is present or can be pulled, else an offline Debian bookworm image
 # with Debian's python3.11 built by debootstrap from the apt mirror (ENVIRONMENT.md), because

@@ -1,5 +1,7 @@
+# shellcheck shell=bash disable=SC2034
 # Shared by the scripts in scripts/docker/: paths, logging and failing loudly.
-# Sourced, never run: it only defines variables and functions.
+# Sourced, never run: it only defines variables (used by the sourcing scripts, hence SC2034)
+# and functions.
 
 REPO_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 # Everything generated for a build lives here; it is git-ignored and sent in the build context

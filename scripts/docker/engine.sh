@@ -1,3 +1,4 @@
+#!/usr/bin/env bash
 # The Docker engine and Compose v2, installed and started when missing (ENVIRONMENT.md).
 # Sourced by scripts/test-compose.sh; `bash scripts/docker/engine.sh` alone sets both up and
 # leaves the engine running.

@@ -1,3 +1,4 @@
+#!/usr/bin/env bash
 # Builds the wheelhouse the Dockerfile installs from, so the image builds with no registry:
 # every pinned dependency of the `services` extra (constraints.txt) as a wheel, plus the build
 # backend (setuptools, wheel) needed to install the project itself offline. It is rebuilt only
