@@ -74,6 +74,27 @@ def test_ports_are_published_on_loopback_only(deployment: Deployment) -> None:
         assert [binding["HostIp"] for binding in bindings] == ["127.0.0.1"]
 
 
+PEER_PROBE = """
+import json, os, urllib.request
+names = ("CAS", "LEDGER", "STORAGE", "BROKER", "FL")
+urls = {name: os.environ[f"ROBOCLOUD_{name}_URL"] for name in names}
+print(json.dumps({
+    name: [url, json.load(urllib.request.urlopen(f"{url}/healthz", timeout=5))["service"]]
+    for name, url in urls.items()
+}))
+"""
+
+
+def test_services_reach_their_peers_by_service_name(deployment: Deployment) -> None:
+    """Peers are configured as http://<service>:<port> and resolve on the compose network."""
+    expected = {
+        service.upper(): [f"http://{service}:{port}", service] for service, port in SERVICES.items()
+    }
+    for service in SERVICES:
+        answer = deployment.compose("exec", "-T", service, "python3", "-c", PEER_PROBE)
+        assert json.loads(answer) == expected
+
+
 def test_signed_whoami_answers_the_signer_on_every_service(deployment: Deployment) -> None:
     for service in SERVICES:
         with deployment.client(service) as client:
