@@ -1,0 +1,191 @@
+"""Content identifiers (CIDv0 and CIDv1) with sha2-256 and identity multihashes.
+
+A robot trusts nothing but the CID: :meth:`CID.verify` is the check every fetched block
+passes. Text forms are multibase base32 lower case (``b...``) for CIDv1 and base58btc
+(``Qm...``) for CIDv0; ``z`` (base58btc) and ``f`` (base16) CIDv1 text is accepted as input.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+from dataclasses import dataclass
+
+RAW = 0x55
+DAG_PB = 0x70
+DAG_CBOR = 0x71
+SHA2_256 = 0x12
+IDENTITY = 0x00
+CODEC_NAMES = {RAW: "raw", DAG_PB: "dag-pb", DAG_CBOR: "dag-cbor"}
+MAX_IDENTITY_DIGEST = 128
+_B58 = "123456789ABCDEFGHJKLMNPQRSTUVWXYZabcdefghijkmnopqrstuvwxyz"
+_B58_INDEX = {c: i for i, c in enumerate(_B58)}
+
+
+class CIDError(ValueError):
+    """A CID that cannot be parsed, or a block that does not match its CID."""
+
+
+def encode_varint(value: int) -> bytes:
+    """Unsigned LEB128, as multiformats and protobuf use it."""
+    if value < 0:
+        raise ValueError("varints are unsigned")
+    out = bytearray()
+    while True:
+        byte = value & 0x7F
+        value >>= 7
+        if value:
+            out.append(byte | 0x80)
+        else:
+            out.append(byte)
+            return bytes(out)
+
+
+def decode_varint(data: bytes | memoryview, offset: int = 0) -> tuple[int, int]:
+    """``(value, next offset)``; raises ``ValueError`` on a truncated or oversized varint."""
+    value = shift = 0
+    for index in range(offset, min(len(data), offset + 10)):
+        byte = data[index]
+        value |= (byte & 0x7F) << shift
+        if not byte & 0x80:
+            return value, index + 1
+        shift += 7
+    raise ValueError("truncated or oversized varint")
+
+
+def b58encode(data: bytes) -> str:
+    number = int.from_bytes(data, "big")
+    out = ""
+    while number:
+        number, rem = divmod(number, 58)
+        out = _B58[rem] + out
+    return "1" * (len(data) - len(data.lstrip(b"\0"))) + out
+
+
+def b58decode(text: str) -> bytes:
+    number = 0
+    for char in text:
+        if char not in _B58_INDEX:
+            raise ValueError(f"{char!r} is not a base58btc character")
+        number = number * 58 + _B58_INDEX[char]
+    body = number.to_bytes((number.bit_length() + 7) // 8, "big")
+    return b"\0" * (len(text) - len(text.lstrip("1"))) + body
+
+
+@dataclass(frozen=True, slots=True)
+class CID:
+    """A parsed CID; ``multihash`` holds the whole multihash (code, length, digest)."""
+
+    version: int
+    codec: int
+    multihash: bytes
+
+    @classmethod
+    def decode(cls, text: str) -> CID:
+        """Parse a CID's text form, raising :class:`CIDError` that quotes it."""
+        try:
+            if len(text) == 46 and text.startswith("Qm"):
+                return cls.from_bytes(b58decode(text))
+            prefix, body = text[:1], text[1:]
+            if prefix == "b":
+                padded = body.upper() + "=" * (-len(body) % 8)
+                binary = base64.b32decode(padded)
+            elif prefix == "B":
+                binary = base64.b32decode(body + "=" * (-len(body) % 8))
+            elif prefix == "z":
+                binary = b58decode(body)
+            elif prefix in ("f", "F"):
+                binary = bytes.fromhex(body)
+            else:
+                raise ValueError("unsupported multibase prefix")
+            cid = cls.from_bytes(binary)
+        except (ValueError, TypeError) as exc:
+            raise CIDError(f"invalid CID {text!r}: {exc}") from exc
+        if cid.version == 0:
+            raise CIDError(f"invalid CID {text!r}: CIDv0 is only written in base58btc")
+        return cid
+
+    @classmethod
+    def from_bytes(cls, binary: bytes) -> CID:
+        """Parse a binary CID (as stored on chain and in CAR files)."""
+        cid, end = cls.read(binary, 0)
+        if end != len(binary):
+            raise CIDError(f"{len(binary) - end} trailing bytes after the CID")
+        return cid
+
+    @classmethod
+    def read(cls, data: bytes | memoryview, offset: int) -> tuple[CID, int]:
+        """Parse a binary CID at ``offset``; return it and the offset after it."""
+        try:
+            if data[offset : offset + 2] == b"\x12\x20":
+                end = offset + 34
+                if end > len(data):
+                    raise ValueError("truncated CIDv0")
+                return cls(0, DAG_PB, bytes(data[offset:end])), end
+            version, pos = decode_varint(data, offset)
+            if version != 1:
+                raise ValueError(f"unsupported CID version {version}")
+            codec, pos = decode_varint(data, pos)
+            code, digest_at = decode_varint(data, pos)
+            size, digest_at = decode_varint(data, digest_at)
+        except (ValueError, IndexError) as exc:
+            raise CIDError(f"invalid binary CID: {exc}") from exc
+        _check_multihash(code, size)
+        end = digest_at + size
+        if end > len(data):
+            raise CIDError("invalid binary CID: truncated digest")
+        return cls(1, codec, bytes(data[pos:end])), end
+
+    @classmethod
+    def from_block(cls, data: bytes | memoryview, codec: int = RAW, version: int = 1) -> CID:
+        """The sha2-256 CID of a block."""
+        if version == 0 and codec != DAG_PB:
+            raise CIDError("CIDv0 is always dag-pb")
+        return cls(version, codec, b"\x12\x20" + hashlib.sha256(data).digest())
+
+    @property
+    def hash_code(self) -> int:
+        return decode_varint(self.multihash)[0]
+
+    @property
+    def digest(self) -> bytes:
+        _, pos = decode_varint(self.multihash)
+        _, pos = decode_varint(self.multihash, pos)
+        return self.multihash[pos:]
+
+    @property
+    def bytes(self) -> bytes:
+        """The binary form (what goes on chain and into CAR files)."""
+        if self.version == 0:
+            return self.multihash
+        return encode_varint(1) + encode_varint(self.codec) + self.multihash
+
+    def verify(self, data: bytes | memoryview) -> None:
+        """Raise :class:`CIDError` unless ``data`` is the block this CID names."""
+        code = self.hash_code
+        if code == IDENTITY:
+            matches = bytes(data) == self.digest
+        else:
+            matches = hashlib.sha256(data).digest() == self.digest
+        if not matches:
+            raise CIDError(f"block does not match CID {self}")
+
+    def to_v1(self) -> CID:
+        return CID(1, self.codec, self.multihash)
+
+    def __str__(self) -> str:
+        if self.version == 0:
+            return b58encode(self.multihash)
+        return "b" + base64.b32encode(self.bytes).decode().lower().rstrip("=")
+
+    def __repr__(self) -> str:
+        return f"CID({self})"
+
+
+def _check_multihash(code: int, size: int) -> None:
+    if code == SHA2_256 and size != 32:
+        raise CIDError(f"sha2-256 digest must be 32 bytes, not {size}")
+    if code == IDENTITY and size > MAX_IDENTITY_DIGEST:
+        raise CIDError(f"identity digest of {size} bytes exceeds {MAX_IDENTITY_DIGEST}")
+    if code not in (SHA2_256, IDENTITY):
+        raise CIDError(f"unsupported multihash 0x{code:x}: only sha2-256 and identity")
