@@ -154,7 +154,7 @@ class CID:
         return self.multihash[pos:]
 
     @property
-    def bytes(self) -> bytes:
+    def binary(self) -> bytes:
         """The binary form (what goes on chain and into CAR files)."""
         if self.version == 0:
             return self.multihash
@@ -176,7 +176,7 @@ class CID:
     def __str__(self) -> str:
         if self.version == 0:
             return b58encode(self.multihash)
-        return "b" + base64.b32encode(self.bytes).decode().lower().rstrip("=")
+        return "b" + base64.b32encode(self.binary).decode().lower().rstrip("=")
 
     def __repr__(self) -> str:
         return f"CID({self})"
