@@ -1,0 +1,414 @@
+"""UnixFS over dag-pb: the importer that gives a file its IPFS CID, and the reader.
+
+The importer reproduces ``ipfs add``: fixed-size chunks, a balanced tree with at most
+``max_links`` links per node, raw leaves with CIDv1. It is incremental (``feed`` and
+``finish``) so a server can hash an upload while it streams in, holding one chunk plus one
+pending link list per tree level. The reader streams a file's bytes, or a byte range of them,
+touching only the blocks the range needs (UnixFS ``blocksizes`` say where each child starts).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from robocloud.cid import CID, DAG_PB, RAW, CIDError, decode_varint, encode_varint
+
+DEFAULT_CHUNK_SIZE = 262_144
+DEFAULT_MAX_LINKS = 174
+MAX_CHUNK_SIZE = 2 * 1024 * 1024
+PROFILES: dict[str, tuple[int, int, bool, int]] = {
+    # name: (cid_version, chunk size, raw leaves, max links)
+    "unixfs-v0-2015": (0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS),
+    "unixfs-v1-2025": (1, 1_048_576, True, 1024),
+}
+
+# UnixFS Data.Type
+RAW_TYPE, DIRECTORY, FILE, METADATA, SYMLINK, HAMT_SHARD = range(6)
+
+
+class UnixfsError(ValueError):
+    """Bad import parameters, or a block that is not valid dag-pb/UnixFS."""
+
+
+class Block(NamedTuple):
+    cid: CID
+    data: bytes
+
+
+GetBlock = Callable[[CID], bytes]
+
+
+@dataclass(frozen=True)
+class ImportParams:
+    cid_version: int = 1
+    raw_leaves: bool = True
+    chunk_size: int = DEFAULT_CHUNK_SIZE
+    max_links: int = DEFAULT_MAX_LINKS
+
+    def __post_init__(self) -> None:
+        if self.cid_version not in (0, 1):
+            raise UnixfsError(f"cid-version must be 0 or 1, not {self.cid_version}")
+        if not 1 <= self.chunk_size <= MAX_CHUNK_SIZE:
+            raise UnixfsError(f"chunk size must be between 1 and {MAX_CHUNK_SIZE} bytes")
+        if self.max_links < 2:
+            raise UnixfsError("a node needs room for at least 2 links")
+
+    @classmethod
+    def from_options(
+        cls,
+        cid_version: int | None = None,
+        raw_leaves: bool | None = None,
+        chunker: str | None = None,
+        profile: str | None = None,
+    ) -> ImportParams:
+        """kubo's semantics: ``--cid-version=1`` implies raw leaves unless said otherwise."""
+        version, chunk, raw, links = 0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS
+        if profile is not None:
+            if profile not in PROFILES:
+                raise UnixfsError(f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
+            version, chunk, raw, links = PROFILES[profile]
+        if cid_version is not None:
+            version = cid_version
+            raw = raw or cid_version == 1
+        if raw_leaves is not None:
+            raw = raw_leaves
+        if chunker is not None:
+            chunk = parse_chunker(chunker)
+        return cls(version, raw, chunk, links)
+
+
+def parse_chunker(chunker: str) -> int:
+    """``size-N`` is the only chunker supported (rabin and buzhash are not)."""
+    name, _, size = chunker.partition("-")
+    if name != "size" or not size.isdigit():
+        raise UnixfsError(f"unsupported chunker {chunker!r}: expected size-<bytes>")
+    value = int(size)
+    if not 1 <= value <= MAX_CHUNK_SIZE:
+        raise UnixfsError(f"chunker size must be between 1 and {MAX_CHUNK_SIZE} bytes")
+    return value
+
+
+# ---- protobuf, just the two messages dag-pb and UnixFS need ----
+
+
+def _key(field_number: int, wire_type: int) -> bytes:
+    return encode_varint(field_number << 3 | wire_type)
+
+
+def _len_field(field_number: int, payload: bytes) -> bytes:
+    return _key(field_number, 2) + encode_varint(len(payload)) + payload
+
+
+def _uint_field(field_number: int, value: int) -> bytes:
+    return _key(field_number, 0) + encode_varint(value)
+
+
+def _fields(data: bytes) -> Iterator[tuple[int, int | bytes]]:
+    """Decode protobuf fields as ``(field number, int or bytes)``; varint and length only."""
+    pos = 0
+    while pos < len(data):
+        key, pos = decode_varint(data, pos)
+        number, wire = key >> 3, key & 7
+        if wire == 0:
+            value, pos = decode_varint(data, pos)
+            yield number, value
+        elif wire == 2:
+            size, pos = decode_varint(data, pos)
+            if pos + size > len(data):
+                raise UnixfsError("truncated protobuf field")
+            yield number, data[pos : pos + size]
+            pos += size
+        else:
+            raise UnixfsError(f"unsupported protobuf wire type {wire}")
+
+
+@dataclass
+class Link:
+    cid: CID
+    name: str
+    tsize: int
+
+
+@dataclass
+class UnixfsData:
+    type: int
+    data: bytes = b""
+    filesize: int | None = None
+    blocksizes: list[int] = field(default_factory=list)
+
+    def encode(self) -> bytes:
+        out = _uint_field(1, self.type)
+        if self.data:
+            out += _len_field(2, self.data)
+        if self.filesize is not None:
+            out += _uint_field(3, self.filesize)
+        for size in self.blocksizes:
+            out += _uint_field(4, size)
+        return out
+
+    @classmethod
+    def decode(cls, raw: bytes) -> UnixfsData:
+        node = cls(type=-1)
+        for number, value in _fields(raw):
+            if number == 1 and isinstance(value, int):
+                node.type = value
+            elif number == 2 and isinstance(value, bytes):
+                node.data = value
+            elif number == 3 and isinstance(value, int):
+                node.filesize = value
+            elif number == 4 and isinstance(value, int):
+                node.blocksizes.append(value)
+            elif number == 4 and isinstance(value, bytes):  # packed encoding
+                pos = 0
+                while pos < len(value):
+                    size, pos = decode_varint(value, pos)
+                    node.blocksizes.append(size)
+        if node.type < 0:
+            raise UnixfsError("UnixFS data without a type")
+        return node
+
+
+@dataclass
+class PBNode:
+    links: list[Link]
+    data: bytes | None
+
+    def encode(self) -> bytes:
+        """dag-pb's canonical order: every link, then the data."""
+        out = bytearray()
+        for link in self.links:
+            body = _len_field(1, link.cid.binary) + _len_field(2, link.name.encode())
+            body += _uint_field(3, link.tsize)
+            out += _len_field(2, body)
+        if self.data is not None:
+            out += _len_field(1, self.data)
+        return bytes(out)
+
+    @classmethod
+    def decode(cls, raw: bytes) -> PBNode:
+        links: list[Link] = []
+        data: bytes | None = None
+        try:
+            for number, value in _fields(raw):
+                if number == 2 and isinstance(value, bytes):
+                    links.append(_decode_link(value))
+                elif number == 1 and isinstance(value, bytes):
+                    data = value
+                else:
+                    raise UnixfsError(f"unexpected dag-pb field {number}")
+        except (ValueError, CIDError) as exc:
+            raise UnixfsError(f"invalid dag-pb node: {exc}") from exc
+        return cls(links, data)
+
+
+def _decode_link(raw: bytes) -> Link:
+    cid: CID | None = None
+    name, tsize = "", 0
+    for number, value in _fields(raw):
+        if number == 1 and isinstance(value, bytes):
+            cid = CID.from_bytes(value)
+        elif number == 2 and isinstance(value, bytes):
+            name = value.decode()
+        elif number == 3 and isinstance(value, int):
+            tsize = value
+    if cid is None:
+        raise UnixfsError("dag-pb link without a hash")
+    return Link(cid, name, tsize)
+
+
+# ---- importer ----
+
+
+@dataclass
+class _Child:
+    cid: CID
+    tsize: int
+    filesize: int
+
+
+class Importer:
+    """Turns a byte stream into UnixFS blocks, exactly as ``ipfs add`` does.
+
+    A child is appended to level ``k``; when that level already holds ``max_links`` children,
+    they first become one node appended to level ``k + 1``. Flushing only when another child
+    arrives yields go-unixfs's balanced layout: full subtrees on the left, the file's tail on
+    the right spine.
+    """
+
+    def __init__(self, params: ImportParams | None = None) -> None:
+        self.params = params or ImportParams()
+        self._buffer = bytearray()
+        self._levels: list[list[_Child]] = [[]]
+        self._size = 0
+        self._finished = False
+
+    def feed(self, data: bytes | memoryview) -> list[Block]:
+        if self._finished:
+            raise UnixfsError("importer already finished")
+        self._buffer += data
+        blocks: list[Block] = []
+        size = self.params.chunk_size
+        if len(self._buffer) < size:
+            return blocks
+        view = memoryview(self._buffer)
+        whole = len(self._buffer) - len(self._buffer) % size
+        try:
+            for start in range(0, whole, size):
+                self._leaf(bytes(view[start : start + size]), blocks)
+        finally:
+            view.release()
+        del self._buffer[:whole]
+        return blocks
+
+    def finish(self) -> tuple[list[Block], CID, int]:
+        """The remaining blocks, the root CID and the file size."""
+        if self._finished:
+            raise UnixfsError("importer already finished")
+        self._finished = True
+        blocks: list[Block] = []
+        if self._buffer or self._size == 0:
+            self._leaf(bytes(self._buffer), blocks)
+            self._buffer.clear()
+        level = 0
+        while True:
+            children = self._levels[level]
+            if level == len(self._levels) - 1 and len(children) == 1:
+                return blocks, children[0].cid, self._size
+            self._append(level + 1, self._node(children, blocks), blocks)
+            level += 1
+
+    def _leaf(self, chunk: bytes, blocks: list[Block]) -> None:
+        self._size += len(chunk)
+        if self.params.raw_leaves:
+            cid = CID.from_block(chunk, RAW, 1)
+            block = Block(cid, chunk)
+        else:
+            unixfs = UnixfsData(FILE, chunk, len(chunk))
+            encoded = PBNode([], unixfs.encode()).encode()
+            block = Block(CID.from_block(encoded, DAG_PB, self.params.cid_version), encoded)
+        blocks.append(block)
+        self._append(0, _Child(block.cid, len(block.data), len(chunk)), blocks)
+
+    def _append(self, level: int, child: _Child, blocks: list[Block]) -> None:
+        if level == len(self._levels):
+            self._levels.append([])
+        if len(self._levels[level]) == self.params.max_links:
+            self._append(level + 1, self._node(self._levels[level], blocks), blocks)
+            self._levels[level] = []
+        self._levels[level].append(child)
+
+    def _node(self, children: list[_Child], blocks: list[Block]) -> _Child:
+        sizes = [child.filesize for child in children]
+        unixfs = UnixfsData(FILE, b"", sum(sizes), sizes)
+        links = [Link(child.cid, "", child.tsize) for child in children]
+        encoded = PBNode(links, unixfs.encode()).encode()
+        cid = CID.from_block(encoded, DAG_PB, self.params.cid_version)
+        blocks.append(Block(cid, encoded))
+        tsize = len(encoded) + sum(child.tsize for child in children)
+        return _Child(cid, tsize, sum(sizes))
+
+
+def import_bytes(data: bytes, params: ImportParams | None = None) -> tuple[list[Block], CID]:
+    """Import a whole byte string at once (small files, tests)."""
+    importer = Importer(params)
+    blocks = importer.feed(data)
+    tail, root, _ = importer.finish()
+    return blocks + tail, root
+
+
+# ---- reader ----
+
+
+def decode_node(cid: CID, data: bytes) -> tuple[PBNode, UnixfsData]:
+    node = PBNode.decode(data)
+    if node.data is None:
+        raise UnixfsError(f"{cid} is dag-pb without UnixFS data")
+    return node, UnixfsData.decode(node.data)
+
+
+def file_size(root: CID, get_block: GetBlock) -> int:
+    """The size of a file's content, from its root block alone."""
+    data = get_block(root)
+    if root.codec == RAW:
+        return len(data)
+    _, unixfs = decode_node(root, data)
+    if unixfs.type not in (FILE, RAW_TYPE):
+        raise UnixfsError(f"{root} is not a file (UnixFS type {unixfs.type})")
+    if unixfs.filesize is not None:
+        return unixfs.filesize
+    return len(unixfs.data) + sum(unixfs.blocksizes)
+
+
+def read_file(
+    root: CID, get_block: GetBlock, offset: int = 0, length: int | None = None
+) -> Iterator[bytes]:
+    """Stream ``length`` bytes of a file from ``offset`` (to the end when ``length`` is None)."""
+    end = None if length is None else offset + length
+    yield from _read(root, get_block, offset, end)
+
+
+def _read(cid: CID, get_block: GetBlock, start: int, end: int | None) -> Iterator[bytes]:
+    if end is not None and end <= start:
+        return
+    data = get_block(cid)
+    if cid.codec == RAW:
+        yield data[start:end]
+        return
+    if cid.codec != DAG_PB:
+        raise UnixfsError(f"{cid} is neither raw nor dag-pb")
+    node, unixfs = decode_node(cid, data)
+    if unixfs.type not in (FILE, RAW_TYPE):
+        raise UnixfsError(f"{cid} is not a file (UnixFS type {unixfs.type})")
+    if len(unixfs.blocksizes) != len(node.links):
+        raise UnixfsError(f"{cid} has {len(node.links)} links but {len(unixfs.blocksizes)} sizes")
+    position = len(unixfs.data)
+    if unixfs.data and start < position:
+        yield unixfs.data[start:end]
+    for link, size in zip(node.links, unixfs.blocksizes, strict=True):
+        child_end = position + size
+        if end is not None and position >= end:
+            return
+        if child_end > start:
+            local_end = None if end is None or end >= child_end else end - position
+            yield from _read(link.cid, get_block, max(0, start - position), local_end)
+        position = child_end
+
+
+def list_directory(root: CID, get_block: GetBlock) -> list[Link]:
+    """The entries of a (non-sharded) UnixFS directory."""
+    node, unixfs = decode_node(root, get_block(root))
+    if unixfs.type != DIRECTORY:
+        raise UnixfsError(f"{root} is not a directory (UnixFS type {unixfs.type})")
+    return node.links
+
+
+def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Block]:
+    """Blocks in CAR order (depth first, links in order, each block once).
+
+    ``block``: the root only. ``entity``: the whole file, or a directory's own nodes (HAMT
+    shards included) without its entries' content. ``all``: everything reachable.
+    """
+    if scope not in ("block", "entity", "all"):
+        raise UnixfsError(f"unknown dag-scope {scope!r}: expected block, entity or all")
+    seen: set[CID] = set()
+    stack: list[tuple[CID, bool]] = [(root, True)]
+    while stack:
+        cid, is_root = stack.pop()
+        if cid in seen:
+            continue
+        seen.add(cid)
+        data = get_block(cid)
+        yield Block(cid, data)
+        if scope == "block" or cid.codec != DAG_PB:
+            continue
+        node = PBNode.decode(data)
+        children = [link.cid for link in node.links]
+        if scope == "entity" and node.data is not None:
+            kind = UnixfsData.decode(node.data).type
+            if kind == DIRECTORY or (kind == HAMT_SHARD and not is_root):
+                children = []
+            elif kind == HAMT_SHARD:
+                children = [link.cid for link in node.links if len(link.name) == 2]
+        stack.extend((child, False) for child in reversed(children))
