@@ -1,0 +1,104 @@
+"""CIDs: text and binary forms, verification, and clear errors for bad input."""
+
+from __future__ import annotations
+
+import pytest
+
+from robocloud.cid import (
+    CID,
+    DAG_PB,
+    RAW,
+    CIDError,
+    b58decode,
+    b58encode,
+    decode_varint,
+    encode_varint,
+)
+
+HELLO = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
+EMPTY_DIR_V0 = "QmUNLLsPACCz1vLxQVkXqqLX5R1X345qqfHbsf67hvA3Nn"
+
+
+def test_hello_world_is_the_documented_raw_cid() -> None:
+    cid = CID.from_block(b"Hello world")
+    assert str(cid) == HELLO
+    assert (cid.version, cid.codec) == (1, RAW)
+    assert CID.decode(HELLO) == cid
+
+
+def test_binary_form_round_trips() -> None:
+    cid = CID.decode(HELLO)
+    assert cid.binary[:2] == b"\x01\x55"
+    assert CID.from_bytes(cid.binary) == cid
+    assert CID.read(cid.binary + b"tail", 0) == (cid, len(cid.binary))
+
+
+def test_v0_is_base58_dag_pb_and_converts_to_v1() -> None:
+    cid = CID.decode(EMPTY_DIR_V0)
+    assert (cid.version, cid.codec) == (0, DAG_PB)
+    assert str(cid) == EMPTY_DIR_V0
+    assert cid.binary == cid.multihash
+    assert str(cid.to_v1()) == "bafybeiczsscdsbs7ffqz55asqdf3smv6klcw3gofszvwlyarci47bgf354"
+    cid.verify(bytes.fromhex("0a020801"))
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "f01551220" + CID.decode(HELLO).digest.hex(),
+        "B" + HELLO[1:].upper(),
+        "z" + b58encode(CID.decode(HELLO).binary),
+    ],
+    ids=["base16", "base32-upper", "base58btc"],
+)
+def test_other_multibases_are_accepted_as_input(text: str) -> None:
+    assert str(CID.decode(text)) == HELLO
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("", "unsupported multibase"),
+        ("hello", "unsupported multibase"),
+        ("bafkrei", "Incorrect padding"),
+        ("b" + "a" * 10, ""),
+        ("bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq0", ""),
+        ("Qm" + "0" * 44, "base58btc"),
+        ("f015512" + "10" + "00" * 16, "32 bytes"),
+        ("f01551320" + "00" * 32, "unsupported multihash"),
+        ("f02551220" + "00" * 32, "version"),
+    ],
+)
+def test_invalid_cid_is_rejected_quoting_it(text: str, reason: str) -> None:
+    with pytest.raises(CIDError) as caught:
+        CID.decode(text)
+    assert repr(text) in str(caught.value)
+    assert reason in str(caught.value)
+
+
+def test_v0_in_base32_is_not_a_cid_text_form() -> None:
+    v0 = CID.decode(EMPTY_DIR_V0)
+    with pytest.raises(CIDError, match="base58btc"):
+        CID.decode("b" + __import__("base64").b32encode(v0.binary).decode().lower().rstrip("="))
+
+
+def test_verify_rejects_other_bytes() -> None:
+    with pytest.raises(CIDError, match=HELLO):
+        CID.decode(HELLO).verify(b"Hello world!")
+
+
+def test_identity_cid_verifies_inline_data() -> None:
+    cid = CID(1, RAW, b"\x00\x05hello")
+    cid.verify(b"hello")
+    with pytest.raises(CIDError):
+        cid.verify(b"hellO")
+    assert CID.decode(str(cid)) == cid
+
+
+@pytest.mark.parametrize("value", [0, 1, 127, 128, 300, 2**32, 2**63 - 1])
+def test_varints_round_trip(value: int) -> None:
+    assert decode_varint(encode_varint(value)) == (value, len(encode_varint(value)))
+
+
+def test_base58_keeps_leading_zeros() -> None:
+    assert b58decode(b58encode(b"\0\0abc")) == b"\0\0abc"
