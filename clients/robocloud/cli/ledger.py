@@ -6,13 +6,12 @@ JSON-RPC; the ledger service only says where the contracts are and runs the dev 
 
 from __future__ import annotations
 
-import base64
-import hashlib
 from pathlib import Path
 
 import httpx
 import typer
 
+from robocloud.cid import CID
 from robocloud.cli.context import KeystoreOption, console, fail, load_identity
 from robocloud.errors import KeystoreError, RobocloudError
 from robocloud.identity import Identity, default_keystore_path
@@ -22,51 +21,19 @@ LedgerOption = typer.Option(
     None, "--ledger", help="Ledger service URL [default: $ROBOCLOUD_LEDGER_URL or loopback]"
 )
 
-_BASE58 = "123456789ABCDEFGHJKLMNPQRSTUVWXYZabcdefghijkmnopqrstuvwxyz"
-RAW_CODEC = 0x55
-SHA2_256 = 0x12
-
-
-def _base58_decode(text: str) -> bytes:
-    number = 0
-    for char in text:
-        digit = _BASE58.find(char)
-        if digit < 0:
-            raise ValueError(f"{char!r} is not a base58btc digit")
-        number = number * 58 + digit
-    body = number.to_bytes((number.bit_length() + 7) // 8, "big")
-    return b"\x00" * (len(text) - len(text.lstrip("1"))) + body
-
 
 def cid_bytes(text: str) -> bytes:
-    """The binary form of a CID as it goes on chain.
-
-    Accepts CIDv0 (``Qm...``), CIDv1 in base32 (``b...``) or base58btc (``z...``) multibase,
-    and ``0x``-hex of the binary form.
-    """
+    """The binary form of a CID as it goes on chain; ``0x``-hex of that form is accepted too."""
     try:
-        if text.startswith("0x"):
-            binary = bytes.fromhex(text[2:])
-        elif text.startswith("Qm") and len(text) == 46:
-            binary = _base58_decode(text)
-        elif text.startswith("b"):
-            body = text[1:].upper()
-            binary = base64.b32decode(body + "=" * (-len(body) % 8))
-        elif text.startswith("z"):
-            binary = _base58_decode(text[1:])
-        else:
-            raise ValueError("unknown multibase prefix")
+        cid = CID.from_bytes(bytes.fromhex(text[2:])) if text.startswith("0x") else CID.decode(text)
     except ValueError as exc:
         raise typer.BadParameter(f"{text!r} is not a CID: {exc}") from exc
-    if not binary or not (binary[0] == 0x01 or binary[:2] == bytes([SHA2_256, 32])):
-        raise typer.BadParameter(f"{text!r} is not a CID: neither CIDv1 nor CIDv0")
-    return binary
+    return cid.binary
 
 
 def did_cid(identity: Identity, chain_id: int) -> bytes:
-    """CIDv1 (raw, SHA-256) of the robot's DID: its metadata until it publishes a description."""
-    digest = hashlib.sha256(identity.did(chain_id).encode()).digest()
-    return bytes([0x01, RAW_CODEC, SHA2_256, len(digest)]) + digest
+    """The raw CID of the robot's DID: its metadata until it publishes a description."""
+    return CID.from_block(identity.did(chain_id).encode()).binary
 
 
 def _connect(ledger_url: str | None, identity: Identity | None) -> Ledger:
