@@ -8,7 +8,7 @@ it streams past, so a CAR from anywhere can be trusted block by block.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from typing import BinaryIO
+from typing import Protocol
 
 from robocloud.cid import CID, CIDError, encode_varint
 from robocloud.unixfs import Block
@@ -16,6 +16,12 @@ from robocloud.unixfs import Block
 MAX_HEADER_BYTES = 1 << 20
 MAX_SECTION_BYTES = 8 << 20
 CID_TAG = 42
+
+
+class ByteSource(Protocol):
+    """Anything with ``read(size)``: an open file, a socket file, a streamed HTTP body."""
+
+    def read(self, size: int = -1, /) -> bytes: ...
 
 
 class CarError(ValueError):
@@ -101,7 +107,7 @@ class _Cbor:
         raise CarError(f"unexpected CBOR major type {major} in a CAR header")
 
 
-def _read_varint(stream: BinaryIO) -> int | None:
+def _read_varint(stream: ByteSource) -> int | None:
     """A varint from the stream; ``None`` at a clean end of stream."""
     value = shift = 0
     for index in range(10):
@@ -117,7 +123,7 @@ def _read_varint(stream: BinaryIO) -> int | None:
     raise CarError("oversized varint in CAR")
 
 
-def _read_exactly(stream: BinaryIO, size: int) -> bytes:
+def _read_exactly(stream: ByteSource, size: int) -> bytes:
     data = stream.read(size)
     if len(data) != size:
         raise CarError(f"truncated CAR: wanted {size} bytes, got {len(data)}")
@@ -127,7 +133,7 @@ def _read_exactly(stream: BinaryIO, size: int) -> bytes:
 class CarReader:
     """Iterate the verified blocks of a CARv1 stream; ``roots`` is read at construction."""
 
-    def __init__(self, stream: BinaryIO, *, max_section: int = MAX_SECTION_BYTES) -> None:
+    def __init__(self, stream: ByteSource, *, max_section: int = MAX_SECTION_BYTES) -> None:
         self.stream = stream
         self.max_section = max_section
         size = _read_varint(stream)

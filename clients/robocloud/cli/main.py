@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from robocloud.cli import keys, ledger, system
+from robocloud.cli import cas, keys, ledger, system
 
 app = typer.Typer(
     name="robocloud",
@@ -13,5 +13,5 @@ app = typer.Typer(
     add_completion=False,
 )
 
-for area in (keys, ledger, system):
+for area in (keys, system, cas, ledger):
     area.register(app)
