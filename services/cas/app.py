@@ -1,13 +1,116 @@
-"""Routes of the cas service."""
+"""The cas service: wiring of the store, its metrics and its background garbage collection."""
 
 from __future__ import annotations
 
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Annotated
+
+import anyio
 from fastapi import FastAPI
+from prometheus_client import Counter
+from pydantic import Field, field_validator
+from pydantic_settings import NoDecode
 
 import services.cas
+from robocloud.cid import CID
+from services.cas import gateway, kubo
+from services.cas.blockstore import Blockstore
+from services.cas.peers import PeerFetcher
+from services.cas.store import ContentStore
 from services.common.app import create_app
 from services.common.settings import ServiceSettings
 
+log = logging.getLogger("robocloud.cas")
 
-def build_app(settings: ServiceSettings) -> FastAPI:
-    return create_app("cas", settings, description=services.cas.__doc__ or "")
+UPLOAD_PATHS = ("/api/v0/add", "/api/v0/dag/import")
+MAX_BLOCK_PUT_BYTES = 4 * 1024 * 1024
+
+
+class CasSettings(ServiceSettings):
+    cas_peers: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="other gateways to fetch missing blocks from"
+    )
+    cas_peer_timeout_s: float = Field(default=10.0, gt=0)
+    cas_max_upload_bytes: int = Field(default=4 * 1024**3, gt=0)
+    cas_gc_grace_s: float = Field(default=3600.0, ge=0)
+    cas_gc_interval_s: float = Field(default=3600.0, ge=0, description="0 disables periodic GC")
+
+    @field_validator("cas_peers", mode="before")
+    @classmethod
+    def _split_peers(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [part.strip() for part in value.split(",") if part.strip()]
+        return value
+
+
+def _open_store(settings: CasSettings, app: FastAPI) -> ContentStore:
+    registry = app.state.metrics.registry
+    corrupt = Counter(
+        "robocloud_cas_corrupt_blocks",
+        "Blocks found corrupted on read and quarantined.",
+        registry=registry,
+    )
+    fetches = Counter(
+        "robocloud_cas_peer_fetches",
+        "Block fetches from peers, by outcome.",
+        ["peer", "outcome"],
+        registry=registry,
+    )
+
+    def on_corrupt(cid: CID, quarantined: Path) -> None:
+        corrupt.inc()
+
+    def on_outcome(peer: str, outcome: str) -> None:
+        fetches.labels(peer, outcome).inc()
+
+    root = settings.resolved_data_dir()
+    blocks = Blockstore(root, on_corrupt=on_corrupt)
+    peers = None
+    if settings.cas_peers:
+        peers = PeerFetcher(
+            settings.cas_peers, timeout_s=settings.cas_peer_timeout_s, on_outcome=on_outcome
+        )
+    return ContentStore(root, blocks, peers)
+
+
+async def _collect_periodically(store: ContentStore, settings: CasSettings) -> None:
+    while True:
+        await anyio.sleep(settings.cas_gc_interval_s)
+        removed = await anyio.to_thread.run_sync(store.collect_garbage, settings.cas_gc_grace_s)
+        log.info("garbage collected", extra={"removed_blocks": len(removed)})
+
+
+def build_app(settings: CasSettings) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        store: ContentStore = app.state.store
+        async with anyio.create_task_group() as group:
+            if settings.cas_gc_interval_s > 0:
+                group.start_soon(_collect_periodically, store, settings)
+            try:
+                yield
+            finally:
+                group.cancel_scope.cancel()
+        store.close()
+
+    async def blockstore_writable() -> None:
+        app.state.store.blocks.staging.stat()
+
+    app = create_app(
+        "cas",
+        settings,
+        routers=[gateway.router, kubo.router],
+        readiness_checks=[blockstore_writable],
+        lifespan=lifespan,
+        unsigned_paths=kubo.READ_PATHS,
+        body_limits={
+            **{path: settings.cas_max_upload_bytes for path in UPLOAD_PATHS},
+            "/api/v0/block/put": MAX_BLOCK_PUT_BYTES,
+        },
+        description=services.cas.__doc__ or "",
+    )
+    app.state.store = _open_store(settings, app)
+    return app

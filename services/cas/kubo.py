@@ -1,0 +1,285 @@
+"""The kubo RPC subset (``/api/v0``) that IPFS clients and tools call.
+
+Names, parameters and answer shapes follow kubo so that existing clients work unchanged;
+errors use robocloud's JSON error model. Writes (add, block/put, dag/import, pin/add,
+pin/rm, repo/gc) must be signed; reads are POSTs like in kubo but need no signature.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from typing import Annotated, Any
+
+import anyio
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import Response, StreamingResponse
+
+import robocloud
+from robocloud.cid import CID, CODEC_NAMES
+from robocloud.unixfs import ImportParams, PBNode, UnixfsError
+from services.cas.multipart import boundary_of
+from services.cas.store import ContentStore, parse_cid
+from services.cas.streams import threaded_stream
+from services.cas.uploads import CarSpool, receive_parts
+from services.common.auth import SignedAddress
+from services.common.errors import BadRequest
+
+READ_PATHS = (
+    "/api/v0/cat",
+    "/api/v0/block/get",
+    "/api/v0/block/stat",
+    "/api/v0/pin/ls",
+    "/api/v0/dag/export",
+    "/api/v0/version",
+)
+"""POST routes that only read: public, like every GET."""
+
+CODECS = {name: code for code, name in CODEC_NAMES.items()}
+CHUNKED = {"X-Chunked-Output": "1"}
+
+router = APIRouter(prefix="/api/v0", tags=["kubo rpc"])
+
+Arg = Annotated[str, Query(description="a CID")]
+Args = Annotated[list[str], Query(description="one or more CIDs")]
+
+
+def _store(request: Request) -> ContentStore:
+    store: ContentStore = request.app.state.store
+    return store
+
+
+def _lines(objects: Iterable[dict[str, Any]]) -> Response:
+    """kubo's streamed answer: one JSON object a line."""
+    body = "".join(json.dumps(item, separators=(",", ":")) + "\n" for item in objects)
+    return Response(body, media_type="application/json", headers=CHUNKED)
+
+
+def _import_params(
+    cid_version: int | None, raw_leaves: bool | None, chunker: str | None, profile: str | None
+) -> ImportParams:
+    try:
+        return ImportParams.from_options(cid_version, raw_leaves, chunker, profile)
+    except UnixfsError as exc:
+        raise BadRequest(str(exc), code="invalid_import_options") from exc
+
+
+@router.post("/add")
+async def add(
+    request: Request,
+    address: SignedAddress,
+    cid_version: Annotated[int | None, Query(alias="cid-version")] = None,
+    raw_leaves: Annotated[bool | None, Query(alias="raw-leaves")] = None,
+    chunker: Annotated[str | None, Query(description="size-<bytes>")] = None,
+    profile: Annotated[str | None, Query(description="unixfs-v0-2015 or unixfs-v1-2025")] = None,
+    pin: bool = True,
+    only_hash: Annotated[bool, Query(alias="only-hash")] = False,
+) -> Response:
+    """Add files from a multipart body; the answer has one ``{"Name","Hash","Size"}`` line each."""
+    params = _import_params(cid_version, raw_leaves, chunker, profile)
+    boundary = boundary_of(request.headers.get("content-type"))
+    adder = _store(request).adder(params, only_hash=only_hash)
+    try:
+        await receive_parts(request.stream(), boundary, adder)
+        added = await anyio.to_thread.run_sync(adder.commit, address, pin)
+    finally:
+        adder.discard()
+    return _lines(
+        {"Name": item.name, "Hash": str(item.cid), "Size": str(item.dag_size)} for item in added
+    )
+
+
+@router.post("/cat")
+async def cat(
+    request: Request,
+    arg: Arg,
+    offset: Annotated[int, Query(ge=0)] = 0,
+    length: Annotated[int | None, Query(ge=0)] = None,
+) -> Response:
+    """A file's bytes (or ``length`` of them from ``offset``), every block verified on read."""
+    root = parse_cid(arg)
+    body = await threaded_stream(_store(request).read(root, offset, length))
+    return StreamingResponse(body, media_type="application/octet-stream")
+
+
+@router.post("/block/get")
+async def block_get(request: Request, arg: Arg) -> Response:
+    cid = parse_cid(arg)
+    data = await anyio.to_thread.run_sync(_store(request).get_block, cid)
+    return Response(data, media_type="application/octet-stream")
+
+
+@router.post("/block/stat")
+async def block_stat(request: Request, arg: Arg) -> dict[str, Any]:
+    cid = parse_cid(arg)
+    size = await anyio.to_thread.run_sync(_store(request).block_size, cid)
+    return {"Key": str(cid), "Size": size}
+
+
+class _BlockCollector:
+    """Collects the blocks of a ``block/put`` body and stages each once it checked out."""
+
+    def __init__(self, codec: int) -> None:
+        self.codec = codec
+        self.blocks: list[bytes] = []
+        self._current = bytearray()
+
+    def begin(self, name: str) -> None:
+        self._current = bytearray()
+
+    def write(self, data: bytes) -> None:
+        self._current += data
+
+    def end(self) -> None:
+        data = bytes(self._current)
+        if self.codec == CODECS["dag-pb"]:
+            try:
+                PBNode.decode(data)
+            except UnixfsError as exc:
+                raise BadRequest(
+                    f"block {len(self.blocks)} is not valid dag-pb: {exc}", code="invalid_block"
+                ) from exc
+        self.blocks.append(data)
+
+
+@router.post("/block/put")
+async def block_put(
+    request: Request,
+    address: SignedAddress,
+    cid_codec: Annotated[str, Query(alias="cid-codec")] = "raw",
+    mhtype: str = "sha2-256",
+    pin: bool = False,
+) -> Response:
+    """Store raw blocks as sent; answers ``{"Key","Size"}`` per block."""
+    if cid_codec not in CODECS:
+        raise BadRequest(
+            f"unsupported cid-codec {cid_codec!r}: expected one of {', '.join(CODECS)}",
+            code="invalid_codec",
+            details={"field": "cid-codec"},
+        )
+    if mhtype != "sha2-256":
+        raise BadRequest(
+            f"unsupported mhtype {mhtype!r}: only sha2-256",
+            code="invalid_hash",
+            details={"field": "mhtype"},
+        )
+    collector = _BlockCollector(CODECS[cid_codec])
+    await receive_parts(
+        request.stream(), boundary_of(request.headers.get("content-type")), collector
+    )
+    store = _store(request)
+
+    def put_all() -> list[CID]:
+        return [
+            store.put_block(data, collector.codec, address, pin=pin) for data in collector.blocks
+        ]
+
+    cids = await anyio.to_thread.run_sync(put_all)
+    return _lines(
+        {"Key": str(cid), "Size": len(data)}
+        for cid, data in zip(cids, collector.blocks, strict=True)
+    )
+
+
+@router.post("/pin/add")
+async def pin_add(
+    request: Request, address: SignedAddress, arg: Args, recursive: bool = True
+) -> dict[str, list[str]]:
+    """Pin DAGs for the signing robot; every block must be here or at a peer."""
+    if not recursive:
+        raise BadRequest(
+            "only recursive pins are supported", code="unsupported", details={"field": "recursive"}
+        )
+    roots = [parse_cid(text) for text in arg]
+    store = _store(request)
+    for root in roots:
+        await anyio.to_thread.run_sync(store.pin, root, address)
+    return {"Pins": [str(root) for root in roots]}
+
+
+@router.post("/pin/rm")
+async def pin_rm(request: Request, address: SignedAddress, arg: Args) -> dict[str, list[str]]:
+    """Remove the signing robot's own pins; another robot's pin is 403."""
+    roots = [parse_cid(text) for text in arg]
+    await anyio.to_thread.run_sync(_store(request).pins.remove, roots, address)
+    return {"Pins": [str(root) for root in roots]}
+
+
+@router.post("/pin/ls")
+async def pin_ls(
+    request: Request,
+    arg: Annotated[list[str] | None, Query(description="only these CIDs")] = None,
+    type: Annotated[str, Query(description="all or recursive")] = "all",
+) -> dict[str, dict[str, dict[str, Any]]]:
+    """Pinned roots with their owners (``Owners`` is robocloud's addition to kubo's answer)."""
+    pins = _store(request).pins.snapshot()
+    if type not in ("all", "recursive"):
+        return {"Keys": {}}
+    if arg:
+        wanted = [parse_cid(text) for text in arg]
+        missing = [cid for cid in wanted if cid not in pins]
+        if missing:
+            raise BadRequest(
+                f"{missing[0]} is not pinned", code="not_pinned", details={"cid": str(missing[0])}
+            )
+        pins = {cid: pins[cid] for cid in wanted}
+    return {
+        "Keys": {
+            str(cid): {"Type": "recursive", "Owners": sorted(owners)}
+            for cid, owners in pins.items()
+        }
+    }
+
+
+@router.post("/dag/export")
+async def dag_export(request: Request, arg: Arg) -> Response:
+    """The whole DAG under a root as a CARv1 stream."""
+    root = parse_cid(arg)
+    body = await threaded_stream(_store(request).export_car(root, "all"))
+    return StreamingResponse(body, media_type="application/vnd.ipld.car")
+
+
+@router.post("/dag/import")
+async def dag_import(
+    request: Request,
+    address: SignedAddress,
+    pin_roots: Annotated[bool, Query(alias="pin-roots")] = True,
+) -> Response:
+    """Import CARs: every block is verified, and one bad block rejects the whole upload."""
+    store = _store(request)
+    boundary = boundary_of(request.headers.get("content-type"))
+    with store.blocks.stage() as staging:
+        spool = CarSpool(store, staging)
+        await receive_parts(request.stream(), boundary, spool)
+
+        def commit() -> list[dict[str, Any]]:
+            staging.commit()
+            return [_pin_root(store, root, address, pin_roots) for root in spool.roots]
+
+        answers = await anyio.to_thread.run_sync(commit)
+    return _lines(answers)
+
+
+def _pin_root(store: ContentStore, root: CID, owner: str, pin: bool) -> dict[str, Any]:
+    error = ""
+    if pin:
+        missing = store.missing_block(root)
+        if missing is None:
+            store.pins.add(root, owner)
+        else:
+            error = f"block {missing} of the DAG is missing; {root} was not pinned"
+    return {"Root": {"Cid": {"/": str(root)}, "PinErrorMsg": error}}
+
+
+@router.post("/repo/gc")
+async def repo_gc(request: Request, _: SignedAddress) -> Response:
+    """Remove unpinned blocks older than the grace period now; answers each removed key."""
+    grace = request.app.state.settings.cas_gc_grace_s
+    removed = await anyio.to_thread.run_sync(_store(request).collect_garbage, grace)
+    return _lines({"Key": {"/": str(cid)}} for cid in removed)
+
+
+@router.api_route("/version", methods=["GET", "POST"])
+async def version() -> dict[str, str]:
+    """kubo clients call this to check that they reach an RPC endpoint."""
+    return {"Version": robocloud.__version__, "System": "robocloud-cas", "Commit": "", "Repo": ""}

@@ -1,0 +1,90 @@
+"""Owned pins: which robot keeps which DAG alive.
+
+A pin is a (root CID, owner address) pair: several robots may pin the same content, and
+each may remove only its own pin, so one robot can never make another's data collectable.
+Every change is appended to a journal fsynced before the request is answered; the journal
+is compacted on start.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+from robocloud.cid import CID
+from services.common.durable import AppendLog
+from services.common.errors import Forbidden, NotFound
+
+
+class PinSet:
+    def __init__(self, path: Path) -> None:
+        self._log = AppendLog(path)
+        self._owners: dict[CID, set[str]] = {}
+        self._lock = threading.Lock()
+        for line in self._log.read_lines():
+            entry = json.loads(line)
+            self._apply(entry["op"], CID.decode(entry["cid"]), entry["owner"])
+        self._log.rewrite(
+            [
+                self._line("add", cid, owner)
+                for cid, owners in self._owners.items()
+                for owner in owners
+            ]
+        )
+
+    @staticmethod
+    def _line(op: str, cid: CID, owner: str) -> str:
+        return json.dumps({"op": op, "cid": str(cid), "owner": owner}, separators=(",", ":"))
+
+    def _apply(self, op: str, cid: CID, owner: str) -> None:
+        if op == "add":
+            self._owners.setdefault(cid, set()).add(owner)
+            return
+        owners = self._owners.get(cid, set())
+        owners.discard(owner)
+        if not owners:
+            self._owners.pop(cid, None)
+
+    def add(self, cid: CID, owner: str) -> bool:
+        """Pin ``cid`` for ``owner``; False if that robot had already pinned it."""
+        with self._lock:
+            if owner in self._owners.get(cid, ()):
+                return False
+            self._log.append(self._line("add", cid, owner))
+            self._apply("add", cid, owner)
+            return True
+
+    def remove(self, cids: list[CID], owner: str) -> None:
+        """Remove ``owner``'s pins on every CID, or none of them.
+
+        404 if nobody pinned one of them, 403 if only other robots did.
+        """
+        with self._lock:
+            for cid in cids:
+                self._check_removable(cid, owner)
+            for cid in cids:
+                self._log.append(self._line("rm", cid, owner))
+                self._apply("rm", cid, owner)
+
+    def _check_removable(self, cid: CID, owner: str) -> None:
+        owners = self._owners.get(cid)
+        if not owners:
+            raise NotFound(f"{cid} is not pinned", code="not_pinned", details={"cid": str(cid)})
+        if owner not in owners:
+            raise Forbidden(
+                f"{cid} is pinned by other robots; {owner} can only remove its own pins",
+                code="pin_not_owned",
+                details={"cid": str(cid), "address": owner},
+            )
+
+    def owners(self, cid: CID) -> frozenset[str]:
+        with self._lock:
+            return frozenset(self._owners.get(cid, ()))
+
+    def snapshot(self) -> dict[CID, frozenset[str]]:
+        with self._lock:
+            return {cid: frozenset(owners) for cid, owners in self._owners.items()}
+
+    def close(self) -> None:
+        self._log.close()
