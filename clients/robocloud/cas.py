@@ -55,10 +55,22 @@ class _Multipart:
     def content_type(self) -> str:
         return f"multipart/form-data; boundary={self.boundary}"
 
-    def chunks(self, progress: Progress = _no_progress) -> Iterator[bytes]:
+    def sha256(self) -> str:
+        """The body's digest, for the signature, read from the file without holding it."""
+        digest = hashlib.sha256(self.head)
+        buffer = bytearray(READ_SIZE)
+        view = memoryview(buffer)
+        with self.path.open("rb") as handle:
+            while read := handle.readinto(buffer):
+                digest.update(view[:read])
+        digest.update(self.tail)
+        return digest.hexdigest()
+
+    def chunks(self, progress: Progress, on_content: Callable[[bytes], object]) -> Iterator[bytes]:
         yield self.head
         with self.path.open("rb") as handle:
             while chunk := handle.read(READ_SIZE):
+                on_content(chunk)
                 progress(len(chunk))
                 yield chunk
         yield self.tail
@@ -118,17 +130,14 @@ class Cas:
         name: str | None = None,
         progress: Progress = _no_progress,
     ) -> CID:
-        """Upload a file; return its CID once the gateway's answer matches the local one."""
+        """Upload a file; return its CID once the gateway's answer matches the local one.
+
+        The local CID is computed from the bytes as they are sent, so the robot hashes its
+        file while the gateway works on the previous chunk.
+        """
         params = params or ImportParams()
         body = _Multipart(path, name or path.name)
-        digest = hashlib.sha256()
         importer = Importer(params)
-        for chunk in body.chunks():
-            digest.update(chunk)
-        with path.open("rb") as handle:
-            while chunk := handle.read(READ_SIZE):
-                importer.feed(chunk)
-        _, expected, _ = importer.finish()
         response = self.http.request(
             "POST",
             "/api/v0/add",
@@ -138,10 +147,11 @@ class Cas:
                 "chunker": f"size-{params.chunk_size}",
                 "pin": str(pin).lower(),
             },
-            content=body.chunks(progress),
-            content_sha256=digest.hexdigest(),
+            content=body.chunks(progress, importer.feed),
+            content_sha256=body.sha256(),
             headers={"Content-Type": body.content_type, "Content-Length": str(body.length)},
         )
+        _, expected, _ = importer.finish()
         answers = [line for line in response.text.splitlines() if line.strip()]
         try:
             reported = CID.decode(_json_line(answers[-1])["Hash"])

@@ -247,19 +247,21 @@ class Importer:
     def feed(self, data: bytes | memoryview) -> list[Block]:
         if self._finished:
             raise UnixfsError("importer already finished")
-        self._buffer += data
         blocks: list[Block] = []
         size = self.params.chunk_size
-        if len(self._buffer) < size:
-            return blocks
-        view = memoryview(self._buffer)
-        whole = len(self._buffer) - len(self._buffer) % size
-        try:
-            for start in range(0, whole, size):
-                self._leaf(bytes(view[start : start + size]), blocks)
-        finally:
-            view.release()
-        del self._buffer[:whole]
+        view = memoryview(data)
+        if self._buffer:
+            missing = size - len(self._buffer)
+            self._buffer += view[:missing]
+            view = view[missing:]
+            if len(self._buffer) < size:
+                return blocks
+            self._leaf(bytes(self._buffer), blocks)
+            self._buffer.clear()
+        whole = len(view) - len(view) % size
+        for start in range(0, whole, size):
+            self._leaf(bytes(view[start : start + size]), blocks)
+        self._buffer += view[whole:]
         return blocks
 
     def finish(self) -> tuple[list[Block], CID, int]:

@@ -97,7 +97,7 @@ def build_app(settings: CasSettings) -> FastAPI:
         store.close()
 
     async def blockstore_writable() -> None:
-        app.state.store.blocks.staging.stat()
+        app.state.store.blocks.packs.stat()
 
     app = create_app(
         "cas",

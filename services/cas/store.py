@@ -249,12 +249,14 @@ class ContentStore:
         live: set[bytes] = set()
         for root in self.pins.snapshot():
             self._mark_reachable(root, live)
-        removed: list[CID] = []
-        for stored in self.blocks.stored():
-            if stored.multihash not in live and stored.modified < cutoff:
-                self.blocks.delete(stored.multihash)
-                removed.append(cid_for_multihash(stored.multihash))
-        return removed
+        dead = [
+            stored.multihash
+            for stored in self.blocks.stored()
+            if stored.multihash not in live and stored.committed < cutoff
+        ]
+        self.blocks.delete(dead)
+        self.blocks.compact()
+        return [cid_for_multihash(multihash) for multihash in dead]
 
     def _mark_reachable(self, root: CID, live: set[bytes]) -> None:
         """Mark every stored block under ``root``, going on past missing or corrupt ones."""

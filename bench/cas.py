@@ -1,0 +1,126 @@
+"""cas throughput and memory: add and cat over HTTP against ``sha256sum`` on the same file.
+
+Prints ratios (sha256sum's time over ours: 1.0x means as fast as hashing the file once);
+the issue asks for add >= 0.5x and cat >= 1.0x. Also prints the gateway's peak RSS while it
+adds a larger file (the issue: under 300 MB for 1 GiB).
+
+    python bench/cas.py [--size-mib 256] [--rss-mib 1024] [--rounds 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(REPO), str(REPO / "clients")]
+
+from robocloud.cas import Cas  # noqa: E402
+from robocloud.identity import Identity  # noqa: E402
+from tests.procs import ServiceProcess  # noqa: E402
+
+MIB = 1024 * 1024
+
+
+def random_file(path: Path, size: int) -> Path:
+    with path.open("wb") as out:
+        for _ in range(size // MIB):
+            out.write(os.urandom(MIB))
+        out.write(os.urandom(size % MIB))
+    return path
+
+
+def best_of(rounds: int, action: Callable[[], object]) -> float:
+    times = []
+    for _ in range(rounds):
+        started = time.perf_counter()
+        action()
+        times.append(time.perf_counter() - started)
+    return min(times)
+
+
+def sha256sum(path: Path) -> None:
+    subprocess.run(["sha256sum", str(path)], check=True, capture_output=True)
+
+
+def stream_to_nowhere(method: str, url: str, **params: object) -> int:
+    received = 0
+    with httpx.stream(method, url, params=params, timeout=120) as response:
+        response.raise_for_status()
+        for chunk in response.iter_raw(MIB):
+            received += len(chunk)
+    return received
+
+
+def peak_rss_mib(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmHWM in /proc status")
+
+
+def report(name: str, seconds: float, size: int, baseline: float) -> None:
+    rate = size / seconds / MIB
+    print(f"{name:<34} {seconds:7.3f} s {rate:8.1f} MiB/s   {baseline / seconds:5.2f}x sha256sum")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--size-mib", type=int, default=256)
+    parser.add_argument("--rss-mib", type=int, default=1024)
+    parser.add_argument("--rounds", type=int, default=3)
+    args = parser.parse_args()
+    size = args.size_mib * MIB
+    with tempfile.TemporaryDirectory(prefix="bench-cas-") as scratch:
+        work = Path(scratch)
+        data = random_file(work / "data.bin", size)
+        service = ServiceProcess("cas", work / "cas", {"ROBOCLOUD_LOG_LEVEL": "WARNING"})
+        with service, Cas(service.url, Identity.generate(), timeout=600) as cas:
+            baseline = best_of(args.rounds, lambda: sha256sum(data))
+            print(f"file: {args.size_mib} MiB, best of {args.rounds} rounds")
+            report("sha256sum (baseline)", baseline, size, baseline)
+            fresh_files = iter(
+                [random_file(work / f"add-{n}.bin", size) for n in range(args.rounds)]
+            )
+            add = best_of(args.rounds, lambda: cas.add_file(next(fresh_files)))
+            report("add (SDK add_file, new content)", add, size, baseline)
+            cid = cas.add_file(data)
+            cat = best_of(
+                args.rounds,
+                lambda: stream_to_nowhere("POST", f"{service.url}/api/v0/cat", arg=str(cid)),
+            )
+            report("cat (kubo RPC)", cat, size, baseline)
+            gateway = best_of(
+                args.rounds, lambda: stream_to_nowhere("GET", f"{service.url}/ipfs/{cid}")
+            )
+            report("gateway GET /ipfs/{cid}", gateway, size, baseline)
+            verified = best_of(args.rounds, lambda: cas.get_to_file(cid, work / "out.bin"))
+            report("get (SDK, CAR verified locally)", verified, size, baseline)
+            assert service.process is not None
+            rss = peak_rss_mib(service.process.pid)
+            print(f"gateway peak RSS after the runs above: {rss:.0f} MiB")
+        large = random_file(work / "large.bin", args.rss_mib * MIB)
+        data.unlink()
+        fresh = ServiceProcess("cas", work / "cas-rss", {"ROBOCLOUD_LOG_LEVEL": "WARNING"})
+        with fresh, Cas(fresh.url, Identity.generate(), timeout=600) as cas:
+            started = time.perf_counter()
+            cas.add_file(large)
+            seconds = time.perf_counter() - started
+            assert fresh.process is not None
+            rss = peak_rss_mib(fresh.process.pid)
+            print(
+                f"add {args.rss_mib} MiB: {seconds:.2f} s, gateway peak RSS {rss:.0f} MiB "
+                f"(limit 300 MiB)"
+            )
+
+
+if __name__ == "__main__":
+    main()
