@@ -143,6 +143,13 @@ class Blockstore:
     def stage(self) -> Staging:
         return Staging(self)
 
+    def usage(self) -> tuple[int, int]:
+        """How many blocks are stored, and the bytes their packs take (dead bytes included)."""
+        with self._lock:
+            count = len(self._index)
+            packs = list(self._members)
+        return count, sum(_size_or_zero(self.pack_path(pack)) for pack in packs)
+
     def stored(self) -> list[StoredBlock]:
         with self._lock:
             return [
@@ -295,6 +302,13 @@ class Staging:
             self._file.close()
             self.path.unlink(missing_ok=True)
         self._members.clear()
+
+
+def _size_or_zero(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        return 0
 
 
 def cid_for_multihash(multihash: bytes) -> CID:

@@ -31,6 +31,7 @@ READ_PATHS = (
     "/api/v0/block/stat",
     "/api/v0/pin/ls",
     "/api/v0/dag/export",
+    "/api/v0/repo/stat",
     "/api/v0/version",
 )
 """POST routes that only read: public, like every GET."""
@@ -277,6 +278,13 @@ async def repo_gc(request: Request, _: SignedAddress) -> Response:
     grace = request.app.state.settings.cas_gc_grace_s
     removed = await anyio.to_thread.run_sync(_store(request).collect_garbage, grace)
     return _lines({"Key": {"/": str(cid)}} for cid in removed)
+
+
+@router.post("/repo/stat")
+async def repo_stat(request: Request) -> dict[str, Any]:
+    """Stored blocks and the bytes their packs use on disk."""
+    count, size = await anyio.to_thread.run_sync(_store(request).blocks.usage)
+    return {"NumObjects": count, "RepoSize": size, "RepoPath": "", "Version": "robocloud-packs-1"}
 
 
 @router.api_route("/version", methods=["GET", "POST"])

@@ -1,0 +1,81 @@
+"""A real cas process per test, a robot's SDK client, and raw signed requests for bad input."""
+
+from __future__ import annotations
+
+import json
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from robocloud.cas import Cas
+from robocloud.cid import CID
+from robocloud.client import ServiceClient
+from robocloud.errors import ApiError
+from robocloud.identity import Identity
+from tests.conftest import ServiceFactory
+from tests.procs import ServiceProcess
+
+QUIET_GC = {"ROBOCLOUD_CAS_GC_INTERVAL_S": "0"}
+
+
+@pytest.fixture
+def cas_service(service_factory: ServiceFactory) -> ServiceProcess:
+    return service_factory("cas", QUIET_GC)
+
+
+@pytest.fixture
+def cas(cas_service: ServiceProcess, identity: Identity) -> Iterator[Cas]:
+    with Cas(cas_service.url, identity, retries=0) as client:
+        yield client
+
+
+@pytest.fixture
+def signed(cas_service: ServiceProcess, identity: Identity) -> Iterator[ServiceClient]:
+    """Signed raw requests, for bodies the SDK would never send."""
+    with ServiceClient(cas_service.url, identity, retries=0) as client:
+        yield client
+
+
+def multipart(*files: tuple[str, bytes], boundary: str | None = None) -> tuple[bytes, str]:
+    """A kubo-style multipart body and its Content-Type."""
+    boundary = boundary or secrets.token_hex(8)
+    body = b""
+    for name, data in files:
+        body += (
+            f"--{boundary}\r\n"
+            f'Content-Disposition: form-data; name="file"; filename="{name}"\r\n'
+            "Content-Type: application/octet-stream\r\n\r\n"
+        ).encode()
+        body += data + b"\r\n"
+    body += f"--{boundary}--\r\n".encode()
+    return body, f"multipart/form-data; boundary={boundary}"
+
+
+def repo_stat(url: str) -> dict[str, Any]:
+    answer = httpx.post(f"{url}/api/v0/repo/stat").json()
+    assert isinstance(answer, dict)
+    return answer
+
+
+def error_of(exc: pytest.ExceptionInfo[ApiError], status: int, code: str) -> ApiError:
+    assert exc.value.status == status, exc.value
+    assert exc.value.code == code, exc.value
+    return exc.value
+
+
+def corrupt_block(data_dir: Path, cid: CID) -> None:
+    """Flip one byte of a stored block in its pack file, as disk rot would."""
+    for index in (data_dir / "packs").glob("*.idx"):
+        for key, offset, _ in json.loads(index.read_bytes()):
+            if key == cid.multihash.hex():
+                with index.with_suffix(".pack").open("r+b") as pack:
+                    pack.seek(offset)
+                    byte = pack.read(1)
+                    pack.seek(offset)
+                    pack.write(bytes([byte[0] ^ 0xFF]))
+                return
+    raise KeyError(str(cid))

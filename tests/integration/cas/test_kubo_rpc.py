@@ -1,0 +1,198 @@
+"""The kubo RPC subset end to end: the answers kubo gives, the CIDs kubo computes."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import httpx
+import pytest
+
+import robocloud
+from robocloud.car import CarReader, write_car
+from robocloud.cas import Cas
+from robocloud.cid import CID, DAG_PB, RAW
+from robocloud.client import ServiceClient
+from robocloud.errors import ApiError
+from robocloud.unixfs import ImportParams, import_bytes
+from tests.integration.cas.conftest import error_of, multipart, repo_stat
+from tests.procs import ServiceProcess
+from tests.unit.sdk.ipfs_vectors import PROFILES, car_path, input_named, vectors
+
+HELLO = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
+SERVICE_VECTORS = [
+    "hello_world.txt",
+    "empty.bin",
+    "chacha20_chunk-v0-seed_262144.bin",
+    "chacha20_chunk-v0-seed_262145.bin",
+    "chacha20:v0-seed:45613057",
+]
+"""Through HTTP: the empty file, one chunk, one chunk plus a byte, and 175 chunks (a two-level
+tree); the SDK's unit tests run all 46 shared vectors through the same importer."""
+
+
+def expected_cid(name: str, profile: str) -> str:
+    for vector in vectors()["vectors"]:
+        if vector["input"] == name:
+            for expected in vector["expected"]:
+                if expected["profile"] == profile:
+                    return str(expected["cid"])
+    raise KeyError((name, profile))
+
+
+def add_lines(client: ServiceClient, body: bytes, content_type: str, **params: object) -> list:
+    response = client.request(
+        "POST", "/api/v0/add", params=params, content=body, headers={"Content-Type": content_type}
+    )
+    assert response.headers["x-chunked-output"] == "1"
+    return [json.loads(line) for line in response.text.splitlines()]
+
+
+def test_hello_world_gets_kubos_cid(signed: ServiceClient) -> None:
+    body, content_type = multipart(("hello.txt", b"Hello world"))
+    lines = add_lines(signed, body, content_type, **{"cid-version": 1})
+    assert lines == [{"Name": "hello.txt", "Hash": HELLO, "Size": "11"}]
+
+
+@pytest.mark.parametrize("name", SERVICE_VECTORS)
+@pytest.mark.parametrize("profile", ["v0", "v1-raw-256k"])
+def test_vectors_through_the_service(signed: ServiceClient, name: str, profile: str) -> None:
+    data = input_named(name)
+    params = PROFILES[profile]
+    body, content_type = multipart(("f", data))
+    lines = add_lines(
+        signed,
+        body,
+        content_type,
+        **{"cid-version": params.cid_version, "raw-leaves": str(params.raw_leaves).lower()},
+    )
+    assert lines[-1]["Hash"] == expected_cid(name, profile)
+    got = signed.request("POST", "/api/v0/cat", params={"arg": lines[-1]["Hash"]}, signed=False)
+    assert got.content == data
+
+
+def test_cumulative_size_is_the_dag_size(signed: ServiceClient) -> None:
+    data = input_named("chacha20_chunk-v0-seed_262145.bin")
+    blocks, root = import_bytes(data)
+    body, content_type = multipart(("f", data))
+    [line] = add_lines(signed, body, content_type, **{"cid-version": 1})
+    assert line["Hash"] == str(root)
+    assert int(line["Size"]) == sum(len(block.data) for block in blocks)
+
+
+def test_several_files_and_chunker_and_profile(signed: ServiceClient) -> None:
+    body, content_type = multipart(("a", b"a" * 5000), ("b", b"b" * 10))
+    lines = add_lines(signed, body, content_type, chunker="size-1024", **{"cid-version": 1})
+    small = ImportParams(chunk_size=1024)
+    assert [line["Name"] for line in lines] == ["a", "b"]
+    assert lines[0]["Hash"] == str(import_bytes(b"a" * 5000, small)[1])
+    data = input_named("chacha20_chunk-v1-seed_1048577.bin")
+    body, content_type = multipart(("c", data))
+    [line] = add_lines(signed, body, content_type, profile="unixfs-v1-2025")
+    assert line["Hash"] == expected_cid("chacha20_chunk-v1-seed_1048577.bin", "v1-2025")
+
+
+def test_only_hash_stores_nothing(signed: ServiceClient, cas_service: ServiceProcess) -> None:
+    body, content_type = multipart(("hello.txt", b"Hello world"))
+    [line] = add_lines(signed, body, content_type, **{"cid-version": 1, "only-hash": "true"})
+    assert line["Hash"] == HELLO
+    assert repo_stat(cas_service.url)["NumObjects"] == 0
+    assert httpx.post(f"{cas_service.url}/api/v0/pin/ls").json() == {"Keys": {}}
+
+
+def test_cat_offset_and_length(cas: Cas) -> None:
+    data = bytes(range(256)) * 4096
+    cid = cas.add_bytes(data)
+    assert cas.cat(cid, 262_000, 5_000) == data[262_000:267_000]
+    assert cas.cat(cid, len(data) - 3) == data[-3:]
+    assert cas.cat(cid, len(data) + 10) == b""
+
+
+def test_block_put_get_stat(signed: ServiceClient, cas_service: ServiceProcess) -> None:
+    body, content_type = multipart(("b1", b"block one"), ("b2", b"block two"))
+    response = signed.request(
+        "POST", "/api/v0/block/put", content=body, headers={"Content-Type": content_type}
+    )
+    keys = [json.loads(line) for line in response.text.splitlines()]
+    one = CID.from_block(b"block one", RAW)
+    assert keys == [
+        {"Key": str(one), "Size": 9},
+        {"Key": str(CID.from_block(b"block two", RAW)), "Size": 9},
+    ]
+    url = cas_service.url
+    assert httpx.post(f"{url}/api/v0/block/get", params={"arg": str(one)}).content == b"block one"
+    stat = httpx.post(f"{url}/api/v0/block/stat", params={"arg": str(one)}).json()
+    assert stat == {"Key": str(one), "Size": 9}
+
+
+def test_block_put_dag_pb_must_decode(signed: ServiceClient, cas_service: ServiceProcess) -> None:
+    body, content_type = multipart(("b", b"\xff\xff not protobuf"))
+    response = httpx.post(
+        f"{cas_service.url}/api/v0/block/put",
+        params={"cid-codec": "dag-pb"},
+        content=body,
+        headers={"Content-Type": content_type},
+    )
+    assert response.status_code == 401  # unsigned first
+    with pytest.raises(ApiError) as exc:
+        signed.request(
+            "POST",
+            "/api/v0/block/put",
+            params={"cid-codec": "dag-pb"},
+            content=body,
+            headers={"Content-Type": content_type},
+        )
+    error_of(exc, 400, "invalid_block")
+    assert repo_stat(cas_service.url)["NumObjects"] == 0
+
+
+def test_dag_export_is_a_verifiable_car(cas: Cas, cas_service: ServiceProcess) -> None:
+    data = bytes(700_000)
+    cid = cas.add_bytes(data)
+    response = httpx.post(f"{cas_service.url}/api/v0/dag/export", params={"arg": str(cid)})
+    reader = CarReader(io.BytesIO(response.content))
+    assert reader.roots == [cid]
+    blocks = list(reader)
+    assert blocks[0].cid == cid
+    assert blocks[0].cid.codec == DAG_PB
+    assert len(blocks) == 3  # the root, a full zero chunk (stored once), the tail chunk
+
+
+@pytest.mark.parametrize(
+    "fixture", vectors()["cars"][:4], ids=lambda c: str(c["path"]).rsplit("/", 1)[-1]
+)
+def test_dag_import_of_conformance_cars(
+    signed: ServiceClient, cas_service: ServiceProcess, fixture: dict
+) -> None:
+    raw = car_path(str(fixture["path"])).read_bytes()
+    roots = CarReader(io.BytesIO(raw)).roots
+    body, content_type = multipart(("fixture.car", raw))
+    response = signed.request(
+        "POST", "/api/v0/dag/import", content=body, headers={"Content-Type": content_type}
+    )
+    answers = [json.loads(line) for line in response.text.splitlines()]
+    assert [answer["Root"]["Cid"]["/"] for answer in answers] == [str(root) for root in roots]
+    exported = httpx.post(f"{cas_service.url}/api/v0/dag/export", params={"arg": str(roots[0])})
+    assert {b.cid for b in CarReader(io.BytesIO(exported.content))} <= {
+        b.cid for b in CarReader(io.BytesIO(raw))
+    }
+
+
+def test_dag_import_round_trip_pins_roots(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    blocks, root = import_bytes(bytes(range(200)) * 3000, ImportParams(chunk_size=65536))
+    car = b"".join(write_car([root], blocks))
+    body, content_type = multipart(("x.car", car))
+    response = signed.request(
+        "POST", "/api/v0/dag/import", content=body, headers={"Content-Type": content_type}
+    )
+    assert json.loads(response.text) == {"Root": {"Cid": {"/": str(root)}, "PinErrorMsg": ""}}
+    pins = httpx.post(f"{cas_service.url}/api/v0/pin/ls").json()["Keys"]
+    assert pins[str(root)]["Owners"] == [signed.identity.address]  # type: ignore[union-attr]
+
+
+def test_version_answers_like_kubo(cas_service: ServiceProcess) -> None:
+    answer = httpx.post(f"{cas_service.url}/api/v0/version").json()
+    assert answer["System"] == "robocloud-cas"
+    assert answer["Version"] == robocloud.__version__
