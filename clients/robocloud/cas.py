@@ -8,20 +8,31 @@ CID before reassembling the file, so a lying gateway can at worst withhold data.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import secrets
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from robocloud.car import CarError, CarReader
-from robocloud.cid import CID
+from robocloud.cid import CID, RAW
 from robocloud.client import ServiceClient
 from robocloud.config import service_url
 from robocloud.errors import RobocloudError
 from robocloud.identity import Identity
-from robocloud.unixfs import Importer, ImportParams, UnixfsError, read_file
+from robocloud.unixfs import (
+    DEFAULT_MAX_LINKS,
+    FILE,
+    PROFILES,
+    RAW_TYPE,
+    Block,
+    Importer,
+    ImportParams,
+    UnixfsError,
+    decode_node,
+)
 
 READ_SIZE = 1 << 20
 CAR_MEDIA_TYPE = "application/vnd.ipld.car"
@@ -141,12 +152,7 @@ class Cas:
         response = self.http.request(
             "POST",
             "/api/v0/add",
-            params={
-                "cid-version": params.cid_version,
-                "raw-leaves": str(params.raw_leaves).lower(),
-                "chunker": f"size-{params.chunk_size}",
-                "pin": str(pin).lower(),
-            },
+            params={**_import_options(params), "pin": str(pin).lower()},
             content=body.chunks(progress, importer.feed),
             content_sha256=body.sha256(),
             headers={"Content-Type": body.content_type, "Content-Length": str(body.length)},
@@ -164,38 +170,26 @@ class Cas:
 
     def get(self, cid: CID | str) -> bytes:
         """The verified content of a file."""
-        with tempfile.TemporaryDirectory() as scratch:
-            output = Path(scratch) / "content"
-            self.get_to_file(cid, output)
-            return output.read_bytes()
+        out = io.BytesIO()
+        self._download(_as_cid(cid), out, _no_progress)
+        return out.getvalue()
 
     def get_to_file(self, cid: CID | str, path: Path, progress: Progress = _no_progress) -> int:
-        """Fetch a file as a CAR, verify every block, and write its content to ``path``."""
-        root = CID.decode(cid) if isinstance(cid, str) else cid
-        with tempfile.TemporaryDirectory(prefix="robocloud-car-") as scratch:
-            blocks = Path(scratch)
-            self._fetch_verified_car(root, blocks, progress)
+        """Fetch a file as a CAR, verify every block, and write its content to ``path``.
 
-            def get_block(wanted: CID) -> bytes:
-                try:
-                    return (blocks / str(wanted)).read_bytes()
-                except FileNotFoundError as exc:
-                    raise CasError(f"the gateway's CAR lacks block {wanted} of {root}") from exc
+        The file appears under ``path`` only once all of it was verified.
+        """
+        partial = path.with_name(f".{path.name}.partial")
+        try:
+            with partial.open("w+b") as out:
+                written = self._download(_as_cid(cid), out, progress)
+        except BaseException:
+            partial.unlink(missing_ok=True)
+            raise
+        partial.replace(path)
+        return written
 
-            partial = path.with_name(f".{path.name}.partial")
-            written = 0
-            try:
-                with partial.open("wb") as out:
-                    for piece in read_file(root, get_block):
-                        out.write(piece)
-                        written += len(piece)
-            except (UnixfsError, CasError):
-                partial.unlink(missing_ok=True)
-                raise
-            partial.replace(path)
-            return written
-
-    def _fetch_verified_car(self, root: CID, into: Path, progress: Progress) -> None:
+    def _download(self, root: CID, out: BinaryIO, progress: Progress) -> int:
         response = self.http.request(
             "GET",
             f"/ipfs/{root}",
@@ -204,7 +198,12 @@ class Cas:
             stream=True,
         )
         try:
-            _store_verified_car(root, response.iter_bytes(READ_SIZE), into, progress)
+            reader = CarReader(_IteratorReader(response.iter_bytes(READ_SIZE)))
+            if root not in reader.roots:
+                raise CasError(f"the gateway's CAR is rooted at {reader.roots}, not {root}")
+            return FileAssembler(root, out, progress).run(iter(reader))
+        except (CarError, UnixfsError) as exc:
+            raise CasError(f"refused the gateway's CAR for {root}: {exc}") from exc
         finally:
             response.close()
 
@@ -228,17 +227,98 @@ class Cas:
         return dict(keys)
 
 
-def _store_verified_car(root: CID, chunks: Iterator[bytes], into: Path, progress: Progress) -> None:
-    """Write each block of a CAR stream to ``into`` once it matched its CID."""
-    try:
-        reader = CarReader(_IteratorReader(chunks))
-        if root not in reader.roots:
-            raise CasError(f"the gateway's CAR is rooted at {reader.roots}, not {root}")
-        for block in reader:
-            (into / str(block.cid)).write_bytes(block.data)
-            progress(len(block.data))
-    except CarError as exc:
-        raise CasError(f"refused the gateway's CAR for {root}: {exc}") from exc
+class FileAssembler:
+    """Writes a file from a CAR stream in DFS order, checking each block is the one due.
+
+    Every block was already hashed against its own CID by the CAR reader; this checks that
+    it is the next block of *this* file's DAG, so the bytes written are exactly those the
+    root CID commits to, streamed with bounded memory. A gateway sends a repeated block (a
+    run of zeros) only once, so leaves are remembered by their place in ``out`` and inner
+    nodes by their links, and a repeat is replayed from there.
+    """
+
+    def __init__(self, root: CID, out: BinaryIO, progress: Progress) -> None:
+        self.root = root
+        self.out = out
+        self.progress = progress
+        self.written = 0
+        self._leaves: dict[CID, tuple[int, int]] = {}
+        self._inner: dict[CID, tuple[bytes, list[CID]]] = {}
+        self._due: list[CID] = [root]
+
+    def run(self, blocks: Iterator[Block]) -> int:
+        while self._due:
+            cid = self._due.pop()
+            if not self._replay(cid):
+                block = next(blocks, None)
+                if block is None:
+                    raise CasError(f"the gateway's CAR ends before block {cid} of {self.root}")
+                if block.cid != cid:
+                    raise CasError(
+                        f"the gateway's CAR has {block.cid} where {cid} of {self.root} is due"
+                    )
+                self._take(block)
+        if next(blocks, None) is not None:
+            raise CasError(f"the gateway's CAR has blocks beyond the file {self.root}")
+        return self.written
+
+    def _replay(self, cid: CID) -> bool:
+        if cid in self._leaves:
+            offset, length = self._leaves[cid]
+            self.out.seek(offset)
+            data = self.out.read(length)
+            self.out.seek(0, io.SEEK_END)
+            self._write(data)
+            return True
+        if cid in self._inner:
+            data, links = self._inner[cid]
+            self._write(data)
+            self._due.extend(reversed(links))
+            return True
+        return False
+
+    def _take(self, block: Block) -> None:
+        if block.cid.codec == RAW:
+            self._leaves[block.cid] = (self.written, len(block.data))
+            self._write(block.data)
+            return
+        node, unixfs = decode_node(block.cid, block.data)
+        if unixfs.type not in (FILE, RAW_TYPE):
+            raise CasError(f"{block.cid} is not part of a file (UnixFS type {unixfs.type})")
+        links = [link.cid for link in node.links]
+        if links:
+            self._inner[block.cid] = (unixfs.data, links)
+        else:
+            self._leaves[block.cid] = (self.written, len(unixfs.data))
+        self._write(unixfs.data)
+        self._due.extend(reversed(links))
+
+    def _write(self, data: bytes) -> None:
+        self.out.write(data)
+        self.written += len(data)
+        self.progress(len(data))
+
+
+def _import_options(params: ImportParams) -> dict[str, str]:
+    """kubo's add options for ``params``; kubo can only say a link count through a profile."""
+    options = {
+        "cid-version": str(params.cid_version),
+        "raw-leaves": str(params.raw_leaves).lower(),
+        "chunker": f"size-{params.chunk_size}",
+    }
+    if params.max_links == DEFAULT_MAX_LINKS:
+        return options
+    for name, (_, _, _, links) in PROFILES.items():
+        if links == params.max_links:
+            return {"profile": name, **options}
+    raise ValueError(
+        f"a gateway cannot be asked for {params.max_links} links per node; "
+        f"use {DEFAULT_MAX_LINKS} or a profile's"
+    )
+
+
+def _as_cid(cid: CID | str) -> CID:
+    return CID.decode(cid) if isinstance(cid, str) else cid
 
 
 def _json_line(line: str) -> dict[str, Any]:

@@ -105,10 +105,10 @@ def unpin(
 
 
 def pins(cas: str | None = CasOption) -> None:
-    """List pinned CIDs."""
+    """List pinned CIDs and the robots that pinned them."""
     with _errors(), Cas(cas) as client:
         for cid, info in sorted(client.pins().items()):
-            console.print(f"{cid}  {info.get('Type', '')}")
+            console.print(f"{cid}  {' '.join(info.get('Owners', []))}")
 
 
 def register(app: typer.Typer) -> None:
