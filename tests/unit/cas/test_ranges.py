@@ -1,0 +1,36 @@
+"""Range headers as RFC 9110 reads them."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.cas.ranges import byte_range
+from services.common.errors import RangeNotSatisfiable
+
+
+@pytest.mark.parametrize(
+    ("header", "expected"),
+    [
+        (None, None),
+        ("bytes=0-9", (0, 10)),
+        ("bytes=5-", (5, 100)),
+        ("bytes=-5", (95, 100)),
+        ("bytes=-500", (0, 100)),
+        ("bytes=90-500", (90, 100)),
+        ("bytes=0-1,4-5", None),
+        ("items=0-1", None),
+        ("bytes=9-1", None),
+        ("bytes=-", None),
+    ],
+)
+def test_served_ranges(header: str | None, expected: tuple[int, int] | None) -> None:
+    assert byte_range(header, 100) == expected
+
+
+@pytest.mark.parametrize(
+    ("header", "size"), [("bytes=100-", 100), ("bytes=-0", 100), ("bytes=0-", 0)]
+)
+def test_unsatisfiable(header: str, size: int) -> None:
+    with pytest.raises(RangeNotSatisfiable) as exc:
+        byte_range(header, size)
+    assert exc.value.headers == {"Content-Range": f"bytes */{size}"}
