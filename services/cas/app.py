@@ -6,13 +6,11 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Annotated
 
 import anyio
 from fastapi import FastAPI
 from prometheus_client import Counter
-from pydantic import Field, field_validator
-from pydantic_settings import NoDecode
+from pydantic import Field
 
 import services.cas
 from robocloud.cid import CID
@@ -21,7 +19,7 @@ from services.cas.blockstore import Blockstore
 from services.cas.peers import PeerFetcher
 from services.cas.store import ContentStore
 from services.common.app import create_app
-from services.common.settings import ServiceSettings
+from services.common.settings import CommaList, ServiceSettings
 
 log = logging.getLogger("robocloud.cas")
 
@@ -30,20 +28,13 @@ MAX_BLOCK_PUT_BYTES = 4 * 1024 * 1024
 
 
 class CasSettings(ServiceSettings):
-    cas_peers: Annotated[list[str], NoDecode] = Field(
+    cas_peers: CommaList = Field(
         default_factory=list, description="other gateways to fetch missing blocks from"
     )
     cas_peer_timeout_s: float = Field(default=10.0, gt=0)
     cas_max_upload_bytes: int = Field(default=4 * 1024**3, gt=0)
     cas_gc_grace_s: float = Field(default=3600.0, ge=0)
     cas_gc_interval_s: float = Field(default=3600.0, ge=0, description="0 disables periodic GC")
-
-    @field_validator("cas_peers", mode="before")
-    @classmethod
-    def _split_peers(cls, value: object) -> object:
-        if isinstance(value, str):
-            return [part.strip() for part in value.split(",") if part.strip()]
-        return value
 
 
 def _open_store(settings: CasSettings, app: FastAPI) -> ContentStore:

@@ -9,10 +9,20 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal, TypeVar
 
-from pydantic import Field, field_validator
+from pydantic import BeforeValidator, Field
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from robocloud.config import SERVICES as DEFAULT_PORTS
+
+
+def _split_commas(value: object) -> object:
+    if isinstance(value, str):
+        return [part.strip() for part in value.split(",") if part.strip()]
+    return value
+
+
+CommaList = Annotated[list[str], NoDecode, BeforeValidator(_split_commas)]
+"""A list setting written in the environment as ``a,b,c``."""
 
 
 class ServiceSettings(BaseSettings):
@@ -25,7 +35,7 @@ class ServiceSettings(BaseSettings):
     port: int = Field(default=0, ge=0, le=65535)
     data_dir: Path | None = None
     auth: Literal["registered", "signed"] = "registered"
-    allowed_addresses: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    allowed_addresses: CommaList = Field(default_factory=list)
     max_body_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
     max_clock_skew_s: int = Field(default=300, gt=0)
     log_level: str = "INFO"
@@ -34,13 +44,6 @@ class ServiceSettings(BaseSettings):
     storage_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['storage']}"
     broker_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['broker']}"
     fl_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['fl']}"
-
-    @field_validator("allowed_addresses", mode="before")
-    @classmethod
-    def _split_addresses(cls, value: object) -> object:
-        if isinstance(value, str):
-            return [part.strip() for part in value.split(",") if part.strip()]
-        return value
 
     def resolved_port(self) -> int:
         return self.port or DEFAULT_PORTS.get(self.service, 8000)

@@ -16,6 +16,13 @@ def block(text: str) -> tuple[CID, bytes]:
     return CID.from_block(data), data
 
 
+def commit_all(store: Blockstore, blocks: list[tuple[CID, bytes]]) -> None:
+    with store.stage() as staged:
+        for cid, data in blocks:
+            staged.add(cid, data)
+        staged.commit()
+
+
 def test_staged_blocks_are_invisible_until_commit(tmp_path: Path) -> None:
     store = Blockstore(tmp_path)
     cid, data = block("a")
@@ -51,10 +58,7 @@ def test_a_pack_without_index_is_dropped_at_start(tmp_path: Path) -> None:
 def test_committed_blocks_survive_reopening(tmp_path: Path) -> None:
     store = Blockstore(tmp_path)
     blocks = [block(t) for t in "abc"]
-    with store.stage() as staged:
-        for cid, data in blocks:
-            staged.add(cid, data)
-        staged.commit()
+    commit_all(store, blocks)
     reopened = Blockstore(tmp_path)
     for cid, data in blocks:
         assert reopened.get(cid) == data
@@ -92,10 +96,7 @@ def test_a_rotten_block_is_quarantined_and_reported(tmp_path: Path) -> None:
 def test_delete_then_compact_reclaims_space_and_keeps_the_rest(tmp_path: Path) -> None:
     store = Blockstore(tmp_path)
     blocks = [block(t) for t in "abcd"]
-    with store.stage() as staged:
-        for cid, data in blocks:
-            staged.add(cid, data)
-        staged.commit()
+    commit_all(store, blocks)
     store.delete([blocks[0][0].multihash, blocks[1][0].multihash, blocks[2][0].multihash])
     assert store.compact() == 3 * len(blocks[0][1])
     assert store.get(blocks[3][0]) == blocks[3][1]
