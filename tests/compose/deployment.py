@@ -92,7 +92,7 @@ class Deployment:
         return dict(json.loads(inspected.stdout)[0])
 
     def wait_ready(self, services: Sequence[str], timeout_s: float = 60) -> None:
-        """Poll each service's ``/readyz`` through its published port."""
+        """Poll each service until it answers ``/readyz`` and Docker reports it healthy."""
         deadline = time.monotonic() + timeout_s
         for service in services:
             while not self._ready(service):
@@ -102,7 +102,10 @@ class Deployment:
                 time.sleep(0.2)
 
     def _ready(self, service: str) -> bool:
+        """Ready through the published port, and healthy in Docker's eyes too."""
         try:
-            return httpx.get(f"{self.urls[service]}/readyz", timeout=2).status_code == 200
+            if httpx.get(f"{self.urls[service]}/readyz", timeout=2).status_code != 200:
+                return False
         except httpx.HTTPError:
             return False
+        return bool(self.container(service)["State"]["Health"]["Status"] == "healthy")
