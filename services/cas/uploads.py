@@ -17,7 +17,7 @@ from anyio.streams.memory import MemoryObjectReceiveStream
 
 from robocloud.cid import CID
 from services.cas.blockstore import Staging
-from services.cas.multipart import MultipartParser, Part, PartData, PartEnd
+from services.cas.multipart import Event, MultipartParser, Part, PartData
 from services.cas.store import ContentStore
 from services.cas.streams import first_error
 from services.common.errors import BadRequest
@@ -54,48 +54,59 @@ async def _drain(receive: MemoryObjectReceiveStream[list[Command]], sink: PartSi
             await anyio.to_thread.run_sync(_apply, sink, commands)
 
 
-def _begin(part: Part) -> Command:
+class _Batcher:
+    """Turns parser events into commands for the sink, handed over about 1 MiB at a time."""
+
+    def __init__(self) -> None:
+        self.commands: list[Command] = []
+        self.pending = 0
+        self.files = 0
+
+    def take(self, events: list[Event]) -> None:
+        for event in events:
+            if isinstance(event, PartData):
+                self.commands.append(("data", event.data))
+                self.pending += len(event.data)
+            elif isinstance(event, Part):
+                self.commands.append(("begin", _file_name(event)))
+                self.files += 1
+            else:
+                self.commands.append(("end", b""))
+
+    def flush(self) -> list[Command]:
+        commands, self.commands, self.pending = self.commands, [], 0
+        return commands
+
+
+def _file_name(part: Part) -> str:
     if part.content_type == "application/x-directory":
         raise BadRequest(
             f"part {part.filename!r} is a directory; only files can be added",
             code="unsupported_part",
             details={"part": part.filename},
         )
-    return ("begin", part.filename)
+    return part.filename
 
 
 async def receive_parts(body: AsyncIterator[bytes], boundary: bytes, sink: PartSink) -> int:
     """Feed every file part of a multipart body to ``sink``; returns how many there were."""
     parser = MultipartParser(boundary)
+    batcher = _Batcher()
     send, receive = anyio.create_memory_object_stream[list[Command]](max_buffer_size=1)
-    files = 0
     try:
-        async with anyio.create_task_group() as group:
+        async with anyio.create_task_group() as group, send:
             group.start_soon(_drain, receive, sink)
-            async with send:
-                batch: list[Command] = []
-                pending = 0
-                async for chunk in body:
-                    for event in parser.feed(chunk):
-                        if isinstance(event, PartData):
-                            batch.append(("data", event.data))
-                            pending += len(event.data)
-                        elif isinstance(event, Part):
-                            batch.append(_begin(event))
-                            files += 1
-                        elif isinstance(event, PartEnd):
-                            batch.append(("end", b""))
-                    if pending >= BATCH_BYTES:
-                        await send.send(batch)
-                        batch, pending = [], 0
-                parser.close()
-                if batch:
-                    await send.send(batch)
+            async for chunk in body:
+                batcher.take(parser.feed(chunk))
+                if batcher.pending >= BATCH_BYTES:
+                    await send.send(batcher.flush())
+            parser.close()
+            await send.send(batcher.flush())
     except BaseExceptionGroup as group_error:
         raise first_error(group_error) from None
-    if files == 0:
+    if batcher.files == 0:
         raise BadRequest("the multipart body holds no file", code="no_file")
-    return files
+    return batcher.files
 
 
 class CarSpool:
