@@ -1,0 +1,117 @@
+"""The development chain's state on disk: py-evm's key-value database in SQLite.
+
+eth-tester keeps its chain in an in-memory ``AtomicDB``; replaying a journal of transactions
+to rebuild it grows with the chain's history (ENVIRONMENT.md measured over 20 minutes for
+100,000 transactions). Instead py-evm writes its trie nodes, headers and receipts straight
+into this store: a restart reopens the database and the canonical head is where it was, with
+the same hash, in constant time.
+
+Each of py-evm's atomic batches (a mined block, a persisted state) is one SQLite transaction
+with ``synchronous=FULL``, so a kill -9 loses at most a batch that was never acknowledged.
+The chain itself is a py-evm ``MiningChain`` with chain id 1337 and eth-tester's funded
+genesis, like eth-tester's own tester chain but with a durable database underneath.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from eth.abc import AtomicWriteBatchAPI
+from eth.chains.base import MiningChain
+from eth.consensus import ConsensusApplier, NoProofConsensus
+from eth.db.atomic import AtomicDB
+from eth.db.backends.base import BaseDB
+from eth.exceptions import CanonicalHeadNotFound
+from eth.vm.forks import PragueVM
+from eth_tester.backends.pyevm.main import (
+    generate_genesis_state_for_keys,
+    get_default_account_keys,
+    get_default_genesis_params,
+)
+
+CHAIN_ID = 1337
+
+
+class SqliteKeyValue(BaseDB):
+    """A durable byte-to-byte map; writes outside a transaction commit one by one."""
+
+    def __init__(self, path: Path) -> None:
+        self.connection = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        self.connection.execute("PRAGMA journal_mode=WAL")
+        self.connection.execute("PRAGMA synchronous=FULL")
+        self.connection.execute(
+            "CREATE TABLE IF NOT EXISTS kv (key BLOB PRIMARY KEY, value BLOB NOT NULL)"
+        )
+
+    def __getitem__(self, key: bytes) -> bytes:
+        row = self.connection.execute("SELECT value FROM kv WHERE key = ?", (key,)).fetchone()
+        if row is None:
+            raise KeyError(key)
+        return bytes(row[0])
+
+    def __setitem__(self, key: bytes, value: bytes) -> None:
+        self.connection.execute("INSERT OR REPLACE INTO kv VALUES (?, ?)", (key, value))
+
+    def __delitem__(self, key: bytes) -> None:
+        if self.connection.execute("DELETE FROM kv WHERE key = ?", (key,)).rowcount == 0:
+            raise KeyError(key)
+
+    def _exists(self, key: bytes) -> bool:
+        return (
+            self.connection.execute("SELECT 1 FROM kv WHERE key = ?", (key,)).fetchone() is not None
+        )
+
+    @contextmanager
+    def transaction(self) -> Iterator[None]:
+        self.connection.execute("BEGIN IMMEDIATE")
+        try:
+            yield
+        except BaseException:
+            self.connection.execute("ROLLBACK")
+            raise
+        self.connection.execute("COMMIT")
+
+    def close(self) -> None:
+        self.connection.close()
+
+
+class DurableAtomicDB(AtomicDB):
+    """py-evm's atomic database whose every batch is one SQLite transaction."""
+
+    def __init__(self, path: Path) -> None:
+        self.store = SqliteKeyValue(path)
+        super().__init__(self.store)
+
+    @contextmanager
+    def atomic_batch(self) -> Iterator[AtomicWriteBatchAPI]:
+        with self.store.transaction(), super().atomic_batch() as batch:
+            yield batch
+
+    def close(self) -> None:
+        self.store.close()
+
+
+class DevChain(MiningChain):
+    """Chain id 1337, no proof of work, the newest fork eth-tester supports."""
+
+    chain_id = CHAIN_ID
+    vm_configuration = ConsensusApplier(NoProofConsensus).amend_vm_configuration(((0, PragueVM),))
+
+
+def open_chain(path: Path, funded_accounts: int = 10) -> tuple[DevChain, DurableAtomicDB]:
+    """Reopen the chain stored at ``path``, or create it with eth-tester's funded genesis.
+
+    The canonical head is written last when a genesis is persisted, so a store without one
+    (new, or cut short by a crash) simply gets the same deterministic genesis again.
+    """
+    db = DurableAtomicDB(path)
+    try:
+        return DevChain(db), db
+    except CanonicalHeadNotFound:
+        pass
+    state: Any = generate_genesis_state_for_keys(get_default_account_keys(funded_accounts))
+    return DevChain.from_genesis(db, get_default_genesis_params(), state), db
