@@ -1,0 +1,343 @@
+"""The embedded development chain: execution, automining and reads over the durable store.
+
+Every accepted transaction is mined at once in its own block (automine, as eth-tester and
+hardhat do), and the block is committed to the SQLite store of ``chaindb`` in one fsynced
+transaction before ``send_raw_transaction`` returns. A receipt the caller can see is therefore
+always on disk, and a restart reopens the store with the same head hash: nothing is replayed.
+
+Transactions are checked here before py-evm sees them so that each refusal has the message
+Ethereum nodes use (``nonce too low``, ``invalid chain id``, ``insufficient funds``). The class
+is thread-safe: one lock serialises writes and the reads that touch py-evm's mutable chain.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
+from eth.exceptions import BlockNotFound, HeaderNotFound, Revert, TransactionNotFound
+from eth.vm.spoof import SpoofTransaction
+from eth_utils.crypto import keccak
+from eth_utils.exceptions import ValidationError
+
+from robocloud.ledger.abi import decode_revert
+from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
+
+log = logging.getLogger("robocloud.ledger.chain")
+
+BlockTag = int | str
+"""A block number, or one of ``latest``, ``pending``, ``earliest``, ``safe``, ``finalized``."""
+
+BLOB_TRANSACTION_TYPE = 3
+
+
+class ChainError(Exception):
+    """A request the chain refuses; ``code`` is the JSON-RPC error code nodes use for it."""
+
+    code = -32000
+
+    def __init__(self, message: str, data: str | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.data = data
+
+
+class InvalidParams(ChainError):
+    """The request itself is malformed (not decodable, wrong types)."""
+
+    code = -32602
+
+
+class Reverted(ChainError):
+    """The EVM reverted; ``data`` is the revert payload and the message carries its reason."""
+
+    code = 3
+
+    def __init__(self, payload: bytes) -> None:
+        super().__init__(f"execution reverted: {decode_revert(payload)}", "0x" + payload.hex())
+        self.payload = payload
+
+
+@dataclass(frozen=True)
+class CallRequest:
+    """An unsigned call as ``eth_call`` and ``eth_estimateGas`` receive it."""
+
+    sender: bytes
+    to: bytes
+    data: bytes = b""
+    value: int = 0
+    gas: int | None = None
+    gas_price: int = 0
+
+
+@dataclass(frozen=True)
+class MinedBlock:
+    """A block just committed, with its receipts: what the event index is fed."""
+
+    block: BlockAPI
+    receipts: tuple[ReceiptAPI, ...]
+
+
+@dataclass(frozen=True)
+class Located:
+    """A transaction and where it sits in the canonical chain."""
+
+    transaction: SignedTransactionAPI
+    block: BlockAPI
+    index: int
+
+
+BlockListener = Callable[[MinedBlock], None]
+
+
+class EmbeddedChain:
+    """The durable automining chain with chain id 1337."""
+
+    def __init__(self, path: Path, genesis_state: Mapping[bytes, Any] | None = None) -> None:
+        self._lock = threading.RLock()
+        self._chain, self._db = open_chain(path, genesis_state)
+        self._path = path
+        self._listeners: list[BlockListener] = []
+
+    @property
+    def chain_id(self) -> int:
+        return CHAIN_ID
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def on_block(self, listener: BlockListener) -> None:
+        """Call ``listener`` with every block mined from now on, before its sender is answered."""
+        self._listeners.append(listener)
+
+    # ----- blocks -----
+
+    def head(self) -> BlockHeaderAPI:
+        with self._lock:
+            return self._chain.get_canonical_head()
+
+    def header_at(self, tag: BlockTag) -> BlockHeaderAPI:
+        """The header a tag names; every mined block is final, so all named tags are the head."""
+        with self._lock:
+            if tag in ("latest", "pending", "safe", "finalized"):
+                return self._chain.get_canonical_head()
+            if tag == "earliest":
+                return self._chain.get_canonical_block_header_by_number(0)  # type: ignore[arg-type]
+            if not isinstance(tag, int) or tag < 0:
+                raise InvalidParams(f"invalid block tag {tag!r}")
+            try:
+                return self._chain.get_canonical_block_header_by_number(tag)  # type: ignore[arg-type]
+            except HeaderNotFound as exc:
+                raise ChainError(
+                    f"block {tag} not found (head is {self.head().block_number})"
+                ) from exc
+
+    def block_by_number(self, tag: BlockTag) -> BlockAPI | None:
+        with self._lock:
+            try:
+                header = self.header_at(tag)
+            except ChainError:
+                if isinstance(tag, int) and tag >= 0:
+                    return None
+                raise
+            return self._chain.get_block_by_header(header)
+
+    def block_by_hash(self, block_hash: bytes) -> BlockAPI | None:
+        with self._lock:
+            try:
+                block = self._chain.get_block_by_hash(block_hash)  # type: ignore[arg-type]
+            except (BlockNotFound, HeaderNotFound):
+                return None
+            if self._chain.get_canonical_block_hash(block.number) != block.hash:
+                return None
+            return block
+
+    def receipts(self, block: BlockAPI) -> tuple[ReceiptAPI, ...]:
+        with self._lock:
+            return tuple(block.get_receipts(self._chain.chaindb))
+
+    def locate(self, tx_hash: bytes) -> Located | None:
+        """Where a mined transaction is, from py-evm's own hash index (not a scan)."""
+        with self._lock:
+            try:
+                number, index = self._chain.get_canonical_transaction_index(tx_hash)  # type: ignore[arg-type]
+            except TransactionNotFound:
+                return None
+            block = self._chain.get_canonical_block_by_number(number)
+            return Located(block.transactions[index], block, index)
+
+    # ----- accounts -----
+
+    def balance(self, address: bytes, tag: BlockTag) -> int:
+        with self._lock:
+            return int(self._state(tag).get_balance(address))
+
+    def nonce(self, address: bytes, tag: BlockTag) -> int:
+        with self._lock:
+            return int(self._state(tag).get_nonce(address))
+
+    def code(self, address: bytes, tag: BlockTag) -> bytes:
+        with self._lock:
+            return bytes(self._state(tag).get_code(address))
+
+    def storage_at(self, address: bytes, slot: int, tag: BlockTag) -> int:
+        with self._lock:
+            return int(self._state(tag).get_storage(address, slot))
+
+    def base_fee(self) -> int:
+        """The base fee the next block will charge."""
+        with self._lock:
+            return int(self._chain.header.base_fee_per_gas)
+
+    def _state(self, tag: BlockTag) -> Any:
+        return self._chain.get_vm(at_header=self.header_at(tag)).state
+
+    # ----- execution -----
+
+    def call(self, request: CallRequest, tag: BlockTag) -> bytes:
+        """Run a call on the state after block ``tag``; raise ``Reverted`` with its reason."""
+        with self._lock:
+            header = self.header_at(tag)
+            transaction = self._spoof(request, header)
+            try:
+                return bytes(self._chain.get_transaction_result(transaction, header))
+            except Revert as exc:
+                raise Reverted(bytes(exc.args[0]) if exc.args else b"") from exc
+            except ValidationError as exc:
+                raise ChainError(str(exc)) from exc
+            except Exception as exc:
+                if type(exc).__module__.startswith("eth."):
+                    raise ChainError(f"execution failed: {type(exc).__name__} {exc}") from exc
+                raise
+
+    def estimate_gas(self, request: CallRequest, tag: BlockTag) -> int:
+        """The least gas with which the call succeeds; ``Reverted`` if it never does."""
+        with self._lock:
+            header = self.header_at(tag)
+            transaction = self._spoof(request, header)
+            try:
+                return int(self._chain.estimate_gas(transaction, header))
+            except Revert as exc:
+                raise Reverted(bytes(exc.args[0]) if exc.args else b"") from exc
+            except ValidationError as exc:
+                raise ChainError(str(exc)) from exc
+            except Exception as exc:
+                if type(exc).__module__.startswith("eth."):
+                    raise ChainError(f"execution failed: {type(exc).__name__} {exc}") from exc
+                raise
+
+    def _spoof(self, request: CallRequest, header: BlockHeaderAPI) -> SpoofTransaction:
+        vm = self._chain.get_vm(at_header=header)
+        unsigned = vm.create_unsigned_transaction(
+            nonce=vm.state.get_nonce(request.sender),
+            gas_price=request.gas_price,
+            gas=request.gas if request.gas is not None else header.gas_limit,
+            to=request.to,  # type: ignore[arg-type]
+            value=request.value,
+            data=request.data,
+        )
+        return SpoofTransaction(unsigned, from_=request.sender)
+
+    # ----- transactions -----
+
+    def decode(self, raw: bytes) -> SignedTransactionAPI:
+        """A signed transaction from its raw bytes, or ``InvalidParams`` saying why not."""
+        if not raw:
+            raise InvalidParams("invalid raw transaction: empty")
+        if raw[0] == BLOB_TRANSACTION_TYPE:
+            raise ChainError("blob transactions (type 3) are not supported by this chain")
+        builder = self._chain.get_vm().get_transaction_builder()
+        try:
+            transaction = builder.decode(raw)
+            transaction.sender  # noqa: B018 - recovers the signer, which can fail
+        except Exception as exc:  # any failure to parse untrusted bytes means "invalid"
+            raise InvalidParams(f"invalid raw transaction: {type(exc).__name__}: {exc}") from exc
+        return transaction
+
+    def send_raw_transaction(self, raw: bytes) -> MinedBlock:
+        """Validate, execute and mine ``raw`` in a new block, durable before this returns."""
+        transaction = self.decode(raw)
+        with self._lock:
+            self._check(transaction)
+            return self._mine(transaction)
+
+    def _check(self, transaction: SignedTransactionAPI) -> None:
+        if transaction.chain_id is None:
+            raise ChainError(
+                "only replay-protected (EIP-155) transactions are accepted: sign with chain id "
+                f"{CHAIN_ID}"
+            )
+        if transaction.chain_id != CHAIN_ID:
+            raise ChainError(
+                f"invalid chain id {transaction.chain_id}: this chain's id is {CHAIN_ID}"
+            )
+        state = self._chain.get_vm().state
+        expected = state.get_nonce(transaction.sender)
+        if transaction.nonce < expected:
+            raise ChainError(
+                f"nonce too low: address 0x{transaction.sender.hex()} has nonce {expected}, "
+                f"transaction has {transaction.nonce}"
+            )
+        if transaction.nonce > expected:
+            raise ChainError(
+                f"nonce too high: address 0x{transaction.sender.hex()} has nonce {expected}, "
+                f"transaction has {transaction.nonce} (this chain mines at once and keeps no "
+                "queue of future transactions)"
+            )
+        price = getattr(transaction, "max_fee_per_gas", None) or transaction.gas_price
+        cost = transaction.gas * price + transaction.value
+        balance = state.get_balance(transaction.sender)
+        if balance < cost:
+            raise ChainError(
+                f"insufficient funds for gas * price + value: balance {balance}, cost {cost}"
+            )
+
+    def _mine(self, transaction: SignedTransactionAPI) -> MinedBlock:
+        """Execute and mine one block as one SQLite transaction (one fsync, all or nothing).
+
+        The pending header is rebuilt first so that the block's timestamp is now, not when
+        the previous block was mined. Listeners run after the commit: a failing listener
+        cannot undo an acknowledged block (the event index catches up from the store).
+        """
+        head = self._chain.get_canonical_head()
+        self._chain.header = self._chain.create_header_from_parent(head)
+        try:
+            with self._db.store.transaction():
+                result, receipts, _ = self._chain.mine_all(
+                    [transaction], mix_hash=keccak(head.hash)
+                )
+        except ValidationError as exc:
+            self._chain = DevChain(self._db)
+            raise ChainError(str(exc)) from exc
+        except BaseException:
+            self._chain = DevChain(self._db)
+            raise
+        mined = MinedBlock(result.imported_block, tuple(receipts))
+        for listener in self._listeners:
+            try:
+                listener(mined)
+            except Exception:
+                log.exception("block listener failed", extra={"block": mined.block.number})
+        return mined
+
+
+def receipt_logs_index_base(receipts: tuple[ReceiptAPI, ...], index: int) -> int:
+    """The block-wide index of the first log of the ``index``-th receipt."""
+    return sum(len(receipt.logs) for receipt in receipts[:index])
+
+
+def gas_used_by(receipts: tuple[ReceiptAPI, ...], index: int) -> int:
+    """Receipts carry cumulative gas; one transaction's gas is the difference."""
+    before = receipts[index - 1].gas_used if index else 0
+    return int(receipts[index].gas_used - before)
+
+
+def receipt_status(receipt: ReceiptAPI) -> int:
+    """1 for success, 0 for failure: post-Byzantium receipts keep it in ``state_root``."""
+    return 1 if receipt.state_root == b"\x01" else 0
