@@ -1,13 +1,180 @@
-"""Routes of the ledger service."""
+"""Routes of the ledger service: JSON-RPC at ``/rpc``, REST reads, the development faucet.
+
+``/rpc`` is unsigned at the HTTP layer: every transaction carries its sender's Ethereum
+signature, and reads are public. The faucet is signed and funds only its signer. Any valid
+signature may use it: a robot asks the faucet before it can register, so the ledger cannot
+require registration (it runs with ``AnySigner`` whatever ``ROBOCLOUD_AUTH`` says).
+"""
 
 from __future__ import annotations
 
-from fastapi import FastAPI
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+import anyio
+from fastapi import APIRouter, FastAPI, Query, Request
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, Field, SecretStr
 
 import services.ledger
 from services.common.app import create_app
+from services.common.auth import SignedAddress
+from services.common.bodies import read_json
+from services.common.errors import Forbidden, NotFound, TooManyRequests, Unavailable
 from services.common.settings import ServiceSettings
+from services.ledger import views
+from services.ledger.faucet import FaucetLimits, RateLimited
+from services.ledger.node import EmbeddedLedger, FaucetUnavailable, Ledger
 
 
-def build_app(settings: ServiceSettings) -> FastAPI:
-    return create_app("ledger", settings, description=services.ledger.__doc__ or "")
+class LedgerSettings(ServiceSettings):
+    ledger_admin_passphrase: SecretStr | None = Field(
+        default=None, description="encrypts the operator keystores; generated when unset"
+    )
+    ledger_rpc_url: str | None = Field(default=None, description="an external Ethereum node")
+    ledger_registry_address: str | None = None
+    ledger_anchor_log_address: str | None = None
+    ledger_poll_interval_s: float = Field(default=1.0, gt=0)
+    ledger_log_page_blocks: int = Field(default=2000, gt=0)
+    ledger_confirmations: int = Field(default=0, ge=0)
+    ledger_start_block: int = Field(default=0, ge=0)
+    ledger_faucet_amount_wei: int = Field(default=10**18, gt=0)
+    ledger_faucet_interval_s: float = Field(default=3600.0, ge=0)
+    ledger_faucet_per_minute: int = Field(default=60, gt=0)
+
+
+class FaucetRequest(BaseModel):
+    address: str = Field(max_length=64)
+
+
+def _open(settings: LedgerSettings) -> Ledger:
+    limits = FaucetLimits(settings.ledger_faucet_interval_s, settings.ledger_faucet_per_minute)
+    passphrase = (
+        settings.ledger_admin_passphrase.get_secret_value()
+        if settings.ledger_admin_passphrase
+        else None
+    )
+    data_dir = settings.resolved_data_dir()
+    if settings.ledger_rpc_url:
+        from services.ledger.external import ExternalLedger
+
+        return ExternalLedger(settings, data_dir, passphrase)
+    return EmbeddedLedger(data_dir, passphrase, limits, settings.ledger_faucet_amount_wei)
+
+
+def _ledger(request: Request) -> Ledger:
+    ledger: Ledger | None = getattr(request.app.state, "ledger", None)
+    if ledger is None:
+        raise Unavailable("the ledger is starting")
+    return ledger
+
+
+def _router() -> APIRouter:
+    router = APIRouter(tags=["ledger"])
+
+    @router.post("/rpc")
+    async def rpc(request: Request) -> Response:
+        """Ethereum JSON-RPC 2.0: single calls and batches."""
+        ledger = _ledger(request)
+        body = await request.body()
+        answer = await anyio.to_thread.run_sync(ledger.dispatcher.handle, body)
+        if answer is None:
+            return Response(status_code=204)
+        return JSONResponse(answer)
+
+    @router.get("/v1/contracts")
+    async def contracts(request: Request) -> dict[str, Any]:
+        """Where Registry and AnchorLog are deployed, with their ABIs."""
+        ledger = _ledger(request)
+        return ledger.deployment.describe(ledger.chain_id)
+
+    @router.get("/v1/robots/{address}")
+    async def robot(request: Request, address: str) -> dict[str, Any]:
+        """A registered robot: metadata CID, activity, roles (from the event index)."""
+        return views.robot(_ledger(request), address)
+
+    @router.get("/v1/advertisements")
+    async def advertisements(
+        request: Request,
+        cid: str | None = None,
+        advertiser: str | None = None,
+        since: int = Query(default=0, ge=0, description="first block number"),
+        limit: int = 100,
+    ) -> dict[str, Any]:
+        """Advertised events, oldest first, by CID and/or advertiser."""
+        return views.advertisements(_ledger(request), cid, advertiser, since, limit)
+
+    @router.get("/v1/anchors")
+    async def anchors(
+        request: Request,
+        node: str | None = None,
+        epoch: int | None = Query(default=None, ge=0),
+        limit: int = 100,
+    ) -> dict[str, Any]:
+        """Anchored TMT roots by storage node and/or epoch."""
+        return views.anchors(_ledger(request), node, epoch, limit)
+
+    @router.get("/v1/blocks/latest")
+    async def latest_block(request: Request) -> dict[str, Any]:
+        ledger = _ledger(request)
+        return await anyio.to_thread.run_sync(ledger.latest_block)
+
+    @router.post("/v1/faucet")
+    async def faucet(request: Request, signer: SignedAddress) -> dict[str, Any]:
+        """Fund the signer on the development chain (rate-limited)."""
+        ledger = _ledger(request)
+        body = await read_json(request, FaucetRequest)
+        assert body is not None
+        address = views.address_param(body.address, "address")
+        if address != signer:
+            raise Forbidden(
+                f"the faucet funds only its signer {signer}, not {address}",
+                code="faucet_signer_mismatch",
+                details={"address": address, "signer": signer},
+            )
+        try:
+            return await anyio.to_thread.run_sync(ledger.fund, address)
+        except RateLimited as exc:
+            raise TooManyRequests(
+                f"faucet rate limit: {exc}",
+                retry_after_s=exc.retry_after_s,
+                code="faucet_rate_limited",
+                details={"address": address},
+            ) from exc
+        except FaucetUnavailable as exc:
+            raise NotFound(str(exc), code="faucet_unavailable") from exc
+
+    return router
+
+
+def build_app(settings: LedgerSettings) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        ledger = await anyio.to_thread.run_sync(_open, settings)
+        app.state.ledger = ledger
+        try:
+            async with anyio.create_task_group() as tasks:
+                follow = getattr(ledger, "follow", None)
+                if follow is not None:
+                    tasks.start_soon(follow)
+                yield
+                tasks.cancel_scope.cancel()
+        finally:
+            app.state.ledger = None
+            await anyio.to_thread.run_sync(ledger.close)
+
+    async def ledger_open() -> None:
+        if getattr(app.state, "ledger", None) is None:
+            raise RuntimeError("the ledger is not open")
+
+    app = create_app(
+        "ledger",
+        settings.model_copy(update={"auth": "signed"}),
+        routers=[_router()],
+        readiness_checks=[ledger_open],
+        lifespan=lifespan,
+        unsigned_paths=["/rpc"],
+        description=services.ledger.__doc__ or "",
+    )
+    return app

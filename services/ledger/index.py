@@ -1,0 +1,371 @@
+"""The event index: every log the chain emitted, and the contracts' state as events tell it.
+
+eth-tester's ``get_logs`` scans every block and grows quadratically with the number of events
+(ENVIRONMENT.md), so ``eth_getLogs`` and the REST reads are served from this SQLite index
+instead. It is fed one block at a time, in order, from receipts (embedded chain) or from
+``eth_getLogs`` pages (external node). Each block is one SQLite transaction that also moves
+the index's cursor, so after a crash the index is exactly the blocks up to its cursor and
+catching up from the chain repeats nothing.
+
+Only events emitted by the deployed Registry and AnchorLog update the robot, advertisement
+and anchor tables: anybody may deploy a contract that emits a look-alike ``RobotRegistered``,
+and such a log must never make its sender look registered.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from robocloud.ledger.abi import ContractAbi, DecodedLog
+from services.ledger.encoding import LogEntry
+
+MAX_LOG_RESULTS = 10_000
+"""``eth_getLogs`` answers at most this many logs; a wider query is refused (as Infura does)."""
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS cursor (
+    id INTEGER PRIMARY KEY CHECK (id = 0), block_number INTEGER NOT NULL, block_hash BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS logs (
+    block_number INTEGER NOT NULL, log_index INTEGER NOT NULL, block_hash BLOB NOT NULL,
+    tx_hash BLOB NOT NULL, tx_index INTEGER NOT NULL, address BLOB NOT NULL,
+    topic0 BLOB, topic1 BLOB, topic2 BLOB, topic3 BLOB, data BLOB NOT NULL,
+    PRIMARY KEY (block_number, log_index)
+) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS logs_address ON logs (address, topic0, block_number);
+CREATE INDEX IF NOT EXISTS logs_topic0 ON logs (topic0, block_number);
+CREATE INDEX IF NOT EXISTS logs_topic1 ON logs (topic1, block_number);
+CREATE INDEX IF NOT EXISTS logs_topic2 ON logs (topic2, block_number);
+CREATE TABLE IF NOT EXISTS robots (
+    address TEXT PRIMARY KEY, metadata_cid BLOB NOT NULL, registered_at INTEGER NOT NULL,
+    registered_block INTEGER NOT NULL, active INTEGER NOT NULL, suspended INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS roles (
+    address TEXT NOT NULL, role BLOB NOT NULL, PRIMARY KEY (address, role)
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS advertisements (
+    block_number INTEGER NOT NULL, log_index INTEGER NOT NULL, cid BLOB NOT NULL,
+    advertiser TEXT NOT NULL, description_cid BLOB NOT NULL, first INTEGER NOT NULL,
+    timestamp INTEGER NOT NULL, tx_hash BLOB NOT NULL, PRIMARY KEY (block_number, log_index)
+) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS advertisements_cid ON advertisements (cid, block_number);
+CREATE INDEX IF NOT EXISTS advertisements_advertiser ON advertisements (advertiser, block_number);
+CREATE TABLE IF NOT EXISTS anchors (
+    node TEXT NOT NULL, epoch INTEGER NOT NULL, root BLOB NOT NULL, record_count INTEGER NOT NULL,
+    timestamp INTEGER NOT NULL, block_number INTEGER NOT NULL, tx_hash BLOB NOT NULL,
+    PRIMARY KEY (node, epoch)
+) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS anchors_epoch ON anchors (epoch);
+"""
+
+
+@dataclass(frozen=True)
+class LogFilter:
+    """``eth_getLogs`` criteria: any of ``addresses``; per position, any of the topics."""
+
+    from_block: int
+    to_block: int
+    addresses: tuple[bytes, ...] = ()
+    topics: tuple[tuple[bytes, ...] | None, ...] = ()
+    block_hash: bytes | None = None
+
+
+class IndexLimitError(Exception):
+    """A query matched more logs than one answer may hold."""
+
+
+class EventIndex:
+    """SQLite-backed log index and contract-state projection."""
+
+    def __init__(self, path: Path, registry: str, anchor_log: str) -> None:
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.executescript(SCHEMA)
+        self.registry = ContractAbi.load("Registry")
+        self.anchor_log = ContractAbi.load("AnchorLog")
+        self._contracts = {
+            bytes.fromhex(registry[2:]): self.registry,
+            bytes.fromhex(anchor_log[2:]): self.anchor_log,
+        }
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    # ----- feeding -----
+
+    def cursor(self) -> tuple[int, bytes] | None:
+        """The last indexed block's number and hash; None before the first block."""
+        with self._lock:
+            row = self._db.execute("SELECT block_number, block_hash FROM cursor").fetchone()
+        return (int(row[0]), bytes(row[1])) if row else None
+
+    def add_block(self, number: int, block_hash: bytes, logs: Iterable[LogEntry]) -> None:
+        """Index one block's logs and advance the cursor to it, all in one transaction."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                for entry in logs:
+                    self._insert(entry)
+                self._db.execute(
+                    "INSERT OR REPLACE INTO cursor VALUES (0, ?, ?)", (number, block_hash)
+                )
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    def rewind(self, to_block: int, block_hash: bytes) -> None:
+        """Forget everything after block ``to_block`` (whose hash is ``block_hash``) when an
+        external chain reorganised, and re-derive the state tables from the logs left."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute("DELETE FROM logs WHERE block_number > ?", (to_block,))
+                for table in ("robots", "roles", "advertisements", "anchors"):
+                    self._db.execute(f"DELETE FROM {table}")
+                rows = self._db.execute("SELECT * FROM logs ORDER BY block_number, log_index")
+                for row in rows.fetchall():
+                    self._apply(_entry(row))
+                self._db.execute(
+                    "INSERT OR REPLACE INTO cursor VALUES (0, ?, ?)", (to_block, block_hash)
+                )
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    def _insert(self, entry: LogEntry) -> None:
+        topics = list(entry.topics) + [None] * (4 - len(entry.topics))
+        self._db.execute(
+            "INSERT OR IGNORE INTO logs VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (
+                entry.block_number,
+                entry.log_index,
+                entry.block_hash,
+                entry.tx_hash,
+                entry.tx_index,
+                entry.address,
+                *topics[:4],
+                entry.data,
+            ),
+        )
+        self._apply(entry)
+
+    def _apply(self, entry: LogEntry) -> None:
+        contract = self._contracts.get(entry.address)
+        if contract is None:
+            return
+        decoded = contract.decode_log(entry.to_rpc())
+        if decoded is None:
+            return
+        handler = _HANDLERS.get(decoded.event)
+        if handler is not None:
+            handler(self._db, decoded, entry)
+
+    # ----- queries -----
+
+    def logs(self, query: LogFilter) -> list[LogEntry]:
+        """Logs matching ``query`` in chain order; ``IndexLimitError`` past the limit."""
+        clauses = ["block_number BETWEEN ? AND ?"]
+        params: list[Any] = [query.from_block, query.to_block]
+        if query.block_hash is not None:
+            clauses.append("block_hash = ?")
+            params.append(query.block_hash)
+        if query.addresses:
+            clauses.append(f"address IN ({','.join('?' * len(query.addresses))})")
+            params.extend(query.addresses)
+        for position, options in enumerate(query.topics[:4]):
+            if options:
+                clauses.append(f"topic{position} IN ({','.join('?' * len(options))})")
+                params.extend(options)
+        sql = (
+            f"SELECT * FROM logs WHERE {' AND '.join(clauses)} "
+            f"ORDER BY block_number, log_index LIMIT {MAX_LOG_RESULTS + 1}"
+        )
+        with self._lock:
+            rows = self._db.execute(sql, params).fetchall()
+        if len(rows) > MAX_LOG_RESULTS:
+            raise IndexLimitError(
+                f"query returned more than {MAX_LOG_RESULTS} results; narrow the block range"
+            )
+        return [_entry(row) for row in rows]
+
+    def robot(self, address: str) -> dict[str, Any] | None:
+        with self._lock:
+            row = self._db.execute("SELECT * FROM robots WHERE address = ?", (address,)).fetchone()
+            roles = self._db.execute(
+                "SELECT role FROM roles WHERE address = ? ORDER BY role", (address,)
+            ).fetchall()
+        if row is None:
+            return None
+        _, metadata, registered_at, block, active, suspended = row
+        return {
+            "address": address,
+            "metadata_cid": bytes(metadata),
+            "registered_at": registered_at,
+            "registered_block": block,
+            "active": bool(active),
+            "suspended": bool(suspended),
+            "roles": [bytes(role[0]) for role in roles],
+        }
+
+    def advertisements(
+        self, cid: bytes | None, advertiser: str | None, since: int, limit: int
+    ) -> list[dict[str, Any]]:
+        """Advertised events from block ``since`` on, oldest first."""
+        clauses, params = ["block_number >= ?"], [since]
+        if cid is not None:
+            clauses.append("cid = ?")
+            params.append(cid)  # type: ignore[arg-type]
+        if advertiser is not None:
+            clauses.append("advertiser = ?")
+            params.append(advertiser)  # type: ignore[arg-type]
+        sql = (
+            f"SELECT * FROM advertisements WHERE {' AND '.join(clauses)} "
+            "ORDER BY block_number, log_index LIMIT ?"
+        )
+        with self._lock:
+            rows = self._db.execute(sql, [*params, limit]).fetchall()
+        return [
+            {
+                "cid": bytes(cid_),
+                "advertiser": who,
+                "description_cid": bytes(description),
+                "first": bool(first),
+                "timestamp": timestamp,
+                "block_number": block,
+                "log_index": log_index,
+                "tx_hash": bytes(tx),
+            }
+            for block, log_index, cid_, who, description, first, timestamp, tx in rows
+        ]
+
+    def anchors(self, node: str | None, epoch: int | None, limit: int) -> list[dict[str, Any]]:
+        clauses: list[str] = []
+        params: list[Any] = []
+        if node is not None:
+            clauses.append("node = ?")
+            params.append(node)
+        if epoch is not None:
+            clauses.append("epoch = ?")
+            params.append(epoch)
+        where = f"WHERE {' AND '.join(clauses)}" if clauses else ""
+        sql = f"SELECT * FROM anchors {where} ORDER BY block_number, node LIMIT ?"
+        with self._lock:
+            rows = self._db.execute(sql, [*params, limit]).fetchall()
+        return [
+            {
+                "node": node_,
+                "epoch": epoch_,
+                "root": bytes(root),
+                "record_count": count,
+                "timestamp": timestamp,
+                "block_number": block,
+                "tx_hash": bytes(tx),
+            }
+            for node_, epoch_, root, count, timestamp, block, tx in rows
+        ]
+
+
+def _entry(row: Sequence[Any]) -> LogEntry:
+    block, log_index, block_hash, tx_hash, tx_index, address, t0, t1, t2, t3, data = row
+    return LogEntry(
+        block_number=block,
+        block_hash=bytes(block_hash),
+        tx_hash=bytes(tx_hash),
+        tx_index=tx_index,
+        log_index=log_index,
+        address=bytes(address),
+        topics=tuple(bytes(t) for t in (t0, t1, t2, t3) if t is not None),
+        data=bytes(data),
+    )
+
+
+def _registered(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
+    db.execute(
+        "INSERT OR REPLACE INTO robots VALUES (?, ?, ?, ?, 1, 0)",
+        (log.args["robot"], log.args["metadataCid"], log.args["timestamp"], entry.block_number),
+    )
+
+
+def _metadata(db: sqlite3.Connection, log: DecodedLog, _: LogEntry) -> None:
+    db.execute(
+        "UPDATE robots SET metadata_cid = ? WHERE address = ?",
+        (log.args["metadataCid"], log.args["robot"]),
+    )
+
+
+def _activation(db: sqlite3.Connection, log: DecodedLog, _: LogEntry) -> None:
+    db.execute(
+        "UPDATE robots SET active = ? WHERE address = ?", (log.args["active"], log.args["robot"])
+    )
+
+
+def _suspension(db: sqlite3.Connection, log: DecodedLog, _: LogEntry) -> None:
+    db.execute(
+        "UPDATE robots SET suspended = ? WHERE address = ?",
+        (log.args["suspended"], log.args["robot"]),
+    )
+
+
+def _granted(db: sqlite3.Connection, log: DecodedLog, _: LogEntry) -> None:
+    db.execute("INSERT OR IGNORE INTO roles VALUES (?, ?)", (log.args["account"], log.args["role"]))
+
+
+def _revoked(db: sqlite3.Connection, log: DecodedLog, _: LogEntry) -> None:
+    db.execute(
+        "DELETE FROM roles WHERE address = ? AND role = ?", (log.args["account"], log.args["role"])
+    )
+
+
+def _advertised(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
+    args = log.args
+    db.execute(
+        "INSERT OR IGNORE INTO advertisements VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+        (
+            entry.block_number,
+            entry.log_index,
+            args["cid"],
+            args["advertiser"],
+            args["descriptionCid"],
+            args["first"],
+            args["timestamp"],
+            entry.tx_hash,
+        ),
+    )
+
+
+def _anchored(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
+    args = log.args
+    db.execute(
+        "INSERT OR REPLACE INTO anchors VALUES (?, ?, ?, ?, ?, ?, ?)",
+        (
+            args["node"],
+            args["epoch"],
+            args["root"],
+            args["recordCount"],
+            args["timestamp"],
+            entry.block_number,
+            entry.tx_hash,
+        ),
+    )
+
+
+_HANDLERS = {
+    "RobotRegistered": _registered,
+    "MetadataUpdated": _metadata,
+    "RobotActivationChanged": _activation,
+    "RobotSuspensionChanged": _suspension,
+    "RoleGranted": _granted,
+    "RoleRevoked": _revoked,
+    "Advertised": _advertised,
+    "Anchored": _anchored,
+}

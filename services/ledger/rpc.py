@@ -1,0 +1,344 @@
+"""Ethereum JSON-RPC 2.0 over the embedded chain: the dispatcher and the method table.
+
+``Dispatcher`` speaks the JSON-RPC 2.0 envelope (single calls, batches, notifications, the
+standard error codes) and knows nothing about Ethereum; ``EmbeddedMethods`` implements the
+``eth_*`` methods web3.py, ethers and the SDK use, over ``EmbeddedChain`` and the event index.
+Refusals are JSON-RPC error objects shaped like geth's, so clients need no special casing:
+a revert is code 3 with the revert bytes in ``data`` and ``execution reverted: <reason>``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from eth_utils.address import is_hex_address
+
+import robocloud
+from services.ledger import encoding
+from services.ledger.chain import (
+    BlockTag,
+    CallRequest,
+    ChainError,
+    EmbeddedChain,
+    InvalidParams,
+)
+from services.ledger.index import EventIndex, IndexLimitError, LogFilter
+
+log = logging.getLogger("robocloud.ledger.rpc")
+
+PARSE_ERROR = -32700
+INVALID_REQUEST = -32600
+METHOD_NOT_FOUND = -32601
+INVALID_PARAMS = -32602
+INTERNAL_ERROR = -32603
+MAX_BATCH = 100
+PRIORITY_FEE_WEI = 10**9
+NAMED_TAGS = ("latest", "pending", "earliest", "safe", "finalized")
+
+Method = Callable[[list[Any]], Any]
+
+
+class RpcFailure(Exception):
+    """A JSON-RPC error object to answer with."""
+
+    def __init__(self, code: int, message: str, data: Any = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.data = data
+
+    def to_json(self) -> dict[str, Any]:
+        error: dict[str, Any] = {"code": self.code, "message": self.message}
+        if self.data is not None:
+            error["data"] = self.data
+        return error
+
+
+class Dispatcher:
+    """JSON-RPC 2.0 framing over a table of methods taking positional parameters."""
+
+    def __init__(
+        self, methods: Mapping[str, Method], fallback: Callable[[str, list[Any]], Any] | None = None
+    ) -> None:
+        """``fallback`` answers methods not in the table (a proxy to an external node)."""
+        self.methods = dict(methods)
+        self.fallback = fallback
+
+    def handle(self, body: bytes) -> Any:
+        """The response document for a request body; None when nothing is to be answered."""
+        try:
+            document = json.loads(body)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            return _error(None, RpcFailure(PARSE_ERROR, f"parse error: {exc}"))
+        if isinstance(document, list):
+            if not document:
+                return _error(None, RpcFailure(INVALID_REQUEST, "empty batch"))
+            if len(document) > MAX_BATCH:
+                failure = RpcFailure(INVALID_REQUEST, f"batch of more than {MAX_BATCH} calls")
+                return _error(None, failure)
+            answers = [self._one(item) for item in document]
+            return [answer for answer in answers if answer is not None] or None
+        return self._one(document)
+
+    def _one(self, request: Any) -> dict[str, Any] | None:
+        if not isinstance(request, dict) or request.get("jsonrpc") != "2.0":
+            return _error(None, RpcFailure(INVALID_REQUEST, "not a JSON-RPC 2.0 request"))
+        request_id = request.get("id")
+        method, params = request.get("method"), request.get("params", [])
+        if not isinstance(method, str) or not isinstance(params, list | type(None)):
+            failure = RpcFailure(INVALID_REQUEST, "method must be a string, params an array")
+            return _error(request_id, failure)
+        try:
+            result = self.call(method, params or [])
+        except RpcFailure as failure:
+            return _error(request_id, failure) if "id" in request else None
+        if "id" not in request:
+            return None
+        return {"jsonrpc": "2.0", "id": request_id, "result": result}
+
+    def call(self, method: str, params: list[Any]) -> Any:
+        handler = self.methods.get(method)
+        if handler is None and self.fallback is None:
+            raise RpcFailure(
+                METHOD_NOT_FOUND, f"the method {method} does not exist/is not available"
+            )
+        try:
+            if handler is None and self.fallback is not None:
+                return self.fallback(method, params)
+            return handler(params)  # type: ignore[misc]
+        except RpcFailure:
+            raise
+        except ChainError as exc:
+            raise RpcFailure(exc.code, exc.message, exc.data) from exc
+        except IndexLimitError as exc:
+            raise RpcFailure(-32005, str(exc)) from exc
+        except Exception as exc:
+            log.exception("JSON-RPC method failed", extra={"method": method})
+            raise RpcFailure(INTERNAL_ERROR, f"internal error in {method}") from exc
+
+
+def _error(request_id: Any, failure: RpcFailure) -> dict[str, Any]:
+    return {"jsonrpc": "2.0", "id": request_id, "error": failure.to_json()}
+
+
+# ----- parameters -----
+
+
+def param(params: list[Any], index: int, default: Any = ...) -> Any:
+    if index < len(params):
+        return params[index]
+    if default is ...:
+        raise InvalidParams(f"missing value for required argument {index}")
+    return default
+
+
+def as_bytes(value: Any, what: str, length: int | None = None) -> bytes:
+    if not isinstance(value, str) or not value.startswith("0x"):
+        raise InvalidParams(f"invalid {what}: expected 0x-prefixed hex, got {value!r}")
+    try:
+        decoded = bytes.fromhex(value[2:])
+    except ValueError as exc:
+        raise InvalidParams(f"invalid {what}: {value!r} is not hex") from exc
+    if length is not None and len(decoded) != length:
+        raise InvalidParams(f"invalid {what}: expected {length} bytes, got {len(decoded)}")
+    return decoded
+
+
+def as_address(value: Any) -> bytes:
+    if not isinstance(value, str) or not is_hex_address(value):
+        raise InvalidParams(f"invalid address: {value!r}")
+    return bytes.fromhex(value[2:])
+
+
+def as_quantity(value: Any, what: str) -> int:
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        return value
+    if not isinstance(value, str) or not value.startswith("0x") or len(value) == 2:
+        raise InvalidParams(f"invalid {what}: expected a 0x-hex quantity, got {value!r}")
+    try:
+        return int(value, 16)
+    except ValueError as exc:
+        raise InvalidParams(f"invalid {what}: {value!r}") from exc
+
+
+class EmbeddedMethods:
+    """The ``eth_*`` methods over the embedded chain and its event index."""
+
+    def __init__(self, chain: EmbeddedChain, index: EventIndex) -> None:
+        self.chain = chain
+        self.index = index
+
+    def table(self) -> dict[str, Method]:
+        return {
+            "web3_clientVersion": lambda _: f"robocloud-ledger/{robocloud.__version__}",
+            "eth_chainId": lambda _: encoding.quantity(self.chain.chain_id),
+            "net_version": lambda _: str(self.chain.chain_id),
+            "net_listening": lambda _: True,
+            "eth_syncing": lambda _: False,
+            "eth_mining": lambda _: False,
+            "eth_accounts": lambda _: [],
+            "eth_blockNumber": lambda _: encoding.quantity(self.chain.head().block_number),
+            "eth_gasPrice": lambda _: encoding.quantity(self.chain.base_fee() + PRIORITY_FEE_WEI),
+            "eth_maxPriorityFeePerGas": lambda _: encoding.quantity(PRIORITY_FEE_WEI),
+            "eth_feeHistory": self.fee_history,
+            "eth_getBlockByNumber": self.block_by_number,
+            "eth_getBlockByHash": self.block_by_hash,
+            "eth_getTransactionByHash": self.transaction_by_hash,
+            "eth_getTransactionReceipt": self.transaction_receipt,
+            "eth_getBalance": self.balance,
+            "eth_getTransactionCount": self.transaction_count,
+            "eth_getCode": self.code,
+            "eth_getStorageAt": self.storage_at,
+            "eth_call": self.call,
+            "eth_estimateGas": self.estimate_gas,
+            "eth_sendRawTransaction": self.send_raw_transaction,
+            "eth_getLogs": self.logs,
+        }
+
+    # ----- blocks and transactions -----
+
+    def tag(self, value: Any) -> BlockTag:
+        """A block parameter: a named tag, a quantity, or an EIP-1898 object."""
+        if isinstance(value, dict):
+            if "blockHash" in value:
+                block = self.chain.block_by_hash(as_bytes(value["blockHash"], "block hash", 32))
+                if block is None:
+                    raise ChainError(f"block {value['blockHash']} not found")
+                return int(block.number)
+            value = value.get("blockNumber", "latest")
+        if value in NAMED_TAGS:
+            return str(value)
+        return as_quantity(value, "block number")
+
+    def block_by_number(self, params: list[Any]) -> Any:
+        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        full = bool(param(params, 1, False))
+        return encoding.block(block, full) if block is not None else None
+
+    def block_by_hash(self, params: list[Any]) -> Any:
+        block = self.chain.block_by_hash(as_bytes(param(params, 0), "block hash", 32))
+        full = bool(param(params, 1, False))
+        return encoding.block(block, full) if block is not None else None
+
+    def transaction_by_hash(self, params: list[Any]) -> Any:
+        located = self.chain.locate(as_bytes(param(params, 0), "transaction hash", 32))
+        return encoding.transaction(located.block, located.index) if located else None
+
+    def transaction_receipt(self, params: list[Any]) -> Any:
+        located = self.chain.locate(as_bytes(param(params, 0), "transaction hash", 32))
+        if located is None:
+            return None
+        return encoding.receipt(located.block, self.chain.receipts(located.block), located.index)
+
+    def fee_history(self, params: list[Any]) -> Any:
+        count = min(max(as_quantity(param(params, 0), "block count"), 1), 1024)
+        newest = self.chain.header_at(self.tag(param(params, 1, "latest"))).block_number
+        percentiles = param(params, 2, []) or []
+        oldest = max(newest - count + 1, 0)
+        headers = [self.chain.header_at(n) for n in range(oldest, newest + 1)]
+        body: dict[str, Any] = {
+            "oldestBlock": encoding.quantity(oldest),
+            "baseFeePerGas": [encoding.quantity(h.base_fee_per_gas) for h in headers]
+            + [encoding.quantity(self.chain.base_fee())],
+            "gasUsedRatio": [h.gas_used / h.gas_limit for h in headers],
+        }
+        if percentiles:
+            body["reward"] = [[encoding.quantity(PRIORITY_FEE_WEI)] * len(percentiles)] * len(
+                headers
+            )
+        return body
+
+    # ----- accounts -----
+
+    def balance(self, params: list[Any]) -> Any:
+        address = as_address(param(params, 0))
+        return encoding.quantity(self.chain.balance(address, self.tag(param(params, 1, "latest"))))
+
+    def transaction_count(self, params: list[Any]) -> Any:
+        address = as_address(param(params, 0))
+        return encoding.quantity(self.chain.nonce(address, self.tag(param(params, 1, "latest"))))
+
+    def code(self, params: list[Any]) -> Any:
+        address = as_address(param(params, 0))
+        return encoding.data(self.chain.code(address, self.tag(param(params, 1, "latest"))))
+
+    def storage_at(self, params: list[Any]) -> Any:
+        address = as_address(param(params, 0))
+        slot = as_quantity(param(params, 1), "storage slot")
+        value = self.chain.storage_at(address, slot, self.tag(param(params, 2, "latest")))
+        return encoding.data(value.to_bytes(32, "big"))
+
+    # ----- execution -----
+
+    def call_request(self, value: Any) -> CallRequest:
+        if not isinstance(value, dict):
+            raise InvalidParams("invalid call object: expected an object")
+        data = value.get("input", value.get("data")) or "0x"
+        price = value.get("gasPrice", value.get("maxFeePerGas"))
+        return CallRequest(
+            sender=as_address(value["from"]) if value.get("from") else b"\x00" * 20,
+            to=as_address(value["to"]) if value.get("to") else b"",
+            data=as_bytes(data, "call data"),
+            value=as_quantity(value.get("value", "0x0"), "value"),
+            gas=as_quantity(value["gas"], "gas") if value.get("gas") else None,
+            gas_price=as_quantity(price, "gas price") if price else 0,
+        )
+
+    def call(self, params: list[Any]) -> Any:
+        request = self.call_request(param(params, 0))
+        return encoding.data(self.chain.call(request, self.tag(param(params, 1, "latest"))))
+
+    def estimate_gas(self, params: list[Any]) -> Any:
+        request = self.call_request(param(params, 0))
+        gas = self.chain.estimate_gas(request, self.tag(param(params, 1, "latest")))
+        return encoding.quantity(gas)
+
+    def send_raw_transaction(self, params: list[Any]) -> Any:
+        raw = as_bytes(param(params, 0), "raw transaction")
+        mined = self.chain.send_raw_transaction(raw)
+        return encoding.data(mined.block.transactions[0].hash)
+
+    # ----- logs -----
+
+    def logs(self, params: list[Any]) -> Any:
+        query = param(params, 0)
+        if not isinstance(query, dict):
+            raise InvalidParams("invalid filter: expected an object")
+        head = self.chain.head().block_number
+        block_hash = None
+        if query.get("blockHash"):
+            block_hash = as_bytes(query["blockHash"], "block hash", 32)
+            block = self.chain.block_by_hash(block_hash)
+            if block is None:
+                raise ChainError(f"block {query['blockHash']} not found")
+            first = last = int(block.number)
+        else:
+            first = self._bound(query.get("fromBlock", "latest"), head)
+            last = self._bound(query.get("toBlock", "latest"), head)
+        addresses = query.get("address") or []
+        if isinstance(addresses, str):
+            addresses = [addresses]
+        topics: list[tuple[bytes, ...] | None] = []
+        for position in query.get("topics") or []:
+            if position is None:
+                topics.append(None)
+            else:
+                options = position if isinstance(position, list) else [position]
+                topics.append(tuple(as_bytes(t, "topic", 32) for t in options))
+        log_filter = LogFilter(
+            from_block=first,
+            to_block=last,
+            addresses=tuple(as_address(a) for a in addresses),
+            topics=tuple(topics),
+            block_hash=block_hash,
+        )
+        return [entry.to_rpc() for entry in self.index.logs(log_filter)]
+
+    def _bound(self, value: Any, head: int) -> int:
+        tag = self.tag(value)
+        if tag == "earliest":
+            return 0
+        return head if isinstance(tag, str) else tag

@@ -1,0 +1,128 @@
+"""The REST reads: query parameters checked, index rows turned into JSON documents.
+
+CIDs go on chain in binary; here they come back both as their text form (``b...``) and as
+hex, so that a robot can compare either with what it holds. Role ids come back by name.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from eth_utils.address import is_address, to_checksum_address
+
+from robocloud.cid import CID, CIDError
+from robocloud.ledger.models import Role
+from services.common.errors import BadRequest, NotFound
+from services.ledger.node import Ledger
+
+ROLE_NAMES = {role.id: role.value for role in Role}
+MAX_LIMIT = 1000
+
+
+def address_param(value: str, name: str) -> str:
+    """A checksummed address, or 400 naming the parameter and what was sent."""
+    if not is_address(value):
+        raise BadRequest(
+            f"{name} {value!r} is not an Ethereum address",
+            code="invalid_address",
+            details={name: value},
+        )
+    return str(to_checksum_address(value))
+
+
+def cid_param(value: str) -> bytes:
+    try:
+        return CID.decode(value).binary
+    except (CIDError, ValueError) as exc:
+        raise BadRequest(
+            f"cid {value!r} is not a CID: {exc}", code="invalid_cid", details={"cid": value}
+        ) from exc
+
+
+def limit_param(value: int) -> int:
+    if not 1 <= value <= MAX_LIMIT:
+        raise BadRequest(
+            f"limit must be between 1 and {MAX_LIMIT}",
+            code="invalid_limit",
+            details={"limit": value},
+        )
+    return value
+
+
+def cid_view(binary: bytes) -> dict[str, str | None]:
+    """A binary CID as text and hex; text is None for bytes that are not a CID."""
+    try:
+        text: str | None = str(CID.from_bytes(binary))
+    except (CIDError, ValueError):
+        text = None
+    return {"cid": text, "hex": "0x" + binary.hex()}
+
+
+def robot(ledger: Ledger, address: str) -> dict[str, Any]:
+    checked = address_param(address, "address")
+    found = ledger.index.robot(checked)
+    if found is None:
+        raise NotFound(
+            f"robot {checked} is not registered on this ledger",
+            code="robot_not_found",
+            details={"address": checked},
+        )
+    return {
+        "address": checked,
+        "did": f"did:pkh:eip155:{ledger.chain_id}:{checked}",
+        "metadata": cid_view(found["metadata_cid"]),
+        "registered_at": found["registered_at"],
+        "registered_block": found["registered_block"],
+        "active": found["active"] and not found["suspended"],
+        "deactivated": not found["active"],
+        "suspended": found["suspended"],
+        "roles": sorted(ROLE_NAMES.get(role, "0x" + role.hex()) for role in found["roles"]),
+    }
+
+
+def advertisements(
+    ledger: Ledger, cid: str | None, advertiser: str | None, since: int, limit: int
+) -> dict[str, Any]:
+    rows = ledger.index.advertisements(
+        cid_param(cid) if cid else None,
+        address_param(advertiser, "advertiser") if advertiser else None,
+        since,
+        limit_param(limit),
+    )
+    return {
+        "advertisements": [
+            {
+                **cid_view(row["cid"]),
+                "advertiser": row["advertiser"],
+                "description": cid_view(row["description_cid"]) if row["description_cid"] else None,
+                "first": row["first"],
+                "timestamp": row["timestamp"],
+                "block_number": row["block_number"],
+                "log_index": row["log_index"],
+                "tx": "0x" + row["tx_hash"].hex(),
+            }
+            for row in rows
+        ]
+    }
+
+
+def anchors(ledger: Ledger, node: str | None, epoch: int | None, limit: int) -> dict[str, Any]:
+    rows = ledger.index.anchors(
+        address_param(node, "node") if node else None, epoch, limit_param(limit)
+    )
+    return {
+        "anchors": [
+            {
+                "node": row["node"],
+                "epoch": row["epoch"],
+                "root": "0x" + row["root"].hex(),
+                "record_count": row["record_count"],
+                "timestamp": row["timestamp"],
+                "block_number": row["block_number"],
+                "tx": "0x" + row["tx_hash"].hex(),
+                "chain_id": ledger.chain_id,
+                "contract": ledger.deployment.anchor_log,
+            }
+            for row in rows
+        ]
+    }

@@ -1,0 +1,75 @@
+"""REST reads and the faucet: every refusal is the JSON error model and changes nothing."""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+
+from robocloud.identity import Identity
+from tests.integration.ledger.conftest import Service, faucet, head, rpc
+
+
+def _balance(service: Service, address: str) -> int:
+    return int(rpc(service.url, "eth_getBalance", [address, "latest"])["result"], 16)
+
+
+def test_unknown_robot_is_404_naming_it(service: Service) -> None:
+    address = Identity.generate().address
+    response = httpx.get(f"{service.url}/v1/robots/{address}")
+    assert response.status_code == 404
+    error = response.json()["error"]
+    assert error["code"] == "robot_not_found"
+    assert address in error["message"]
+    assert error["details"] == {"address": address}
+
+
+@pytest.mark.parametrize("address", ["0x1234", "robot", "0x" + "zz" * 20])
+def test_malformed_address_is_400(service: Service, address: str) -> None:
+    response = httpx.get(f"{service.url}/v1/robots/{address}")
+    assert response.status_code == 400
+    assert response.json()["error"]["code"] == "invalid_address"
+
+
+def test_malformed_cid_is_400(service: Service) -> None:
+    response = httpx.get(f"{service.url}/v1/advertisements", params={"cid": "not-a-cid"})
+    assert response.status_code == 400
+    assert response.json()["error"]["code"] == "invalid_cid"
+
+
+def test_latest_block_and_contracts(service: Service) -> None:
+    block = head(service.url)
+    by_rpc = rpc(service.url, "eth_getBlockByNumber", ["latest", False])["result"]
+    assert (hex(block["number"]), block["hash"]) == (by_rpc["number"], by_rpc["hash"])
+    contracts = httpx.get(f"{service.url}/v1/contracts").json()
+    assert contracts["chain_id"] == 1337
+    assert set(contracts["contracts"]) == {"Registry", "AnchorLog"}
+
+
+def test_faucet_funds_the_signer_once_then_429(service: Service) -> None:
+    identity = Identity.generate()
+    granted = faucet(service.url, identity)
+    assert granted.status_code == 200, granted.text
+    receipt = rpc(service.url, "eth_getTransactionReceipt", [granted.json()["tx"]])["result"]
+    assert receipt["status"] == "0x1"
+    funded = _balance(service, identity.address)
+    assert funded == 10**18
+    before = head(service.url)
+    again = faucet(service.url, identity)
+    assert again.status_code == 429
+    assert int(again.headers["Retry-After"]) > 3000
+    assert again.json()["error"]["code"] == "faucet_rate_limited"
+    assert head(service.url) == before
+    assert _balance(service, identity.address) == funded
+
+
+def test_faucet_funds_only_its_signer(service: Service) -> None:
+    identity, other = Identity.generate(), Identity.generate()
+    response = faucet(service.url, identity, other.address)
+    assert response.status_code == 403
+    assert response.json()["error"]["code"] == "faucet_signer_mismatch"
+    assert _balance(service, other.address) == 0
+
+
+def test_faucet_needs_a_signature(service: Service) -> None:
+    response = httpx.post(f"{service.url}/v1/faucet", json={"address": Identity.generate().address})
+    assert response.status_code == 401
