@@ -49,10 +49,16 @@ class Allowlist:
 
 
 def build_authorizer(settings: ServiceSettings) -> Authorizer:
-    """The authorizer the settings ask for."""
+    """The authorizer the settings ask for.
+
+    ``registered`` asks the ledger at ``ROBOCLOUD_LEDGER_URL`` whether the signer is a
+    registered, active robot; ``ROBOCLOUD_ALLOWED_ADDRESSES`` are let in regardless.
+    """
     if settings.auth == "signed":
         return AnySigner()
-    return Allowlist(settings.allowed_addresses)
+    from services.common.registry_auth import RegistryAuthorizer
+
+    return RegistryAuthorizer(settings.ledger_url, settings.allowed_addresses)
 
 
 def verified_request(request: Request) -> VerifiedRequest:

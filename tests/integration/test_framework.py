@@ -244,8 +244,14 @@ def test_registered_mode_allows_only_listed_addresses(
     service_factory: ServiceFactory, identity: Identity
 ) -> None:
     allowed = Identity.generate()
+    ledger = service_factory("ledger")
     service = service_factory(
-        "broker", {"ROBOCLOUD_AUTH": "registered", "ROBOCLOUD_ALLOWED_ADDRESSES": allowed.address}
+        "broker",
+        {
+            "ROBOCLOUD_AUTH": "registered",
+            "ROBOCLOUD_ALLOWED_ADDRESSES": allowed.address,
+            "ROBOCLOUD_LEDGER_URL": ledger.url,
+        },
     )
     with ServiceClient(service.url, allowed) as client:
         assert client.post_json("/v1/whoami")["auth"] == "registered"

@@ -1,0 +1,105 @@
+"""``ROBOCLOUD_AUTH=registered``: writers must be registered, active robots on the ledger.
+
+The ledger service answers ``GET /v1/robots/{address}`` from its event index; this authorizer
+asks it and caches each answer briefly (10 s by default, 2 s for "not registered" so that a
+robot that has just registered is let in soon), because a signed request would otherwise
+cost a round trip to the ledger. A revocation therefore takes effect within the cache
+lifetime. When the ledger cannot be reached the request is refused with 503: failing open
+would let anybody write whenever the ledger is down.
+
+Addresses in ``ROBOCLOUD_ALLOWED_ADDRESSES`` are allowed without asking (operators' tools,
+tests), exactly as with the plain allowlist.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import httpx
+from eth_utils.address import is_address, to_checksum_address
+
+from services.common.errors import Forbidden, Unavailable
+
+MAX_CACHED = 10_000
+
+
+class RegistryAuthorizer:
+    """Allows active registered robots (holding ``role`` when one is asked for)."""
+
+    def __init__(
+        self,
+        ledger_url: str,
+        allowed: Iterable[str] = (),
+        *,
+        cache_s: float = 10.0,
+        negative_cache_s: float = 2.0,
+        timeout_s: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.ledger_url = ledger_url.rstrip("/")
+        self.allowed = frozenset(to_checksum_address(a) for a in allowed if is_address(a))
+        self.cache_s = cache_s
+        self.negative_cache_s = negative_cache_s
+        self.timeout_s = timeout_s
+        self.clock = clock
+        self._cache: dict[str, tuple[float, dict[str, Any] | None]] = {}
+
+    async def authorize(self, address: str, role: str | None = None) -> None:
+        if address in self.allowed:
+            return
+        robot = await self.robot(address)
+        if robot is None:
+            raise Forbidden(
+                f"address {address} is not a registered robot on the ledger",
+                code="address_not_allowed",
+                details={"address": address},
+            )
+        if not robot.get("active"):
+            raise Forbidden(
+                f"robot {address} is deactivated or suspended",
+                code="robot_inactive",
+                details={"address": address},
+            )
+        if role is not None and role not in robot.get("roles", []):
+            raise Forbidden(
+                f"robot {address} does not hold the role {role}",
+                code="role_required",
+                details={"address": address, "role": role},
+            )
+
+    async def robot(self, address: str) -> dict[str, Any] | None:
+        """The ledger's record of ``address`` (None when unregistered), cached briefly."""
+        now = self.clock()
+        cached = self._cache.get(address)
+        if cached is not None and cached[0] > now:
+            return cached[1]
+        robot = await self._fetch(address)
+        if len(self._cache) >= MAX_CACHED:
+            self._cache.clear()
+        lifetime = self.cache_s if robot is not None else self.negative_cache_s
+        self._cache[address] = (now + lifetime, robot)
+        return robot
+
+    async def _fetch(self, address: str) -> dict[str, Any] | None:
+        url = f"{self.ledger_url}/v1/robots/{address}"
+        try:
+            async with httpx.AsyncClient(timeout=self.timeout_s) as client:
+                response = await client.get(url)
+        except httpx.HTTPError as exc:
+            raise Unavailable(
+                "cannot reach the ledger to check the signer's registration",
+                code="ledger_unreachable",
+                details={"ledger_url": self.ledger_url},
+            ) from exc
+        if response.status_code == 404:
+            return None
+        if response.status_code != 200:
+            raise Unavailable(
+                f"the ledger answered {response.status_code} to a registration check",
+                code="ledger_unavailable",
+                details={"ledger_url": self.ledger_url},
+            )
+        body: dict[str, Any] = response.json()
+        return body

@@ -1,0 +1,68 @@
+"""``ROBOCLOUD_AUTH=registered``: other services let in registered, active robots only."""
+
+from __future__ import annotations
+
+import anyio
+import pytest
+
+from robocloud.client import ServiceClient
+from robocloud.errors import PermissionDeniedError
+from robocloud.identity import Identity
+from robocloud.ledger import Role
+from services.common.errors import Forbidden, Unavailable
+from services.common.registry_auth import RegistryAuthorizer
+from tests.conftest import ServiceFactory
+from tests.integration.ledger.conftest import RobotFactory, Service
+from tests.procs import free_port
+
+
+def test_registered_robot_writes_and_unregistered_is_403(
+    service: Service, robot: RobotFactory, service_factory: ServiceFactory
+) -> None:
+    storage = service_factory(
+        "storage", {"ROBOCLOUD_AUTH": "registered", "ROBOCLOUD_LEDGER_URL": service.url}
+    )
+    registered = robot()
+    assert registered.identity is not None
+    with ServiceClient(storage.url, registered.identity) as client:
+        answer = client.post_json("/v1/whoami")
+    assert (answer["address"], answer["auth"]) == (registered.identity.address, "registered")
+
+    stranger = Identity.generate()
+    with (
+        ServiceClient(storage.url, stranger) as client,
+        pytest.raises(PermissionDeniedError) as denied,
+    ):
+        client.post_json("/v1/whoami")
+    assert denied.value.code == "address_not_allowed"
+    assert denied.value.details == {"address": stranger.address}
+
+
+def test_roles_and_deactivation_are_checked(service: Service, robot: RobotFactory) -> None:
+    authorizer = RegistryAuthorizer(service.url, cache_s=0, negative_cache_s=0)
+    node = robot()
+    assert node.identity is not None
+    address = node.identity.address
+
+    async def check(role: str | None = None) -> None:
+        await authorizer.authorize(address, role)
+
+    anyio.run(check)
+    with pytest.raises(Forbidden) as denied:
+        anyio.run(check, "storage_node")
+    assert denied.value.code == "role_required"
+    service.admin.grant_role(address, Role.STORAGE_NODE)
+    anyio.run(check, "storage_node")
+    node.deactivate()
+    with pytest.raises(Forbidden) as denied:
+        anyio.run(check)
+    assert denied.value.code == "robot_inactive"
+
+
+def test_allowed_addresses_skip_the_ledger_and_an_unreachable_ledger_is_503() -> None:
+    allowed = Identity.generate().address
+    authorizer = RegistryAuthorizer(f"http://127.0.0.1:{free_port()}", [allowed], timeout_s=1)
+    anyio.run(authorizer.authorize, allowed)
+    with pytest.raises(Unavailable) as unavailable:
+        anyio.run(authorizer.authorize, Identity.generate().address)
+    assert unavailable.value.code == "ledger_unreachable"
