@@ -24,6 +24,7 @@ from services.common.bodies import read_json
 from services.common.errors import Forbidden, NotFound, TooManyRequests, Unavailable
 from services.common.settings import ServiceSettings
 from services.ledger import views
+from services.ledger.external import ExternalLedger
 from services.ledger.faucet import FaucetLimits, RateLimited
 from services.ledger.node import EmbeddedLedger, FaucetUnavailable, Ledger
 
@@ -57,8 +58,6 @@ def _open(settings: LedgerSettings) -> Ledger:
     )
     data_dir = settings.resolved_data_dir()
     if settings.ledger_rpc_url:
-        from services.ledger.external import ExternalLedger
-
         return ExternalLedger(settings, data_dir, passphrase)
     return EmbeddedLedger(data_dir, passphrase, limits, settings.ledger_faucet_amount_wei)
 

@@ -1,0 +1,185 @@
+"""External-node mode: the ledger service in front of any Ethereum JSON-RPC node.
+
+With ``ROBOCLOUD_LEDGER_RPC_URL`` the service runs no chain of its own. It attaches to the
+contracts at ``ROBOCLOUD_LEDGER_REGISTRY_ADDRESS`` / ``ROBOCLOUD_LEDGER_ANCHOR_LOG_ADDRESS``,
+or deploys them once with the operator's admin key (which must hold ether on that chain) and
+remembers where in ``contracts.json``. ``/rpc`` forwards the standard namespaces (``eth_``,
+``net_``, ``web3_``) and nothing else, so a node's administrative or cheat methods
+(``anvil_*``, ``debug_*``, ``personal_*``) are never exposed through the service.
+
+The event index follows the node by polling ``eth_getLogs`` for the two contracts in bounded
+block ranges, ``confirmations`` blocks behind the head. Before each round it checks that the
+last indexed block is still canonical; after a reorganisation it rewinds and re-reads.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import anyio
+from eth_utils.address import is_address, to_checksum_address
+
+from robocloud.ledger import ContractAbi, JsonRpcClient, RpcError, Transactor
+from robocloud.ledger.transactions import quantity
+from services.common.durable import atomic_write
+from services.ledger.contracts import Deployment, artifact
+from services.ledger.encoding import LogEntry
+from services.ledger.index import EventIndex
+from services.ledger.node import FaucetUnavailable
+from services.ledger.operator import load_or_create, passphrase
+from services.ledger.rpc import METHOD_NOT_FOUND, Dispatcher, RpcFailure
+
+if TYPE_CHECKING:
+    from services.ledger.app import LedgerSettings
+
+log = logging.getLogger("robocloud.ledger.external")
+
+FORWARDED_PREFIXES = ("eth_", "net_", "web3_")
+REORG_DEPTH = 64
+DEPLOYMENT_FILE = "contracts.json"
+
+
+class ExternalLedger:
+    """The contracts, index and JSON-RPC of a chain served by another node."""
+
+    def __init__(self, settings: LedgerSettings, data_dir: Path, secret: str | None) -> None:
+        assert settings.ledger_rpc_url is not None
+        self.settings = settings
+        self.rpc = JsonRpcClient(settings.ledger_rpc_url)
+        self.chain_id = quantity(self.rpc.request("eth_chainId", []))
+        self.deployment = self._attach_or_deploy(data_dir, secret)
+        self.index = EventIndex(
+            data_dir / "index.sqlite", self.deployment.registry, self.deployment.anchor_log
+        )
+        self.dispatcher = Dispatcher({}, fallback=self.forward)
+        self.poll_once()
+        log.info(
+            "following external node",
+            extra={"chain_id": self.chain_id, **self.deployment.addresses()},
+        )
+
+    # ----- contracts -----
+
+    def _attach_or_deploy(self, data_dir: Path, secret: str | None) -> Deployment:
+        registry = self.settings.ledger_registry_address
+        anchor_log = self.settings.ledger_anchor_log_address
+        if registry or anchor_log:
+            if not (registry and is_address(registry) and anchor_log and is_address(anchor_log)):
+                raise ValueError("set both LEDGER_REGISTRY_ADDRESS and LEDGER_ANCHOR_LOG_ADDRESS")
+            deployment = Deployment(
+                str(to_checksum_address(registry)), str(to_checksum_address(anchor_log))
+            )
+        else:
+            deployment = self._remembered(data_dir) or self._deploy(data_dir, secret)
+        for name, address in deployment.addresses().items():
+            if self.rpc.request("eth_getCode", [address, "latest"]) in ("0x", "0x0", None):
+                raise ValueError(f"no {name} contract at {address} on chain {self.chain_id}")
+        return deployment
+
+    def _remembered(self, data_dir: Path) -> Deployment | None:
+        path = data_dir / DEPLOYMENT_FILE
+        if not path.exists():
+            return None
+        stored = json.loads(path.read_text())
+        if stored.get("chain_id") != self.chain_id:
+            raise ValueError(
+                f"{path} records a deployment on chain {stored.get('chain_id')}, "
+                f"but the node serves chain {self.chain_id}"
+            )
+        return Deployment(stored["Registry"], stored["AnchorLog"])
+
+    def _deploy(self, data_dir: Path, secret: str | None) -> Deployment:
+        admin = load_or_create(data_dir, passphrase(data_dir, secret)).admin
+        transactor = Transactor(self.rpc, admin)
+        registry = transactor.deploy(ContractAbi.load("Registry"), artifact("Registry")["bytecode"])
+        assert registry.contract_address is not None
+        anchor_log = transactor.deploy(
+            ContractAbi.load("AnchorLog"),
+            artifact("AnchorLog")["bytecode"],
+            registry.contract_address,
+        )
+        assert anchor_log.contract_address is not None
+        deployment = Deployment(registry.contract_address, anchor_log.contract_address)
+        record = {**deployment.addresses(), "chain_id": self.chain_id, "admin": admin.address}
+        atomic_write(data_dir / DEPLOYMENT_FILE, json.dumps(record).encode())
+        log.info("deployed contracts", extra=record)
+        return deployment
+
+    # ----- JSON-RPC -----
+
+    def forward(self, method: str, params: list[Any]) -> Any:
+        """Relay a standard method to the node, its errors unchanged."""
+        if not method.startswith(FORWARDED_PREFIXES):
+            raise RpcFailure(
+                METHOD_NOT_FOUND, f"the method {method} does not exist/is not available"
+            )
+        try:
+            return self.rpc.request(method, params)
+        except RpcError as exc:
+            raise RpcFailure(exc.code, exc.message, exc.data) from exc
+
+    # ----- index -----
+
+    async def follow(self) -> None:
+        """Poll the node for new events until cancelled; a failed round is retried."""
+        while True:
+            await anyio.sleep(self.settings.ledger_poll_interval_s)
+            try:
+                await anyio.to_thread.run_sync(self.poll_once)
+            except Exception:
+                log.exception("indexing round failed; retrying")
+
+    def poll_once(self) -> None:
+        """Index every confirmed block after the cursor, a bounded range per request."""
+        head = (
+            quantity(self.rpc.request("eth_blockNumber", [])) - self.settings.ledger_confirmations
+        )
+        start = self._resume_point()
+        page = self.settings.ledger_log_page_blocks
+        addresses = [self.deployment.registry, self.deployment.anchor_log]
+        for first in range(start, head + 1, page):
+            last = min(first + page - 1, head)
+            query = {"address": addresses, "fromBlock": hex(first), "toBlock": hex(last)}
+            logs = [LogEntry.from_rpc(raw) for raw in self.rpc.request("eth_getLogs", [query])]
+            self.index.add_block(last, self._block_hash(last), logs)
+
+    def _resume_point(self) -> int:
+        cursor = self.index.cursor()
+        if cursor is None:
+            return self.settings.ledger_start_block
+        number, indexed_hash = cursor
+        if self._block_hash(number) == indexed_hash:
+            return number + 1
+        keep = max(number - REORG_DEPTH, self.settings.ledger_start_block)
+        log.warning("chain reorganised; rewinding the index", extra={"to_block": keep})
+        self.index.rewind(keep, self._block_hash(keep))
+        return keep + 1
+
+    def _block_hash(self, number: int) -> bytes:
+        block = self.rpc.request("eth_getBlockByNumber", [hex(number), False])
+        return bytes.fromhex(str(block["hash"]).removeprefix("0x"))
+
+    # ----- the rest of the Ledger interface -----
+
+    def latest_block(self) -> dict[str, Any]:
+        block = self.rpc.request("eth_getBlockByNumber", ["latest", False])
+        return {
+            "number": quantity(block["number"]),
+            "hash": block["hash"],
+            "parent_hash": block["parentHash"],
+            "timestamp": quantity(block["timestamp"]),
+            "transactions": block["transactions"],
+            "chain_id": self.chain_id,
+        }
+
+    def fund(self, address: str) -> dict[str, Any]:
+        raise FaucetUnavailable(
+            "this ledger fronts an external chain and has no faucet; fund robots on that chain"
+        )
+
+    def close(self) -> None:
+        self.index.close()
+        self.rpc.close()

@@ -1,0 +1,97 @@
+"""External-node mode against a real node (anvil): deploy or attach, forward, index by polling.
+
+The issue names ``npx hardhat node``; anvil is the node pinned in contracts/package.json (and
+speaks the same JSON-RPC), so CI needs no second Node toolchain.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from robocloud.identity import Identity
+from robocloud.ledger import JsonRpcClient, Ledger
+from tests.integration.ledger.conftest import METADATA, PASSPHRASE, faucet, rpc, start_ledger
+from tests.integration.ledger_sdk.anvil import anvil_node, deploy_contracts, fund
+from tests.procs import ServiceProcess
+
+
+@pytest.fixture
+def node(tmp_path: Path) -> Iterator[str]:
+    with anvil_node(tmp_path / "anvil.log") as url:
+        yield url
+
+
+def external(data_dir: Path, node: str, env: dict[str, str] | None = None) -> ServiceProcess:
+    settings = {"ROBOCLOUD_LEDGER_RPC_URL": node, "ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.1"}
+    return start_ledger(data_dir, {**settings, **(env or {})})
+
+
+def wait_for_robot(url: str, address: str) -> dict[str, object]:
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        response = httpx.get(f"{url}/v1/robots/{address}")
+        if response.status_code == 200:
+            body: dict[str, object] = response.json()
+            return body
+        time.sleep(0.1)
+    raise AssertionError(f"{address} never appeared in the index")
+
+
+def test_deploys_with_the_operator_key_and_indexes_by_polling(tmp_path: Path, node: str) -> None:
+    data_dir = tmp_path / "data"
+    admin = Identity.generate()
+    admin.save(data_dir / "keys" / "admin.json", PASSPHRASE, scrypt_n=2**14)
+    with JsonRpcClient(node) as chain:
+        fund(chain, admin)
+        process = external(data_dir, node)
+        try:
+            robot = fund(chain, Identity.generate())
+            with Ledger.connect(process.url, robot, receipt_timeout_s=10) as ledger:
+                assert ledger.admin() == admin.address
+                ledger.register(METADATA)
+                advertised = ledger.advertise(b"\x01\x55\x12\x20" + bytes(32))
+                assert ledger.advertisements(advertiser=robot.address) == [advertised]
+            assert wait_for_robot(process.url, robot.address)["active"] is True
+            rows = httpx.get(
+                f"{process.url}/v1/advertisements", params={"advertiser": robot.address}
+            )
+            assert [r["tx"] for r in rows.json()["advertisements"]] == [advertised.tx_hash]
+            contracts = httpx.get(f"{process.url}/v1/contracts").json()
+
+            refused = faucet(process.url, Identity.generate())
+            assert refused.status_code == 404
+            assert refused.json()["error"]["code"] == "faucet_unavailable"
+            cheat = rpc(process.url, "anvil_setBalance", [robot.address, "0x1"])
+            assert cheat["error"]["code"] == -32601
+
+            process.restart()
+            assert httpx.get(f"{process.url}/v1/contracts").json() == contracts
+            assert wait_for_robot(process.url, robot.address)["active"] is True
+        finally:
+            process.stop()
+
+
+def test_attaches_to_configured_addresses(tmp_path: Path, node: str) -> None:
+    with JsonRpcClient(node) as chain:
+        addresses = deploy_contracts(chain, fund(chain, Identity.generate()))
+        robot = fund(chain, Identity.generate())
+        with Ledger(JsonRpcClient(node), addresses, robot) as direct:
+            direct.register(METADATA)
+        env = {
+            "ROBOCLOUD_LEDGER_REGISTRY_ADDRESS": addresses.registry,
+            "ROBOCLOUD_LEDGER_ANCHOR_LOG_ADDRESS": addresses.anchor_log,
+            "ROBOCLOUD_LEDGER_LOG_PAGE_BLOCKS": "2",
+        }
+        process = external(tmp_path / "data", node, env)
+        try:
+            contracts = httpx.get(f"{process.url}/v1/contracts").json()["contracts"]
+            assert contracts["Registry"]["address"] == addresses.registry
+            assert wait_for_robot(process.url, robot.address)["registered_block"] > 0
+            assert not (tmp_path / "data" / "keys").exists()
+        finally:
+            process.stop()
