@@ -144,8 +144,8 @@ def effective_gas_price(tx: SignedTransactionAPI, base_fee: int) -> int:
     return int(min(tx.max_fee_per_gas, base_fee + tx.max_priority_fee_per_gas))
 
 
-def transaction(block: BlockAPI, index: int) -> dict[str, Any]:
-    tx = block.transactions[index]
+def transaction(block: BlockAPI, index: int, tx: SignedTransactionAPI) -> dict[str, Any]:
+    """``tx``, the block's ``index``-th transaction, as ``eth_getTransactionByHash``."""
     fields = transaction_fields(tx)
     fields |= {
         "blockHash": data(block.hash),
@@ -160,7 +160,7 @@ def transaction(block: BlockAPI, index: int) -> dict[str, Any]:
 def block(value: BlockAPI, full_transactions: bool) -> dict[str, Any]:
     header = value.header
     transactions: list[Any] = (
-        [transaction(value, i) for i in range(len(value.transactions))]
+        [transaction(value, i, tx) for i, tx in enumerate(value.transactions)]
         if full_transactions
         else [data(tx.hash) for tx in value.transactions]
     )
@@ -209,9 +209,11 @@ def created_address(sender: bytes, nonce: int) -> bytes:
     return keccak(rlp.encode([sender, nonce]))[12:]
 
 
-def receipt(value: BlockAPI, receipts: tuple[ReceiptAPI, ...], index: int) -> dict[str, Any]:
-    """The receipt of the block's ``index``-th transaction, as ``eth_getTransactionReceipt``."""
-    tx = value.transactions[index]
+def receipt(
+    value: BlockAPI, receipts: tuple[ReceiptAPI, ...], index: int, tx: SignedTransactionAPI
+) -> dict[str, Any]:
+    """The receipt of ``tx``, the block's ``index``-th transaction (passed in so that a
+    sender already recovered is not recovered again)."""
     contract = None if tx.to else created_address(tx.sender, tx.nonce)
     this = receipts[index]
     logs = [entry for entry in block_logs(value, receipts) if entry.tx_index == index]

@@ -179,12 +179,17 @@ class EventIndex:
         if query.block_hash is not None:
             clauses.append("block_hash = ?")
             params.append(query.block_hash)
+        # A constraint on an indexed argument (topic1..3) is nearly always the selective one;
+        # the unary + keeps SQLite from choosing the address/topic0 index over it instead.
+        narrow = any(query.topics[1:4])
+        prefix = "+" if narrow else ""
         if query.addresses:
-            clauses.append(f"address IN ({','.join('?' * len(query.addresses))})")
+            clauses.append(f"{prefix}address IN ({','.join('?' * len(query.addresses))})")
             params.extend(query.addresses)
         for position, options in enumerate(query.topics[:4]):
             if options:
-                clauses.append(f"topic{position} IN ({','.join('?' * len(options))})")
+                column = f"{prefix if position == 0 else ''}topic{position}"
+                clauses.append(f"{column} IN ({','.join('?' * len(options))})")
                 params.extend(options)
         sql = (
             f"SELECT * FROM logs WHERE {' AND '.join(clauses)} "

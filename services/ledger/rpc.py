@@ -225,13 +225,16 @@ class EmbeddedMethods:
 
     def transaction_by_hash(self, params: list[Any]) -> Any:
         located = self.chain.locate(as_bytes(param(params, 0), "transaction hash", 32))
-        return encoding.transaction(located.block, located.index) if located else None
+        if located is None:
+            return None
+        return encoding.transaction(located.block, located.index, located.transaction)
 
     def transaction_receipt(self, params: list[Any]) -> Any:
         located = self.chain.locate(as_bytes(param(params, 0), "transaction hash", 32))
         if located is None:
             return None
-        return encoding.receipt(located.block, self.chain.receipts(located.block), located.index)
+        receipts = self.chain.receipts(located.block)
+        return encoding.receipt(located.block, receipts, located.index, located.transaction)
 
     def fee_history(self, params: list[Any]) -> Any:
         count = min(max(as_quantity(param(params, 0), "block count"), 1), 1024)
