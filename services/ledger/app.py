@@ -50,7 +50,6 @@ class FaucetRequest(BaseModel):
 
 
 def _open(settings: LedgerSettings) -> Ledger:
-    limits = FaucetLimits(settings.ledger_faucet_interval_s, settings.ledger_faucet_per_minute)
     passphrase = (
         settings.ledger_admin_passphrase.get_secret_value()
         if settings.ledger_admin_passphrase
@@ -59,6 +58,12 @@ def _open(settings: LedgerSettings) -> Ledger:
     data_dir = settings.resolved_data_dir()
     if settings.ledger_rpc_url:
         return ExternalLedger(settings, data_dir, passphrase)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    limits = FaucetLimits(
+        data_dir / "faucet.sqlite",
+        settings.ledger_faucet_interval_s,
+        settings.ledger_faucet_per_minute,
+    )
     return EmbeddedLedger(data_dir, passphrase, limits, settings.ledger_faucet_amount_wei)
 
 

@@ -18,11 +18,12 @@ from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
 from eth.exceptions import BlockNotFound, HeaderNotFound, Revert, TransactionNotFound
 from eth.vm.spoof import SpoofTransaction
+from eth_typing import Address
 from eth_utils.crypto import keccak
 from eth_utils.exceptions import ValidationError
 
@@ -208,7 +209,7 @@ class EmbeddedChain:
     def base_fee(self) -> int:
         """The base fee the next block will charge."""
         with self._lock:
-            return int(self._chain.header.base_fee_per_gas)
+            return int(self._chain.header.base_fee_per_gas or 0)
 
     def _state(self, tag: BlockTag) -> Any:
         return self._chain.get_vm(at_header=self.header_at(tag)).state
@@ -217,27 +218,23 @@ class EmbeddedChain:
 
     def call(self, request: CallRequest, tag: BlockTag) -> bytes:
         """Run a call on the state after block ``tag``; raise ``Reverted`` with its reason."""
-        with self._lock:
-            header = self.header_at(tag)
-            transaction = self._spoof(request, header)
-            try:
-                return bytes(self._chain.get_transaction_result(transaction, header))
-            except Revert as exc:
-                raise Reverted(bytes(exc.args[0]) if exc.args else b"") from exc
-            except ValidationError as exc:
-                raise ChainError(str(exc)) from exc
-            except Exception as exc:
-                if type(exc).__module__.startswith("eth."):
-                    raise ChainError(f"execution failed: {type(exc).__name__} {exc}") from exc
-                raise
+        return bytes(self._execute(request, tag, self._chain.get_transaction_result))
 
     def estimate_gas(self, request: CallRequest, tag: BlockTag) -> int:
         """The least gas with which the call succeeds; ``Reverted`` if it never does."""
+        return int(self._execute(request, tag, self._chain.estimate_gas))
+
+    def _execute(
+        self,
+        request: CallRequest,
+        tag: BlockTag,
+        run: Callable[[SignedTransactionAPI, BlockHeaderAPI], Any],
+    ) -> Any:
+        """Run an unsigned ``request`` through ``run``, with py-evm's failures as ChainErrors."""
         with self._lock:
             header = self.header_at(tag)
-            transaction = self._spoof(request, header)
             try:
-                return int(self._chain.estimate_gas(transaction, header))
+                return run(self._spoof(request, header), header)
             except Revert as exc:
                 raise Reverted(bytes(exc.args[0]) if exc.args else b"") from exc
             except ValidationError as exc:
@@ -247,17 +244,18 @@ class EmbeddedChain:
                     raise ChainError(f"execution failed: {type(exc).__name__} {exc}") from exc
                 raise
 
-    def _spoof(self, request: CallRequest, header: BlockHeaderAPI) -> SpoofTransaction:
+    def _spoof(self, request: CallRequest, header: BlockHeaderAPI) -> SignedTransactionAPI:
+        """The request as a transaction py-evm executes without a signature."""
         vm = self._chain.get_vm(at_header=header)
         unsigned = vm.create_unsigned_transaction(
-            nonce=vm.state.get_nonce(request.sender),
+            nonce=vm.state.get_nonce(Address(request.sender)),
             gas_price=request.gas_price,
             gas=request.gas if request.gas is not None else header.gas_limit,
             to=request.to,  # type: ignore[arg-type]
             value=request.value,
             data=request.data,
         )
-        return SpoofTransaction(unsigned, from_=request.sender)
+        return cast(SignedTransactionAPI, SpoofTransaction(unsigned, from_=request.sender))
 
     # ----- transactions -----
 

@@ -18,15 +18,17 @@ import sqlite3
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from eth.abc import AtomicWriteBatchAPI, BlockHeaderAPI
 from eth.chains.base import MiningChain
-from eth.consensus import ConsensusApplier, NoProofConsensus
+from eth.consensus.applier import ConsensusApplier
+from eth.consensus.noproof import NoProofConsensus
 from eth.db.atomic import AtomicDB
 from eth.db.backends.base import BaseDB
 from eth.exceptions import CanonicalHeadNotFound
-from eth.vm.forks import PragueVM
+from eth.typing import AccountState
+from eth.vm.forks.prague import PragueVM
 from eth_tester.backends.pyevm.main import (
     generate_genesis_state_for_keys,
     get_default_account_keys,
@@ -148,4 +150,5 @@ def open_chain(
     except CanonicalHeadNotFound:
         pass
     state = dict(genesis_state) if genesis_state is not None else default_genesis_state()
-    return DevChain.from_genesis(db, get_default_genesis_params(), state), db
+    chain = DevChain.from_genesis(db, get_default_genesis_params(), cast(AccountState, state))
+    return cast(DevChain, chain), db

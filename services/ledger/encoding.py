@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import rlp
-from eth.abc import BlockAPI, ReceiptAPI, SignedTransactionAPI
+from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
 from eth_utils.address import to_checksum_address
 from eth_utils.crypto import keccak
 
@@ -116,10 +116,12 @@ def transaction_fields(tx: SignedTransactionAPI) -> dict[str, Any]:
     }
     if tx.type_id is None:
         fields["gasPrice"] = quantity(tx.gas_price)
-        fields["v"] = quantity(tx.v)
+        legacy: Any = tx  # legacy transactions carry v; the typed API has only y_parity
+        fields["v"] = quantity(legacy.v)
         if tx.chain_id is not None:
             fields["chainId"] = quantity(tx.chain_id)
         return fields
+    assert tx.chain_id is not None, "typed transactions (EIP-2718) always carry a chain id"
     fields["chainId"] = quantity(tx.chain_id)
     fields["v"] = quantity(tx.y_parity)
     fields["yParity"] = quantity(tx.y_parity)
@@ -138,6 +140,11 @@ def transaction_fields(tx: SignedTransactionAPI) -> dict[str, Any]:
     return fields
 
 
+def base_fee(header: BlockHeaderAPI) -> int:
+    """The header's base fee; every block of a London-or-later chain has one."""
+    return int(header.base_fee_per_gas or 0)
+
+
 def effective_gas_price(tx: SignedTransactionAPI, base_fee: int) -> int:
     if tx.type_id in (None, 1):
         return int(tx.gas_price)
@@ -153,7 +160,7 @@ def transaction(block: BlockAPI, index: int, tx: SignedTransactionAPI) -> dict[s
         "transactionIndex": quantity(index),
     }
     if tx.type_id not in (None, 1):
-        fields["gasPrice"] = quantity(effective_gas_price(tx, block.header.base_fee_per_gas))
+        fields["gasPrice"] = quantity(effective_gas_price(tx, base_fee(block.header)))
     return fields
 
 
@@ -183,7 +190,7 @@ def block(value: BlockAPI, full_transactions: bool) -> dict[str, Any]:
         "gasUsed": quantity(header.gas_used),
         "timestamp": quantity(header.timestamp),
         "mixHash": data(header.mix_hash),
-        "baseFeePerGas": quantity(header.base_fee_per_gas),
+        "baseFeePerGas": quantity(base_fee(header)),
         "transactions": transactions,
         "uncles": [],
     }
@@ -226,7 +233,7 @@ def receipt(
         "to": address(tx.to) if tx.to else None,
         "cumulativeGasUsed": quantity(this.gas_used),
         "gasUsed": quantity(gas_used_by(receipts, index)),
-        "effectiveGasPrice": quantity(effective_gas_price(tx, value.header.base_fee_per_gas)),
+        "effectiveGasPrice": quantity(effective_gas_price(tx, base_fee(value.header))),
         "contractAddress": address(contract) if contract else None,
         "logs": [entry.to_rpc() for entry in logs],
         "logsBloom": data(this.bloom.to_bytes(256, "big")),

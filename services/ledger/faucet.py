@@ -1,17 +1,21 @@
 """The development faucet's rate limits: once per address per interval, and a global budget.
 
 Funding is a real transaction from the faucet key on the chain (see ``node.py``); this module
-only decides whether a request may have one, and when it may try again. The limits live in
-memory: a restart forgets them, which on a development chain costs at most one extra grant
-per address, and the global budget still bounds how fast the faucet can be drained.
+only decides whether a request may have one, and when it may try again. Each address's last
+grant is kept in a small SQLite table beside the chain, so a restart does not hand out a second
+grant inside the interval. The one-minute global window stays in memory: it only bounds how
+fast the faucet can be drained, and a restart takes longer than a fraction of that minute.
+Times are wall-clock seconds, because they must mean the same thing after a restart.
 """
 
 from __future__ import annotations
 
+import sqlite3
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from pathlib import Path
 
 
 class RateLimited(Exception):
@@ -23,19 +27,28 @@ class RateLimited(Exception):
 
 
 class FaucetLimits:
-    """Per-address interval and a sliding one-minute window over all addresses."""
+    """Per-address interval (durable in ``path``) and a sliding one-minute window."""
 
     def __init__(
         self,
+        path: Path,
         per_address_interval_s: float,
         global_per_minute: int,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = time.time,
     ) -> None:
         self.interval_s = per_address_interval_s
         self.global_per_minute = global_per_minute
         self.clock = clock
         self._lock = threading.Lock()
-        self._last: dict[str, float] = {}
+        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
+        self._db.execute("PRAGMA synchronous=FULL")
+        self._db.execute(
+            "CREATE TABLE IF NOT EXISTS grants (address TEXT PRIMARY KEY, granted_at REAL NOT NULL)"
+        )
+        expired = self.clock() - per_address_interval_s
+        self._db.execute("DELETE FROM grants WHERE granted_at < ?", (expired,))
+        rows = self._db.execute("SELECT address, granted_at FROM grants")
+        self._last: dict[str, float] = dict(rows)
         self._window: deque[float] = deque()
 
     def acquire(self, address: str) -> None:
@@ -51,12 +64,20 @@ class FaucetLimits:
             if len(self._window) >= self.global_per_minute:
                 wait = 60.0 - (now - self._window[0])
                 raise RateLimited("the faucet's budget for this minute is spent", wait)
+            self._db.execute(
+                "INSERT OR REPLACE INTO grants (address, granted_at) VALUES (?, ?)", (address, now)
+            )
             self._last[address] = now
             self._window.append(now)
 
     def release(self, address: str) -> None:
         """Undo the grant of a request whose transaction failed, so it may retry at once."""
         with self._lock:
+            self._db.execute("DELETE FROM grants WHERE address = ?", (address,))
             self._last.pop(address, None)
             if self._window:
                 self._window.pop()
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()

@@ -121,5 +121,6 @@ class EmbeddedLedger:
         }
 
     def close(self) -> None:
+        self.limits.close()
         self.index.close()
         self.chain.close()

@@ -244,7 +244,7 @@ class EmbeddedMethods:
         headers = [self.chain.header_at(n) for n in range(oldest, newest + 1)]
         body: dict[str, Any] = {
             "oldestBlock": encoding.quantity(oldest),
-            "baseFeePerGas": [encoding.quantity(h.base_fee_per_gas) for h in headers]
+            "baseFeePerGas": [encoding.quantity(encoding.base_fee(h)) for h in headers]
             + [encoding.quantity(self.chain.base_fee())],
             "gasUsedRatio": [h.gas_used / h.gas_limit for h in headers],
         }

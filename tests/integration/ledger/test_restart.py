@@ -10,7 +10,7 @@ import pytest
 
 from robocloud.identity import Identity
 from robocloud.ledger import Ledger
-from tests.integration.ledger.conftest import METADATA, head, rpc, start_ledger
+from tests.integration.ledger.conftest import METADATA, faucet, head, rpc, start_ledger
 
 
 @pytest.mark.parametrize("kill", [False, True], ids=["restart", "kill-9"])
@@ -35,6 +35,9 @@ def test_head_hash_and_acknowledged_transactions_survive(tmp_path: Path, kill: b
         for identity in robots:
             record = httpx.get(f"{process.url}/v1/robots/{identity.address}")
             assert record.status_code == 200
+            again = faucet(process.url, identity)
+            assert again.status_code == 429, "a restart must not reset the faucet's interval"
+            assert again.json()["error"]["code"] == "faucet_rate_limited"
         with Ledger.connect(process.url, robots[0], receipt_timeout_s=10) as robot:
             robot.advertise(b"\x01\x55\x12\x20" + bytes(32))
         assert head(process.url)["number"] == before["number"] + 1

@@ -1,0 +1,66 @@
+"""The faucet's limits: per address (kept across restarts) and a global minute budget."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.ledger.faucet import FaucetLimits, RateLimited
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1_000_000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_once_per_address_per_interval(tmp_path: Path) -> None:
+    clock = Clock()
+    limits = FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock)
+    limits.acquire("0xA")
+    clock.now += 600
+    with pytest.raises(RateLimited) as refused:
+        limits.acquire("0xA")
+    assert refused.value.retry_after_s == pytest.approx(3000)
+    limits.acquire("0xB")
+    clock.now += 3000
+    limits.acquire("0xA")
+
+
+def test_grants_survive_a_reopen_and_expired_ones_are_dropped(tmp_path: Path) -> None:
+    clock = Clock()
+    limits = FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock)
+    limits.acquire("0xA")
+    clock.now += 3000
+    limits.acquire("0xB")
+    limits.close()
+    clock.now += 1000
+    reopened = FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock)
+    reopened.acquire("0xA")
+    with pytest.raises(RateLimited, match="0xB was funded 1000 s ago"):
+        reopened.acquire("0xB")
+
+
+def test_a_released_grant_may_retry_at_once_even_after_a_reopen(tmp_path: Path) -> None:
+    clock = Clock()
+    limits = FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock)
+    limits.acquire("0xA")
+    limits.release("0xA")
+    limits.close()
+    FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock).acquire("0xA")
+
+
+def test_global_budget_per_minute(tmp_path: Path) -> None:
+    clock = Clock()
+    limits = FaucetLimits(tmp_path / "f.sqlite", 3600, 2, clock)
+    limits.acquire("0xA")
+    clock.now += 10
+    limits.acquire("0xB")
+    with pytest.raises(RateLimited, match="budget for this minute") as refused:
+        limits.acquire("0xC")
+    assert refused.value.retry_after_s == pytest.approx(50)
+    clock.now += 50
+    limits.acquire("0xC")
