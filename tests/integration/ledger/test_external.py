@@ -1,8 +1,5 @@
-"""External-node mode against a real node (anvil): deploy or attach, forward, index by polling.
-
-The issue names ``npx hardhat node``; anvil is the node pinned in contracts/package.json (and
-speaks the same JSON-RPC), so CI needs no second Node toolchain.
-"""
+"""External-node mode against real nodes (hardhat@2 and anvil): deploy or attach, forward,
+index by polling."""
 
 from __future__ import annotations
 
@@ -16,13 +13,13 @@ import pytest
 from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger
 from tests.integration.ledger.conftest import METADATA, PASSPHRASE, faucet, rpc, start_ledger
-from tests.integration.ledger_sdk.anvil import anvil_node, deploy_contracts, fund
+from tests.integration.ledger_sdk.nodes import NODES, deploy_contracts, ethereum_node, fund
 from tests.procs import ServiceProcess
 
 
-@pytest.fixture
-def node(tmp_path: Path) -> Iterator[str]:
-    with anvil_node(tmp_path / "anvil.log") as url:
+@pytest.fixture(params=NODES)
+def node(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[str]:
+    with ethereum_node(tmp_path / "node.log", request.param) as url:
         yield url
 
 
@@ -66,7 +63,7 @@ def test_deploys_with_the_operator_key_and_indexes_by_polling(tmp_path: Path, no
             refused = faucet(process.url, Identity.generate())
             assert refused.status_code == 404
             assert refused.json()["error"]["code"] == "faucet_unavailable"
-            cheat = rpc(process.url, "anvil_setBalance", [robot.address, "0x1"])
+            cheat = rpc(process.url, "hardhat_setBalance", [robot.address, "0x1"])
             assert cheat["error"]["code"] == -32601
 
             process.restart()

@@ -16,7 +16,7 @@ from robocloud.client import ServiceClient
 from robocloud.identity import Identity
 from robocloud.ledger import ContractAddresses, JsonRpcClient, Ledger
 from tests.integration.ledger.conftest import admin_of, start_ledger
-from tests.integration.ledger_sdk.anvil import anvil_node, deploy_contracts, fund, robot_ledger
+from tests.integration.ledger_sdk.nodes import deploy_contracts, ethereum_node, fund, robot_ledger
 
 
 @dataclass
@@ -30,7 +30,7 @@ class Deployment:
 
 @contextmanager
 def on_anvil(tmp: Path) -> Iterator[Deployment]:
-    with anvil_node(tmp / "anvil.log") as url, JsonRpcClient(url) as rpc:
+    with ethereum_node(tmp / "anvil.log") as url, JsonRpcClient(url) as rpc:
         admin = fund(rpc, Identity.generate())
         addresses = deploy_contracts(rpc, admin)
         with robot_ledger(url, addresses, admin) as admin_ledger:

@@ -1,7 +1,9 @@
-"""A real Ethereum node (anvil, pinned in contracts/package.json) for the SDK's ledger tests.
+"""Real Ethereum nodes for the ledger tests: anvil and hardhat@2, pinned in contracts/.
 
-anvil speaks the same JSON-RPC as the ledger service's ``/rpc`` and as production nodes, and it
-is independent of our service, so these tests pin down the SDK against a node we did not write.
+Both speak the same JSON-RPC as the ledger service's ``/rpc`` and as production nodes, and both
+are independent of our service, so these tests pin down the SDK and external-node mode against
+nodes we did not write. anvil is the default (it starts in a fraction of a second); hardhat is
+the node the ledger issue names for external-node mode.
 """
 
 from __future__ import annotations
@@ -29,30 +31,43 @@ CHAIN_ID = 1337
 ONE_ETHER = 10**18
 
 
-def anvil_binary() -> Path | None:
-    found = sorted(CONTRACTS.glob("node_modules/@foundry-rs/anvil-*/bin/anvil"))
-    return found[0] if found else None
+NODES = ("anvil", "hardhat")
 
 
-def require_anvil() -> Path:
-    """anvil, or a skip; in CI (``CI`` set) its absence is a failure, never a silent skip."""
-    binary = anvil_binary()
+def node_binary(kind: str) -> Path | None:
+    """Where ``npm ci --prefix contracts`` put the node's executable, if it did."""
+    if kind == "anvil":
+        found = sorted(CONTRACTS.glob("node_modules/@foundry-rs/anvil-*/bin/anvil"))
+        return found[0] if found else None
+    if kind == "hardhat":
+        binary = CONTRACTS / "node_modules" / ".bin" / "hardhat"
+        return binary if binary.exists() else None
+    raise ValueError(f"unknown node {kind!r}")
+
+
+def node_command(kind: str, port: int) -> list[str]:
+    """How to start ``kind`` on ``port``; in CI a missing node fails, never silently skips."""
+    binary = node_binary(kind)
     if binary is None or shutil.which("node") is None:
         if os.environ.get("CI"):
-            pytest.fail("anvil missing: run `npm ci --prefix contracts` before the tests")
-        pytest.skip("anvil missing (npm ci --prefix contracts)")
-    return binary
+            pytest.fail(f"{kind} missing: run `npm ci --prefix contracts` before the tests")
+        pytest.skip(f"{kind} missing (npm ci --prefix contracts)")
+    if kind == "hardhat":
+        return [str(binary), "node", "--hostname", "127.0.0.1", "--port", str(port)]
+    address = ["--host", "127.0.0.1", "--port", str(port)]
+    return [str(binary), *address, "--chain-id", str(CHAIN_ID), "--accounts", "1"]
 
 
 @contextmanager
-def anvil_node(log_path: Path) -> Iterator[str]:
-    """Run anvil on a free loopback port; yield its RPC URL; always stop it."""
+def ethereum_node(log_path: Path, kind: str = "anvil") -> Iterator[str]:
+    """Run a node of ``kind`` on a free loopback port; yield its RPC URL; always stop it."""
     port = free_port()
-    command = [str(require_anvil()), "--host", "127.0.0.1", "--port", str(port)]
-    command += ["--chain-id", str(CHAIN_ID), "--accounts", "1"]
+    command = node_command(kind, port)
     url = f"http://127.0.0.1:{port}"
     with log_path.open("wb") as log:
-        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(
+            command, cwd=CONTRACTS, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
+        )
         try:
             wait_ready(url, process, log_path)
             yield url
@@ -70,18 +85,18 @@ def wait_ready(url: str, process: subprocess.Popen[bytes], log_path: Path) -> No
     payload = {"jsonrpc": "2.0", "id": 1, "method": "eth_chainId", "params": []}
     while time.monotonic() < deadline:
         if process.poll() is not None:
-            raise RuntimeError(f"anvil exited at start:\n{log_path.read_text()}")
+            raise RuntimeError(f"node exited at start:\n{log_path.read_text()}")
         try:
             if httpx.post(url, json=payload, timeout=1).status_code == 200:
                 return
         except httpx.HTTPError:
             time.sleep(0.05)
-    raise RuntimeError(f"anvil not ready after 30 s:\n{log_path.read_text()}")
+    raise RuntimeError(f"node not ready after 30 s:\n{log_path.read_text()}")
 
 
 def fund(rpc: JsonRpcClient, identity: Identity, wei: int = ONE_ETHER) -> Identity:
-    """Give ``identity`` ether with anvil's own cheat method (what a faucet would do)."""
-    rpc.request("anvil_setBalance", [identity.address, hex(wei)])
+    """Give ``identity`` ether with the nodes' cheat method (what a faucet would do)."""
+    rpc.request("hardhat_setBalance", [identity.address, hex(wei)])
     return identity
 
 
