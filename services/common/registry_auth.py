@@ -52,7 +52,8 @@ class RegistryAuthorizer:
         robot = await self.robot(address)
         if robot is None:
             raise Forbidden(
-                f"address {address} is not a registered robot on the ledger",
+                f"address {address} is not a registered robot on the ledger "
+                "(`robocloud register` registers it)",
                 code="address_not_allowed",
                 details={"address": address},
             )

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import sqlite3
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -109,34 +110,32 @@ class EventIndex:
 
     def add_block(self, number: int, block_hash: bytes, logs: Iterable[LogEntry]) -> None:
         """Index one block's logs and advance the cursor to it, all in one transaction."""
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                for entry in logs:
-                    self._insert(entry)
-                self._db.execute(
-                    "INSERT OR REPLACE INTO cursor VALUES (0, ?, ?)", (number, block_hash)
-                )
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+        with self._transaction():
+            for entry in logs:
+                self._insert(entry)
+            self._db.execute("INSERT OR REPLACE INTO cursor VALUES (0, ?, ?)", (number, block_hash))
 
     def rewind(self, to_block: int, block_hash: bytes) -> None:
         """Forget everything after block ``to_block`` (whose hash is ``block_hash``) when an
         external chain reorganised, and re-derive the state tables from the logs left."""
+        with self._transaction():
+            self._db.execute("DELETE FROM logs WHERE block_number > ?", (to_block,))
+            for table in ("robots", "roles", "advertisements", "anchors"):
+                self._db.execute(f"DELETE FROM {table}")
+            rows = self._db.execute("SELECT * FROM logs ORDER BY block_number, log_index")
+            for row in rows.fetchall():
+                self._apply(_entry(row))
+            self._db.execute(
+                "INSERT OR REPLACE INTO cursor VALUES (0, ?, ?)", (to_block, block_hash)
+            )
+
+    @contextmanager
+    def _transaction(self) -> Iterator[None]:
+        """One SQLite write transaction under the lock: committed whole, or rolled back."""
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                self._db.execute("DELETE FROM logs WHERE block_number > ?", (to_block,))
-                for table in ("robots", "roles", "advertisements", "anchors"):
-                    self._db.execute(f"DELETE FROM {table}")
-                rows = self._db.execute("SELECT * FROM logs ORDER BY block_number, log_index")
-                for row in rows.fetchall():
-                    self._apply(_entry(row))
-                self._db.execute(
-                    "INSERT OR REPLACE INTO cursor VALUES (0, ?, ?)", (to_block, block_hash)
-                )
+                yield
             except BaseException:
                 self._db.execute("ROLLBACK")
                 raise

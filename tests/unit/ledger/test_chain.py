@@ -3,9 +3,6 @@ blocks that survive a reopen and a kill -9 with the same head hash."""
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
@@ -24,7 +21,7 @@ from services.ledger.chain import (
 )
 from services.ledger.contracts import create_address, deploy, send_as
 from services.ledger.operator import OperatorKeys
-from tests.procs import REPO
+from tests.unit.ledger.crash import acknowledged_before_kill
 
 METADATA = bytes.fromhex("01551220") + bytes(32)
 REGISTRY = ContractAbi.load("Registry")
@@ -160,17 +157,7 @@ SENDER = textwrap.dedent(
 
 def test_kill_9_loses_no_acknowledged_transaction(tmp_path: Path) -> None:
     path = tmp_path / "chain.sqlite"
-    sender = subprocess.Popen(
-        [sys.executable, "-c", SENDER, str(path)],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        text=True,
-        env={"PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
-    )
-    assert sender.stdout is not None
-    acknowledged = [sender.stdout.readline().split() for _ in range(8)]
-    sender.send_signal(signal.SIGKILL)
-    sender.wait()
+    acknowledged = [line.split() for line in acknowledged_before_kill(SENDER, path, 8)]
     chain = EmbeddedChain(path, keys().genesis_state())
     for tx_hash, _ in acknowledged:
         assert chain.locate(bytes.fromhex(tx_hash)) is not None

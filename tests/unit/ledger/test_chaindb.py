@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
@@ -12,7 +9,7 @@ from eth_account import Account
 from eth_tester.backends.pyevm.main import get_default_account_keys
 
 from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
-from tests.procs import REPO
+from tests.unit.ledger.crash import acknowledged_before_kill
 
 RECIPIENT = bytes.fromhex("11" * 20)
 
@@ -75,17 +72,7 @@ MINER = textwrap.dedent(
 
 def test_kill_9_loses_no_acknowledged_block(tmp_path: Path) -> None:
     path = tmp_path / "chain.sqlite"
-    miner = subprocess.Popen(
-        [sys.executable, "-c", MINER, str(path)],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        text=True,
-        env={"PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
-    )
-    assert miner.stdout is not None
-    acknowledged = [miner.stdout.readline().strip() for _ in range(5)]
-    miner.send_signal(signal.SIGKILL)
-    miner.wait()
+    acknowledged = acknowledged_before_kill(MINER, path, 5)
     chain, db = open_chain(path)
     head = chain.get_canonical_head()
     assert head.block_number >= 5
