@@ -4,8 +4,9 @@ index by polling."""
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any, TypeVar
 
 import httpx
 import pytest
@@ -15,6 +16,8 @@ from robocloud.ledger import JsonRpcClient, Ledger
 from tests.integration.ledger.conftest import METADATA, PASSPHRASE, faucet, rpc, start_ledger
 from tests.integration.ledger_sdk.nodes import NODES, deploy_contracts, ethereum_node, fund
 from tests.procs import ServiceProcess
+
+T = TypeVar("T")
 
 
 @pytest.fixture(params=NODES)
@@ -28,15 +31,31 @@ def external(data_dir: Path, node: str, env: dict[str, str] | None = None) -> Se
     return start_ledger(data_dir, {**settings, **(env or {})})
 
 
-def wait_for_robot(url: str, address: str) -> dict[str, object]:
+def eventually(read: Callable[[], T | None], what: str) -> T:
+    """What ``read`` returns once it is not None: the index follows the node by polling."""
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
-        response = httpx.get(f"{url}/v1/robots/{address}")
-        if response.status_code == 200:
-            body: dict[str, object] = response.json()
-            return body
+        found = read()
+        if found is not None:
+            return found
         time.sleep(0.1)
-    raise AssertionError(f"{address} never appeared in the index")
+    raise AssertionError(f"{what} never appeared in the index")
+
+
+def wait_for_robot(url: str, address: str) -> dict[str, Any]:
+    def read() -> dict[str, Any] | None:
+        response = httpx.get(f"{url}/v1/robots/{address}")
+        return response.json() if response.status_code == 200 else None
+
+    return eventually(read, f"robot {address}")
+
+
+def wait_for_advertisements(url: str, advertiser: str) -> list[dict[str, Any]]:
+    def read() -> list[dict[str, Any]] | None:
+        rows = httpx.get(f"{url}/v1/advertisements", params={"advertiser": advertiser})
+        return rows.json()["advertisements"] or None
+
+    return eventually(read, f"an advertisement by {advertiser}")
 
 
 def test_deploys_with_the_operator_key_and_indexes_by_polling(tmp_path: Path, node: str) -> None:
@@ -54,10 +73,8 @@ def test_deploys_with_the_operator_key_and_indexes_by_polling(tmp_path: Path, no
                 advertised = ledger.advertise(b"\x01\x55\x12\x20" + bytes(32))
                 assert ledger.advertisements(advertiser=robot.address) == [advertised]
             assert wait_for_robot(process.url, robot.address)["active"] is True
-            rows = httpx.get(
-                f"{process.url}/v1/advertisements", params={"advertiser": robot.address}
-            )
-            assert [r["tx"] for r in rows.json()["advertisements"]] == [advertised.tx_hash]
+            rows = wait_for_advertisements(process.url, robot.address)
+            assert [row["tx"] for row in rows] == [advertised.tx_hash]
             contracts = httpx.get(f"{process.url}/v1/contracts").json()
 
             refused = faucet(process.url, Identity.generate())
