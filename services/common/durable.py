@@ -2,12 +2,31 @@
 
 Every write goes to a temporary file in the same directory, is fsynced, renamed over the
 target (atomic on POSIX) and the directory is fsynced so the rename itself survives a crash.
+State that changes record by record goes to SQLite instead, opened by ``open_sqlite``.
 """
 
 from __future__ import annotations
 
 import os
+import sqlite3
 from pathlib import Path
+from typing import Literal
+
+
+def open_sqlite(
+    path: Path, schema: str, *, synchronous: Literal["FULL", "NORMAL"]
+) -> sqlite3.Connection:
+    """A WAL-mode connection in autocommit mode, shared across threads, with ``schema`` applied.
+
+    Callers serialise access with their own lock and open transactions explicitly.
+    ``synchronous=FULL`` fsyncs every commit (what is acknowledged survives a power cut);
+    ``NORMAL`` only keeps the database consistent, for state that can be rebuilt.
+    """
+    connection = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+    connection.execute("PRAGMA journal_mode=WAL")
+    connection.execute(f"PRAGMA synchronous={synchronous}")
+    connection.executescript(schema)
+    return connection
 
 
 def fsync_dir(directory: Path) -> None:

@@ -14,7 +14,6 @@ genesis, like eth-tester's own tester chain but with a durable database undernea
 
 from __future__ import annotations
 
-import sqlite3
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -35,6 +34,8 @@ from eth_tester.backends.pyevm.main import (
     get_default_genesis_params,
 )
 
+from services.common.durable import open_sqlite
+
 CHAIN_ID = 1337
 
 
@@ -43,11 +44,10 @@ class SqliteKeyValue(BaseDB):
 
     def __init__(self, path: Path) -> None:
         self.depth = 0
-        self.connection = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
-        self.connection.execute("PRAGMA journal_mode=WAL")
-        self.connection.execute("PRAGMA synchronous=FULL")
-        self.connection.execute(
-            "CREATE TABLE IF NOT EXISTS kv (key BLOB PRIMARY KEY, value BLOB NOT NULL)"
+        self.connection = open_sqlite(
+            path,
+            "CREATE TABLE IF NOT EXISTS kv (key BLOB PRIMARY KEY, value BLOB NOT NULL)",
+            synchronous="FULL",
         )
 
     def __getitem__(self, key: bytes) -> bytes:

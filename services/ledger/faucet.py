@@ -10,12 +10,17 @@ Times are wall-clock seconds, because they must mean the same thing after a rest
 
 from __future__ import annotations
 
-import sqlite3
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
+
+from services.common.durable import open_sqlite
+
+GRANTS_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS grants (address TEXT PRIMARY KEY, granted_at REAL NOT NULL)"
+)
 
 
 class RateLimited(Exception):
@@ -40,11 +45,7 @@ class FaucetLimits:
         self.global_per_minute = global_per_minute
         self.clock = clock
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.execute(
-            "CREATE TABLE IF NOT EXISTS grants (address TEXT PRIMARY KEY, granted_at REAL NOT NULL)"
-        )
+        self._db = open_sqlite(path, GRANTS_SCHEMA, synchronous="FULL")
         expired = self.clock() - per_address_interval_s
         self._db.execute("DELETE FROM grants WHERE granted_at < ?", (expired,))
         rows = self._db.execute("SELECT address, granted_at FROM grants")

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from robocloud.ledger.abi import ContractAbi, DecodedLog
+from services.common.durable import open_sqlite
 from services.ledger.encoding import LogEntry
 
 MAX_LOG_RESULTS = 10_000
@@ -85,10 +86,7 @@ class EventIndex:
 
     def __init__(self, path: Path, registry: str, anchor_log: str) -> None:
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        self._db.executescript(SCHEMA)
+        self._db = open_sqlite(path, SCHEMA, synchronous="NORMAL")
         self.registry = ContractAbi.load("Registry")
         self.anchor_log = ContractAbi.load("AnchorLog")
         self._contracts = {

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from services.ledger.faucet import FaucetLimits, RateLimited
+
+Opener = Callable[..., FaucetLimits]
 
 
 class Clock:
@@ -17,9 +20,23 @@ class Clock:
         return self.now
 
 
-def test_once_per_address_per_interval(tmp_path: Path) -> None:
-    clock = Clock()
-    limits = FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock)
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def opened(tmp_path: Path, clock: Clock) -> Opener:
+    """Open the limits stored in one file, as a restarted ledger would (one grant an hour)."""
+
+    def open_limits(per_minute: int = 60) -> FaucetLimits:
+        return FaucetLimits(tmp_path / "faucet.sqlite", 3600, per_minute, clock)
+
+    return open_limits
+
+
+def test_once_per_address_per_interval(clock: Clock, opened: Opener) -> None:
+    limits = opened()
     limits.acquire("0xA")
     clock.now += 600
     with pytest.raises(RateLimited) as refused:
@@ -30,32 +47,29 @@ def test_once_per_address_per_interval(tmp_path: Path) -> None:
     limits.acquire("0xA")
 
 
-def test_grants_survive_a_reopen_and_expired_ones_are_dropped(tmp_path: Path) -> None:
-    clock = Clock()
-    limits = FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock)
+def test_grants_survive_a_reopen_and_expired_ones_are_dropped(clock: Clock, opened: Opener) -> None:
+    limits = opened()
     limits.acquire("0xA")
     clock.now += 3000
     limits.acquire("0xB")
     limits.close()
     clock.now += 1000
-    reopened = FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock)
+    reopened = opened()
     reopened.acquire("0xA")
     with pytest.raises(RateLimited, match="0xB was funded 1000 s ago"):
         reopened.acquire("0xB")
 
 
-def test_a_released_grant_may_retry_at_once_even_after_a_reopen(tmp_path: Path) -> None:
-    clock = Clock()
-    limits = FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock)
+def test_a_released_grant_may_retry_at_once_even_after_a_reopen(opened: Opener) -> None:
+    limits = opened()
     limits.acquire("0xA")
     limits.release("0xA")
     limits.close()
-    FaucetLimits(tmp_path / "f.sqlite", 3600, 60, clock).acquire("0xA")
+    opened().acquire("0xA")
 
 
-def test_global_budget_per_minute(tmp_path: Path) -> None:
-    clock = Clock()
-    limits = FaucetLimits(tmp_path / "f.sqlite", 3600, 2, clock)
+def test_global_budget_per_minute(clock: Clock, opened: Opener) -> None:
+    limits = opened(per_minute=2)
     limits.acquire("0xA")
     clock.now += 10
     limits.acquire("0xB")
