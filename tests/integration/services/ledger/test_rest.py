@@ -6,7 +6,7 @@ import httpx
 import pytest
 
 from robocloud.identity import Identity
-from tests.integration.ledger.conftest import Service, faucet, head, rpc
+from tests.integration.services.ledger.conftest import Service, faucet, head, rpc
 
 
 def _balance(service: Service, address: str) -> int:

@@ -12,7 +12,7 @@ from robocloud.cid import CID
 from robocloud.client import ServiceClient
 from robocloud.identity import Identity
 from tests.conftest import ServiceFactory
-from tests.integration.cas.conftest import QUIET_GC, multipart, repo_stat
+from tests.integration.services.cas.conftest import QUIET_GC, multipart, repo_stat
 
 PINNED = bytes(range(251)) * 2100  # three distinct leaves and a root
 LOOSE = b"\x01" * 400_000

@@ -9,8 +9,8 @@ import pytest
 from robocloud.errors import MissingIdentityError
 from robocloud.ledger import Ledger, RevertError, Role, RpcError
 from robocloud.ledger.transactions import quantity
-from tests.integration.ledger_sdk.conftest import Deployment, LedgerFactory
-from tests.integration.ledger_sdk.nodes import CHAIN_ID, robot_ledger
+from tests.integration.robocloud.ledger.conftest import Deployment, LedgerFactory
+from tests.integration.robocloud.ledger.nodes import CHAIN_ID, robot_ledger
 
 METADATA = bytes.fromhex("01701220") + bytes(range(32))
 CID = bytes.fromhex("01551220") + bytes(range(1, 33))

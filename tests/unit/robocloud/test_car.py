@@ -9,7 +9,7 @@ import pytest
 from robocloud.car import CarError, CarReader, encode_header, write_car
 from robocloud.cid import CID, encode_varint
 from robocloud.unixfs import Block
-from tests.unit.sdk.ipfs_vectors import car_path, vectors
+from tests.unit.robocloud.ipfs_vectors import car_path, vectors
 
 
 @pytest.mark.parametrize("fixture", vectors()["cars"], ids=lambda c: c["path"].rsplit("/", 1)[-1])

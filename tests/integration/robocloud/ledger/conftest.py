@@ -15,8 +15,13 @@ import pytest
 from robocloud.client import ServiceClient
 from robocloud.identity import Identity
 from robocloud.ledger import ContractAddresses, JsonRpcClient, Ledger
-from tests.integration.ledger.conftest import admin_of, start_ledger
-from tests.integration.ledger_sdk.nodes import deploy_contracts, ethereum_node, fund, robot_ledger
+from tests.integration.robocloud.ledger.nodes import (
+    deploy_contracts,
+    ethereum_node,
+    fund,
+    robot_ledger,
+)
+from tests.integration.services.ledger.conftest import admin_of, start_ledger
 
 
 @dataclass

@@ -21,7 +21,7 @@ from services.ledger.chain import (
 )
 from services.ledger.contracts import create_address, deploy, send_as
 from services.ledger.operator import OperatorKeys
-from tests.unit.ledger.crash import acknowledged_before_kill
+from tests.unit.services.ledger.crash import acknowledged_before_kill
 
 METADATA = bytes.fromhex("01551220") + bytes(32)
 REGISTRY = ContractAbi.load("Registry")
@@ -145,7 +145,7 @@ SENDER = textwrap.dedent(
     from pathlib import Path
     from services.ledger.chain import EmbeddedChain
     from services.ledger.contracts import send_as
-    from tests.unit.ledger.test_chain import keys
+    from tests.unit.services.ledger.test_chain import keys
     operator = keys()
     chain = EmbeddedChain(Path(sys.argv[1]), operator.genesis_state())
     for n in range(1000):

@@ -5,15 +5,14 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
-from pathlib import Path
 
 import pytest
 import typer
 
 from robocloud.cli.ledger import cid_bytes, did_cid
 from robocloud.identity import Identity
+from tests.procs import SHARED_DATA
 
-SHARED = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
 CHUNK_SHA256 = "7bdb75a98b03a7dead10d95621c79cfd626c7c17d2737d9319ab6af08debbfa3"
 RAW_CID = "bafkreid33n22tcydu7pk2egzkyq4phh5mjwhyf6son6zggnlnlyi3257um"
 V0_CID = "QmWmRj3dFDZdb6ABvbmKhEL6TmPbAfBZ1t5BxsEyJrcZhE"
@@ -21,7 +20,7 @@ V0_CID = "QmWmRj3dFDZdb6ABvbmKhEL6TmPbAfBZ1t5BxsEyJrcZhE"
 
 def test_cidv1_raw_is_version_codec_and_the_file_digest() -> None:
     """The fixture's raw-leaf CID is the SHA-256 of its bytes (see shared/data/SOURCES.md)."""
-    chunk = SHARED / "ipfs" / "files" / "chacha20_chunk-v0-seed_262144.bin"
+    chunk = SHARED_DATA / "ipfs" / "files" / "chacha20_chunk-v0-seed_262144.bin"
     if chunk.is_file():
         assert hashlib.sha256(chunk.read_bytes()).hexdigest() == CHUNK_SHA256
     assert cid_bytes(RAW_CID) == bytes.fromhex("01551220" + CHUNK_SHA256)
@@ -46,7 +45,7 @@ def test_base58_and_hex_forms_agree() -> None:
 
 
 def test_vectors_file_cids_all_parse() -> None:
-    vectors = SHARED / "ipfs" / "vectors.json"
+    vectors = SHARED_DATA / "ipfs" / "vectors.json"
     if not vectors.is_file():
         pytest.skip("shared IPFS vectors missing")
     strings = json.dumps(json.loads(vectors.read_text())).split('"')

@@ -20,7 +20,7 @@ from robocloud.unixfs import (
     read_file,
     walk_dag,
 )
-from tests.unit.sdk.ipfs_vectors import PROFILES, car_path, file_cases, input_named, vectors
+from tests.unit.robocloud.ipfs_vectors import PROFILES, car_path, file_cases, input_named, vectors
 
 
 @pytest.mark.parametrize(("name", "profile", "expected"), file_cases())

@@ -13,8 +13,14 @@ import pytest
 
 from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger
-from tests.integration.ledger.conftest import METADATA, PASSPHRASE, faucet, rpc, start_ledger
-from tests.integration.ledger_sdk.nodes import NODES, deploy_contracts, ethereum_node, fund
+from tests.integration.robocloud.ledger.nodes import NODES, deploy_contracts, ethereum_node, fund
+from tests.integration.services.ledger.conftest import (
+    METADATA,
+    PASSPHRASE,
+    faucet,
+    rpc,
+    start_ledger,
+)
 from tests.procs import ServiceProcess
 
 T = TypeVar("T")

@@ -12,7 +12,7 @@ from robocloud.ledger import Role
 from services.common.errors import Forbidden, Unavailable
 from services.common.registry_auth import RegistryAuthorizer
 from tests.conftest import ServiceFactory
-from tests.integration.ledger.conftest import RobotFactory, Service
+from tests.integration.services.ledger.conftest import RobotFactory, Service
 from tests.procs import free_port
 
 

@@ -9,7 +9,7 @@ from eth_account import Account
 from eth_tester.backends.pyevm.main import get_default_account_keys
 
 from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
-from tests.unit.ledger.crash import acknowledged_before_kill
+from tests.unit.services.ledger.crash import acknowledged_before_kill
 
 RECIPIENT = bytes.fromhex("11" * 20)
 
@@ -61,7 +61,7 @@ MINER = textwrap.dedent(
     import sys
     from pathlib import Path
     from services.ledger.chaindb import open_chain
-    from tests.unit.ledger.test_chaindb import transfer
+    from tests.unit.services.ledger.test_chaindb import transfer
     chain, _ = open_chain(Path(sys.argv[1]))
     for nonce in range(1000):
         transfer(chain, nonce)

@@ -14,7 +14,7 @@ from robocloud.cid import CID
 from robocloud.identity import Identity
 from robocloud.unixfs import import_bytes
 from tests.conftest import ServiceFactory
-from tests.integration.cas.conftest import QUIET_GC, corrupt_block
+from tests.integration.services.cas.conftest import QUIET_GC, corrupt_block
 from tests.procs import ServiceProcess
 
 DATA = bytes(range(251)) * 3133  # three distinct leaves under a root

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from robocloud.cid import CID
 from robocloud.cli import app
 from robocloud.identity import Identity
-from tests.integration.ledger.conftest import Service
+from tests.integration.services.ledger.conftest import Service
 
 runner = CliRunner()
 DATA_CID = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"

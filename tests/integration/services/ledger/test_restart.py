@@ -10,7 +10,7 @@ import pytest
 
 from robocloud.identity import Identity
 from robocloud.ledger import Ledger
-from tests.integration.ledger.conftest import METADATA, faucet, head, rpc, start_ledger
+from tests.integration.services.ledger.conftest import METADATA, faucet, head, rpc, start_ledger
 
 
 @pytest.mark.parametrize("kill", [False, True], ids=["restart", "kill-9"])

@@ -7,7 +7,7 @@ import pytest
 
 from robocloud.cid import CID
 from robocloud.ledger import RevertError, Role
-from tests.integration.ledger.conftest import METADATA, RobotFactory, Service, head
+from tests.integration.services.ledger.conftest import METADATA, RobotFactory, Service, head
 
 CID_TEXT = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
 

@@ -18,7 +18,7 @@ from robocloud.identity import Identity
 from robocloud.signing import sign_request
 from robocloud.unixfs import Block, ImportParams, import_bytes
 from tests.conftest import ServiceFactory
-from tests.integration.cas.conftest import QUIET_GC, error_of, multipart, repo_stat
+from tests.integration.services.cas.conftest import QUIET_GC, error_of, multipart, repo_stat
 from tests.procs import ServiceProcess
 
 UNKNOWN = CID.from_block(b"never stored anywhere")

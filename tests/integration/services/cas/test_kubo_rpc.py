@@ -15,9 +15,9 @@ from robocloud.cid import CID, DAG_PB, RAW
 from robocloud.client import ServiceClient
 from robocloud.errors import ApiError
 from robocloud.unixfs import ImportParams, import_bytes
-from tests.integration.cas.conftest import error_of, multipart, repo_stat
+from tests.integration.services.cas.conftest import error_of, multipart, repo_stat
 from tests.procs import ServiceProcess
-from tests.unit.sdk.ipfs_vectors import PROFILES, car_path, input_named, vectors
+from tests.unit.robocloud.ipfs_vectors import PROFILES, car_path, input_named, vectors
 
 HELLO = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
 SERVICE_VECTORS = [

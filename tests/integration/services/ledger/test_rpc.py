@@ -9,7 +9,7 @@ from web3 import HTTPProvider, Web3
 
 from robocloud.identity import Identity
 from robocloud.ledger import Ledger
-from tests.integration.ledger.conftest import METADATA, RobotFactory, Service, head, rpc
+from tests.integration.services.ledger.conftest import METADATA, RobotFactory, Service, head, rpc
 
 
 def test_web3_connects_reads_and_sends(service: Service, robot: RobotFactory) -> None:

@@ -25,7 +25,7 @@ from robocloud.identity import Identity
 from robocloud.ledger import ContractAbi, ContractAddresses, JsonRpcClient, Ledger, Transactor
 from tests.procs import free_port
 
-REPO = Path(__file__).resolve().parents[3]
+REPO = Path(__file__).resolve().parents[4]
 CONTRACTS = REPO / "contracts"
 CHAIN_ID = 1337
 ONE_ETHER = 10**18
