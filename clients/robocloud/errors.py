@@ -13,6 +13,13 @@ class RobocloudError(Exception):
     """Base of every error the SDK raises."""
 
 
+class FormatError(RobocloudError, ValueError):
+    """Bytes or text that do not follow a wire format (CID, CAR, dag-pb, UnixFS, JSON, ...).
+
+    Each format module raises its own subclass, whose message names what is wrong and where.
+    """
+
+
 class SignatureError(RobocloudError):
     """A signed request is malformed or its signature does not verify.
 

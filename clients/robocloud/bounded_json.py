@@ -1,0 +1,69 @@
+"""JSON parsing with a bound on nesting, for every document a stranger controls.
+
+CPython's JSON decoder recurses once per nesting level in C. A 200 KB document of 100,000
+nested brackets overflows the C stack (a segfault, not an exception) wherever the recursion
+limit was raised, and py-evm and py_ecc raise it at import. So the depth is measured first,
+with a few passes of C-speed string operations and no recursion, and only a document within
+the bound reaches ``json.loads``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from typing import Any
+
+from robocloud.errors import FormatError
+
+MAX_DEPTH = 64
+"""Nesting that robocloud's own documents never come near; services may choose their own."""
+
+_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
+_NOT_BRACKET = re.compile(rb"[^\[\]{}]+")
+_ONE_KIND = bytes.maketrans(b"{}", b"[]")
+
+
+class JsonError(FormatError):
+    """A document that is not JSON, or not JSON within the bounds the reader accepts."""
+
+
+class JsonDepthError(JsonError):
+    """A document nested deeper than the reader's bound; ``max_depth`` is that bound."""
+
+    def __init__(self, max_depth: int) -> None:
+        super().__init__(f"JSON nested deeper than {max_depth} levels")
+        self.max_depth = max_depth
+
+
+def exceeds_depth(document: bytes, max_depth: int) -> bool:
+    """Whether parsing ``document`` could nest deeper than ``max_depth``.
+
+    Brackets outside strings are reduced to ``[`` and ``]``; each pass then removes every
+    adjacent ``[]`` pair, one nesting level, so balanced nesting of depth d takes d passes.
+    What no pass removes has the form ``]...][...[``: a parser stops at the first unmatched
+    ``]``, and otherwise descends into every unclosed ``[``, so those count too.
+    """
+    if document.count(b"[") + document.count(b"{") <= max_depth:
+        return False
+    brackets = _NOT_BRACKET.sub(b"", _STRING.sub(b"", document)).translate(_ONE_KIND)
+    passes = 0
+    while (reduced := brackets.replace(b"[]", b"")) != brackets:
+        passes += 1
+        if passes > max_depth:
+            return True
+        brackets = reduced
+    unclosed = 0 if brackets.startswith(b"]") else len(brackets)
+    return passes + unclosed > max_depth
+
+
+def loads(document: bytes | str, *, max_depth: int = MAX_DEPTH) -> Any:
+    """Parse ``document``; raise :class:`JsonDepthError` or :class:`JsonError` when it is bad."""
+    raw = document.encode() if isinstance(document, str) else document
+    if exceeds_depth(raw, max_depth):
+        raise JsonDepthError(max_depth)
+    try:
+        return json.loads(raw)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise JsonError(f"not valid JSON: {exc}") from exc
+    except RecursionError as exc:
+        raise JsonDepthError(max_depth) from exc
