@@ -22,7 +22,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 import robocloud
 from services.common.auth import SignedAddress, build_authorizer
 from services.common.bodies import read_json
-from services.common.errors import ServiceError, Unavailable, error_body
+from services.common.errors import ErrorMap, ServiceError, Unavailable, error_body
 from services.common.logs import configure_logging, request_id_var
 from services.common.metrics import CONTENT_TYPE, ServiceMetrics
 from services.common.middleware import GuardConfig, RequestGuard
@@ -63,10 +63,18 @@ def _json_error(
     return JSONResponse(body, status_code=status, headers=dict(headers))
 
 
-def _install_error_handlers(app: FastAPI) -> None:
+def _install_error_handlers(app: FastAPI, errors: ErrorMap) -> None:
     @app.exception_handler(ServiceError)
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
         return _json_error(exc.status, exc.code, exc.message, exc.details, exc.headers)
+
+    async def domain_error(_: Request, exc: Exception) -> JSONResponse:
+        error = errors.to_service_error(exc)
+        assert error is not None, "registered only for the map's exception types"
+        return _json_error(error.status, error.code, error.message, error.details, error.headers)
+
+    for exception_type in errors.rules:
+        app.add_exception_handler(exception_type, domain_error)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -88,11 +96,6 @@ def _install_error_handlers(app: FastAPI) -> None:
         ]
         message = f"invalid request: {errors[0]['field']}: {errors[0]['message']}"
         return _json_error(422, "validation_error", message, {"errors": errors}, {})
-
-    @app.exception_handler(Exception)
-    async def unexpected(_: Request, exc: Exception) -> JSONResponse:
-        log.exception("unhandled error", exc_info=exc)
-        return _json_error(500, "internal_error", "internal error; see the service log", {}, {})
 
 
 def _framework_router(service: str, settings: ServiceSettings) -> APIRouter:
@@ -144,13 +147,15 @@ def create_app(
     lifespan: Lifespan | None = None,
     unsigned_paths: Sequence[str] = (),
     body_limits: Mapping[str, int] | None = None,
+    errors: ErrorMap | None = None,
     description: str = "",
 ) -> FastAPI:
     """Build a service app.
 
     ``unsigned_paths`` are write routes that carry their own authentication (the chain's
     JSON-RPC, whose transactions are signed by Ethereum keys). ``body_limits`` raises the
-    body limit under a path prefix (uploads) above ``settings.max_body_bytes``.
+    body limit under a path prefix (uploads) above ``settings.max_body_bytes``. ``errors``
+    maps the service's domain exceptions to HTTP errors (see ``services.common.errors``).
     """
     configure_logging(service, settings.log_level)
     data_dir = settings.resolved_data_dir()
@@ -183,7 +188,7 @@ def create_app(
     app.state.nonces = nonces
     app.state.authorizer = authorizer
     app.state.readiness_checks = list(readiness_checks)
-    _install_error_handlers(app)
+    _install_error_handlers(app, errors or ErrorMap({}))
     app.include_router(_framework_router(service, settings))
     for router in routers:
         app.include_router(router)

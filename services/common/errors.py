@@ -1,11 +1,16 @@
-"""Service errors as plain exceptions, mapped to the JSON error model in one place.
+"""HTTP errors, and the map from a service's domain exceptions to them.
 
-Domain modules raise these (they import nothing from the web framework); the app factory turns
-each into ``{"error": {"code", "message", "details", "request_id"}}`` with its status.
+Routes raise :class:`ServiceError` subclasses for what is wrong with the request itself (a
+query parameter, a header). Domain modules know nothing of HTTP: they raise their own
+exceptions, and each service's ``errors.py`` builds one :class:`ErrorMap` saying which status,
+code and ``details`` each of them becomes. The app factory renders both as
+``{"error": {"code", "message", "details", "request_id"}}``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 
@@ -113,3 +118,41 @@ def error_body(
             "request_id": request_id,
         }
     }
+
+
+def no_details(_: Exception) -> dict[str, Any]:
+    return {}
+
+
+@dataclass(frozen=True)
+class ErrorRule:
+    """How one domain exception type is answered: status, code, and what goes in ``details``."""
+
+    status: int
+    code: str
+    details: Callable[[Any], dict[str, Any]] = no_details
+    headers: Callable[[Any], dict[str, str]] = field(default=lambda _: {})
+
+
+class ErrorMap:
+    """Domain exception types to :class:`ErrorRule`; the most specific class in the MRO wins."""
+
+    def __init__(self, rules: Mapping[type[Exception], ErrorRule]) -> None:
+        self.rules = dict(rules)
+
+    def __or__(self, other: ErrorMap) -> ErrorMap:
+        return ErrorMap({**self.rules, **other.rules})
+
+    def to_service_error(self, exc: Exception) -> ServiceError | None:
+        """The HTTP error for ``exc``, or None when no rule covers its type."""
+        if isinstance(exc, ServiceError):
+            return exc
+        for cls in type(exc).__mro__:
+            rule = self.rules.get(cls)
+            if rule is not None:
+                error = ServiceError(
+                    str(exc), code=rule.code, details=rule.details(exc), headers=rule.headers(exc)
+                )
+                error.status = rule.status
+                return error
+        return None

@@ -39,6 +39,7 @@ from services.common.nonces import NonceStore
 log = logging.getLogger("robocloud.http")
 
 UNSIGNED_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+INTERNAL_ERROR = ServiceError("internal error; see the service log")
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{8,64}")
 
 
@@ -117,7 +118,7 @@ class RequestGuard:
         request_id = offered if _REQUEST_ID.fullmatch(offered) else uuid.uuid4().hex
         token = request_id_var.set(request_id)
         started = time.perf_counter()
-        status = {"code": 500}
+        status = {"code": 0}
 
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -130,8 +131,15 @@ class RequestGuard:
 
         try:
             await self._guarded(scope, receive, send_with_id, headers, request_id)
+        except Exception as exc:
+            # Answered here rather than by Starlette's outermost handler so that the log line
+            # and the answer carry the request id; a response already started is cut off.
+            log.exception("unhandled error", exc_info=exc)
+            if status["code"]:
+                raise
+            await send_error(send_with_id, INTERNAL_ERROR, request_id)
         finally:
-            self._record(scope, status["code"], time.perf_counter() - started)
+            self._record(scope, status["code"] or 500, time.perf_counter() - started)
             request_id_var.reset(token)
 
     async def _guarded(

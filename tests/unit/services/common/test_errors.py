@@ -1,0 +1,98 @@
+"""Domain exceptions become JSON errors through the service's ErrorMap, in process."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import httpx
+from fastapi import APIRouter
+
+from services.common.app import create_app
+from services.common.errors import ErrorMap, ErrorRule, NotFound
+from services.common.settings import ServiceSettings
+
+
+class ThingMissing(Exception):
+    def __init__(self, name: str) -> None:
+        super().__init__(f"no thing named {name}")
+        self.name = name
+
+
+class ThingGone(ThingMissing):
+    """A subclass is answered by its parent's rule unless it has its own."""
+
+
+class Unmapped(Exception):
+    pass
+
+
+ERRORS = ErrorMap({ThingMissing: ErrorRule(404, "thing_not_found", lambda exc: {"name": exc.name})})
+
+
+def _get(tmp_path: Path, path: str) -> httpx.Response:
+    router = APIRouter()
+
+    @router.get("/missing")
+    async def missing() -> None:
+        raise ThingMissing("a")
+
+    @router.get("/gone")
+    async def gone() -> None:
+        raise ThingGone("b")
+
+    @router.get("/http")
+    async def http() -> None:
+        raise NotFound("plain", code="plain_not_found", details={"x": 1})
+
+    @router.get("/unmapped")
+    async def unmapped() -> None:
+        raise Unmapped("secret detail")
+
+    settings = ServiceSettings(service="test", data_dir=tmp_path, auth="signed")
+    app = create_app("test", settings, routers=[router], errors=ERRORS)
+
+    async def call() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app, raise_app_exceptions=False)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            return await client.get(path)
+
+    return asyncio.run(call())
+
+
+def _error(response: httpx.Response) -> dict[str, Any]:
+    error: dict[str, Any] = response.json()["error"]
+    assert error["request_id"] == response.headers["x-request-id"]
+    return error
+
+
+def test_a_mapped_domain_exception_gets_its_status_code_and_details(tmp_path: Path) -> None:
+    response = _get(tmp_path, "/missing")
+    assert response.status_code == 404
+    error = _error(response)
+    assert (error["code"], error["message"], error["details"]) == (
+        "thing_not_found",
+        "no thing named a",
+        {"name": "a"},
+    )
+
+
+def test_a_subclass_uses_its_parents_rule(tmp_path: Path) -> None:
+    response = _get(tmp_path, "/gone")
+    assert response.status_code == 404
+    assert _error(response)["details"] == {"name": "b"}
+
+
+def test_service_errors_keep_their_own_status(tmp_path: Path) -> None:
+    response = _get(tmp_path, "/http")
+    assert response.status_code == 404
+    assert _error(response)["code"] == "plain_not_found"
+
+
+def test_an_unmapped_exception_is_a_500_without_its_message(tmp_path: Path) -> None:
+    response = _get(tmp_path, "/unmapped")
+    assert response.status_code == 500
+    error = _error(response)
+    assert error["code"] == "internal_error"
+    assert "secret" not in error["message"]
