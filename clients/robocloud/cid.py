@@ -11,6 +11,8 @@ import base64
 import hashlib
 from dataclasses import dataclass
 
+from robocloud.errors import FormatError
+
 RAW = 0x55
 DAG_PB = 0x70
 DAG_CBOR = 0x71
@@ -18,12 +20,37 @@ SHA2_256 = 0x12
 IDENTITY = 0x00
 CODEC_NAMES = {RAW: "raw", DAG_PB: "dag-pb", DAG_CBOR: "dag-cbor"}
 MAX_IDENTITY_DIGEST = 128
+MAX_CID_TEXT = 512
+"""Longer text is refused unparsed: base58 decoding is quadratic in the length."""
 _B58 = "123456789ABCDEFGHJKLMNPQRSTUVWXYZabcdefghijkmnopqrstuvwxyz"
 _B58_INDEX = {c: i for i, c in enumerate(_B58)}
 
 
-class CIDError(ValueError):
-    """A CID that cannot be parsed, or a block that does not match its CID."""
+class CIDError(FormatError):
+    """A CID that cannot be parsed, or a block that does not match its CID.
+
+    ``text`` is the text that failed to parse and ``field`` where it came from (a query
+    parameter, a path segment, a JSON field), when :func:`parse_cid` knows them.
+    """
+
+    def __init__(self, message: str, *, text: str | None = None, field: str | None = None) -> None:
+        super().__init__(message)
+        self.text = text
+        self.field = field
+
+
+def parse_cid(text: str, field: str | None = None) -> CID:
+    """The one way text from outside becomes a CID; the error quotes it and names ``field``."""
+    if len(text) > MAX_CID_TEXT:
+        raise CIDError(
+            f"invalid CID: {len(text)} characters, more than {MAX_CID_TEXT}",
+            text=text[:64] + "...",
+            field=field,
+        )
+    try:
+        return CID.decode(text)
+    except CIDError as exc:
+        raise CIDError(str(exc), text=text, field=field) from exc
 
 
 def encode_varint(value: int) -> bytes:

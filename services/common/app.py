@@ -22,7 +22,13 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 import robocloud
 from services.common.auth import SignedAddress, build_authorizer
 from services.common.bodies import read_json
-from services.common.errors import ErrorMap, ServiceError, Unavailable, error_body
+from services.common.errors import (
+    COMMON_ERRORS,
+    ErrorMap,
+    ServiceError,
+    Unavailable,
+    error_body,
+)
 from services.common.logs import configure_logging, request_id_var
 from services.common.metrics import CONTENT_TYPE, ServiceMetrics
 from services.common.middleware import GuardConfig, RequestGuard
@@ -155,7 +161,8 @@ def create_app(
     ``unsigned_paths`` are write routes that carry their own authentication (the chain's
     JSON-RPC, whose transactions are signed by Ethereum keys). ``body_limits`` raises the
     body limit under a path prefix (uploads) above ``settings.max_body_bytes``. ``errors``
-    maps the service's domain exceptions to HTTP errors (see ``services.common.errors``).
+    maps the service's domain exceptions to HTTP errors (see ``services.common.errors``),
+    beside ``COMMON_ERRORS`` for the SDK's format errors.
     """
     configure_logging(service, settings.log_level)
     data_dir = settings.resolved_data_dir()
@@ -188,7 +195,7 @@ def create_app(
     app.state.nonces = nonces
     app.state.authorizer = authorizer
     app.state.readiness_checks = list(readiness_checks)
-    _install_error_handlers(app, errors or ErrorMap({}))
+    _install_error_handlers(app, COMMON_ERRORS | (errors or ErrorMap({})))
     app.include_router(_framework_router(service, settings))
     for router in routers:
         app.include_router(router)

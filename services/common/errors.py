@@ -13,6 +13,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from robocloud.bounded_json import JsonDepthError, JsonError
+from robocloud.cid import CIDError
+
 
 class ServiceError(Exception):
     """An error with an HTTP status, a snake_case code and details naming what is wrong."""
@@ -156,3 +159,13 @@ class ErrorMap:
                 error.status = rule.status
                 return error
         return None
+
+
+COMMON_ERRORS = ErrorMap(
+    {
+        CIDError: ErrorRule(400, "invalid_cid", lambda exc: {"field": exc.field, "cid": exc.text}),
+        JsonError: ErrorRule(400, "invalid_json"),
+        JsonDepthError: ErrorRule(400, "json_too_deep", lambda exc: {"max_depth": exc.max_depth}),
+    }
+)
+"""Errors of the SDK's wire formats, answered alike by every service."""

@@ -9,8 +9,10 @@ from typing import Any
 import httpx
 from fastapi import APIRouter
 
+from robocloud.bounded_json import JsonDepthError, loads
+from robocloud.cid import CIDError, parse_cid
 from services.common.app import create_app
-from services.common.errors import ErrorMap, ErrorRule, NotFound
+from services.common.errors import COMMON_ERRORS, ErrorMap, ErrorRule, NotFound
 from services.common.settings import ServiceSettings
 
 
@@ -96,3 +98,23 @@ def test_an_unmapped_exception_is_a_500_without_its_message(tmp_path: Path) -> N
     error = _error(response)
     assert error["code"] == "internal_error"
     assert "secret" not in error["message"]
+
+
+def test_format_errors_of_the_sdk_are_answered_alike_everywhere() -> None:
+
+    try:
+        parse_cid("bafy-not-a-cid", "arg")
+    except CIDError as exc:
+        error = COMMON_ERRORS.to_service_error(exc)
+    assert error is not None
+    assert (error.status, error.code, error.details) == (
+        400,
+        "invalid_cid",
+        {"field": "arg", "cid": "bafy-not-a-cid"},
+    )
+    try:
+        loads(b"[" * 100)
+    except JsonDepthError as exc:
+        error = COMMON_ERRORS.to_service_error(exc)
+    assert error is not None
+    assert (error.status, error.code, error.details) == (400, "json_too_deep", {"max_depth": 64})
