@@ -172,7 +172,9 @@ class Cas(ServiceClient):
             reported = parse_cid(_json_line(answers[-1])["Hash"], "Hash")
         except (IndexError, KeyError, TypeError, FormatError) as exc:
             answer = response.content[:200]
-            raise CasError(f"the gateway's add answer has no valid Hash: {answer!r}") from exc
+            raise CasError(
+                f"the gateway's add answer has no valid Hash ({exc}): {answer!r}"
+            ) from exc
         if reported != expected:
             raise CasError(f"the gateway says {reported}, but the file's CID is {expected}")
         return expected
