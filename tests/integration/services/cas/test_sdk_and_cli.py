@@ -158,6 +158,7 @@ def test_cli_put_get_pin_pins(
     got = runner.invoke(app, ["get", cid, "-o", str(tmp_path / "back.txt"), *common])
     assert got.exit_code == 0, got.output
     assert got.stdout == f"{cid} -> {tmp_path / 'back.txt'} (11 bytes, verified)\n"
+    assert len(got.stdout) > 100  # one line, wider than the 80 columns rich assumes off a tty
     assert (tmp_path / "back.txt").read_bytes() == b"Hello world"
     listed = runner.invoke(app, ["pins", *common])
     assert listed.stdout.split() == [cid, identity.address]
