@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+import robocloud
 from robocloud.car import write_car
 from robocloud.cas import Cas, CasError, ContentTooLargeError
 from robocloud.cid import CID, DAG_PB
@@ -392,3 +393,28 @@ def test_an_unreachable_cas_names_its_url_and_setting() -> None:
     assert done.stderr.startswith(f"error: cannot connect to the cas service at {url}")
     assert "ROBOCLOUD_CAS_URL or --cas" in done.stderr
     assert done.stderr.count("\n") == 1
+
+
+def test_status_and_whoami_report_each_service(
+    cas_service: ServiceProcess, identity: Identity, keystore: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only cas is up: both commands say so per service and exit 3 (one is unreachable)."""
+    down = f"http://127.0.0.1:{free_port()}"
+    for name in ("ledger", "storage", "broker", "fl"):
+        monkeypatch.setenv(f"ROBOCLOUD_{name.upper()}_URL", down)
+    monkeypatch.setenv("ROBOCLOUD_CAS_URL", cas_service.url)
+    status = runner.invoke(app, ["status", "--json"])
+    assert status.exit_code == 3
+    report = json.loads(status.stdout)
+    cas_row = report["services"][0]
+    assert (cas_row["service"], cas_row["health"], cas_row["ready"]) == ("cas", "ok", "ready")
+    assert cas_row["version"] == robocloud.__version__
+    assert [row["health"] for row in report["services"][1:]] == ["down"] * 4
+    assert report["ok"] is False
+
+    whoami = runner.invoke(app, ["whoami", "--json", "--keystore", str(keystore)])
+    assert whoami.exit_code == 3
+    answer = json.loads(whoami.stdout)
+    assert answer["robot"] == identity.address
+    assert answer["services"][0] == {"service": "cas", "address": identity.address, "error": None}
+    assert all(row["error"].startswith("cannot connect") for row in answer["services"][1:])
