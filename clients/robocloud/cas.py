@@ -2,26 +2,26 @@
 
 The robot trusts nothing but the CID. ``add`` computes the CID locally while it uploads and
 refuses an answer that differs; ``get`` fetches a CAR and verifies every block against its
-CID before reassembling the file, so a lying gateway can at worst withhold data.
+CID before reassembling the file, so a lying gateway can at worst withhold data, and
+``max_size`` bounds what a DAG that expands (a few blocks linked thousands of times) may write.
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
-import json
+import os
 import secrets
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from robocloud.car import CarError, CarReader
-from robocloud.cid import CID, RAW
+from robocloud import bounded_json
+from robocloud.car import MAX_SECTION_BYTES, CarError, CarReader
+from robocloud.cid import CID, RAW, CIDError, parse_cid
 from robocloud.client import ServiceClient
-from robocloud.config import service_url
-from robocloud.errors import RobocloudError
-from robocloud.identity import Identity
+from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
 from robocloud.unixfs import (
     DEFAULT_MAX_LINKS,
     FILE,
@@ -32,15 +32,36 @@ from robocloud.unixfs import (
     ImportParams,
     UnixfsError,
     decode_node,
+    file_size,
 )
 
 READ_SIZE = 1 << 20
 CAR_MEDIA_TYPE = "application/vnd.ipld.car"
+RAW_MEDIA_TYPE = "application/vnd.ipld.raw"
 Progress = Callable[[int], None]
 
 
-class CasError(RobocloudError):
+class CasError(InvalidAnswerError):
     """The gateway's answer cannot be trusted: a CID mismatch, a bad or incomplete CAR."""
+
+
+class ContentTooLargeError(RobocloudError):
+    """A file is larger than the caller allows; nothing of it is left on disk.
+
+    ``declared`` is the size the file's root block declares when that alone was over
+    ``limit`` (refused before anything was written); None when the DAG turned out to hold
+    more than ``limit`` bytes while it was being written.
+    """
+
+    def __init__(self, cid: CID, limit: int, declared: int | None = None) -> None:
+        if declared is not None:
+            message = f"{cid} declares {declared} bytes, more than the limit of {limit} bytes"
+        else:
+            message = f"{cid} holds more than the limit of {limit} bytes"
+        super().__init__(message)
+        self.cid = cid
+        self.limit = limit
+        self.declared = declared
 
 
 def _no_progress(_: int) -> None:
@@ -107,22 +128,10 @@ class _IteratorReader:
         return data
 
 
-class Cas:
+class Cas(ServiceClient):
     """The content-addressed store as a robot sees it."""
 
-    def __init__(
-        self, base_url: str | None = None, identity: Identity | None = None, **options: Any
-    ) -> None:
-        self.http = ServiceClient(base_url or service_url("cas"), identity, **options)
-
-    def __enter__(self) -> Cas:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self.http.close()
+    default_service = "cas"
 
     def add_bytes(
         self, data: bytes, *, pin: bool = True, params: ImportParams | None = None
@@ -149,7 +158,7 @@ class Cas:
         params = params or ImportParams()
         body = _Multipart(path, name or path.name)
         importer = Importer(params)
-        response = self.http.request(
+        response = self.request(
             "POST",
             "/api/v0/add",
             params={**_import_options(params), "pin": str(pin).lower()},
@@ -158,39 +167,108 @@ class Cas:
             headers={"Content-Type": body.content_type, "Content-Length": str(body.length)},
         )
         _, expected, _ = importer.finish()
-        answers = [line for line in response.text.splitlines() if line.strip()]
+        answers = [line for line in response.content.splitlines() if line.strip()]
         try:
-            reported = CID.decode(_json_line(answers[-1])["Hash"])
-        except (IndexError, KeyError, ValueError) as exc:
-            answer = response.text[:200]
-            raise CasError(f"the gateway's add answer has no valid Hash: {answer!r}") from exc
+            reported = parse_cid(_json_line(answers[-1])["Hash"], "Hash")
+        except (IndexError, KeyError, TypeError, FormatError) as exc:
+            answer = response.content[:200]
+            raise CasError(
+                f"the gateway's add answer has no valid Hash ({exc}): {answer!r}"
+            ) from exc
         if reported != expected:
             raise CasError(f"the gateway says {reported}, but the file's CID is {expected}")
         return expected
 
-    def get(self, cid: CID | str) -> bytes:
-        """The verified content of a file."""
+    def get(self, cid: CID | str, *, max_size: int | None = None) -> bytes:
+        """The verified content of a file (held in memory: bound it with ``max_size``)."""
+        root = _as_cid(cid)
         out = io.BytesIO()
-        self._download(_as_cid(cid), out, _no_progress)
+        with self.translate_errors("GET", f"{self.base_url}/ipfs/{root}"):
+            if max_size is None:
+                self._download(root, out, _no_progress)
+            else:
+                self._check_declared_size(root, max_size)
+                self._download(root, _CappedWriter(out, root, max_size), _no_progress)
         return out.getvalue()
 
-    def get_to_file(self, cid: CID | str, path: Path, progress: Progress = _no_progress) -> int:
+    def get_to_file(
+        self,
+        cid: CID | str,
+        path: Path,
+        progress: Progress = _no_progress,
+        *,
+        max_size: int | None = None,
+        overwrite: bool = True,
+    ) -> int:
         """Fetch a file as a CAR, verify every block, and write its content to ``path``.
 
-        The file appears under ``path`` only once all of it was verified.
+        The file appears under ``path`` only once all of it was verified; whatever fails
+        (a lying gateway, ``max_size``, an interrupt) removes the partial file. With
+        ``max_size``, a root that declares more is refused before anything is written, and
+        a DAG that holds more than it declares is stopped at the limit. Without
+        ``overwrite``, an existing ``path`` is never replaced (``FileExistsError``), even by
+        a file that appeared while downloading.
         """
+        root = _as_cid(cid)
+        if not overwrite and (path.exists() or path.is_symlink()):
+            raise FileExistsError(f"{path} exists")
         partial = path.with_name(f".{path.name}.partial")
         try:
-            with partial.open("w+b") as out:
-                written = self._download(_as_cid(cid), out, progress)
+            with self.translate_errors("GET", f"{self.base_url}/ipfs/{root}"):
+                if max_size is not None:
+                    self._check_declared_size(root, max_size)
+                with partial.open("w+b") as out:
+                    target = out if max_size is None else _CappedWriter(out, root, max_size)
+                    written = self._download(root, target, progress)
+            _publish(partial, path, overwrite)
         except BaseException:
             partial.unlink(missing_ok=True)
             raise
-        partial.replace(path)
         return written
 
+    def block(self, cid: CID | str) -> bytes:
+        """One raw block from the gateway, verified against its CID."""
+        root = _as_cid(cid)
+        url = f"/ipfs/{root}"
+        with self.translate_errors("GET", f"{self.base_url}{url}"):
+            response = self.request(
+                "GET",
+                url,
+                params={"format": "raw"},
+                headers={"Accept": RAW_MEDIA_TYPE},
+                stream=True,
+            )
+            data = bytearray()
+            try:
+                for chunk in response.iter_bytes(READ_SIZE):
+                    data += chunk
+                    if len(data) > MAX_SECTION_BYTES:
+                        raise CasError(f"the gateway's block {root} exceeds {MAX_SECTION_BYTES}")
+            finally:
+                response.close()
+        try:
+            root.verify(bytes(data))
+        except CIDError as exc:
+            raise CasError(f"refused the gateway's block {root}: {exc}") from exc
+        return bytes(data)
+
+    def declared_size(self, cid: CID | str) -> int:
+        """The size a file's root block declares (verified block; the DAG may still lie)."""
+        root = _as_cid(cid)
+        try:
+            return file_size(root, self.block)
+        except (UnixfsError, FormatError) as exc:
+            raise CasError(f"refused the gateway's root block {root}: {exc}") from exc
+
+    def _check_declared_size(self, root: CID, limit: int) -> None:
+        if root.codec == RAW:
+            return
+        declared = self.declared_size(root)
+        if declared > limit:
+            raise ContentTooLargeError(root, limit, declared)
+
     def _download(self, root: CID, out: BinaryIO, progress: Progress) -> int:
-        response = self.http.request(
+        response = self.request(
             "GET",
             f"/ipfs/{root}",
             params={"format": "car", "dag-scope": "entity"},
@@ -208,23 +286,86 @@ class Cas:
             response.close()
 
     def cat(self, cid: CID | str, offset: int = 0, length: int | None = None) -> bytes:
-        """Bytes through the kubo RPC, unverified: for ranges of files known to be trusted."""
+        """Bytes through the kubo RPC, unverified: for ranges of files known to be trusted.
+
+        The answer is held in memory, so it is bounded by ``max_answer_bytes``.
+        """
         params: dict[str, Any] = {"arg": str(cid), "offset": offset}
         if length is not None:
             params["length"] = length
-        return self.http.request("POST", "/api/v0/cat", params=params, signed=False).content
+        response = self.request("POST", "/api/v0/cat", params=params, signed=False, idempotent=True)
+        return response.content
 
     def pin(self, cid: CID | str) -> None:
-        self.http.request("POST", "/api/v0/pin/add", params={"arg": str(cid)})
+        self.request("POST", "/api/v0/pin/add", params={"arg": str(cid)}, idempotent=True)
 
     def unpin(self, cid: CID | str) -> None:
-        self.http.request("POST", "/api/v0/pin/rm", params={"arg": str(cid)})
+        self.request("POST", "/api/v0/pin/rm", params={"arg": str(cid)}, idempotent=True)
 
     def pins(self) -> dict[str, dict[str, Any]]:
-        """``{cid: {"Type": ..., ...}}`` as kubo's ``pin/ls`` answers."""
-        body = self.http.request("POST", "/api/v0/pin/ls", signed=False).json()
-        keys = body.get("Keys", {}) if isinstance(body, dict) else {}
+        """``{cid: {"Type": ..., "Owners": [...]}}`` as kubo's ``pin/ls`` answers."""
+        response = self.request("POST", "/api/v0/pin/ls", signed=False, idempotent=True)
+        body = self.json_of(response)
+        keys = body.get("Keys", {}) if isinstance(body, dict) else None
+        if not isinstance(keys, dict) or not all(
+            isinstance(info, dict)
+            and isinstance(info.get("Type", ""), str)
+            and isinstance(info.get("Owners", []), list)
+            and all(isinstance(owner, str) for owner in info.get("Owners", []))
+            for info in keys.values()
+        ):
+            raise self._invalid(response, "a pin list that is not kubo's {Keys: {cid: {...}}}")
         return dict(keys)
+
+
+class _CappedWriter(io.BufferedIOBase, BinaryIO):
+    """The file being assembled, refusing any write past ``limit`` bytes.
+
+    The assembler appends, and reads back earlier bytes to replay a repeated block; so the
+    count of appended bytes is the file's size, and the check happens before a byte of a
+    write over the limit reaches the disk.
+    """
+
+    def __init__(self, out: BinaryIO, root: CID, limit: int) -> None:
+        super().__init__()
+        self._out = out
+        self._root = root
+        self._limit = limit
+        self._size = 0
+
+    def write(self, data: Any) -> int:
+        size = len(data)
+        if self._size + size > self._limit:
+            raise ContentTooLargeError(self._root, self._limit)
+        self._size += size
+        return self._out.write(data)
+
+    def read(self, size: int | None = -1) -> bytes:
+        return self._out.read(-1 if size is None else size)
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._out.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._out.tell()
+
+    def readable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+
+def _publish(partial: Path, path: Path, overwrite: bool) -> None:
+    """Move the finished file into place; without ``overwrite``, atomically only if absent."""
+    if overwrite:
+        partial.replace(path)
+        return
+    os.link(partial, path)
+    partial.unlink()
 
 
 class FileAssembler:
@@ -318,11 +459,11 @@ def _import_options(params: ImportParams) -> dict[str, str]:
 
 
 def _as_cid(cid: CID | str) -> CID:
-    return CID.decode(cid) if isinstance(cid, str) else cid
+    return parse_cid(cid, "cid") if isinstance(cid, str) else cid
 
 
-def _json_line(line: str) -> dict[str, Any]:
-    value = json.loads(line)
+def _json_line(line: bytes) -> dict[str, Any]:
+    value = bounded_json.loads(line)
     if not isinstance(value, dict):
         raise KeyError("Hash")
     return value

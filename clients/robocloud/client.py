@@ -1,78 +1,141 @@
 """The base HTTP client every typed SDK client builds on.
 
-It signs state-changing requests (the body's SHA-256 is part of the signature, so the exact
-bytes are fixed before sending), retries what is safe to retry, and turns the services' JSON
-errors into typed exceptions.
+One class owns the httpx client, its lifetime (``with``/``close``), request signing, retries,
+bounded reading of answers and the translation of failures into the SDK's errors, so that no
+httpx exception and no unbounded or over-deep answer reaches a caller. The typed clients are
+thin subclasses, one module per service, each naming its service (which also picks its
+default URL, ``ROBOCLOUD_<SERVICE>_URL``):
+
+- :class:`robocloud.cas.Cas` (``cas``): kubo RPC and the trustless gateway.
+- :class:`robocloud.ledger.LedgerService` (``ledger``): the ledger's REST reads and faucet.
+- :class:`robocloud.ledger.JsonRpcClient`: Ethereum JSON-RPC, the ledger's ``/rpc`` or any node.
+- ``robocloud.storage.Storage``, ``robocloud.broker.Broker`` and ``robocloud.fl.Fl`` go in the
+  same shape: ``class Storage(ServiceClient): default_service = "storage"`` and one typed
+  method per route, answers parsed with :meth:`ServiceClient.json_of`.
+
+Clients that span several services (``robocloud.ledger.Ledger``: JSON-RPC plus REST) hold
+typed clients and derive from :class:`Closeable` for the same ``with`` behaviour.
 """
 
 from __future__ import annotations
 
+import abc
 import hashlib
 import json as jsonlib
 import time
-from collections.abc import Iterable, Mapping
-from typing import Any
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass
+from typing import Any, ClassVar, Self
 
 import httpx
 
-from robocloud.errors import MissingIdentityError, error_class_for
+from robocloud import bounded_json
+from robocloud.config import service_url
+from robocloud.errors import (
+    ApiError,
+    ConfigurationError,
+    ConnectError,
+    FormatError,
+    InvalidAnswerError,
+    MissingIdentityError,
+    TransportError,
+    TransportTimeoutError,
+    error_class_for,
+)
 from robocloud.identity import Identity
 from robocloud.signing import EMPTY_SHA256, sign_request
 
-_UNSIGNED_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 USER_AGENT = "robocloud-sdk/0.1"
+IDEMPOTENT_METHODS = frozenset({"GET", "HEAD", "OPTIONS", "PUT", "DELETE"})
+"""RFC 9110's idempotent methods: safe to resend after a broken connection."""
+_UNSIGNED_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+MAX_ANSWER_BYTES = 64 << 20
+"""The most a non-streamed answer may hold; a larger one is refused as it arrives."""
+MAX_ERROR_BYTES = 1 << 20
+"""The most of an error answer read from a streamed response (its JSON error is small)."""
 
 
-def raise_for_error(response: httpx.Response) -> None:
-    """Raise the typed ``ApiError`` for an error response, with the service's error fields."""
-    if response.status_code < 400:
-        return
-    if response.is_stream_consumed is False:
-        response.read()
-    code, message, request_id = "http_error", response.reason_phrase, None
-    details: dict[str, Any] = {}
-    try:
-        body = response.json()
-    except ValueError:
-        body = None
-    if isinstance(body, dict) and isinstance(body.get("error"), dict):
-        error = body["error"]
-        code = str(error.get("code", code))
-        message = str(error.get("message", message))
-        details = error.get("details") or {}
-        request_id = error.get("request_id")
-    request_id = request_id or response.headers.get("x-request-id")
-    if response.status_code == 429 and "retry_after" not in details:
-        retry_after = response.headers.get("retry-after")
-        if retry_after is not None:
-            details = {**details, "retry_after": retry_after}
-    raise error_class_for(response.status_code)(
-        response.status_code, code, message, details, request_id
-    )
+@dataclass(frozen=True)
+class RetryPolicy:
+    """How often and how patiently a request is tried again.
 
-
-class ServiceClient:
-    """A client for one robocloud service.
-
-    Retries connection failures and 503 with exponential backoff. A retried signed request is
-    signed again with a fresh nonce, since the service remembers nonces. Streaming bodies
-    (iterables) are sent once and never retried: they cannot be replayed.
+    What is retried (see :meth:`BaseClient.send`): a failed connection (nothing was sent) and
+    503 (the service refused before doing anything) for every request whose body can be sent
+    again; a broken or timed-out exchange, 502 and 504 only for idempotent requests. Delays
+    grow exponentially from ``backoff_s``; a 503's ``Retry-After`` is honoured up to
+    ``max_delay_s``.
     """
+
+    retries: int = 3
+    backoff_s: float = 0.2
+    max_delay_s: float = 5.0
+
+    def delay(self, attempt: int, retry_after: str | None = None) -> float:
+        wait: float = self.backoff_s * float(2**attempt)
+        if retry_after is not None:
+            with suppress(ValueError):
+                wait = max(wait, float(retry_after))
+        return min(max(wait, 0.0), self.max_delay_s)
+
+
+class Closeable(abc.ABC):
+    """``with client: ...`` closes the client; every SDK client has this one behaviour."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release connections; the client cannot be used afterwards."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def _checked_url(url: str, service: str | None) -> str:
+    try:
+        parsed = httpx.URL(url)
+    except httpx.InvalidURL as exc:
+        raise ConfigurationError(f"{url!r} is not a usable URL: {exc}") from exc
+    if parsed.scheme not in ("http", "https") or not parsed.host:
+        where = f" for {service}" if service else ""
+        raise ConfigurationError(f"{url!r}{where} is not an http:// or https:// URL")
+    return url.rstrip("/")
+
+
+class BaseClient(Closeable):
+    """One service endpoint: an httpx client with signing, retries and the SDK's errors.
+
+    ``send`` is the one place a request goes out. A retried signed request is signed again
+    with a fresh nonce, since the service remembers nonces. Streaming bodies (iterables) are
+    sent once and never retried: they cannot be replayed.
+    """
+
+    default_service: ClassVar[str | None] = None
+    """The service a subclass talks to; with no ``base_url`` its ``ROBOCLOUD_*_URL`` is used."""
 
     def __init__(
         self,
-        base_url: str,
+        base_url: str | None = None,
         identity: Identity | None = None,
         *,
+        service: str | None = None,
         timeout: float = 30.0,
         retries: int = 3,
         backoff_s: float = 0.2,
+        max_answer_bytes: int = MAX_ANSWER_BYTES,
         transport: httpx.BaseTransport | None = None,
     ) -> None:
-        self.base_url = base_url.rstrip("/")
+        self.service = service or self.default_service
+        if base_url is None:
+            if self.service is None:
+                raise ConfigurationError(f"{type(self).__name__} needs a base URL")
+            base_url = service_url(self.service)
+        self.base_url = _checked_url(base_url, self.service)
         self.identity = identity
-        self.retries = retries
-        self.backoff_s = backoff_s
+        self.retry = RetryPolicy(retries=retries, backoff_s=backoff_s)
+        self.max_answer_bytes = max_answer_bytes
         self._http = httpx.Client(
             base_url=self.base_url,
             timeout=timeout,
@@ -80,16 +143,10 @@ class ServiceClient:
             headers={"User-Agent": USER_AGENT},
         )
 
-    def __enter__(self) -> ServiceClient:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
-
     def close(self) -> None:
         self._http.close()
 
-    def request(
+    def send(
         self,
         method: str,
         path: str,
@@ -100,14 +157,50 @@ class ServiceClient:
         content_sha256: str | None = None,
         headers: Mapping[str, str] | None = None,
         signed: bool | None = None,
+        idempotent: bool | None = None,
         stream: bool = False,
     ) -> httpx.Response:
-        """Send one request and return the response; raise ``ApiError`` on an error status.
+        """Send one request (retrying what is safe) and return the response, whatever its status.
 
-        With ``stream=True`` the caller must close the response (use it as a context manager).
+        ``signed`` defaults to signing every method but GET, HEAD and OPTIONS; ``idempotent``
+        to RFC 9110's idempotent methods (a POST that only reads may say so). Without
+        ``stream`` the answer is read whole, at most ``max_answer_bytes``; with it the caller
+        reads and closes it (use it as a context manager), except an error answer (status
+        400 or more), which is always read.
         """
+        response, _ = self._send_counting(
+            method,
+            path,
+            params=params,
+            json=json,
+            content=content,
+            content_sha256=content_sha256,
+            headers=headers,
+            signed=signed,
+            idempotent=idempotent,
+            stream=stream,
+        )
+        return response
+
+    def _send_counting(
+        self,
+        method: str,
+        path: str,
+        *,
+        params: Mapping[str, Any] | None,
+        json: Any,
+        content: bytes | Iterable[bytes] | None,
+        content_sha256: str | None,
+        headers: Mapping[str, str] | None,
+        signed: bool | None,
+        idempotent: bool | None,
+        stream: bool,
+    ) -> tuple[httpx.Response, int]:
+        """``send``, also saying how many attempts it took (a resend may have doubled a write)."""
         method = method.upper()
         must_sign = method not in _UNSIGNED_METHODS if signed is None else signed
+        if idempotent is None:
+            idempotent = method in IDEMPOTENT_METHODS
         send_headers = dict(headers or {})
         if json is not None:
             content = jsonlib.dumps(json, separators=(",", ":")).encode()
@@ -119,41 +212,114 @@ class ServiceClient:
         elif must_sign and content_sha256 is None:
             raise ValueError("a streamed signed body needs its content_sha256 computed beforehand")
         replayable = content is None or isinstance(content, bytes)
-        attempts = self.retries + 1 if replayable else 1
-        for attempt in range(attempts):
+        attempts = self.retry.retries + 1 if replayable else 1
+        for attempt in range(1, attempts + 1):
             request = self._http.build_request(
                 method, path, params=params, content=content, headers=send_headers
             )
             if must_sign:
                 self._sign(request, content_sha256 or EMPTY_SHA256)
             try:
-                response = self._http.send(request, stream=True)
-            except (httpx.ConnectError, httpx.ConnectTimeout):
-                if attempt + 1 == attempts:
-                    raise
-                self._sleep(attempt)
-                continue
-            if response.status_code == 503 and attempt + 1 < attempts:
+                response = self._exchange(request, stream)
+            except TransportError as exc:
+                if attempt < attempts and (isinstance(exc, ConnectError) or idempotent):
+                    time.sleep(self.retry.delay(attempt - 1))
+                    continue
+                raise
+            if attempt < attempts and _retry_status(response.status_code, idempotent):
                 response.close()
-                self._sleep(attempt)
+                time.sleep(self.retry.delay(attempt - 1, response.headers.get("retry-after")))
                 continue
-            if response.status_code >= 400:
-                try:
-                    raise_for_error(response)
-                finally:
-                    response.close()
-            if not stream:
-                response.read()
-                response.close()
-            return response
+            return response, attempt
         raise AssertionError("unreachable: the last attempt returns or raises")
 
-    def get_json(self, path: str, **kwargs: Any) -> Any:
-        return self.request("GET", path, **kwargs).json()
+    def _exchange(self, request: httpx.Request, stream: bool) -> httpx.Response:
+        """One request and, unless streamed, its whole answer; httpx failures translated."""
+        with self.translate_errors(request.method, str(request.url)):
+            response = self._http.send(request, stream=True)
+            if stream and response.status_code < 400:
+                return response
+            try:
+                limit = MAX_ERROR_BYTES if stream else self.max_answer_bytes
+                return self._read_whole(response, limit)
+            finally:
+                response.close()
 
-    def post_json(self, path: str, body: Any = None, **kwargs: Any) -> Any:
-        response = self.request("POST", path, json=body, **kwargs)
-        return response.json() if response.content else None
+    def _read_whole(self, response: httpx.Response, limit: int) -> httpx.Response:
+        """The response with its body read, refusing more than ``limit`` bytes as they arrive."""
+        declared = response.headers.get("content-length", "")
+        if declared.isdigit() and int(declared) > limit:
+            raise self._invalid(response, f"an answer of {declared} bytes, over {limit}")
+        body = bytearray()
+        for chunk in response.iter_bytes():
+            body += chunk
+            if len(body) > limit:
+                raise self._invalid(response, f"an answer of more than {limit} bytes")
+        kept = [
+            (name, value)
+            for name, value in response.headers.raw
+            if name.lower() not in (b"content-encoding", b"content-length", b"transfer-encoding")
+        ]
+        return httpx.Response(
+            response.status_code,
+            headers=kept,
+            content=bytes(body),
+            request=response.request,
+            extensions=response.extensions,
+        )
+
+    @contextmanager
+    def translate_errors(self, method: str, url: str) -> Iterator[None]:
+        """Turn httpx's exceptions into the SDK's, naming the service and URL.
+
+        Streamed answers are read by the typed clients, so they read inside this too.
+        """
+        try:
+            yield
+        except (httpx.ConnectError, httpx.ConnectTimeout, httpx.UnsupportedProtocol) as exc:
+            raise ConnectError(
+                f"cannot connect to {self._where()}: {_reason(exc)}",
+                method=method,
+                url=url,
+                service=self.service,
+            ) from exc
+        except httpx.TimeoutException as exc:
+            raise TransportTimeoutError(
+                f"{method} {url} timed out ({_reason(exc)})",
+                method=method,
+                url=url,
+                service=self.service,
+            ) from exc
+        except httpx.DecodingError as exc:
+            raise InvalidAnswerError(
+                f"{self._where()} sent an undecodable answer to {method}: {exc}"
+            ) from exc
+        except httpx.RequestError as exc:
+            raise TransportError(
+                f"{method} {url} failed: {_reason(exc)}",
+                method=method,
+                url=url,
+                service=self.service,
+            ) from exc
+
+    def json_of(self, response: httpx.Response) -> Any:
+        """The answer's JSON, parsed with the SDK's nesting bound (a stranger wrote it)."""
+        try:
+            return bounded_json.loads(response.content)
+        except FormatError as exc:
+            raise self._invalid(response, f"an answer that is not usable JSON ({exc})") from exc
+
+    def _invalid(self, response: httpx.Response, what: str) -> InvalidAnswerError:
+        request = response.request
+        request_id = response.headers.get("x-request-id")
+        tag = f" (request id {request_id})" if request_id else ""
+        return InvalidAnswerError(
+            f"{self._where()} sent {what} to {request.method} {request.url.path}{tag}"
+        )
+
+    def _where(self) -> str:
+        name = f"the {self.service} service" if self.service else "the service"
+        return f"{name} at {self.base_url}"
 
     def _sign(self, request: httpx.Request, content_sha256: str) -> None:
         if self.identity is None:
@@ -169,5 +335,83 @@ class ServiceClient:
             )
         )
 
-    def _sleep(self, attempt: int) -> None:
-        time.sleep(self.backoff_s * (2**attempt))
+
+class ServiceClient(BaseClient):
+    """A robocloud REST service: error statuses become typed ``ApiError``s."""
+
+    def request(
+        self,
+        method: str,
+        path: str,
+        *,
+        params: Mapping[str, Any] | None = None,
+        json: Any = None,
+        content: bytes | Iterable[bytes] | None = None,
+        content_sha256: str | None = None,
+        headers: Mapping[str, str] | None = None,
+        signed: bool | None = None,
+        idempotent: bool | None = None,
+        stream: bool = False,
+    ) -> httpx.Response:
+        """``send``, raising the ``ApiError`` subclass of an error status."""
+        response = self.send(
+            method,
+            path,
+            params=params,
+            json=json,
+            content=content,
+            content_sha256=content_sha256,
+            headers=headers,
+            signed=signed,
+            idempotent=idempotent,
+            stream=stream,
+        )
+        if response.status_code >= 400:
+            raise api_error(response)
+        return response
+
+    def get_json(self, path: str, **kwargs: Any) -> Any:
+        return self.json_of(self.request("GET", path, **kwargs))
+
+    def post_json(self, path: str, body: Any = None, **kwargs: Any) -> Any:
+        response = self.request("POST", path, json=body, **kwargs)
+        return self.json_of(response) if response.content else None
+
+
+def api_error(response: httpx.Response) -> ApiError:
+    """The typed ``ApiError`` for an error answer (already read), with the service's fields.
+
+    An answer without the JSON error model (a proxy's HTML page) still becomes the status's
+    class, with the reason phrase as message.
+    """
+    code, message, request_id = "http_error", response.reason_phrase, None
+    details: dict[str, Any] = {}
+    try:
+        body = bounded_json.loads(response.content)
+    except FormatError:
+        body = None
+    if isinstance(body, dict) and isinstance(body.get("error"), dict):
+        error = body["error"]
+        code = str(error.get("code", code))
+        message = str(error.get("message", message))
+        found = error.get("details")
+        details = found if isinstance(found, dict) else {}
+        request_id = error.get("request_id")
+    request_id = str(request_id or response.headers.get("x-request-id") or "") or None
+    if response.status_code == 429 and "retry_after" not in details:
+        retry_after = response.headers.get("retry-after")
+        if retry_after is not None:
+            details = {**details, "retry_after": retry_after}
+    return error_class_for(response.status_code)(
+        response.status_code, code, message, details, request_id
+    )
+
+
+def _retry_status(status: int, idempotent: bool) -> bool:
+    """503 says the service did nothing; 502 and 504 (a proxy) leave that open."""
+    return status == 503 or (idempotent and status in (502, 504))
+
+
+def _reason(exc: httpx.RequestError) -> str:
+    text = str(exc).strip()
+    return text or type(exc).__name__

@@ -1,7 +1,30 @@
 """Exceptions raised by the SDK, one hierarchy so callers can catch precisely.
 
+Everything derives from :class:`RobocloudError`, split by who is at fault, because that decides
+what a robot does next::
+
+    RobocloudError
+    ├── FormatError          bytes or text that break a wire format (CID, CAR, JSON, ...)
+    ├── SignatureError       a request signature is malformed or does not verify
+    ├── KeystoreError        the robot's own key cannot be read
+    ├── MissingIdentityError a write was attempted without a key
+    ├── ConfigurationError   a service URL or setting cannot be used
+    ├── TransportError       no answer: connection refused, timeout, broken connection
+    │   ├── ConnectError         the request never left: always safe to retry
+    │   └── TransportTimeoutError
+    ├── ApiError             the service answered an error status (its JSON error, request id)
+    │   └── BadRequestError, AuthenticationError, ..., ServerError, UnavailableError
+    ├── InvalidAnswerError   the service answered, but the answer is malformed or fails
+    │                        verification (``robocloud.cas.CasError`` is one)
+    └── LedgerError          ``robocloud.ledger``: RpcError (JSON-RPC error objects),
+                             RevertError, TransactionTimeoutError, ...
+
 ``ApiError`` carries the service's JSON error (code, message, details, request id) so that a
-robot can log the request id and a human can find the matching server log line.
+robot can log the request id and a human can find the matching server log line. Transport
+errors keep httpx's exception as ``__cause__``; no httpx exception leaves the SDK.
+
+This module imports nothing beyond the standard library, so ``import robocloud.errors`` stays
+cheap for callers that only catch.
 """
 
 from __future__ import annotations
@@ -40,6 +63,47 @@ class KeystoreError(RobocloudError):
 
 class MissingIdentityError(RobocloudError):
     """A request must be signed but the client was built without an identity."""
+
+
+class ConfigurationError(RobocloudError, ValueError):
+    """A setting or argument cannot be used, such as a service URL that is not http(s)."""
+
+
+class TransportError(RobocloudError):
+    """No usable answer: the service could not be reached, or the connection broke or timed out.
+
+    ``service`` names the service (``cas``, ``ledger``, ...) when the client knows it, so a
+    caller can say which ``ROBOCLOUD_<SERVICE>_URL`` to check; ``url`` is the request's URL.
+    httpx's exception is the ``__cause__``.
+    """
+
+    def __init__(self, message: str, *, method: str, url: str, service: str | None) -> None:
+        super().__init__(message)
+        self.method = method
+        self.url = url
+        self.service = service
+
+
+class ConnectError(TransportError):
+    """The connection could not be opened (refused, unknown host, connect timeout).
+
+    Nothing was sent, so any request, a write included, may be retried.
+    """
+
+
+class TransportTimeoutError(TransportError):
+    """The service accepted the connection but did not answer (or finish answering) in time.
+
+    A write may or may not have taken effect.
+    """
+
+
+class InvalidAnswerError(RobocloudError):
+    """A service answered, but what it said cannot be used: malformed, oversized, or it fails
+    verification (a CID that does not match, a JSON document nested past the bound).
+
+    The service is broken or lying; retrying the same service is unlikely to help.
+    """
 
 
 class ApiError(RobocloudError):

@@ -15,6 +15,8 @@ from eth_account import Account
 from eth_account.signers.local import LocalAccount
 from eth_utils.address import to_checksum_address
 
+from robocloud import bounded_json
+from robocloud.bounded_json import JsonError
 from robocloud.errors import KeystoreError
 
 PASSPHRASE_ENV = "ROBOCLOUD_PASSPHRASE"
@@ -67,14 +69,17 @@ class Identity:
     @classmethod
     def load(cls, path: Path, passphrase: str) -> Identity:
         try:
-            keystore: dict[str, Any] = json.loads(path.read_text())
+            keystore = _read_keystore(path)
         except FileNotFoundError as exc:
             hint = "create one with `robocloud keys new`"
             raise KeystoreError(f"no keystore at {path}; {hint}") from exc
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, JsonError) as exc:
             raise KeystoreError(f"{path} is not a readable keystore: {exc}") from exc
+        _check_kdf(path, keystore)
         try:
             key = Account.decrypt(keystore, passphrase)
+        except (KeyError, TypeError) as exc:
+            raise KeystoreError(f"{path} is not a valid keystore: missing {exc}") from exc
         except ValueError as exc:
             raise KeystoreError(f"cannot decrypt {path}: wrong passphrase") from exc
         return cls.from_key(key)
@@ -83,10 +88,36 @@ class Identity:
     def keystore_address(path: Path) -> str:
         """The address stored in a keystore, readable without the passphrase."""
         try:
-            keystore: dict[str, Any] = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
+            keystore = _read_keystore(path)
+        except (OSError, JsonError) as exc:
             raise KeystoreError(f"{path} is not a readable keystore: {exc}") from exc
         address = keystore.get("address")
         if not isinstance(address, str):
             raise KeystoreError(f"{path} has no address field")
         return str(to_checksum_address("0x" + address.removeprefix("0x")))
+
+
+def _read_keystore(path: Path) -> dict[str, Any]:
+    """A keystore's JSON object; keystores travel between machines, so its nesting is bounded."""
+    document = bounded_json.loads(path.read_bytes())
+    if not isinstance(document, dict):
+        raise JsonError("a keystore is a JSON object")
+    return document
+
+
+MAX_SCRYPT_MEMORY = 1 << 30
+"""scrypt needs 128 * n * r bytes; robocloud writes 256 MiB keystores (n = 2**18, r = 8)."""
+MAX_KDF_ROUNDS = 1 << 24
+
+
+def _check_kdf(path: Path, keystore: dict[str, Any]) -> None:
+    """Refuse key-derivation parameters that would take gigabytes or hours to try."""
+    crypto = keystore.get("crypto") or keystore.get("Crypto")
+    params = crypto.get("kdfparams") if isinstance(crypto, dict) else None
+    if not isinstance(params, dict):
+        return
+    n, r, p, c = (params.get(name, 1) for name in ("n", "r", "p", "c"))
+    if not all(isinstance(value, int) and value > 0 for value in (n, r, p, c)):
+        raise KeystoreError(f"{path} has malformed key-derivation parameters")
+    if 128 * n * r > MAX_SCRYPT_MEMORY or n * r * p > MAX_KDF_ROUNDS or c > MAX_KDF_ROUNDS:
+        raise KeystoreError(f"{path} asks for key derivation beyond this SDK's bounds")

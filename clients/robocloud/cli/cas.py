@@ -2,113 +2,176 @@
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import httpx
 import typer
 from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
 
-from robocloud.cas import Cas, CasError
-from robocloud.cid import CID
-from robocloud.cli.context import KeystoreOption, console, fail, load_identity
-from robocloud.errors import ApiError
+from robocloud.cas import Cas, ContentTooLargeError
+from robocloud.cid import CID, CIDError, parse_cid
+from robocloud.cli.context import JsonOption, KeystoreOption, fail, load_identity, parse_size
+from robocloud.cli.exits import ExitCode
+from robocloud.cli.output import console, show, show_json, size_text, untrusted
 from robocloud.unixfs import ImportParams, UnixfsError
 
 CasOption = typer.Option(
-    None, "--cas", help="Gateway URL [default: $ROBOCLOUD_CAS_URL or loopback]"
+    None,
+    "--cas",
+    help="URL of the cas service (or any kubo-compatible gateway).",
+    show_default="$ROBOCLOUD_CAS_URL, else http://127.0.0.1:8080",
 )
 PROGRESS_THRESHOLD = 8 << 20
 
 
-def parse_cid(text: str) -> CID:
+def cid_argument(text: str) -> CID:
+    """A CID argument; bad text is a usage error (exit 2) naming what was given."""
     try:
-        return CID.decode(text)
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-
-
-@contextmanager
-def _errors() -> Iterator[None]:
-    try:
-        yield
-    except (ApiError, CasError, UnixfsError, httpx.HTTPError) as exc:
-        raise fail(str(exc)) from exc
+        return parse_cid(text, "CID")
+    except CIDError as exc:
+        raise typer.BadParameter(f"{untrusted(text, 80)!r} is not a CID: {exc}") from exc
 
 
 @contextmanager
 def _progress(label: str, total: int | None) -> Iterator[Callable[[int], None]]:
-    """A transfer bar for large files only; small ones finish before a bar would help."""
-    if total is not None and total < PROGRESS_THRESHOLD:
+    """A transfer bar on stderr, for large or unknown sizes and only on a terminal."""
+    stderr = console(stderr=True)
+    if (total is not None and total < PROGRESS_THRESHOLD) or not stderr.is_terminal:
         yield lambda _: None
         return
     columns = ("{task.description}", BarColumn(), DownloadColumn(), TransferSpeedColumn())
-    with Progress(*columns, console=console, transient=True) as bar:
+    with Progress(*columns, console=stderr, transient=True) as bar:
         task = bar.add_task(label, total=total)
         yield lambda size: bar.advance(task, size)
 
 
 def put(
-    file: Path = typer.Argument(..., exists=True, dir_okay=False, readable=True),
-    pin: bool = typer.Option(True, help="Pin the content to this robot"),
-    cid_version: int = typer.Option(1, "--cid-version"),
-    chunker: str = typer.Option("size-262144", help="size-<bytes>"),
+    file: Path = typer.Argument(
+        ..., exists=True, dir_okay=False, readable=True, metavar="FILE", help="The file to add."
+    ),
+    pin: bool = typer.Option(True, help="Pin the content to this robot."),
+    cid_version: int = typer.Option(1, "--cid-version", help="CID version: 0 or 1."),
+    chunker: str = typer.Option("size-262144", help="Chunk size, as size-<bytes>."),
     cas: str | None = CasOption,
     keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
 ) -> None:
-    """Add a file; print its CID (checked against the CID computed here)."""
-    with _errors():
+    """Add a file and print its CID (checked against the CID computed here).
+
+    Only the CID goes to stdout, so CID=$(robocloud put FILE) works for any size.
+    """
+    try:
         params = ImportParams.from_options(cid_version=cid_version, chunker=chunker)
+    except UnixfsError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--cid-version/--chunker") from exc
     identity = load_identity(keystore)
-    with _errors(), Cas(cas, identity) as client, _progress("put", file.stat().st_size) as advance:
+    size = file.stat().st_size
+    with Cas(cas, identity) as client, _progress("put", size) as advance:
         cid = client.add_file(file, pin=pin, params=params, progress=advance)
-    console.print(str(cid))
+    if as_json:
+        show_json({"cid": str(cid), "size": size, "pinned": pin})
+    else:
+        show(str(cid))
 
 
 def get(
-    cid: str = typer.Argument(..., help="CID of a file"),
-    output: Path = typer.Option(..., "--output", "-o", help="Where to write the content"),
+    cid: str = typer.Argument(..., help="CID of the file.", metavar="CID", show_default=False),
+    output: Path = typer.Option(
+        ..., "--output", "-o", dir_okay=False, help="Where to write the verified content."
+    ),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace OUTPUT if it exists."),
+    max_size: int | None = typer.Option(
+        None,
+        "--max-size",
+        parser=parse_size,
+        metavar="SIZE",
+        help="Refuse a file larger than this: bytes, or a number with kB, MB, GB, KiB, MiB, GiB.",
+        show_default="the free space in OUTPUT's directory",
+    ),
     cas: str | None = CasOption,
+    as_json: bool = JsonOption,
 ) -> None:
-    """Fetch a file, verifying every block against its CID."""
-    root = parse_cid(cid)
-    with _errors(), Cas(cas) as client, _progress("get", None) as advance:
-        size = client.get_to_file(root, output, progress=advance)
-    console.print(f"{root} -> {output} ({size} bytes, verified)")
+    """Fetch a file, verifying every block against its CID.
+
+    OUTPUT appears only once all of it is verified; a failed or refused download leaves
+    nothing behind.
+    """
+    root = cid_argument(cid)
+    if (output.exists() or output.is_symlink()) and not force:
+        fail(f"{output} exists", hint="pass --force to replace it")
+    if max_size is None:
+        directory = output.absolute().parent
+        limit, why = shutil.disk_usage(directory).free, f"the free space in {directory}"
+    else:
+        limit, why = max_size, "--max-size"
+    with Cas(cas) as client, _progress("get", None) as advance:
+        try:
+            size = client.get_to_file(root, output, advance, max_size=limit, overwrite=force)
+        except ContentTooLargeError as exc:
+            fail(
+                f"{exc}; nothing was written",
+                ExitCode.ERROR,
+                f"the limit is {why}, {size_text(limit)}; pass a larger --max-size",
+            )
+        except FileExistsError:
+            fail(f"{output} appeared while downloading", hint="pass --force to replace it")
+    if as_json:
+        show_json({"cid": str(root), "path": str(output), "size": size, "verified": True})
+    else:
+        show(f"{root} -> {output} ({size} bytes, verified)")
 
 
 def pin(
-    cid: str = typer.Argument(...),
+    cid: str = typer.Argument(..., help="CID to pin.", metavar="CID", show_default=False),
     cas: str | None = CasOption,
     keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
 ) -> None:
     """Pin content to this robot so garbage collection keeps it."""
-    root = parse_cid(cid)
+    root = cid_argument(cid)
     identity = load_identity(keystore)
-    with _errors(), Cas(cas, identity) as client:
+    with Cas(cas, identity) as client:
         client.pin(root)
-    console.print(f"pinned {root}")
+    if as_json:
+        show_json({"cid": str(root), "pinned": True})
+    else:
+        show(f"pinned {root}")
 
 
 def unpin(
-    cid: str = typer.Argument(...),
+    cid: str = typer.Argument(..., help="CID to unpin.", metavar="CID", show_default=False),
     cas: str | None = CasOption,
     keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
 ) -> None:
     """Remove this robot's pin."""
-    root = parse_cid(cid)
+    root = cid_argument(cid)
     identity = load_identity(keystore)
-    with _errors(), Cas(cas, identity) as client:
+    with Cas(cas, identity) as client:
         client.unpin(root)
-    console.print(f"unpinned {root}")
+    if as_json:
+        show_json({"cid": str(root), "pinned": False})
+    else:
+        show(f"unpinned {root}")
 
 
-def pins(cas: str | None = CasOption) -> None:
+def pins(cas: str | None = CasOption, as_json: bool = JsonOption) -> None:
     """List pinned CIDs and the robots that pinned them."""
-    with _errors(), Cas(cas) as client:
-        for cid, info in sorted(client.pins().items()):
-            console.print(f"{cid}  {' '.join(info.get('Owners', []))}")
+    with Cas(cas) as client:
+        listed = sorted(client.pins().items())
+    if as_json:
+        show_json(
+            {
+                "pins": [
+                    {"cid": cid, "type": info.get("Type"), "owners": info.get("Owners", [])}
+                    for cid, info in listed
+                ]
+            }
+        )
+        return
+    show(*(untrusted(" ".join([cid, *info.get("Owners", [])]), 10_000) for cid, info in listed))
 
 
 def register(app: typer.Typer) -> None:

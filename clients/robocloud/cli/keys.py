@@ -6,36 +6,34 @@ from pathlib import Path
 
 import typer
 
-from robocloud.cli.context import KeystoreOption, console, fail, passphrase
-from robocloud.errors import KeystoreError
-from robocloud.identity import Identity, default_keystore_path
+from robocloud.cli.context import JsonOption, KeystoreOption, keystore_path, passphrase
+from robocloud.cli.output import rows, show, show_json
+from robocloud.identity import Identity
 
 keys = typer.Typer(help="Create and inspect the robot's key (an encrypted Ethereum keystore).")
 
 
+def _show_key(address: str, path: Path, as_json: bool) -> None:
+    if as_json:
+        show_json({"address": address, "keystore": str(path)})
+    else:
+        show(*rows([("address", address), ("keystore", path)]))
+
+
 @keys.command("new")
-def new(keystore: Path | None = KeystoreOption) -> None:
+def new(keystore: Path | None = KeystoreOption, as_json: bool = JsonOption) -> None:
     """Create a new key, encrypted with a passphrase, and print its address."""
-    path = keystore or default_keystore_path()
+    path = keystore_path(keystore)
     identity = Identity.generate()
-    try:
-        identity.save(path, passphrase(confirm=True))
-    except KeystoreError as exc:
-        raise fail(str(exc)) from exc
-    console.print(f"address  {identity.address}")
-    console.print(f"keystore {path}")
+    identity.save(path, passphrase(confirm=True))
+    _show_key(identity.address, path, as_json)
 
 
 @keys.command("show")
-def show(keystore: Path | None = KeystoreOption) -> None:
+def show_key(keystore: Path | None = KeystoreOption, as_json: bool = JsonOption) -> None:
     """Print the address of the key (no passphrase needed)."""
-    path = keystore or default_keystore_path()
-    try:
-        address = Identity.keystore_address(path)
-    except KeystoreError as exc:
-        raise fail(str(exc)) from exc
-    console.print(f"address  {address}")
-    console.print(f"keystore {path}")
+    path = keystore_path(keystore)
+    _show_key(Identity.keystore_address(path), path, as_json)
 
 
 def register(app: typer.Typer) -> None:

@@ -4,67 +4,115 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
-import httpx
 import typer
 from rich.table import Table
 
-from robocloud.cli.context import KeystoreOption, console, load_identity
+from robocloud.cli.context import JsonOption, KeystoreOption, load_identity
+from robocloud.cli.exits import ExitCode, failure_of
+from robocloud.cli.output import console, show, show_json, untrusted
 from robocloud.client import ServiceClient
 from robocloud.config import Endpoints
-from robocloud.errors import ApiError
+from robocloud.errors import RobocloudError
+
+PROBE_TIMEOUT_S = 5.0
 
 
-def status() -> None:
-    """Health, readiness and version of every service."""
-    table = Table("service", "url", "health", "ready", "version", "latency")
-    all_ok = True
-    for name, url in Endpoints.from_env().items():
-        started = time.perf_counter()
-        try:
-            health = httpx.get(f"{url}/healthz", timeout=5)
-            ready = httpx.get(f"{url}/readyz", timeout=5)
-        except httpx.HTTPError as exc:
-            table.add_row(name, url, f"[red]down[/] ({type(exc).__name__})", "-", "-", "-")
-            all_ok = False
-            continue
-        latency = f"{(time.perf_counter() - started) * 1000:.0f} ms"
-        ok = health.status_code == 200 and ready.status_code == 200
-        all_ok = all_ok and ok
-        version = health.json().get("version", "?") if health.status_code == 200 else "-"
-        table.add_row(
-            name,
-            url,
-            "[green]ok[/]" if health.status_code == 200 else f"[red]{health.status_code}[/]",
-            "[green]ready[/]" if ready.status_code == 200 else f"[yellow]{ready.status_code}[/]",
-            version,
-            latency,
-        )
-    console.print(table)
-    if not all_ok:
-        raise typer.Exit(1)
+def _probe(client: ServiceClient, path: str) -> tuple[int, Any]:
+    response = client.send("GET", path)
+    try:
+        body = client.json_of(response)
+    except RobocloudError:
+        body = None
+    return response.status_code, body
 
 
-def whoami(keystore: Path | None = KeystoreOption) -> None:
+def _status_of(name: str, url: str) -> tuple[dict[str, Any], ExitCode]:
+    row: dict[str, Any] = {"service": name, "url": url}
+    started = time.perf_counter()
+    try:
+        with ServiceClient(url, service=name, retries=0, timeout=PROBE_TIMEOUT_S) as client:
+            health, health_body = _probe(client, "/healthz")
+            ready, _ = _probe(client, "/readyz")
+    except RobocloudError as exc:
+        failure = failure_of(exc)
+        return {**row, "health": "down", "ready": None, "error": failure.message}, failure.code
+    version = health_body.get("version") if isinstance(health_body, dict) else None
+    row |= {
+        "health": "ok" if health == 200 else health,
+        "ready": "ready" if ready == 200 else ready,
+        "version": version if isinstance(version, str) else None,
+        "latency_ms": round((time.perf_counter() - started) * 1000),
+    }
+    return row, ExitCode.OK if health == 200 and ready == 200 else ExitCode.UNAVAILABLE
+
+
+def status(as_json: bool = JsonOption) -> None:
+    """Health, readiness and version of every service (exit 3 if one is unreachable, 5 if one
+    is not ready)."""
+    results = [_status_of(name, url) for name, url in Endpoints.from_env().items()]
+    worst = max((code for _, code in results), default=ExitCode.OK)
+    if as_json:
+        show_json({"services": [row for row, _ in results], "ok": worst == ExitCode.OK})
+    else:
+        table = Table("service", "url", "health", "ready", "version", "latency")
+        for row, _ in results:
+            if row["health"] == "down":
+                table.add_row(row["service"], row["url"], "[red]down[/]", "-", "-", "-")
+                continue
+            health_ok, ready_ok = row["health"] == "ok", row["ready"] == "ready"
+            table.add_row(
+                row["service"],
+                row["url"],
+                "[green]ok[/]" if health_ok else f"[red]{row['health']}[/]",
+                "[green]ready[/]" if ready_ok else f"[yellow]{row['ready']}[/]",
+                untrusted(row["version"] or "?", 40).replace("[", "\\["),
+                f"{row['latency_ms']} ms",
+            )
+        console().print(table)
+    if worst != ExitCode.OK:
+        raise typer.Exit(int(worst))
+
+
+def whoami(keystore: Path | None = KeystoreOption, as_json: bool = JsonOption) -> None:
     """Make a signed call to every service and show the address each one verified."""
     identity = load_identity(keystore)
-    table = Table("service", "verified address", "result")
-    all_ok = True
+    results: list[dict[str, Any]] = []
+    worst = ExitCode.OK
     for name, url in Endpoints.from_env().items():
-        with ServiceClient(url, identity, retries=0) as client:
-            try:
+        try:
+            with ServiceClient(url, identity, service=name, retries=0) as client:
                 answer = client.post_json("/v1/whoami")
-            except (ApiError, httpx.HTTPError) as exc:
-                table.add_row(name, "-", f"[red]{exc}[/]")
-                all_ok = False
-                continue
-        matches = answer["address"] == identity.address
-        all_ok = all_ok and matches
-        table.add_row(name, answer["address"], "[green]ok[/]" if matches else "[red]mismatch[/]")
-    console.print(f"robot {identity.address}")
-    console.print(table)
-    if not all_ok:
-        raise typer.Exit(1)
+        except RobocloudError as exc:
+            failure = failure_of(exc)
+            results.append({"service": name, "address": None, "error": failure.message})
+            worst = max(worst, failure.code)
+            continue
+        verified = answer.get("address") if isinstance(answer, dict) else None
+        if verified != identity.address:
+            worst = max(worst, ExitCode.INVALID_ANSWER)
+        results.append({"service": name, "address": verified, "error": None})
+    if as_json:
+        show_json({"robot": identity.address, "services": results, "ok": worst == ExitCode.OK})
+    else:
+        table = Table("service", "verified address", "result")
+        for row in results:
+            if row["error"] is not None:
+                table.add_row(row["service"], "-", f"[red]{_escaped(row['error'])}[/]")
+            elif row["address"] == identity.address:
+                table.add_row(row["service"], row["address"], "[green]ok[/]")
+            else:
+                table.add_row(row["service"], _escaped(row["address"]), "[red]mismatch[/]")
+        show(f"robot {identity.address}")
+        console().print(table)
+    if worst != ExitCode.OK:
+        raise typer.Exit(int(worst))
+
+
+def _escaped(text: object) -> str:
+    """Untrusted text inside a table cell that uses markup for colour."""
+    return untrusted(text, 200).replace("[", "\\[")
 
 
 def register(app: typer.Typer) -> None:

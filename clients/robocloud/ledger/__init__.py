@@ -5,19 +5,28 @@ transaction is built from the ABIs shipped in this package and signed with the r
 """
 
 from robocloud.ledger.abi import ContractAbi, decode_revert
-from robocloud.ledger.client import ContractAddresses, Ledger
+from robocloud.ledger.client import ContractAddresses, Ledger, LedgerService
 from robocloud.ledger.errors import (
+    AddressError,
     ContractsUnavailableError,
     LedgerError,
     RevertError,
     RpcError,
     TransactionTimeoutError,
 )
-from robocloud.ledger.models import Advertised, Advertisement, Anchor, Robot, Role
+from robocloud.ledger.models import (
+    Advertised,
+    Advertisement,
+    Anchor,
+    RegisteredRobot,
+    Robot,
+    Role,
+)
 from robocloud.ledger.rpc import JsonRpcClient
 from robocloud.ledger.transactions import Receipt, Transactor
 
 __all__ = [
+    "AddressError",
     "Advertised",
     "Advertisement",
     "Anchor",
@@ -27,7 +36,9 @@ __all__ = [
     "JsonRpcClient",
     "Ledger",
     "LedgerError",
+    "LedgerService",
     "Receipt",
+    "RegisteredRobot",
     "RevertError",
     "Robot",
     "Role",

@@ -2,7 +2,8 @@
 
 Everything goes through standard JSON-RPC with transactions signed locally, so a robot can
 check what the ledger service tells it against any Ethereum node. The ledger service is needed
-only to learn where the contracts are (``GET /v1/contracts``) and for the development faucet.
+only to learn where the contracts are (``GET /v1/contracts``) and for the development faucet;
+``LedgerService`` is the typed client of those REST routes (and of the index's reads).
 """
 
 from __future__ import annotations
@@ -15,13 +16,17 @@ import httpx
 from eth_utils.address import is_address, to_checksum_address
 from eth_utils.crypto import keccak
 
-from robocloud.client import ServiceClient
-from robocloud.config import service_url
-from robocloud.errors import MissingIdentityError
+from robocloud.client import Closeable, ServiceClient
+from robocloud.errors import InvalidAnswerError, MissingIdentityError, NotFoundError
 from robocloud.identity import Identity
 from robocloud.ledger.abi import ContractAbi, DecodedLog
-from robocloud.ledger.errors import ContractsUnavailableError, LedgerError, RpcError
-from robocloud.ledger.models import Advertised, Advertisement, Anchor, Robot, Role
+from robocloud.ledger.errors import (
+    AddressError,
+    ContractsUnavailableError,
+    LedgerError,
+    RpcError,
+)
+from robocloud.ledger.models import Advertised, Advertisement, Anchor, RegisteredRobot, Robot, Role
 from robocloud.ledger.rpc import JsonRpcClient, as_revert
 from robocloud.ledger.transactions import Receipt, Transactor, quantity
 
@@ -42,14 +47,19 @@ class ContractAddresses:
         }
         if not (found.get("Registry") and found.get("AnchorLog")):
             raise ContractsUnavailableError(
-                f"the ledger's /v1/contracts lacks Registry or AnchorLog addresses: {body!r}"
+                f"the ledger's /v1/contracts lacks Registry or AnchorLog addresses: "
+                f"{repr(body)[:200]}"
             )
-        return cls(checksum(found["Registry"]), checksum(found["AnchorLog"]))
+        try:
+            return cls(checksum(found["Registry"]), checksum(found["AnchorLog"]))
+        except AddressError as exc:
+            raise ContractsUnavailableError(f"the ledger's /v1/contracts: {exc}") from exc
 
 
 def checksum(address: object) -> str:
+    """The checksummed form of an address; ``AddressError`` (a ``ValueError``) if it is not one."""
     if not isinstance(address, str) or not is_address(address):
-        raise ValueError(f"not an Ethereum address: {address!r}")
+        raise AddressError(f"not an Ethereum address: {repr(address)[:100]}")
     return str(to_checksum_address(address))
 
 
@@ -61,7 +71,38 @@ def _topic_uint(value: int) -> str:
     return "0x" + value.to_bytes(32, "big").hex()
 
 
-class Ledger:
+class LedgerService(ServiceClient):
+    """The ledger service's REST routes: where the contracts are, the faucet, indexed reads.
+
+    What these answer comes from the service's event index: convenient and fast, but for a
+    check that matters, read the chain through ``Ledger`` (``eth_call``) instead.
+    """
+
+    default_service = "ledger"
+
+    def contracts(self) -> ContractAddresses:
+        """``GET /v1/contracts``: where Registry and AnchorLog are deployed."""
+        return ContractAddresses.from_service(self.get_json("/v1/contracts"))
+
+    def faucet(self, address: str) -> Any:
+        """``POST /v1/faucet`` (signed): fund ``address``, which must be the signer's own."""
+        return self.post_json("/v1/faucet", {"address": checksum(address)})
+
+    def robot(self, address: str) -> RegisteredRobot | None:
+        """``GET /v1/robots/{address}``: the indexed record, or None when not registered."""
+        try:
+            body = self.get_json(f"/v1/robots/{checksum(address)}")
+        except NotFoundError:
+            return None
+        try:
+            return RegisteredRobot.from_service(body)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvalidAnswerError(
+                f"the ledger's record of {address} is malformed: {exc}"
+            ) from exc
+
+
+class Ledger(Closeable):
     """robocloud's contracts on one chain, seen and driven by one (optional) identity."""
 
     def __init__(
@@ -70,7 +111,7 @@ class Ledger:
         addresses: ContractAddresses,
         identity: Identity | None = None,
         *,
-        service: ServiceClient | None = None,
+        service: LedgerService | None = None,
         receipt_timeout_s: float = 60.0,
     ) -> None:
         self.rpc = rpc
@@ -98,21 +139,14 @@ class Ledger:
         receipt_timeout_s: float = 60.0,
     ) -> Ledger:
         """Through the ledger service: its ``/rpc``, its contract addresses and its faucet."""
-        base = (ledger_url or service_url("ledger")).rstrip("/")
-        service = ServiceClient(base, identity, transport=transport)
+        service = LedgerService(ledger_url, identity, transport=transport)
         try:
-            addresses = ContractAddresses.from_service(service.get_json("/v1/contracts"))
+            addresses = service.contracts()
         except BaseException:
             service.close()
             raise
-        rpc = JsonRpcClient(f"{base}/rpc", transport=transport)
+        rpc = JsonRpcClient(f"{service.base_url}/rpc", service="ledger", transport=transport)
         return cls(rpc, addresses, identity, service=service, receipt_timeout_s=receipt_timeout_s)
-
-    def __enter__(self) -> Ledger:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
 
     def close(self) -> None:
         self.rpc.close()
@@ -141,7 +175,7 @@ class Ledger:
         identity = self._signer()
         if self.service is None:
             raise LedgerError("the faucet needs the ledger service: use Ledger.connect(url)")
-        answer = self.service.post_json("/v1/faucet", {"address": identity.address})
+        answer = self.service.faucet(identity.address)
         deadline = time.monotonic() + timeout_s
         while self.balance() == 0:
             if time.monotonic() >= deadline:

@@ -3,13 +3,15 @@
 A robot mostly needs to tell three things apart: the node refused the request (``RpcError``),
 the contract refused the call (``RevertError``, with the contract's own reason), and the
 transaction was sent but not mined in time (``TransactionTimeoutError``, it may still land).
+A node that cannot be reached raises the SDK's ``TransportError``; one whose answer is not
+JSON-RPC, ``InvalidAnswerError``; the ledger service's REST errors are ``ApiError``s.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from robocloud.errors import RobocloudError
+from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
 
 
 class LedgerError(RobocloudError):
@@ -17,14 +19,30 @@ class LedgerError(RobocloudError):
 
 
 class RpcError(LedgerError):
-    """The node answered a JSON-RPC error object (bad transaction, wrong chain, nonce too low)."""
+    """The node answered a JSON-RPC error object (bad transaction, wrong chain, nonce too low).
 
-    def __init__(self, method: str, code: int, message: str, data: Any = None) -> None:
+    The JSON-RPC counterpart of ``ApiError``: ``code``, ``message`` and ``data`` are the error
+    object's, ``status`` the HTTP status it came with (usually 200) and ``request_id`` the
+    ledger service's ``X-Request-Id`` when there is one.
+    """
+
+    def __init__(
+        self,
+        method: str,
+        code: int,
+        message: str,
+        data: Any = None,
+        *,
+        status: int = 200,
+        request_id: str | None = None,
+    ) -> None:
         super().__init__(f"{method}: {message} (JSON-RPC error {code})")
         self.method = method
         self.code = code
         self.message = message
         self.data = data
+        self.status = status
+        self.request_id = request_id
 
 
 class RevertError(LedgerError):
@@ -51,5 +69,9 @@ class TransactionTimeoutError(LedgerError):
         self.timeout_s = timeout_s
 
 
-class ContractsUnavailableError(LedgerError):
+class ContractsUnavailableError(LedgerError, InvalidAnswerError):
     """The ledger service did not say where the contracts are deployed."""
+
+
+class AddressError(LedgerError, FormatError):
+    """Text that is not an Ethereum address (``0x`` and 40 hex digits, checksum if mixed case)."""

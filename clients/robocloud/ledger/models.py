@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
+from typing import Any
 
 from eth_utils.crypto import keccak
 
@@ -35,6 +36,56 @@ class Robot:
     def is_active(self) -> bool:
         """What the contracts check: registered, not deactivated, not suspended."""
         return self.registered and self.active and not self.suspended
+
+
+@dataclass(frozen=True)
+class RegisteredRobot:
+    """A robot as the ledger service's index reports it (``GET /v1/robots/{address}``).
+
+    ``metadata_cid`` is the text form (None when the bytes on chain are not a CID);
+    ``active`` already accounts for suspension, as the service reports it.
+    """
+
+    address: str
+    metadata_cid: str | None
+    metadata_hex: str
+    registered_at: int
+    active: bool
+    suspended: bool
+    roles: tuple[str, ...]
+
+    @classmethod
+    def from_service(cls, body: Any) -> RegisteredRobot:
+        """Parse the service's document; ``TypeError``/``KeyError`` name what is malformed."""
+        if not isinstance(body, dict) or not isinstance(body.get("metadata"), dict):
+            raise TypeError("expected an object with a metadata object")
+        metadata = body["metadata"]
+        robot = cls(
+            address=body["address"],
+            metadata_cid=metadata.get("cid"),
+            metadata_hex=metadata["hex"],
+            registered_at=body["registered_at"],
+            active=body["active"],
+            suspended=body["suspended"],
+            roles=tuple(body["roles"]),
+        )
+        robot._check_types()
+        return robot
+
+    def _check_types(self) -> None:
+        expected: dict[str, type | tuple[type, ...]] = {
+            "address": str,
+            "metadata_cid": (str, type(None)),
+            "metadata_hex": str,
+            "registered_at": int,
+            "active": bool,
+            "suspended": bool,
+        }
+        for name, kind in expected.items():
+            if not isinstance(getattr(self, name), kind):
+                raise TypeError(f"{name} has the wrong type")
+        if not all(isinstance(role, str) for role in self.roles):
+            raise TypeError("roles must be strings")
 
 
 @dataclass(frozen=True)

@@ -56,3 +56,26 @@ def test_missing_keystore_says_how_to_make_one(tmp_path: Path) -> None:
 def test_did_names_chain_and_address() -> None:
     identity = Identity.generate()
     assert identity.did(1337) == f"did:pkh:eip155:1337:{identity.address}"
+
+
+@pytest.mark.parametrize(
+    ("document", "message"),
+    [
+        (b"[" * 100_000 + b"]" * 100_000, "nested deeper"),
+        (b'["a list"]', "a keystore is a JSON object"),
+        (b'{"crypto": {}}', "missing 'version'"),
+        (
+            b'{"version": 3, "crypto": {"kdf": "scrypt", "kdfparams": {"n": 16777216, "r": 8}}}',
+            "beyond this SDK's bounds",
+        ),
+        (b'{"crypto": {"kdfparams": {"c": "many"}}}', "malformed key-derivation"),
+    ],
+    ids=["nested", "not-an-object", "missing-fields", "huge-scrypt", "odd-params"],
+)
+def test_a_hostile_keystore_is_a_keystore_error(
+    tmp_path: Path, document: bytes, message: str
+) -> None:
+    path = tmp_path / "key.json"
+    path.write_bytes(document)
+    with pytest.raises(KeystoreError, match=message):
+        Identity.load(path, "pw")

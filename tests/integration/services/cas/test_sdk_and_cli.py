@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import os
+import pty
+import subprocess
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -10,13 +15,15 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+import robocloud
 from robocloud.car import write_car
-from robocloud.cas import Cas, CasError
-from robocloud.cid import CID
+from robocloud.cas import Cas, CasError, ContentTooLargeError
+from robocloud.cid import CID, DAG_PB
 from robocloud.cli import app
 from robocloud.identity import Identity
-from robocloud.unixfs import Block, ImportParams, import_bytes
-from tests.procs import ServiceProcess
+from robocloud.unixfs import FILE, Block, ImportParams, Link, PBNode, UnixfsData, import_bytes
+from tests.procs import ServiceProcess, free_port
+from tests.scripted_http import nested_json
 
 runner = CliRunner()
 
@@ -123,36 +130,291 @@ def test_add_refuses_a_wrong_answer(tmp_path: Path) -> None:
             client.add_bytes(b"not hello world")
 
 
-def test_cli_put_get_pin_pins(
-    cas_service: ServiceProcess, identity: Identity, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    keystore = tmp_path / "key.json"
-    identity.save(keystore, "pw", scrypt_n=2**4)
+@pytest.fixture
+def work(tmp_path: Path) -> Path:
+    """A directory of this test's files alone (the service keeps its data in ``tmp_path``)."""
+    path = tmp_path / "work"
+    path.mkdir()
+    return path
+
+
+@pytest.fixture
+def keystore(identity: Identity, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    path = tmp_path / "key.json"
+    identity.save(path, "pw", scrypt_n=2**4)
     monkeypatch.setenv("ROBOCLOUD_PASSPHRASE", "pw")
+    return path
+
+
+def test_cli_put_get_pin_pins(
+    cas_service: ServiceProcess, identity: Identity, keystore: Path, tmp_path: Path
+) -> None:
     source = tmp_path / "notes.txt"
     source.write_bytes(b"Hello world")
     common = ["--cas", cas_service.url]
     put = runner.invoke(app, ["put", str(source), "--keystore", str(keystore), *common])
     assert put.exit_code == 0, put.output
-    cid = put.output.strip()
+    cid = put.stdout.strip()
     assert cid == "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
     got = runner.invoke(app, ["get", cid, "-o", str(tmp_path / "back.txt"), *common])
     assert got.exit_code == 0, got.output
-    assert "verified" in got.output
+    assert got.stdout == f"{cid} -> {tmp_path / 'back.txt'} (11 bytes, verified)\n"
+    assert len(got.stdout) > 100  # one line, wider than the 80 columns rich assumes off a tty
     assert (tmp_path / "back.txt").read_bytes() == b"Hello world"
     listed = runner.invoke(app, ["pins", *common])
-    assert listed.output.split() == [cid, identity.address]
+    assert listed.stdout.split() == [cid, identity.address]
     unpinned = runner.invoke(app, ["unpin", cid, "--keystore", str(keystore), *common])
     assert unpinned.exit_code == 0, unpinned.output
-    missing = runner.invoke(
-        app,
-        [
-            "get",
-            "bafkreibercdsoj77g6v724b2gdmwwblgejcogoat4eatckoanjo2periym",
-            "-o",
-            str(tmp_path / "x"),
-            *common,
-        ],
+    assert runner.invoke(app, ["pins", *common]).stdout == ""
+    absent = "bafkreibercdsoj77g6v724b2gdmwwblgejcogoat4eatckoanjo2periym"
+    missing = runner.invoke(app, ["get", absent, "-o", str(tmp_path / "x"), *common])
+    assert missing.exit_code == 4
+    assert missing.stderr.startswith("error: 404 ")
+    assert missing.stderr.count("\n") == 1
+    assert not (tmp_path / "x").exists()
+
+
+def test_cli_prints_json_on_request(
+    cas_service: ServiceProcess, identity: Identity, keystore: Path, tmp_path: Path
+) -> None:
+    source = tmp_path / "notes.txt"
+    source.write_bytes(b"Hello world")
+    common = ["--cas", cas_service.url, "--json"]
+    signed = [*common, "--keystore", str(keystore)]
+    put = runner.invoke(app, ["put", str(source), "--no-pin", *signed])
+    cid = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
+    assert json.loads(put.stdout) == {"cid": cid, "size": 11, "pinned": False}
+    assert json.loads(runner.invoke(app, ["pins", *common]).stdout) == {"pins": []}
+    pinned = runner.invoke(app, ["pin", cid, *signed])
+    assert json.loads(pinned.stdout) == {"cid": cid, "pinned": True}
+    assert json.loads(runner.invoke(app, ["pins", *common]).stdout) == {
+        "pins": [{"cid": cid, "type": "recursive", "owners": [identity.address]}]
+    }
+    out = tmp_path / "out.txt"
+    got = runner.invoke(app, ["get", cid, "-o", str(out), *common])
+    assert json.loads(got.stdout) == {"cid": cid, "path": str(out), "size": 11, "verified": True}
+    unpinned = runner.invoke(app, ["unpin", cid, *signed])
+    assert json.loads(unpinned.stdout) == {"cid": cid, "pinned": False}
+
+
+def test_get_refuses_to_overwrite_without_force(
+    cas: Cas, cas_service: ServiceProcess, work: Path
+) -> None:
+    cid = str(cas.add_bytes(b"fresh content"))
+    out = work / "out.txt"
+    out.write_bytes(b"precious")
+    common = [cid, "-o", str(out), "--cas", cas_service.url]
+    refused = runner.invoke(app, ["get", *common])
+    assert refused.exit_code == 1
+    assert refused.stderr == f"error: {out} exists (hint: pass --force to replace it)\n"
+    assert out.read_bytes() == b"precious"
+    assert sorted(path.name for path in work.iterdir()) == ["out.txt"]
+    replaced = runner.invoke(app, ["get", *common, "--force"])
+    assert replaced.exit_code == 0, replaced.output
+    assert out.read_bytes() == b"fresh content"
+
+
+def test_the_sdk_never_replaces_a_file_that_appeared_during_the_download(
+    cas: Cas, work: Path
+) -> None:
+    cid = cas.add_bytes(b"x" * 1000)
+    out = work / "out.bin"
+
+    def someone_else_writes(_: int) -> None:
+        out.write_bytes(b"theirs")
+
+    with pytest.raises(FileExistsError):
+        cas.get_to_file(cid, out, someone_else_writes, overwrite=False)
+    assert out.read_bytes() == b"theirs"
+    assert sorted(path.name for path in work.iterdir()) == ["out.bin"]
+
+
+def test_a_file_larger_than_max_size_is_refused_before_anything_is_written(
+    cas: Cas, work: Path
+) -> None:
+    data = bytes(range(256)) * 4096
+    cid = cas.add_bytes(data)
+    with pytest.raises(ContentTooLargeError) as refused:
+        cas.get_to_file(cid, work / "out.bin", max_size=len(data) - 1)
+    assert (refused.value.declared, refused.value.limit) == (len(data), len(data) - 1)
+    assert list(work.iterdir()) == []
+    assert cas.get_to_file(cid, work / "out.bin", max_size=len(data)) == len(data)
+    assert cas.get(cid, max_size=len(data)) == data
+
+
+def robocloud_cli(
+    *args: str, stderr: int | None = None, **env: str
+) -> subprocess.CompletedProcess[str]:
+    """The installed ``robocloud`` command in its own process, as a user or a script runs it."""
+    return subprocess.run(
+        [str(Path(sys.executable).with_name("robocloud")), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE if stderr is None else stderr,
+        text=True,
+        env={**os.environ, "COLUMNS": "80", **env},
+        timeout=120,
     )
-    assert missing.exit_code == 1
-    assert "block_not_found" in missing.output or "not in this store" in missing.output
+
+
+def test_put_prints_only_the_cid_while_the_progress_bar_draws_on_a_terminal(
+    cas_service: ServiceProcess, keystore: Path, tmp_path: Path
+) -> None:
+    """``CID=$(robocloud put big.bin)``: stdout is the CID even when stderr shows progress."""
+    source = tmp_path / "big.bin"
+    data = bytes(range(256)) * (40 * 1024 + 7)
+    source.write_bytes(data)
+    terminal, terminal_end = pty.openpty()
+    try:
+        done = robocloud_cli(
+            "put",
+            str(source),
+            "--keystore",
+            str(keystore),
+            "--cas",
+            cas_service.url,
+            stderr=terminal_end,
+            TERM="xterm",
+            ROBOCLOUD_PASSPHRASE="pw",
+        )
+        os.close(terminal_end)
+        drawn = read_all(terminal)
+    finally:
+        os.close(terminal)
+    assert done.returncode == 0, drawn
+    assert done.stdout == f"{import_bytes(data)[1]}\n"
+    assert b"put" in drawn
+    assert b"/10.5 MB" in drawn
+
+
+def read_all(fd: int) -> bytes:
+    chunks = []
+    while True:
+        try:
+            chunk = os.read(fd, 65536)
+        except OSError:
+            break
+        if not chunk:
+            break
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def expanding_dag(levels: int, fanout: int, declared: int | None) -> tuple[list[Block], CID]:
+    """A file DAG of ``fanout ** levels`` copies of one 1 MiB leaf, in CAR (DFS) order.
+
+    A few kilobytes of blocks expand to ``fanout ** levels`` MiB; ``declared`` makes the root
+    lie about its size (None: it tells the truth).
+    """
+    leaf = Block(CID.from_block(bytes(1 << 20)), bytes(1 << 20))
+    child, child_size = leaf.cid, 1 << 20
+    nodes: list[Block] = []
+    for level in range(levels):
+        size = child_size * fanout
+        top = level == levels - 1
+        filesize = declared if top and declared is not None else size
+        unixfs = UnixfsData(FILE, b"", filesize, [child_size] * fanout)
+        encoded = PBNode([Link(child, "", child_size)] * fanout, unixfs.encode()).encode()
+        nodes.append(Block(CID.from_block(encoded, DAG_PB), encoded))
+        child, child_size = nodes[-1].cid, size
+    return [*reversed(nodes), leaf], nodes[-1].cid
+
+
+def serving_dag(blocks: list[Block], root: CID) -> Callable[[str], tuple[int, str, bytes]]:
+    """A gateway that answers the root block raw and the DAG as a CAR."""
+
+    def answer(path: str) -> tuple[int, str, bytes]:
+        if "format=raw" in path:
+            return 200, "application/vnd.ipld.raw", blocks[0].data
+        return 200, CAR, car_of(blocks, root)
+
+    return answer
+
+
+def test_get_refuses_a_dag_declaring_more_than_the_free_disk_space(tmp_path: Path) -> None:
+    """10**12 MiB declared honestly: refused from the root block alone, no CAR fetched."""
+    blocks, root = expanding_dag(levels=4, fanout=1000, declared=None)
+    requests: list[str] = []
+
+    def answer(path: str) -> tuple[int, str, bytes]:
+        requests.append(path)
+        return serving_dag(blocks, root)(path)
+
+    out = tmp_path / "dest" / "out.bin"
+    out.parent.mkdir()
+    for url in gateway_answering(answer):
+        done = robocloud_cli("get", str(root), "-o", str(out), "--cas", url)
+    assert done.returncode == 1, done.stderr
+    assert done.stdout == ""
+    assert done.stderr.startswith(f"error: {root} declares {(1000**4) << 20} bytes, more than")
+    assert f"(hint: the limit is the free space in {out.parent}" in done.stderr
+    assert done.stderr.count("\n") == 1
+    assert list(out.parent.iterdir()) == []
+    assert [path.split("?")[1] for path in requests] == ["format=raw"]
+
+
+def test_get_stops_a_dag_that_holds_more_than_its_root_declares(tmp_path: Path) -> None:
+    """The root says 1,000 bytes; the DAG expands to 10**9 MiB: stopped at --max-size."""
+    blocks, root = expanding_dag(levels=3, fanout=1000, declared=1000)
+    out = tmp_path / "out.bin"
+    for url in gateway_answering(serving_dag(blocks, root)):
+        done = robocloud_cli("get", str(root), "-o", str(out), "--max-size", "5MiB", "--cas", url)
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.startswith(f"error: {root} holds more than the limit of 5242880 bytes")
+    assert "pass a larger --max-size" in done.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("args", "needs_key"),
+    [(["pins"], False), (["put", "FILE"], True)],
+    ids=["pins", "put"],
+)
+def test_a_service_answering_deeply_nested_json_is_refused_in_one_line(
+    args: list[str], needs_key: bool, keystore: Path, tmp_path: Path
+) -> None:
+    """100,000 nested brackets: the CLI reports a bad answer instead of segfaulting."""
+    source = tmp_path / "file.txt"
+    source.write_bytes(b"some bytes")
+    args = [str(source) if arg == "FILE" else arg for arg in args]
+    key = ["--keystore", str(keystore)] if needs_key else []
+    for url in gateway_answering(lambda _: (200, "application/json", nested_json(100_000))):
+        done = robocloud_cli(*args, *key, "--cas", url, ROBOCLOUD_PASSPHRASE="pw")
+    assert done.returncode == 6, done.stderr
+    assert done.stdout == ""
+    assert done.stderr.startswith("error: ")
+    assert "nested deeper than 64 levels" in done.stderr
+    assert done.stderr.count("\n") == 1
+
+
+def test_an_unreachable_cas_names_its_url_and_setting() -> None:
+    url = f"http://127.0.0.1:{free_port()}"
+    done = robocloud_cli("pins", ROBOCLOUD_CAS_URL=url)
+    assert done.returncode == 3
+    assert done.stderr.startswith(f"error: cannot connect to the cas service at {url}")
+    assert "ROBOCLOUD_CAS_URL or --cas" in done.stderr
+    assert done.stderr.count("\n") == 1
+
+
+def test_status_and_whoami_report_each_service(
+    cas_service: ServiceProcess, identity: Identity, keystore: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only cas is up: both commands say so per service and exit 3 (one is unreachable)."""
+    down = f"http://127.0.0.1:{free_port()}"
+    for name in ("ledger", "storage", "broker", "fl"):
+        monkeypatch.setenv(f"ROBOCLOUD_{name.upper()}_URL", down)
+    monkeypatch.setenv("ROBOCLOUD_CAS_URL", cas_service.url)
+    status = runner.invoke(app, ["status", "--json"])
+    assert status.exit_code == 3
+    report = json.loads(status.stdout)
+    cas_row = report["services"][0]
+    assert (cas_row["service"], cas_row["health"], cas_row["ready"]) == ("cas", "ok", "ready")
+    assert cas_row["version"] == robocloud.__version__
+    assert [row["health"] for row in report["services"][1:]] == ["down"] * 4
+    assert report["ok"] is False
+
+    whoami = runner.invoke(app, ["whoami", "--json", "--keystore", str(keystore)])
+    assert whoami.exit_code == 3
+    answer = json.loads(whoami.stdout)
+    assert answer["robot"] == identity.address
+    assert answer["services"][0] == {"service": "cas", "address": identity.address, "error": None}
+    assert all(row["error"].startswith("cannot connect") for row in answer["services"][1:])

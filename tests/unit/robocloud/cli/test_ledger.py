@@ -40,8 +40,10 @@ def test_unreachable_ledger_is_a_clear_error(tmp_path: Path) -> None:
     Identity.generate().save(keystore, "pw", scrypt_n=2**4)
     url = f"http://127.0.0.1:{free_port()}"
     result = runner.invoke(app, ["robot", "--keystore", str(keystore), "--ledger", url])
-    assert result.exit_code == 1
-    assert "cannot reach the ledger" in result.output
+    assert result.exit_code == 3
+    assert result.stderr.startswith(f"error: cannot connect to the ledger service at {url}")
+    assert "ROBOCLOUD_LEDGER_URL or --ledger" in result.stderr
+    assert result.stdout == ""
 
 
 def test_robot_without_keystore_or_address_names_the_missing_file(tmp_path: Path) -> None:

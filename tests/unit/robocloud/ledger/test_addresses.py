@@ -38,5 +38,5 @@ def test_missing_addresses_are_a_clear_error(body: object) -> None:
 
 def test_a_malformed_address_is_refused() -> None:
     body = {"contracts": {"Registry": {"address": "0x12"}, "AnchorLog": {"address": ANCHOR_LOG}}}
-    with pytest.raises(ValueError, match="not an Ethereum address"):
+    with pytest.raises(ContractsUnavailableError, match="not an Ethereum address"):
         ContractAddresses.from_service(body)

@@ -1,0 +1,120 @@
+"""The root command: version, help that documents itself, and one way of failing."""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import typer
+from typer.main import get_command
+from typer.testing import CliRunner
+
+import robocloud
+from robocloud.cli import app
+from robocloud.cli.exits import MEANINGS
+from robocloud.cli.main import RECURSION_LIMIT, RobocloudGroup
+from robocloud.errors import InvalidAnswerError
+
+runner = CliRunner()
+DOCS = Path(__file__).resolve().parents[4] / "docs" / "cli.md"
+
+
+def leaf_commands() -> dict[str, typer.core.TyperCommand]:
+    """Every command a user can run, by its full name (``keys new``)."""
+    found = {}
+    pending = [("", get_command(app))]
+    while pending:
+        prefix, group = pending.pop()
+        for name, command in group.commands.items():  # type: ignore[attr-defined]
+            if hasattr(command, "commands"):
+                pending.append((f"{prefix}{name} ", command))
+            else:
+                found[f"{prefix}{name}"] = command
+    return found
+
+
+def test_version() -> None:
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0
+    assert result.stdout == f"robocloud {robocloud.__version__}\n"
+
+
+def test_help_lists_every_exit_code() -> None:
+    result = runner.invoke(app, ["--help"], env={"COLUMNS": "300"})
+    assert result.exit_code == 0
+    text = " ".join(result.stdout.split())
+    for code, meaning in MEANINGS.items():
+        assert f"{int(code)}: {meaning}" in text
+
+
+def test_the_docs_list_the_same_exit_codes() -> None:
+    documented = dict(re.findall(r"^\| `(\d+)` \| (.+?) \|$", DOCS.read_text(), re.MULTILINE))
+    assert documented == {str(int(code)): meaning for code, meaning in MEANINGS.items()}
+
+
+def test_every_command_prints_json_on_request_and_documents_its_parameters() -> None:
+    commands = leaf_commands()
+    assert {"put", "get", "pins", "robot", "status", "keys new", "keys show"} <= set(commands)
+    for name, command in commands.items():
+        options = {opt for param in command.params for opt in param.opts}
+        assert "--json" in options, name
+        for param in command.params:
+            assert getattr(param, "help", None), f"{name} {param.name} has no help"
+
+
+def test_help_shows_argument_names_and_defaults() -> None:
+    result = runner.invoke(app, ["get", "--help"], env={"COLUMNS": "300"})
+    text = " ".join(result.stdout.split())
+    assert "Usage: robocloud get [OPTIONS] {CID}" in text
+    assert "[default: (the free space in OUTPUT's directory)]" in text
+    assert "[default: ($ROBOCLOUD_CAS_URL, else http://127.0.0.1:8080)]" in text
+
+
+def test_commands_run_under_a_sane_recursion_limit_which_is_then_restored() -> None:
+    """py_ecc (loaded in this process) raised the limit; a command runs under CPython's own."""
+    seen: list[int] = []
+    probe = typer.Typer(cls=RobocloudGroup)
+
+    @probe.command()
+    def depth() -> None:
+        seen.append(sys.getrecursionlimit())
+
+    @probe.command()
+    def other() -> None:
+        """Two commands, so that ``depth`` is a subcommand like the real ones."""
+
+    before = sys.getrecursionlimit()
+    assert before > RECURSION_LIMIT
+    assert runner.invoke(probe, ["depth"]).exit_code == 0
+    assert seen == [RECURSION_LIMIT]
+    assert sys.getrecursionlimit() == before
+
+
+def test_a_robocloud_error_is_one_line_on_stderr_with_its_exit_code() -> None:
+    probe = typer.Typer(cls=RobocloudGroup)
+
+    @probe.command()
+    def lie() -> None:
+        raise InvalidAnswerError("the cas service sent\n\x1b[31mforged lines")
+
+    @probe.command()
+    def other() -> None:
+        """Two commands, so that ``lie`` is a subcommand like the real ones."""
+
+    result = runner.invoke(probe, ["lie"])
+    assert result.exit_code == 6
+    assert result.stdout == ""
+    assert result.stderr.count("\n") == 1
+    assert result.stderr.startswith("error: the cas service sent\\n\\x1b[31mforged lines (hint: ")
+    assert "Traceback" not in result.stderr
+
+
+def test_an_os_error_is_one_line_without_traceback(tmp_path: Path) -> None:
+    missing = tmp_path / "no" / "such" / "dir" / "out.bin"
+    cid = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
+    result = runner.invoke(app, ["get", cid, "-o", str(missing), "--cas", "http://127.0.0.1:9"])
+    assert result.exit_code == 1
+    assert result.stdout == ""
+    assert result.stderr.startswith("error: [Errno 2] No such file or directory")
+    assert result.stderr.count("\n") == 1
