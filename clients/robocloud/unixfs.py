@@ -18,6 +18,11 @@ from robocloud.cid import CID, DAG_PB, RAW, CIDError, decode_varint, encode_vari
 DEFAULT_CHUNK_SIZE = 262_144
 DEFAULT_MAX_LINKS = 174
 MAX_CHUNK_SIZE = 2 * 1024 * 1024
+MAX_DAG_DEPTH = 1024
+"""Deepest path a walk or read follows. Importers stay far below it (a balanced 174-link tree
+of 1 TiB is 4 levels deep, trickle layouts and HAMT shards a few dozen, directories as deep as
+paths nest, and Linux's PATH_MAX of 4096 bytes allows at most 2048); a chain built to be deep
+is refused instead of followed."""
 PROFILES: dict[str, tuple[int, int, bool, int]] = {
     # name: (cid_version, chunk size, raw leaves, max links)
     "unixfs-v0-2015": (0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS),
@@ -330,52 +335,97 @@ def decode_node(cid: CID, data: bytes) -> tuple[PBNode, UnixfsData]:
     return node, UnixfsData.decode(node.data)
 
 
-def file_size(root: CID, get_block: GetBlock) -> int:
-    """The size of a file's content, from its root block alone."""
-    data = get_block(root)
-    if root.codec == RAW:
-        return len(data)
-    _, unixfs = decode_node(root, data)
-    if unixfs.type not in (FILE, RAW_TYPE):
-        raise UnixfsError(f"{root} is not a file (UnixFS type {unixfs.type})")
-    if unixfs.filesize is not None:
-        return unixfs.filesize
-    return len(unixfs.data) + sum(unixfs.blocksizes)
-
-
-def read_file(
-    root: CID, get_block: GetBlock, offset: int = 0, length: int | None = None
-) -> Iterator[bytes]:
-    """Stream ``length`` bytes of a file from ``offset`` (to the end when ``length`` is None)."""
-    end = None if length is None else offset + length
-    yield from _read(root, get_block, offset, end)
-
-
-def _read(cid: CID, get_block: GetBlock, start: int, end: int | None) -> Iterator[bytes]:
-    if end is not None and end <= start:
-        return
-    data = get_block(cid)
-    if cid.codec == RAW:
-        yield data[start:end]
-        return
-    if cid.codec != DAG_PB:
-        raise UnixfsError(f"{cid} is neither raw nor dag-pb")
+def _file_node(cid: CID, data: bytes) -> tuple[PBNode, UnixfsData]:
+    """A dag-pb file node whose declared sizes agree with each other."""
     node, unixfs = decode_node(cid, data)
     if unixfs.type not in (FILE, RAW_TYPE):
         raise UnixfsError(f"{cid} is not a file (UnixFS type {unixfs.type})")
     if len(unixfs.blocksizes) != len(node.links):
         raise UnixfsError(f"{cid} has {len(node.links)} links but {len(unixfs.blocksizes)} sizes")
-    position = len(unixfs.data)
-    if unixfs.data and start < position:
-        yield unixfs.data[start:end]
-    for link, size in zip(node.links, unixfs.blocksizes, strict=True):
-        child_end = position + size
-        if end is not None and position >= end:
-            return
-        if child_end > start:
-            local_end = None if end is None or end >= child_end else end - position
-            yield from _read(link.cid, get_block, max(0, start - position), local_end)
-        position = child_end
+    total = len(unixfs.data) + sum(unixfs.blocksizes)
+    if unixfs.filesize is not None and unixfs.filesize != total:
+        raise UnixfsError(
+            f"{cid} declares a file of {unixfs.filesize} bytes but its data and blocksizes "
+            f"add up to {total}"
+        )
+    return node, unixfs
+
+
+def file_size(root: CID, get_block: GetBlock) -> int:
+    """The size of a file's content, from its root block alone.
+
+    The children are not read here, so this is what the root *declares*; :func:`read_file`
+    checks every block it reads against it and fails rather than return fewer bytes.
+    """
+    data = get_block(root)
+    if root.codec == RAW:
+        return len(data)
+    if root.codec != DAG_PB:
+        raise UnixfsError(f"{root} is neither raw nor dag-pb")
+    _, unixfs = _file_node(root, data)
+    return len(unixfs.data) + sum(unixfs.blocksizes)
+
+
+class _Span(NamedTuple):
+    """A block still to read: the part ``[start, end)`` of its content, and what it holds."""
+
+    cid: CID
+    start: int
+    end: int | None
+    declared: int | None
+    depth: int
+
+
+def read_file(
+    root: CID, get_block: GetBlock, offset: int = 0, length: int | None = None
+) -> Iterator[bytes]:
+    """Stream ``length`` bytes of a file from ``offset`` (to the end when ``length`` is None).
+
+    Iterative, depth-first, touching only the blocks the range needs. Each child must hold
+    exactly the size its parent declared for it, and no path may be deeper than
+    ``MAX_DAG_DEPTH``: a lying or hostile DAG raises :class:`UnixfsError` naming the block,
+    so a server that already promised a length can cut the response off instead of sending
+    a short body as if it were complete.
+    """
+    stack = [_Span(root, offset, None if length is None else offset + length, None, 0)]
+    while stack:
+        span = stack.pop()
+        if span.end is not None and span.end <= span.start:
+            continue
+        if span.depth > MAX_DAG_DEPTH:
+            raise UnixfsError(f"{span.cid} lies deeper than {MAX_DAG_DEPTH} levels in {root}")
+        data = get_block(span.cid)
+        if span.cid.codec == RAW:
+            _check_size(span, len(data), root)
+            yield data[span.start : span.end]
+            continue
+        if span.cid.codec != DAG_PB:
+            raise UnixfsError(f"{span.cid} is neither raw nor dag-pb")
+        node, unixfs = _file_node(span.cid, data)
+        _check_size(span, len(unixfs.data) + sum(unixfs.blocksizes), root)
+        if unixfs.data and span.start < len(unixfs.data):
+            yield unixfs.data[span.start : span.end]
+        children: list[_Span] = []
+        position = len(unixfs.data)
+        for link, size in zip(node.links, unixfs.blocksizes, strict=True):
+            child_end = position + size
+            if span.end is not None and position >= span.end:
+                break
+            if child_end > span.start:
+                local_end = (
+                    None if span.end is None or span.end >= child_end else span.end - position
+                )
+                start = max(0, span.start - position)
+                children.append(_Span(link.cid, start, local_end, size, span.depth + 1))
+            position = child_end
+        stack.extend(reversed(children))
+
+
+def _check_size(span: _Span, actual: int, root: CID) -> None:
+    if span.declared is not None and actual != span.declared:
+        raise UnixfsError(
+            f"{span.cid} holds {actual} bytes but its parent in {root} declares {span.declared}"
+        )
 
 
 def list_directory(root: CID, get_block: GetBlock) -> list[Link]:
@@ -395,11 +445,13 @@ def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Blo
     if scope not in ("block", "entity", "all"):
         raise UnixfsError(f"unknown dag-scope {scope!r}: expected block, entity or all")
     seen: set[CID] = set()
-    stack: list[tuple[CID, bool]] = [(root, True)]
+    stack: list[tuple[CID, bool, int]] = [(root, True, 0)]
     while stack:
-        cid, is_root = stack.pop()
+        cid, is_root, depth = stack.pop()
         if cid in seen:
             continue
+        if depth > MAX_DAG_DEPTH:
+            raise UnixfsError(f"{cid} lies deeper than {MAX_DAG_DEPTH} levels under {root}")
         seen.add(cid)
         data = get_block(cid)
         yield Block(cid, data)
@@ -413,4 +465,4 @@ def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Blo
                 children = []
             elif kind == HAMT_SHARD:
                 children = [link.cid for link in node.links if len(link.name) == 2]
-        stack.extend((child, False) for child in reversed(children))
+        stack.extend((child, False, depth + 1) for child in reversed(children))

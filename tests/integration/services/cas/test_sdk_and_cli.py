@@ -303,7 +303,7 @@ def expanding_dag(levels: int, fanout: int, declared: int | None) -> tuple[list[
     """A file DAG of ``fanout ** levels`` copies of one 1 MiB leaf, in CAR (DFS) order.
 
     A few kilobytes of blocks expand to ``fanout ** levels`` MiB; ``declared`` makes the root
-    lie about its size (None: it tells the truth).
+    lie about its size (None: it tells the truth), consistently: its blocksizes add up to it.
     """
     leaf = Block(CID.from_block(bytes(1 << 20)), bytes(1 << 20))
     child, child_size = leaf.cid, 1 << 20
@@ -311,8 +311,10 @@ def expanding_dag(levels: int, fanout: int, declared: int | None) -> tuple[list[
     for level in range(levels):
         size = child_size * fanout
         top = level == levels - 1
-        filesize = declared if top and declared is not None else size
-        unixfs = UnixfsData(FILE, b"", filesize, [child_size] * fanout)
+        lies = top and declared is not None
+        filesize = declared if lies and declared is not None else size
+        sizes = [filesize // fanout] * fanout if lies else [child_size] * fanout
+        unixfs = UnixfsData(FILE, b"", filesize, sizes)
         encoded = PBNode([Link(child, "", child_size)] * fanout, unixfs.encode()).encode()
         nodes.append(Block(CID.from_block(encoded, DAG_PB), encoded))
         child, child_size = nodes[-1].cid, size
