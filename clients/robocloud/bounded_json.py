@@ -17,6 +17,9 @@ from robocloud.errors import FormatError
 
 MAX_DEPTH = 64
 """Nesting that robocloud's own documents never come near; services may choose their own."""
+MAX_INTEGER_DIGITS = 1000
+"""Longer integers are refused: converting them costs quadratic time, and CPython refuses
+more than 4,300 digits with a bare ValueError anyway."""
 
 _STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
 _NOT_BRACKET = re.compile(rb"[^\[\]{}]+")
@@ -25,6 +28,14 @@ _ONE_KIND = bytes.maketrans(b"{}", b"[]")
 
 class JsonError(FormatError):
     """A document that is not JSON, or not JSON within the bounds the reader accepts."""
+
+
+class JsonNumberError(JsonError):
+    """A number JSON does not have (``NaN``, ``Infinity``) or an integer beyond the bound.
+
+    The document is otherwise well formed, which lets a protocol tell it from a syntax error
+    (JSON-RPC answers -32600 rather than -32700).
+    """
 
 
 class JsonDepthError(JsonError):
@@ -62,8 +73,20 @@ def loads(document: bytes | str, *, max_depth: int = MAX_DEPTH) -> Any:
     if exceeds_depth(raw, max_depth):
         raise JsonDepthError(max_depth)
     try:
-        return json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise JsonError(f"not valid JSON: {exc}") from exc
+        return json.loads(raw, parse_int=_integer, parse_constant=_not_a_number)
     except RecursionError as exc:
         raise JsonDepthError(max_depth) from exc
+    except JsonError:
+        raise
+    except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError among others
+        raise JsonError(f"not valid JSON: {exc}") from exc
+
+
+def _integer(digits: str) -> int:
+    if len(digits.lstrip("-")) > MAX_INTEGER_DIGITS:
+        raise JsonNumberError(f"an integer of more than {MAX_INTEGER_DIGITS} digits")
+    return int(digits)
+
+
+def _not_a_number(constant: str) -> Any:
+    raise JsonNumberError(f"{constant} is not a JSON number")

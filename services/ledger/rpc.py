@@ -9,14 +9,15 @@ a revert is code 3 with the revert bytes in ``data`` and ``execution reverted: <
 
 from __future__ import annotations
 
-import json
 import logging
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
 from eth_utils.address import is_hex_address
 
 import robocloud
+from robocloud import bounded_json
 from services.ledger import encoding
 from services.ledger.chain import (
     BlockTag,
@@ -35,6 +36,9 @@ METHOD_NOT_FOUND = -32601
 INVALID_PARAMS = -32602
 INTERNAL_ERROR = -32603
 MAX_BATCH = 100
+MAX_DEPTH = 32
+"""Ethereum requests nest a handful of levels (a filter's topic lists are the deepest)."""
+MAX_ID_LENGTH = 128
 PRIORITY_FEE_WEI = 10**9
 NAMED_TAGS = ("latest", "pending", "earliest", "safe", "finalized")
 
@@ -70,8 +74,10 @@ class Dispatcher:
     def handle(self, body: bytes) -> Any:
         """The response document for a request body; None when nothing is to be answered."""
         try:
-            document = json.loads(body)
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            document = bounded_json.loads(body, max_depth=MAX_DEPTH)
+        except (bounded_json.JsonNumberError, bounded_json.JsonDepthError) as exc:
+            return _error(None, RpcFailure(INVALID_REQUEST, f"invalid request: {exc}"))
+        except bounded_json.JsonError as exc:
             return _error(None, RpcFailure(PARSE_ERROR, f"parse error: {exc}"))
         if isinstance(document, list):
             if not document:
@@ -87,6 +93,10 @@ class Dispatcher:
         if not isinstance(request, dict) or request.get("jsonrpc") != "2.0":
             return _error(None, RpcFailure(INVALID_REQUEST, "not a JSON-RPC 2.0 request"))
         request_id = request.get("id")
+        if not _valid_id(request_id):
+            return _error(
+                None, RpcFailure(INVALID_REQUEST, "id must be a string, a number or null")
+            )
         method, params = request.get("method"), request.get("params", [])
         if not isinstance(method, str) or not isinstance(params, list | type(None)):
             failure = RpcFailure(INVALID_REQUEST, "method must be a string, params an array")
@@ -118,6 +128,19 @@ class Dispatcher:
         except Exception as exc:
             log.exception("JSON-RPC method failed", extra={"method": method})
             raise RpcFailure(INTERNAL_ERROR, f"internal error in {method}") from exc
+
+
+def _valid_id(value: Any) -> bool:
+    """JSON-RPC 2.0 ids are strings, numbers or null; ours are also bounded in length."""
+    if value is None:
+        return True
+    if isinstance(value, bool):
+        return False
+    if isinstance(value, int):
+        return len(str(value)) <= MAX_ID_LENGTH
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return isinstance(value, str) and len(value) <= MAX_ID_LENGTH
 
 
 def _error(request_id: Any, failure: RpcFailure) -> dict[str, Any]:

@@ -8,7 +8,13 @@ import sys
 
 import pytest
 
-from robocloud.bounded_json import JsonDepthError, JsonError, exceeds_depth, loads
+from robocloud.bounded_json import (
+    JsonDepthError,
+    JsonError,
+    JsonNumberError,
+    exceeds_depth,
+    loads,
+)
 from robocloud.errors import FormatError, RobocloudError
 
 
@@ -80,3 +86,17 @@ def test_a_raised_recursion_limit_cannot_turn_depth_into_a_segfault() -> None:
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == b"refused"
+
+
+@pytest.mark.parametrize(
+    "document",
+    [b"NaN", b"[Infinity]", b'{"id": -Infinity}', b"9" * 1001, b"-" + b"9" * 5000],
+)
+def test_numbers_json_does_not_have_or_too_long_are_number_errors(document: bytes) -> None:
+    with pytest.raises(JsonNumberError):
+        loads(document)
+
+
+def test_long_but_bounded_integers_and_floats_parse() -> None:
+    assert loads(b"9" * 1000) == int("9" * 1000)
+    assert loads(b"[1.5e3, -2]") == [1500.0, -2]
