@@ -12,6 +12,24 @@ import re
 from services.common.errors import RangeNotSatisfiable
 
 _RANGE = re.compile(r"bytes=(\d*)-(\d*)")
+_MAX_DIGITS = 19
+_BEYOND_ANY_FILE = 10**_MAX_DIGITS
+
+
+def _position(digits: str) -> int:
+    """A byte position; one of more than 19 digits lies beyond any file, whatever its value.
+
+    Converting a 5,000-digit number would cost time (and CPython refuses more than 4,300
+    digits), when all that matters is that it is larger than the file.
+    """
+    significant = digits.lstrip("0") or "0"
+    return _BEYOND_ANY_FILE if len(significant) > _MAX_DIGITS else int(significant)
+
+
+def _before(last: str, first: str) -> bool:
+    """``last < first`` for decimal strings of any length, without converting them."""
+    last, first = last.lstrip("0") or "0", first.lstrip("0") or "0"
+    return (len(last), last) < (len(first), first)
 
 
 def byte_range(header: str | None, size: int) -> tuple[int, int] | None:
@@ -23,13 +41,13 @@ def byte_range(header: str | None, size: int) -> tuple[int, int] | None:
         return None
     first, last = match.group(1), match.group(2)
     if not first:
-        suffix = int(last)
+        suffix = _position(last)
         if suffix == 0 or size == 0:
             raise _unsatisfiable(header, size)
         return max(0, size - suffix), size
-    start = int(first)
-    end = size if not last else min(int(last) + 1, size)
-    if last and int(last) < start:
+    start = _position(first)
+    end = size if not last else min(_position(last) + 1, size)
+    if last and _before(last, first):
         return None
     if start >= size:
         raise _unsatisfiable(header, size)

@@ -21,6 +21,10 @@ from services.common.errors import RangeNotSatisfiable
         ("items=0-1", None),
         ("bytes=9-1", None),
         ("bytes=-", None),
+        ("bytes=0-" + "9" * 5000, (0, 100)),
+        ("bytes=-" + "9" * 5000, (0, 100)),
+        ("bytes=" + "0" * 5000 + "7-8", (7, 9)),
+        ("bytes=" + "9" * 5000 + "-" + "1" * 5000, None),
     ],
 )
 def test_served_ranges(header: str | None, expected: tuple[int, int] | None) -> None:
@@ -28,7 +32,8 @@ def test_served_ranges(header: str | None, expected: tuple[int, int] | None) -> 
 
 
 @pytest.mark.parametrize(
-    ("header", "size"), [("bytes=100-", 100), ("bytes=-0", 100), ("bytes=0-", 0)]
+    ("header", "size"),
+    [("bytes=100-", 100), ("bytes=-0", 100), ("bytes=0-", 0), ("bytes=" + "9" * 5000 + "-", 100)],
 )
 def test_unsatisfiable(header: str, size: int) -> None:
     with pytest.raises(RangeNotSatisfiable) as exc:
