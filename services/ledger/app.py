@@ -24,6 +24,7 @@ from services.common.bodies import read_json
 from services.common.errors import Forbidden, NotFound, TooManyRequests, Unavailable
 from services.common.settings import ServiceSettings
 from services.ledger import views
+from services.ledger.calls import CallLimits
 from services.ledger.external import ExternalLedger
 from services.ledger.faucet import FaucetLimits, RateLimited
 from services.ledger.node import EmbeddedLedger, FaucetUnavailable, Ledger
@@ -43,6 +44,15 @@ class LedgerSettings(ServiceSettings):
     ledger_faucet_amount_wei: int = Field(default=10**18, gt=0)
     ledger_faucet_interval_s: float = Field(default=3600.0, ge=0)
     ledger_faucet_per_minute: int = Field(default=60, gt=0)
+    ledger_rpc_gas_cap: int | None = Field(
+        default=None, gt=0, description="gas an eth_call may use; unset: the block gas limit"
+    )
+    ledger_rpc_evm_timeout_s: float = Field(
+        default=5.0, gt=0, description="wall-clock limit of one eth_call or eth_estimateGas"
+    )
+
+
+READY_TIMEOUT_S = 2.0
 
 
 class FaucetRequest(BaseModel):
@@ -64,7 +74,10 @@ def _open(settings: LedgerSettings) -> Ledger:
         settings.ledger_faucet_interval_s,
         settings.ledger_faucet_per_minute,
     )
-    return EmbeddedLedger(data_dir, passphrase, limits, settings.ledger_faucet_amount_wei)
+    call_limits = CallLimits(settings.ledger_rpc_gas_cap, settings.ledger_rpc_evm_timeout_s)
+    return EmbeddedLedger(
+        data_dir, passphrase, limits, settings.ledger_faucet_amount_wei, call_limits
+    )
 
 
 def _ledger(request: Request) -> Ledger:
@@ -168,15 +181,22 @@ def build_app(settings: LedgerSettings) -> FastAPI:
             app.state.ledger = None
             await anyio.to_thread.run_sync(ledger.close)
 
-    async def ledger_open() -> None:
-        if getattr(app.state, "ledger", None) is None:
+    async def chain_answers() -> None:
+        """Ready only while the chain answers a read within ``READY_TIMEOUT_S``."""
+        ledger: Ledger | None = getattr(app.state, "ledger", None)
+        if ledger is None:
             raise RuntimeError("the ledger is not open")
+        try:
+            with anyio.fail_after(READY_TIMEOUT_S):
+                await anyio.to_thread.run_sync(ledger.latest_block, abandon_on_cancel=True)
+        except TimeoutError:
+            raise RuntimeError(f"the chain did not answer within {READY_TIMEOUT_S:g} s") from None
 
     app = create_app(
         "ledger",
         settings.model_copy(update={"auth": "signed"}),
         routers=[_router()],
-        readiness_checks=[ledger_open],
+        readiness_checks=[chain_answers],
         lifespan=lifespan,
         unsigned_paths=["/rpc"],
         description=services.ledger.__doc__ or "",

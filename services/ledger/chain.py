@@ -28,6 +28,7 @@ from eth_utils.crypto import keccak
 from eth_utils.exceptions import ValidationError
 
 from robocloud.ledger.abi import decode_revert
+from services.ledger.calls import CallLimits, CallTimeout, SnapshotCalls, SnapshotChain
 from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
 
 log = logging.getLogger("robocloud.ledger.chain")
@@ -101,10 +102,17 @@ BlockListener = Callable[[MinedBlock], None]
 class EmbeddedChain:
     """The durable automining chain with chain id 1337."""
 
-    def __init__(self, path: Path, genesis_state: Mapping[bytes, Any] | None = None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        genesis_state: Mapping[bytes, Any] | None = None,
+        call_limits: CallLimits | None = None,
+    ) -> None:
         self._lock = threading.RLock()
         self._chain, self._db = open_chain(path, genesis_state)
         self._path = path
+        self.call_limits = call_limits or CallLimits()
+        self._calls = SnapshotCalls(path, self.call_limits)
         self._listeners: list[BlockListener] = []
         self._recent: OrderedDict[bytes, tuple[SignedTransactionAPI, MinedBlock]] = OrderedDict()
 
@@ -113,6 +121,7 @@ class EmbeddedChain:
         return CHAIN_ID
 
     def close(self) -> None:
+        self._calls.close()
         with self._lock:
             self._db.close()
 
@@ -218,39 +227,52 @@ class EmbeddedChain:
 
     def call(self, request: CallRequest, tag: BlockTag) -> bytes:
         """Run a call on the state after block ``tag``; raise ``Reverted`` with its reason."""
-        return bytes(self._execute(request, tag, self._chain.get_transaction_result))
+        return bytes(self._execute(request, tag, SnapshotChain.get_transaction_result))
 
     def estimate_gas(self, request: CallRequest, tag: BlockTag) -> int:
         """The least gas with which the call succeeds; ``Reverted`` if it never does."""
-        return int(self._execute(request, tag, self._chain.estimate_gas))
+        return int(self._execute(request, tag, SnapshotChain.estimate_gas))
 
     def _execute(
         self,
         request: CallRequest,
         tag: BlockTag,
-        run: Callable[[SignedTransactionAPI, BlockHeaderAPI], Any],
+        run: Callable[[SnapshotChain, SignedTransactionAPI, BlockHeaderAPI], Any],
     ) -> Any:
-        """Run an unsigned ``request`` through ``run``, with py-evm's failures as ChainErrors."""
+        """Run an unsigned ``request`` on a snapshot, with py-evm's failures as ChainErrors.
+
+        Only finding the block takes the chain's lock; the execution itself does not.
+        """
         with self._lock:
             header = self.header_at(tag)
-            try:
-                return run(self._spoof(request, header), header)
-            except Revert as exc:
-                raise Reverted(bytes(exc.args[0]) if exc.args else b"") from exc
-            except ValidationError as exc:
-                raise ChainError(str(exc)) from exc
-            except Exception as exc:
-                if type(exc).__module__.startswith("eth."):
-                    raise ChainError(f"execution failed: {type(exc).__name__} {exc}") from exc
-                raise
 
-    def _spoof(self, request: CallRequest, header: BlockHeaderAPI) -> SignedTransactionAPI:
+        def work(chain: SnapshotChain) -> Any:
+            return run(chain, self._spoof(chain, request, header), header)
+
+        try:
+            return self._calls.run(header, work)
+        except CallTimeout as exc:
+            raise ChainError(
+                f"execution aborted (timeout = {self.call_limits.timeout_s:g}s)"
+            ) from exc
+        except Revert as exc:
+            raise Reverted(bytes(exc.args[0]) if exc.args else b"") from exc
+        except ValidationError as exc:
+            raise ChainError(str(exc)) from exc
+        except Exception as exc:
+            if type(exc).__module__.startswith("eth."):
+                raise ChainError(f"execution failed: {type(exc).__name__} {exc}") from exc
+            raise
+
+    def _spoof(
+        self, chain: SnapshotChain, request: CallRequest, header: BlockHeaderAPI
+    ) -> SignedTransactionAPI:
         """The request as a transaction py-evm executes without a signature."""
-        vm = self._chain.get_vm(at_header=header)
+        vm = chain.get_vm(at_header=header)
         unsigned = vm.create_unsigned_transaction(
             nonce=vm.state.get_nonce(Address(request.sender)),
             gas_price=request.gas_price,
-            gas=request.gas if request.gas is not None else header.gas_limit,
+            gas=self.call_limits.gas_for(request.gas, header.gas_limit),
             to=request.to,  # type: ignore[arg-type]
             value=request.value,
             data=request.data,

@@ -42,13 +42,15 @@ CHAIN_ID = 1337
 class SqliteKeyValue(BaseDB):
     """A durable byte-to-byte map; writes outside a transaction commit one by one."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, read_only: bool = False) -> None:
         self.depth = 0
         self.connection = open_sqlite(
             path,
             "CREATE TABLE IF NOT EXISTS kv (key BLOB PRIMARY KEY, value BLOB NOT NULL)",
             synchronous="FULL",
         )
+        if read_only:
+            self.connection.execute("PRAGMA query_only=ON")
 
     def __getitem__(self, key: bytes) -> bytes:
         row = self.connection.execute("SELECT value FROM kv WHERE key = ?", (key,)).fetchone()
@@ -100,8 +102,8 @@ class SqliteKeyValue(BaseDB):
 class DurableAtomicDB(AtomicDB):
     """py-evm's atomic database whose every batch is one SQLite transaction."""
 
-    def __init__(self, path: Path) -> None:
-        self.store = SqliteKeyValue(path)
+    def __init__(self, path: Path, *, read_only: bool = False) -> None:
+        self.store = SqliteKeyValue(path, read_only=read_only)
         super().__init__(self.store)
 
     @contextmanager

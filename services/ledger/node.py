@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from services.ledger import encoding
+from services.ledger.calls import CallLimits
 from services.ledger.chain import ChainError, EmbeddedChain, MinedBlock
 from services.ledger.contracts import Deployment, deploy, send_as
 from services.ledger.faucet import FaucetLimits
@@ -48,12 +49,13 @@ class EmbeddedLedger:
         configured_passphrase: str | None,
         limits: FaucetLimits,
         faucet_amount_wei: int,
+        call_limits: CallLimits,
     ) -> None:
         keys: OperatorKeys = load_or_create(data_dir, passphrase(data_dir, configured_passphrase))
         self.faucet_key = keys.faucet
         self.limits = limits
         self.faucet_amount_wei = faucet_amount_wei
-        self.chain = EmbeddedChain(data_dir / "chain.sqlite", keys.genesis_state())
+        self.chain = EmbeddedChain(data_dir / "chain.sqlite", keys.genesis_state(), call_limits)
         self.chain_id = self.chain.chain_id
         self.deployment = deploy(self.chain, keys.admin)
         self.index = EventIndex(
