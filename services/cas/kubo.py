@@ -169,13 +169,9 @@ async def block_put(
         request.stream(), boundary_of(request.headers.get("content-type")), collector
     )
     store = _store(request)
-
-    def put_all() -> list[CID]:
-        return [
-            store.put_block(data, collector.codec, address, pin=pin) for data in collector.blocks
-        ]
-
-    cids = await anyio.to_thread.run_sync(put_all)
+    cids = await anyio.to_thread.run_sync(
+        lambda: store.put_blocks(collector.blocks, collector.codec, address, pin=pin)
+    )
     return _lines(
         {"Key": str(cid), "Size": len(data)}
         for cid, data in zip(cids, collector.blocks, strict=True)

@@ -145,12 +145,17 @@ class ContentStore:
             return self.blocks.size(cid)
         return len(self.get_block(cid, use_peers=use_peers))
 
-    def put_block(self, data: bytes, codec: int, owner: str, *, pin: bool) -> CID:
-        cid = CID.from_block(data, codec, 1)
-        self.blocks.put(cid, data)
+    def put_blocks(self, blocks: list[bytes], codec: int, owner: str, *, pin: bool) -> list[CID]:
+        """Store raw blocks as one pack (one fsync, all or none), then pin them if asked."""
+        cids = [CID.from_block(data, codec, 1) for data in blocks]
+        with self.blocks.stage() as staging:
+            for cid, data in zip(cids, blocks, strict=True):
+                staging.add(cid, data)
+            staging.commit()
         if pin:
-            self.pins.add(cid, owner)
-        return cid
+            for cid in dict.fromkeys(cids):
+                self.pins.add(cid, owner)
+        return cids
 
     # ---- files ----
 
