@@ -250,17 +250,23 @@ async def dag_import(
         await receive_parts(request.stream(), boundary, spool)
 
         def commit() -> list[dict[str, Any]]:
+            # Each root's DAG is walked before anything is committed: one too deep or
+            # malformed to pin rejects the whole import, leaving the store as it was.
+            missing = {root: store.missing_block(root, staging) for root in spool.roots}
             staging.commit()
-            return [_pin_root(store, root, address, pin_roots) for root in spool.roots]
+            return [
+                _pin_root(store, root, missing[root], address, pin_roots) for root in spool.roots
+            ]
 
         answers = await anyio.to_thread.run_sync(commit)
     return _lines(answers)
 
 
-def _pin_root(store: ContentStore, root: CID, owner: str, pin: bool) -> dict[str, Any]:
+def _pin_root(
+    store: ContentStore, root: CID, missing: CID | None, owner: str, pin: bool
+) -> dict[str, Any]:
     error = ""
     if pin:
-        missing = store.missing_block(root)
         if missing is None:
             store.pins.add(root, owner)
         else:

@@ -1,0 +1,78 @@
+"""DAGs deeper than any importer makes: refused with the limit named, the service unhurt.
+
+A 30,000-deep dag-pb chain (a 2.6 MB CAR) used to segfault cas when it was read back: the
+reader recursed once per level, and py_ecc had raised the recursion limit to 100,000.
+"""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+
+from robocloud.car import write_car
+from robocloud.cid import CID
+from robocloud.client import ServiceClient
+from robocloud.errors import ApiError
+from robocloud.unixfs import MAX_DAG_DEPTH, Block
+from tests.integration.services.cas.conftest import error_of, multipart, repo_stat
+from tests.procs import ServiceProcess
+from tests.unit.robocloud.test_unixfs_hostile import LEAF, chain
+
+
+def import_car(signed: ServiceClient, root: CID, blocks: dict[CID, bytes]) -> None:
+    car = b"".join(write_car([root], [Block(cid, data) for cid, data in blocks.items()]))
+    body, content_type = multipart(("chain.car", car))
+    signed.request(
+        "POST", "/api/v0/dag/import", content=body, headers={"Content-Type": content_type}
+    )
+
+
+def alive(service: ServiceProcess) -> bool:
+    assert service.process is not None
+    return service.process.poll() is None and httpx.get(f"{service.url}/healthz").is_success
+
+
+def test_a_30000_deep_car_is_refused_whole(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    root, blocks = chain(30_000)
+    with pytest.raises(ApiError) as exc:
+        import_car(signed, root, blocks)
+    error = error_of(exc, 400, "invalid_dag")
+    assert f"deeper than {MAX_DAG_DEPTH} levels" in error.message
+    assert repo_stat(cas_service.url)["NumObjects"] == 0
+    assert httpx.get(f"{cas_service.url}/ipfs/{root}").status_code == 404
+    assert alive(cas_service)
+
+
+def test_a_too_deep_dag_put_block_by_block_is_refused_when_read(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    """Blocks stored one by one are each valid; reading the file is what must stop."""
+    root, blocks = chain(MAX_DAG_DEPTH + 5)
+    leaf_and_nodes = list(blocks.values())
+    raw_leaf, nodes = leaf_and_nodes[0], leaf_and_nodes[1:]
+    assert raw_leaf == LEAF
+    for codec, parts in (("raw", [raw_leaf]), ("dag-pb", nodes)):
+        body, content_type = multipart(*((str(i), data) for i, data in enumerate(parts)))
+        signed.request(
+            "POST",
+            "/api/v0/block/put",
+            params={"cid-codec": codec},
+            content=body,
+            headers={"Content-Type": content_type},
+        )
+    for request in (
+        httpx.Request("GET", f"{cas_service.url}/ipfs/{root}"),
+        httpx.Request("GET", f"{cas_service.url}/ipfs/{root}?format=car"),
+        httpx.Request("POST", f"{cas_service.url}/api/v0/cat?arg={root}"),
+        httpx.Request("POST", f"{cas_service.url}/api/v0/dag/export?arg={root}"),
+    ):
+        with httpx.Client(timeout=60) as client:
+            response = client.send(request)
+        assert response.status_code == 400, (request.url, response.text[:300])
+        assert f"deeper than {MAX_DAG_DEPTH} levels" in response.json()["error"]["message"]
+    with pytest.raises(ApiError) as exc:
+        signed.request("POST", "/api/v0/pin/add", params={"arg": str(root)})
+    assert f"deeper than {MAX_DAG_DEPTH} levels" in error_of(exc, 400, "invalid_dag").message
+    assert alive(cas_service)
