@@ -10,10 +10,10 @@ import httpx
 import pytest
 
 from robocloud.car import write_car
-from robocloud.cid import CID
+from robocloud.cid import CID, DAG_PB
 from robocloud.client import ServiceClient
 from robocloud.errors import ApiError
-from robocloud.unixfs import MAX_DAG_DEPTH, Block
+from robocloud.unixfs import FILE, MAX_DAG_DEPTH, Block, Link, PBNode, UnixfsData
 from tests.integration.services.cas.conftest import error_of, multipart, repo_stat
 from tests.procs import ServiceProcess
 from tests.unit.robocloud.test_unixfs_hostile import LEAF, chain
@@ -75,4 +75,39 @@ def test_a_too_deep_dag_put_block_by_block_is_refused_when_read(
     with pytest.raises(ApiError) as exc:
         signed.request("POST", "/api/v0/pin/add", params={"arg": str(root)})
     assert f"deeper than {MAX_DAG_DEPTH} levels" in error_of(exc, 400, "invalid_dag").message
+    assert alive(cas_service)
+
+
+def lying_file() -> tuple[CID, dict[CID, bytes], int]:
+    """Two honest 4 MiB leaves, then one that holds 5 bytes where its root declares 10."""
+    leaves = [bytes([1]) * (4 << 20), bytes([2]) * (4 << 20), b"short"]
+    cids = [CID.from_block(leaf) for leaf in leaves]
+    sizes = [len(leaves[0]), len(leaves[1]), 10]
+    unixfs = UnixfsData(FILE, b"", sum(sizes), sizes)
+    root_block = PBNode([Link(c, "", s) for c, s in zip(cids, sizes, strict=True)], unixfs.encode())
+    encoded = root_block.encode()
+    root = CID.from_block(encoded, DAG_PB)
+    return root, {root: encoded, **dict(zip(cids, leaves, strict=True))}, sum(sizes)
+
+
+def test_a_file_shorter_than_its_root_declares_is_cut_off_not_completed(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    root, blocks, declared = lying_file()
+    import_car(signed, root, blocks)
+    url = f"{cas_service.url}/ipfs/{root}"
+    received: list[bytes] = []
+
+    def read_all(response: httpx.Response) -> None:
+        received.extend(response.iter_bytes())
+
+    with httpx.stream("GET", url, timeout=60) as response:
+        assert response.status_code == 200
+        assert response.headers["content-length"] == str(declared)
+        with pytest.raises(httpx.RemoteProtocolError):
+            read_all(response)
+    assert sum(map(len, received)) < declared
+    tail = httpx.get(url, headers={"Range": f"bytes={8 << 20}-"}, timeout=60)
+    assert tail.status_code == 400
+    assert "holds 5 bytes but its parent" in tail.json()["error"]["message"]
     assert alive(cas_service)
