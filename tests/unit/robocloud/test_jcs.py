@@ -1,0 +1,96 @@
+"""RFC 8785 canonical JSON against the RFC's own examples."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import pytest
+
+from robocloud.bounded_json import JsonDepthError
+from robocloud.errors import FormatError
+from robocloud.jcs import JcsError, canonical, canonicalize
+
+# RFC 8785 Appendix B: IEEE 754 doubles (hex) and their ECMAScript serialisation.
+NUMBERS = [
+    ("0000000000000000", "0"),
+    ("8000000000000000", "0"),
+    ("0000000000000001", "5e-324"),
+    ("8000000000000001", "-5e-324"),
+    ("7fefffffffffffff", "1.7976931348623157e+308"),
+    ("ffefffffffffffff", "-1.7976931348623157e+308"),
+    ("4340000000000000", "9007199254740992"),
+    ("c340000000000000", "-9007199254740992"),
+    ("4430000000000000", "295147905179352830000"),
+    ("44b52d02c7e14af5", "9.999999999999997e+22"),
+    ("44b52d02c7e14af6", "1e+23"),
+    ("44b52d02c7e14af7", "1.0000000000000001e+23"),
+    ("444b1ae4d6e2ef4e", "999999999999999700000"),
+    ("444b1ae4d6e2ef4f", "999999999999999900000"),
+    ("444b1ae4d6e2ef50", "1e+21"),
+    ("3eb0c6f7a0b5ed8c", "9.999999999999997e-7"),
+    ("3eb0c6f7a0b5ed8d", "0.000001"),
+    ("41b3de4355555553", "333333333.3333332"),
+    ("41b3de4355555554", "333333333.33333325"),
+    ("41b3de4355555555", "333333333.3333333"),
+    ("41b3de4355555556", "333333333.3333334"),
+    ("41b3de4355555557", "333333333.33333343"),
+    ("becbf647612f3696", "-0.0000033333333333333333"),
+    ("43143ff3c1cb0959", "1424953923781206.2"),
+]
+
+
+@pytest.mark.parametrize(("ieee", "expected"), NUMBERS)
+def test_numbers_serialise_as_appendix_b(ieee: str, expected: str) -> None:
+    (value,) = struct.unpack(">d", bytes.fromhex(ieee))
+    assert canonical(value) == expected.encode()
+
+
+@pytest.mark.parametrize("ieee", ["7fffffffffffffff", "7ff0000000000000", "fff0000000000000"])
+def test_nan_and_infinities_are_refused(ieee: str) -> None:
+    (value,) = struct.unpack(">d", bytes.fromhex(ieee))
+    with pytest.raises(JcsError):
+        canonical(value)
+
+
+def test_the_section_3_2_2_example() -> None:
+    document = (
+        '{"numbers": [333333333.33333329, 1E30, 4.50, 2e-3, 0.000000000000000000000000001],'
+        ' "string": "\\u20ac$\\u000F\\u000aA\'\\u0042\\u0022\\u005c\\\\\\"\\/",'
+        ' "literals": [null, true, false]}'
+    )
+    assert (
+        canonicalize(document)
+        == (
+            '{"literals":[null,true,false],"numbers":[333333333.3333333,1e+30,4.5,0.002,1e-27],'
+            '"string":"€$\\u000f\\nA\'B\\"\\\\\\\\\\"/"}'
+        ).encode()
+    )
+
+
+def test_the_section_3_2_3_sorting_example() -> None:
+    document = json.dumps(
+        {
+            "\u20ac": "Euro Sign",
+            "\r": "Carriage Return",
+            "\ufb33": "Hebrew Letter Dalet With Dagesh",
+            "1": "One",
+            "\U0001f600": "Emoji: Grinning Face",
+            "\u0080": "Control",
+            "\u00f6": "Latin Small Letter O With Diaeresis",
+        }
+    )
+    keys = list(json.loads(canonicalize(document)))
+    assert keys == ["\r", "1", "\u0080", "\u00f6", "\u20ac", "\U0001f600", "\ufb33"]
+
+
+def test_unsafe_integers_and_non_json_values_are_jcs_errors() -> None:
+    for value in (2**60, {1: "int key"}, {"set": {1, 2}}, b"bytes"):
+        with pytest.raises(JcsError) as raised:
+            canonical(value)
+        assert isinstance(raised.value, FormatError)
+
+
+def test_deep_documents_are_refused_before_canonicalization() -> None:
+    with pytest.raises(JsonDepthError):
+        canonicalize(b"[" * 10_000 + b"]" * 10_000)
