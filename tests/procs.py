@@ -15,6 +15,11 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
+def audience_of(url: str) -> str:
+    """The audience the service at ``url`` serves, which a V2 signature for it must name."""
+    return str(httpx.get(f"{url}/v1/audience", timeout=10).json()["audience"])
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -45,6 +50,10 @@ class ServiceProcess:
     @property
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
+
+    @property
+    def audience(self) -> str:
+        return audience_of(self.url)
 
     def start(self, timeout_s: float = 30.0) -> ServiceProcess:
         self.data_dir.mkdir(parents=True, exist_ok=True)

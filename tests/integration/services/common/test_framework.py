@@ -46,12 +46,15 @@ def http(storage: ServiceProcess) -> Iterator[httpx.Client]:
         yield client
 
 
+AUDIENCE = "storage@local"
+
+
 def signed_headers(
     identity: Identity, path: str = "/v1/whoami", body: bytes = BODY, **kwargs: object
 ) -> dict[str, str]:
     raw_path, _, query = path.partition("?")
     digest = hashlib.sha256(body).hexdigest() if body else EMPTY_SHA256
-    headers = sign_request(identity.account, "POST", raw_path, query, digest, **kwargs)  # type: ignore[arg-type]
+    headers = sign_request(identity.account, AUDIENCE, "POST", raw_path, query, digest, **kwargs)  # type: ignore[arg-type]
     return {**headers, "Content-Type": "application/json"}
 
 
