@@ -55,7 +55,8 @@ class ServiceProcess:
     def audience(self) -> str:
         return audience_of(self.url)
 
-    def start(self, timeout_s: float = 30.0) -> ServiceProcess:
+    def start(self, timeout_s: float = 30.0, *, ready: bool = True) -> ServiceProcess:
+        """Start and wait until ``/readyz`` answers 200 (``/healthz`` when not ``ready``)."""
         self.data_dir.mkdir(parents=True, exist_ok=True)
         log = self.log_path.open("ab")
         self.process = subprocess.Popen(
@@ -65,12 +66,17 @@ class ServiceProcess:
             stdout=log,
             stderr=subprocess.STDOUT,
         )
+        return self.wait("/readyz" if ready else "/healthz", timeout_s)
+
+    def wait(self, probe: str = "/readyz", timeout_s: float = 30.0) -> ServiceProcess:
+        """Poll ``probe`` until it answers 200; stop the process if it never does."""
+        assert self.process is not None, "start() first"
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
                 raise RuntimeError(f"{self.name} exited at start:\n{self.log()}")
             try:
-                if httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200:
+                if httpx.get(f"{self.url}{probe}", timeout=1).status_code == 200:
                     return self
             except httpx.HTTPError:
                 pass
