@@ -28,7 +28,9 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
         app,
         host=settings.host,
         port=settings.resolved_port(),
-        http=bounded_protocol(settings.max_request_line_bytes, settings.max_header_bytes),
+        http=bounded_protocol(
+            settings.max_request_line_bytes, settings.max_header_bytes, settings.header_timeout_s
+        ),
         h11_max_incomplete_event_size=settings.max_header_bytes,
         log_config=None,
         access_log=False,
@@ -58,6 +60,7 @@ def run_service(
             "recursion_limit": sys.getrecursionlimit(),
             "max_request_line_bytes": settings.max_request_line_bytes,
             "max_header_bytes": settings.max_header_bytes,
+            "header_timeout_s": settings.header_timeout_s,
         },
     )
     serve(app, settings)

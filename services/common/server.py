@@ -6,6 +6,9 @@ stalled every other request. Here the bytes of each request head are counted bef
 parser sees them: a request line longer than ``max_request_line_bytes`` is answered 414 and a
 head (request line and header fields) longer than ``max_header_bytes`` 431, both as soon as
 the bytes that break the limit arrive, and the connection is closed without reading the rest.
+A head must also be complete within ``header_timeout_s`` of its first byte (408), so that
+connections dribbling a byte at a time cannot be held open until the process runs out of
+file descriptors: uvicorn times out only idle kept-alive connections.
 h11 buffers at most one head, and its own bound (``h11_max_incomplete_event_size``) is set to
 the same limit as a backstop for pipelined requests, whose bytes may arrive together with an
 earlier request's body.
@@ -13,6 +16,7 @@ earlier request's body.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import re
@@ -40,7 +44,7 @@ class HeadRefusal:
     status: int
     code: str
     message: str
-    limit: int
+    details: dict[str, float]
 
 
 class HeadMeter:
@@ -76,7 +80,7 @@ class HeadMeter:
                     414,
                     "request_line_too_long",
                     f"the request line exceeds {self.max_request_line_bytes} bytes",
-                    self.max_request_line_bytes,
+                    {"limit": self.max_request_line_bytes},
                 )
         window = self._tail + data
         end = _BLANK_LINE.search(window)
@@ -92,7 +96,7 @@ class HeadMeter:
                 "headers_too_large",
                 f"the request head (request line and header fields) exceeds "
                 f"{self.max_header_bytes} bytes",
-                self.max_header_bytes,
+                {"limit": self.max_header_bytes},
             )
         return None
 
@@ -106,10 +110,12 @@ class BoundedH11Protocol(H11Protocol):
 
     max_request_line_bytes: ClassVar[int] = 8 * 1024
     max_header_bytes: ClassVar[int] = 64 * 1024
+    header_timeout_s: ClassVar[float] = 30.0
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._head = HeadMeter(self.max_request_line_bytes, self.max_header_bytes)
+        self._head_deadline: asyncio.TimerHandle | None = None
         self._refused = False
 
     def data_received(self, data: bytes) -> None:
@@ -125,11 +131,37 @@ class BoundedH11Protocol(H11Protocol):
             if refusal is not None:
                 self._refuse(refusal)
                 return
+            if self._head.counting and self._head_deadline is None:
+                self._head_deadline = self.loop.call_later(self.header_timeout_s, self._too_slow)
+            elif not self._head.counting:
+                self._cancel_deadline()
         super().data_received(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._cancel_deadline()
+        super().connection_lost(exc)
+
+    def _cancel_deadline(self) -> None:
+        if self._head_deadline is not None:
+            self._head_deadline.cancel()
+            self._head_deadline = None
+
+    def _too_slow(self) -> None:
+        self._head_deadline = None
+        if self._head.counting and self.conn.their_state is h11.IDLE and not self._refused:
+            self._refuse(
+                HeadRefusal(
+                    408,
+                    "header_timeout",
+                    f"the request head did not arrive within {self.header_timeout_s:g} s",
+                    {"limit_s": self.header_timeout_s},
+                )
+            )
 
     def _refuse(self, refusal: HeadRefusal) -> None:
         """Answer in the error model and close without reading the rest of the request."""
         self._refused = True
+        self._cancel_deadline()
         request_id = uuid.uuid4().hex
         token = request_id_var.set(request_id)
         try:
@@ -139,8 +171,8 @@ class BoundedH11Protocol(H11Protocol):
             )
         finally:
             request_id_var.reset(token)
-        details = {"limit": refusal.limit}
-        body = json.dumps(error_body(refusal.code, refusal.message, details, request_id)).encode()
+        error = error_body(refusal.code, refusal.message, refusal.details, request_id)
+        body = json.dumps(error).encode()
         head = (
             f"HTTP/1.1 {refusal.status} {HTTPStatus(refusal.status).phrase}\r\n"
             "content-type: application/json\r\n"
@@ -152,7 +184,9 @@ class BoundedH11Protocol(H11Protocol):
         self.transport.close()
 
 
-def bounded_protocol(max_request_line_bytes: int, max_header_bytes: int) -> type[H11Protocol]:
+def bounded_protocol(
+    max_request_line_bytes: int, max_header_bytes: int, header_timeout_s: float
+) -> type[H11Protocol]:
     """The protocol class for uvicorn's ``http=`` with these limits."""
     return type(
         "BoundedH11Protocol",
@@ -160,5 +194,6 @@ def bounded_protocol(max_request_line_bytes: int, max_header_bytes: int) -> type
         {
             "max_request_line_bytes": max_request_line_bytes,
             "max_header_bytes": max_header_bytes,
+            "header_timeout_s": header_timeout_s,
         },
     )

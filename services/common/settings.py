@@ -51,6 +51,7 @@ class ServiceSettings(BaseSettings):
     max_body_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
     max_request_line_bytes: int = Field(default=8 * 1024, ge=64)
     max_header_bytes: int = Field(default=64 * 1024, ge=256)
+    header_timeout_s: float = Field(default=30.0, gt=0)
     max_clock_skew_s: int = Field(default=300, gt=0)
     log_level: str = "INFO"
     cas_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['cas']}"

@@ -157,6 +157,39 @@ def test_limits_are_the_services_settings(service_factory: ServiceFactory) -> No
     assert too_long.json()["error"]["details"] == {"limit": 1024}
 
 
+def test_head_dribbled_a_byte_at_a_time_is_cut_off_with_408(
+    service_factory: ServiceFactory,
+) -> None:
+    """Slowloris: each byte arrives well within any idle timeout, the head never completes."""
+    service = service_factory("broker", {"ROBOCLOUD_HEADER_TIMEOUT_S": "1"})
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+        answered = False
+        for _ in range(300):  # 60 s at most; the service cuts it off after 1 s
+            if select.select([sock], [], [], 0.2)[0]:
+                answered = True
+                break
+            sock.sendall(b"X")
+        assert answered, "the service never cut the slow head off"
+        status, answer = read_answer(sock)
+    assert status == 408
+    assert answer["error"]["code"] == "header_timeout"
+    assert answer["error"]["details"] == {"limit_s": 1.0}
+    assert healthz(service)["status"] == "ok"
+
+
+def test_kept_alive_connection_is_not_timed_out_between_quick_requests(
+    service_factory: ServiceFactory,
+) -> None:
+    """The head deadline starts with a head's first byte and ends with its last."""
+    service = service_factory("broker", {"ROBOCLOUD_HEADER_TIMEOUT_S": "1"})
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:
+        for _ in range(3):
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert read_answer(sock) == (200, healthz(service))
+            select.select([], [], [], 0.7)  # together longer than the deadline, each shorter
+
+
 def test_100000_deep_json_body_is_400_and_the_service_stays_up(
     storage: ServiceProcess, identity: Identity
 ) -> None:

@@ -44,7 +44,7 @@ def test_long_request_line_is_414_before_its_end_arrives() -> None:
     assert meter.feed(b"GET /" + b"a" * 90) is None
     refusal = meter.feed(b"a" * 10)
     assert refusal == HeadRefusal(
-        414, "request_line_too_long", "the request line exceeds 100 bytes", 100
+        414, "request_line_too_long", "the request line exceeds 100 bytes", {"limit": 100}
     )
 
 
@@ -55,7 +55,11 @@ def test_long_header_field_is_431_before_the_head_ends() -> None:
     assert refusals[:9] == [None] * 9, "923 bytes so far"
     refusal = refusals[9]
     assert refusal is not None
-    assert (refusal.status, refusal.code, refusal.limit) == (431, "headers_too_large", 1000)
+    assert (refusal.status, refusal.code, refusal.details) == (
+        431,
+        "headers_too_large",
+        {"limit": 1000},
+    )
 
 
 def test_a_complete_head_over_the_limit_in_one_chunk_is_431() -> None:
