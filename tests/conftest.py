@@ -24,11 +24,17 @@ def service_factory(tmp_path: Path) -> Iterator[ServiceFactory]:
     started: list[ServiceProcess] = []
 
     def start(
-        name: str, env: dict[str, str] | None = None, data_dir: Path | None = None
+        name: str,
+        env: dict[str, str] | None = None,
+        data_dir: Path | None = None,
+        *,
+        ready: bool = True,
+        port: int | None = None,
     ) -> ServiceProcess:
-        process = ServiceProcess(name, data_dir or tmp_path / f"{name}-{len(started)}", env)
+        data_dir = data_dir or tmp_path / f"{name}-{len(started)}"
+        process = ServiceProcess(name, data_dir, env, port=port)
         started.append(process)
-        return process.start()
+        return process.start(ready=ready)
 
     yield start
     for process in started:

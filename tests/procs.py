@@ -15,6 +15,11 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
+def audience_of(url: str) -> str:
+    """The audience the service at ``url`` serves, which a V2 signature for it must name."""
+    return str(httpx.get(f"{url}/v1/audience", timeout=10).json()["audience"])
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -46,7 +51,12 @@ class ServiceProcess:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout_s: float = 30.0) -> ServiceProcess:
+    @property
+    def audience(self) -> str:
+        return audience_of(self.url)
+
+    def start(self, timeout_s: float = 30.0, *, ready: bool = True) -> ServiceProcess:
+        """Start and wait until ``/readyz`` answers 200 (``/healthz`` when not ``ready``)."""
         self.data_dir.mkdir(parents=True, exist_ok=True)
         log = self.log_path.open("ab")
         self.process = subprocess.Popen(
@@ -56,12 +66,17 @@ class ServiceProcess:
             stdout=log,
             stderr=subprocess.STDOUT,
         )
+        return self.wait("/readyz" if ready else "/healthz", timeout_s)
+
+    def wait(self, probe: str = "/readyz", timeout_s: float = 30.0) -> ServiceProcess:
+        """Poll ``probe`` until it answers 200; stop the process if it never does."""
+        assert self.process is not None, "start() first"
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
                 raise RuntimeError(f"{self.name} exited at start:\n{self.log()}")
             try:
-                if httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200:
+                if httpx.get(f"{self.url}{probe}", timeout=1).status_code == 200:
                     return self
             except httpx.HTTPError:
                 pass

@@ -44,7 +44,7 @@ from robocloud.errors import (
     error_class_for,
 )
 from robocloud.identity import Identity
-from robocloud.signing import EMPTY_SHA256, sign_request
+from robocloud.signing import EMPTY_SHA256, audience_from_answer, sign_request
 
 USER_AGENT = "robocloud-sdk/0.1"
 IDEMPOTENT_METHODS = frozenset({"GET", "HEAD", "OPTIONS", "PUT", "DELETE"})
@@ -321,6 +321,19 @@ class BaseClient(Closeable):
         name = f"the {self.service} service" if self.service else "the service"
         return f"{name} at {self.base_url}"
 
+    _audience: str | None = None
+
+    def audience(self) -> str:
+        """The service's audience, ``GET /v1/audience``, fetched once per client.
+
+        Every signature names it (ROBOCLOUD-REQUEST-V2), so a request signed for this service
+        is refused by every other service and deployment.
+        """
+        if self._audience is None:
+            answer = self.request("GET", "/v1/audience", signed=False)
+            self._audience = str(audience_from_answer(answer.content))
+        return self._audience
+
     def _sign(self, request: httpx.Request, content_sha256: str) -> None:
         if self.identity is None:
             raise MissingIdentityError(f"{request.method} {request.url.path} must be signed")
@@ -328,6 +341,7 @@ class BaseClient(Closeable):
         request.headers.update(
             sign_request(
                 self.identity.account,
+                self.audience(),
                 request.method,
                 raw_path.decode("ascii"),
                 raw_query.decode("ascii"),

@@ -1,9 +1,9 @@
 """The app factory: every service gets the same framework endpoints, errors and guards.
 
 ``create_app`` returns a FastAPI app with ``/healthz``, ``/readyz``, ``/metrics``,
-``POST /v1/whoami``, OpenAPI docs, the JSON error model for every error (unknown routes
-included), request ids and the request guard. A service adds its routers and readiness
-checks and keeps its own state on ``app.state``.
+``GET /v1/audience``, ``POST /v1/whoami``, OpenAPI docs served without any CDN, the JSON error
+model for every error (unknown routes included), and the request guard's layers. A service
+adds its routers and readiness checks and keeps its own state on ``app.state``.
 """
 
 from __future__ import annotations
@@ -11,15 +11,19 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
-from typing import Any
+from typing import Any, Literal
 
+import anyio
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from fastapi_offline import FastAPIOffline
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import robocloud
+from robocloud.signing import LOCAL_DEPLOYMENT
+from services.common.audience import ServiceAudience, learn_from_ledger
 from services.common.auth import SignedAddress, build_authorizer
 from services.common.bodies import read_json
 from services.common.errors import (
@@ -31,7 +35,12 @@ from services.common.errors import (
 )
 from services.common.logs import configure_logging, request_id_var
 from services.common.metrics import CONTENT_TYPE, ServiceMetrics
-from services.common.middleware import GuardConfig, RequestGuard
+from services.common.middleware import (
+    AccessLogLayer,
+    BodyLimitLayer,
+    RequestIdLayer,
+    SignatureLayer,
+)
 from services.common.nonces import NonceStore
 from services.common.settings import ServiceSettings
 
@@ -39,6 +48,10 @@ log = logging.getLogger("robocloud.app")
 
 ReadinessCheck = Callable[[], Awaitable[None]]
 Lifespan = Callable[[FastAPI], AbstractAsyncContextManager[None]]
+DeploymentSource = Literal["settings", "ledger", "service"]
+
+DOCS_ASSETS = "/docs/assets"
+"""Where Swagger UI's and ReDoc's scripts and styles are served from, offline."""
 
 _HTTP_CODES = {
     400: "bad_request",
@@ -53,6 +66,12 @@ class WhoamiRequest(BaseModel):
     """An optional challenge the robot chooses, echoed back to bind the answer to its call."""
 
     challenge: str | None = Field(default=None, max_length=256)
+
+
+class AudienceResponse(BaseModel):
+    audience: str = Field(description="<service>@<deployment>: what signatures must name")
+    service: str
+    deployment: str
 
 
 class WhoamiResponse(BaseModel):
@@ -104,7 +123,9 @@ def _install_error_handlers(app: FastAPI, errors: ErrorMap) -> None:
         return _json_error(422, "validation_error", message, {"errors": errors}, {})
 
 
-def _framework_router(service: str, settings: ServiceSettings) -> APIRouter:
+def _framework_router(
+    service: str, settings: ServiceSettings, audience: ServiceAudience
+) -> APIRouter:
     router = APIRouter(tags=["framework"])
 
     @router.get("/healthz")
@@ -129,6 +150,11 @@ def _framework_router(service: str, settings: ServiceSettings) -> APIRouter:
     async def metrics(request: Request) -> Response:
         """Prometheus text exposition."""
         return Response(request.app.state.metrics.render(), media_type=CONTENT_TYPE)
+
+    @router.get("/v1/audience", response_model=AudienceResponse)
+    async def audience_of_service() -> AudienceResponse:
+        """The audience a signed request to this service must name (503 until it is known)."""
+        return AudienceResponse.model_validate(audience.require().describe())
 
     @router.post("/v1/whoami", response_model=WhoamiResponse)
     async def whoami(request: Request, address: SignedAddress) -> WhoamiResponse:
@@ -155,6 +181,7 @@ def create_app(
     body_limits: Mapping[str, int] | None = None,
     errors: ErrorMap | None = None,
     description: str = "",
+    deployment_source: DeploymentSource | None = None,
 ) -> FastAPI:
     """Build a service app.
 
@@ -163,6 +190,12 @@ def create_app(
     body limit under a path prefix (uploads) above ``settings.max_body_bytes``. ``errors``
     maps the service's domain exceptions to HTTP errors (see ``services.common.errors``),
     beside ``COMMON_ERRORS`` for the SDK's format errors.
+
+    ``deployment_source`` says where the deployment id in the service's audience comes from:
+    ``settings`` (``ROBOCLOUD_DEPLOYMENT_ID``, default ``local``), ``ledger`` (learned from
+    ``GET /v1/audience`` of the ledger at ``ROBOCLOUD_LEDGER_URL``; not ready until then), or
+    ``service`` (the service calls ``app.state.audience.learn`` itself: the ledger). By
+    default ``ledger`` in registered mode and ``settings`` in signed mode.
     """
     configure_logging(service, settings.log_level)
     data_dir = settings.resolved_data_dir()
@@ -170,45 +203,70 @@ def create_app(
     metrics = ServiceMetrics(service)
     nonces = NonceStore(data_dir / "nonces.log", settings.max_clock_skew_s)
     authorizer = build_authorizer(settings)
+    source = deployment_source or ("ledger" if settings.auth == "registered" else "settings")
+    audience = _service_audience(settings, source)
+
+    async def audience_known() -> None:
+        audience.require()
 
     @asynccontextmanager
     async def run(app: FastAPI) -> AsyncIterator[None]:
         log.info("starting", extra={"port": settings.resolved_port(), "auth": settings.auth})
         try:
-            if lifespan is None:
-                yield
-            else:
-                async with lifespan(app):
+            async with anyio.create_task_group() as tasks:
+                if source == "ledger":
+                    tasks.start_soon(_learn_deployment, audience, settings)
+                if lifespan is None:
                     yield
+                else:
+                    async with lifespan(app):
+                        yield
+                tasks.cancel_scope.cancel()
         finally:
             nonces.close()
             log.info("stopped")
 
-    app = FastAPI(
+    app = FastAPIOffline(
         title=f"robocloud {service}",
         version=robocloud.__version__,
         description=description,
         lifespan=run,
+        static_url=DOCS_ASSETS,
     )
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.nonces = nonces
     app.state.authorizer = authorizer
-    app.state.readiness_checks = list(readiness_checks)
+    app.state.audience = audience
+    app.state.readiness_checks = [audience_known, *readiness_checks]
     _install_error_handlers(app, COMMON_ERRORS | (errors or ErrorMap({})))
-    app.include_router(_framework_router(service, settings))
+    app.include_router(_framework_router(service, settings, audience))
     for router in routers:
         app.include_router(router)
+    # Starlette runs the middleware added last first: the request id wraps everything.
     app.add_middleware(
-        RequestGuard,
-        config=GuardConfig(
-            max_body_bytes=settings.max_body_bytes,
-            max_clock_skew_s=settings.max_clock_skew_s,
-            authorizer=authorizer,
-            nonces=nonces,
-            metrics=metrics,
-            unsigned_paths=frozenset(unsigned_paths),
-            body_limits=dict(body_limits or {}),
-        ),
+        SignatureLayer,
+        audience=audience,
+        nonces=nonces,
+        authorizer=authorizer,
+        max_clock_skew_s=settings.max_clock_skew_s,
+        unsigned_paths=unsigned_paths,
     )
+    app.add_middleware(BodyLimitLayer, default_limit=settings.max_body_bytes, limits=body_limits)
+    app.add_middleware(AccessLogLayer, metrics=metrics)
+    app.add_middleware(RequestIdLayer)
     return app
+
+
+def _service_audience(settings: ServiceSettings, source: DeploymentSource) -> ServiceAudience:
+    name = settings.resolved_audience_name()
+    if source == "settings":
+        deployment = settings.deployment_id or LOCAL_DEPLOYMENT
+        return ServiceAudience(name, deployment, source="ROBOCLOUD_DEPLOYMENT_ID")
+    if source == "ledger":
+        return ServiceAudience(name, source=f"the ledger at {settings.ledger_url}")
+    return ServiceAudience(name, source="the chain")
+
+
+async def _learn_deployment(audience: ServiceAudience, settings: ServiceSettings) -> None:
+    await learn_from_ledger(audience, settings.ledger_url, expected=settings.deployment_id)

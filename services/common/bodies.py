@@ -1,4 +1,9 @@
-"""Request bodies: JSON validated into models, with clear 415 and 422 errors."""
+"""Request bodies: JSON validated into models, with clear 400, 415 and 422 errors.
+
+Bodies are parsed with ``robocloud.bounded_json``, whose nesting bound is checked without
+recursion: a 100,000-deep document is 400 ``json_too_deep`` (``COMMON_ERRORS``), never a
+crash. Not valid JSON is 400 ``invalid_json``.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +13,8 @@ from typing import Any, TypeVar
 from fastapi import Request
 from pydantic import BaseModel, ValidationError
 
-from services.common.errors import BadRequest, Unprocessable, UnsupportedMediaType
+from robocloud import bounded_json
+from services.common.errors import Unprocessable, UnsupportedMediaType
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -29,8 +35,18 @@ def media_type(request: Request) -> str:
     return request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
 
 
-async def read_json(request: Request, model: type[M], *, optional: bool = False) -> M | None:
-    """Read and validate a JSON body; ``None`` for an empty body when ``optional``."""
+async def read_json(
+    request: Request,
+    model: type[M],
+    *,
+    optional: bool = False,
+    max_depth: int = bounded_json.MAX_DEPTH,
+) -> M | None:
+    """Read and validate a JSON body; ``None`` for an empty body when ``optional``.
+
+    Raises ``JsonError``/``JsonDepthError`` (answered 400 by ``COMMON_ERRORS``) for a body
+    that is not JSON or nests deeper than ``max_depth``.
+    """
     raw = await request.body()
     if not raw and optional:
         return None
@@ -39,12 +55,11 @@ async def read_json(request: Request, model: type[M], *, optional: bool = False)
             "the body must be application/json",
             details={"header": "Content-Type", "received": request.headers.get("content-type")},
         )
+    document = bounded_json.loads(raw, max_depth=max_depth)
     try:
-        return model.model_validate_json(raw)
+        return model.model_validate(document)
     except ValidationError as exc:
         errors = field_errors(exc)
-        if any(e["type"] == "json_invalid" for e in errors):
-            raise BadRequest("the body is not valid JSON", code="invalid_json") from exc
         raise Unprocessable(
             f"invalid body: {errors[0]['field']}: {errors[0]['message']}",
             details={"errors": errors},

@@ -1,29 +1,38 @@
-"""The request guard: request ids, metrics, access logs, body limits and signatures.
+"""The request guard: four plain ASGI layers, each with one job, outermost first.
 
-It is plain ASGI so that it can act before any body byte is read: a request without a valid
-signature gets 401 at once, one announcing too large a body 413 at once. While the body
-streams in, its size is counted and its SHA-256 computed; a body that grows past the limit
-or does not match the signed digest makes ``receive()`` raise, so a route that streams into
-storage must stage what it writes and commit only once the body completed.
+1. :class:`RequestIdLayer` gives every request an id (the log lines and the answer carry it)
+   and answers whatever escapes the layers below with a 500 in the error model.
+2. :class:`AccessLogLayer` records metrics by route template and writes one access-log line.
+3. :class:`BodyLimitLayer` refuses a body over the path's limit: 413 at once when
+   ``Content-Length`` says so, else as soon as the streamed body grows past it.
+4. :class:`SignatureLayer` checks the signature of a write before any body byte is read (401
+   at once), then the body's SHA-256 while it streams in.
+
+They are plain ASGI rather than Starlette's ``BaseHTTPMiddleware`` so that they act before the
+body is read. The body checks raise from the ``receive`` they hand down: a route that streams
+into storage must stage what it writes and commit only once the body completed. Each layer
+answers the errors it raises itself; when a route lets one escape before it started its
+answer, the layer that raised it answers it.
 """
 
 from __future__ import annotations
 
+import abc
 import hashlib
 import json
 import logging
 import re
 import time
 import uuid
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from robocloud.errors import SignatureError
-from robocloud.signing import verify_request
+from robocloud.signing import HEADER_CONTENT_SHA256, WrongAudienceError, verify_request
+from services.common.audience import ServiceAudience
 from services.common.auth import Authorizer
 from services.common.errors import (
     BadRequest,
@@ -43,171 +52,133 @@ INTERNAL_ERROR = ServiceError("internal error; see the service log")
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{8,64}")
 
 
-@dataclass
-class GuardConfig:
-    """What the guard enforces for one service."""
-
-    max_body_bytes: int
-    max_clock_skew_s: int
-    authorizer: Authorizer
-    nonces: NonceStore
-    metrics: ServiceMetrics
-    unsigned_paths: frozenset[str] = frozenset()
-    body_limits: Mapping[str, int] = field(default_factory=dict)
-
-    def body_limit(self, path: str) -> int:
-        """The limit of the longest configured path prefix, else the service default."""
-        matches = [p for p in self.body_limits if path.startswith(p)]
-        return self.body_limits[max(matches, key=len)] if matches else self.max_body_bytes
-
-
-async def send_error(send: Send, error: ServiceError, request_id: str) -> None:
-    body = json.dumps(error_body(error.code, error.message, error.details, request_id)).encode()
+async def send_error(send: Send, error: ServiceError) -> None:
+    """Answer ``error`` in the JSON error model, with the current request id."""
+    body = error_body(error.code, error.message, error.details, request_id_var.get())
+    encoded = json.dumps(body).encode()
     headers = [
         (b"content-type", b"application/json"),
-        (b"content-length", str(len(body)).encode()),
+        (b"content-length", str(len(encoded)).encode()),
         *((k.lower().encode(), v.encode()) for k, v in error.headers.items()),
     ]
     await send({"type": "http.response.start", "status": error.status, "headers": headers})
-    await send({"type": "http.response.body", "body": body})
+    await send({"type": "http.response.body", "body": encoded})
 
 
-class BodyMeter:
-    """Wraps ``receive`` to enforce the size limit and the signed digest while streaming."""
+class _ResponseWatch:
+    """Wraps ``send`` to know whether the answer started, and with which status."""
 
-    def __init__(self, receive: Receive, limit: int, expected_sha256: str | None) -> None:
+    def __init__(self, send: Send) -> None:
+        self._send = send
+        self.status = 0
+
+    async def __call__(self, message: Message) -> None:
+        if message["type"] == "http.response.start":
+            self.status = message["status"]
+        await self._send(message)
+
+
+class _BodyMeter(abc.ABC):
+    """Wraps ``receive``; ``check`` sees each chunk and the end, and may raise a ServiceError.
+
+    The error raised is kept so that the layer that installed the meter can tell its own
+    errors from others' when one escapes the app.
+    """
+
+    def __init__(self, receive: Receive) -> None:
         self._receive = receive
-        self._limit = limit
-        self._expected = expected_sha256
-        self._hash = hashlib.sha256() if expected_sha256 is not None else None
-        self.received = 0
+        self.error: ServiceError | None = None
 
     async def __call__(self) -> Message:
         message = await self._receive()
-        if message["type"] != "http.request":
-            return message
-        chunk: bytes = message.get("body", b"")
-        self.received += len(chunk)
-        if self.received > self._limit:
-            raise PayloadTooLarge(
-                f"the body exceeds the limit of {self._limit} bytes",
-                details={"limit": self._limit},
-            )
-        if self._hash is not None:
-            self._hash.update(chunk)
-            if not message.get("more_body", False) and self._hash.hexdigest() != self._expected:
-                raise BadRequest(
-                    "the body does not match X-Robocloud-Content-SHA256; nothing was stored",
-                    code="body_digest_mismatch",
-                    details={"header": "X-Robocloud-Content-SHA256", "expected": self._expected},
-                )
+        if message["type"] == "http.request":
+            try:
+                self.check(message.get("body", b""), not message.get("more_body", False))
+            except ServiceError as error:
+                self.error = error
+                raise
         return message
 
+    @abc.abstractmethod
+    def check(self, chunk: bytes, last: bool) -> None:
+        """Raise a ServiceError when the body so far breaks the rule the meter enforces."""
 
-class RequestGuard:
-    def __init__(self, app: ASGIApp, config: GuardConfig) -> None:
+
+async def _run_metered(app: ASGIApp, scope: Scope, meter: _BodyMeter, send: Send) -> None:
+    """Run ``app`` reading through ``meter``; answer the meter's own error if it escapes."""
+    watch = _ResponseWatch(send)
+    try:
+        await app(scope, meter, watch)
+    except ServiceError as error:
+        if error is not meter.error or watch.status:
+            raise
+        await send_error(watch, error)
+
+
+class RequestIdLayer:
+    """Every request gets an id: a client's ``X-Request-Id`` of 8 to 64 safe characters, else
+    a new one. It is in the ``request_id`` context variable (so every log line written while
+    serving carries it), in the answer's ``X-Request-Id``, and in a 500 for an exception that
+    nothing below handled, logged with the same id.
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
         self.app = app
-        self.config = config
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        headers = Headers(scope=scope)
-        offered = headers.get("x-request-id", "")
+        offered = Headers(scope=scope).get("x-request-id", "")
         request_id = offered if _REQUEST_ID.fullmatch(offered) else uuid.uuid4().hex
         token = request_id_var.set(request_id)
-        started = time.perf_counter()
-        status = {"code": 0}
 
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
-                status["code"] = message["status"]
                 message["headers"] = [
                     *message.get("headers", []),
                     (b"x-request-id", request_id.encode()),
                 ]
             await send(message)
 
+        watch = _ResponseWatch(send_with_id)
         try:
-            await self._guarded(scope, receive, send_with_id, headers, request_id)
+            await self.app(scope, receive, watch)
         except Exception as exc:
-            # Answered here rather than by Starlette's outermost handler so that the log line
-            # and the answer carry the request id; a response already started is cut off.
             log.exception("unhandled error", exc_info=exc)
-            if status["code"]:
+            if watch.status:
                 raise
-            await send_error(send_with_id, INTERNAL_ERROR, request_id)
+            await send_error(watch, INTERNAL_ERROR)
         finally:
-            self._record(scope, status["code"] or 500, time.perf_counter() - started)
             request_id_var.reset(token)
 
-    async def _guarded(
-        self, scope: Scope, receive: Receive, send: Send, headers: Headers, request_id: str
-    ) -> None:
-        path: str = scope["path"]
-        limit = self.config.body_limit(path)
-        declared = headers.get("content-length")
-        if declared is not None and declared.isdigit() and int(declared) > limit:
-            error = PayloadTooLarge(
-                f"Content-Length {declared} exceeds the limit of {limit} bytes",
-                details={"header": "Content-Length", "limit": limit},
-            )
-            await send_error(send, error, request_id)
+
+class AccessLogLayer:
+    """Metrics by route template (bounded label cardinality) and one log line per request.
+
+    The line carries method, path, route, status, duration and, for a signed request, the
+    signer. An exception passing through counts as 500, which is what the client gets.
+    """
+
+    def __init__(self, app: ASGIApp, metrics: ServiceMetrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
             return
-        expected_sha256 = None
-        if scope["method"] not in UNSIGNED_METHODS and path not in self.config.unsigned_paths:
-            try:
-                expected_sha256 = await self._authenticate(scope, headers)
-            except ServiceError as error:
-                await send_error(send, error, request_id)
-                return
-        started = False
-
-        async def tracking_send(message: Message) -> None:
-            nonlocal started
-            started = started or message["type"] == "http.response.start"
-            await send(message)
-
+        started = time.perf_counter()
+        watch = _ResponseWatch(send)
         try:
-            await self.app(scope, BodyMeter(receive, limit, expected_sha256), tracking_send)
-        except ServiceError as error:
-            # A body error raised under a handler that does not map it (e.g. while a
-            # streaming route was consuming the body); answer it here if still possible.
-            if started:
-                raise
-            await send_error(send, error, request_id)
-
-    async def _authenticate(self, scope: Scope, headers: Headers) -> str:
-        raw_path = scope.get("raw_path") or scope["path"].encode()
-        raw_path = raw_path.split(b"?", 1)[0]
-        try:
-            verified = verify_request(
-                scope["method"],
-                raw_path.decode("latin-1"),
-                scope.get("query_string", b"").decode("latin-1"),
-                headers,
-                max_skew_s=self.config.max_clock_skew_s,
-            )
-        except SignatureError as exc:
-            raise Unauthorized(
-                exc.message, code=exc.code, details={"header": exc.header} if exc.header else {}
-            ) from exc
-        await self.config.authorizer.authorize(verified.address)
-        if not self.config.nonces.use(verified.address, verified.nonce, verified.timestamp):
-            raise Unauthorized(
-                "this nonce was already used by this address",
-                code="replayed_nonce",
-                details={"header": "X-Robocloud-Nonce"},
-            )
-        scope.setdefault("state", {})["signature"] = verified
-        return verified.content_sha256
+            await self.app(scope, receive, watch)
+        finally:
+            self._record(scope, watch.status or 500, time.perf_counter() - started)
 
     def _record(self, scope: Scope, status: int, seconds: float) -> None:
         route = scope.get("route")
         template = getattr(route, "path", None) or "unmatched"
-        self.config.metrics.observe(scope["method"], template, status, seconds)
-        signature = scope.get("state", {}).get("signature")
+        self.metrics.observe(scope["method"], template, status, seconds)
         extra: dict[str, Any] = {
             "method": scope["method"],
             "path": scope["path"],
@@ -215,6 +186,144 @@ class RequestGuard:
             "status": status,
             "duration_ms": round(seconds * 1000, 2),
         }
+        signature = scope.get("state", {}).get("signature")
         if signature is not None:
             extra["signer"] = signature.address
         log.info("request", extra=extra)
+
+
+class _SizeMeter(_BodyMeter):
+    def __init__(self, receive: Receive, limit: int) -> None:
+        super().__init__(receive)
+        self.limit = limit
+        self.received = 0
+
+    def check(self, chunk: bytes, last: bool) -> None:
+        self.received += len(chunk)
+        if self.received > self.limit:
+            raise PayloadTooLarge(
+                f"the body exceeds the limit of {self.limit} bytes",
+                details={"limit": self.limit},
+            )
+
+
+class BodyLimitLayer:
+    """At most ``default_limit`` body bytes, or the limit of the longest matching prefix in
+    ``limits`` (uploads). Checked against ``Content-Length`` before anything is read, and
+    counted while the body streams, so a chunked body cannot exceed it either.
+    """
+
+    def __init__(
+        self, app: ASGIApp, default_limit: int, limits: Mapping[str, int] | None = None
+    ) -> None:
+        self.app = app
+        self.default_limit = default_limit
+        self.limits = dict(limits or {})
+
+    def limit_for(self, path: str) -> int:
+        """The limit of the longest configured path prefix, else the default."""
+        matches = [prefix for prefix in self.limits if path.startswith(prefix)]
+        return self.limits[max(matches, key=len)] if matches else self.default_limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        limit = self.limit_for(scope["path"])
+        declared = Headers(scope=scope).get("content-length")
+        if declared is not None and declared.isdigit() and int(declared) > limit:
+            error = PayloadTooLarge(
+                f"Content-Length {declared} exceeds the limit of {limit} bytes",
+                details={"header": "Content-Length", "limit": limit},
+            )
+            await send_error(send, error)
+            return
+        await _run_metered(self.app, scope, _SizeMeter(receive, limit), send)
+
+
+class _DigestMeter(_BodyMeter):
+    def __init__(self, receive: Receive, expected_sha256: str) -> None:
+        super().__init__(receive)
+        self.expected = expected_sha256
+        self.hash = hashlib.sha256()
+
+    def check(self, chunk: bytes, last: bool) -> None:
+        self.hash.update(chunk)
+        if last and self.hash.hexdigest() != self.expected:
+            raise BadRequest(
+                f"the body does not match {HEADER_CONTENT_SHA256}; nothing was stored",
+                code="body_digest_mismatch",
+                details={"header": HEADER_CONTENT_SHA256, "expected": self.expected},
+            )
+
+
+class SignatureLayer:
+    """Writes (every method but GET, HEAD and OPTIONS) must be signed for this service.
+
+    Before the body is read, in order: the audience must be known (503), the signature
+    headers valid for this audience (401, see ``robocloud.signing``), the nonce unused (401
+    ``replayed_nonce``), and only then is the authorizer asked (403, or 503 when the ledger
+    cannot say): a replay costs no registry lookup. While the body streams its SHA-256 is
+    checked against the signed one (400). Paths in ``unsigned_paths`` carry their own
+    authentication (the chain's JSON-RPC).
+    """
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        audience: ServiceAudience,
+        nonces: NonceStore,
+        authorizer: Authorizer,
+        max_clock_skew_s: int,
+        unsigned_paths: Iterable[str] = (),
+    ) -> None:
+        self.app = app
+        self.audience = audience
+        self.nonces = nonces
+        self.authorizer = authorizer
+        self.max_clock_skew_s = max_clock_skew_s
+        self.unsigned_paths = frozenset(unsigned_paths)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (
+            scope["type"] != "http"
+            or scope["method"] in UNSIGNED_METHODS
+            or scope["path"] in self.unsigned_paths
+        ):
+            await self.app(scope, receive, send)
+            return
+        try:
+            expected_sha256 = await self._authenticate(scope)
+        except ServiceError as error:
+            await send_error(send, error)
+            return
+        await _run_metered(self.app, scope, _DigestMeter(receive, expected_sha256), send)
+
+    async def _authenticate(self, scope: Scope) -> str:
+        audience = str(self.audience.require())
+        raw_path = scope.get("raw_path") or scope["path"].encode()
+        raw_path = raw_path.split(b"?", 1)[0]
+        try:
+            verified = verify_request(
+                scope["method"],
+                raw_path.decode("latin-1"),
+                scope.get("query_string", b"").decode("latin-1"),
+                Headers(scope=scope),
+                audience=audience,
+                max_skew_s=self.max_clock_skew_s,
+            )
+        except SignatureError as exc:
+            details: dict[str, Any] = {"header": exc.header} if exc.header else {}
+            if isinstance(exc, WrongAudienceError):
+                details |= {"expected": exc.expected, "received": exc.received}
+            raise Unauthorized(exc.message, code=exc.code, details=details) from exc
+        if not self.nonces.use(verified.address, verified.nonce, verified.timestamp):
+            raise Unauthorized(
+                "this nonce was already used by this address",
+                code="replayed_nonce",
+                details={"header": "X-Robocloud-Nonce"},
+            )
+        scope.setdefault("state", {})["signature"] = verified
+        await self.authorizer.authorize(verified.address)
+        return verified.content_sha256

@@ -2,12 +2,24 @@
 
 from __future__ import annotations
 
+import logging
+import sys
 from collections.abc import Callable
 
 import uvicorn
 from fastapi import FastAPI
 
+from services.common.server import bounded_protocol
 from services.common.settings import S, ServiceSettings, load_settings
+
+log = logging.getLogger("robocloud.runner")
+
+DEFAULT_RECURSION_LIMIT = 1000
+"""CPython's own default, which the C stack of the main thread and of worker threads (8 MiB)
+holds with room to spare. py_ecc (imported by eth-account) raises the limit to 100,000 at
+import, and py-evm to 12,288: deep recursion in C code (the JSON decoder, ``repr`` and
+comparison of nested containers) then overflows the C stack and kills the process with a
+segfault instead of raising RecursionError."""
 
 
 def serve(app: FastAPI, settings: ServiceSettings) -> None:
@@ -16,6 +28,10 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
         app,
         host=settings.host,
         port=settings.resolved_port(),
+        http=bounded_protocol(
+            settings.max_request_line_bytes, settings.max_header_bytes, settings.header_timeout_s
+        ),
+        h11_max_incomplete_event_size=settings.max_header_bytes,
         log_config=None,
         access_log=False,
         server_header=False,
@@ -27,7 +43,24 @@ def run_service(
     service: str,
     build_app: Callable[[S], FastAPI],
     settings_cls: type[S] = ServiceSettings,  # type: ignore[assignment]
+    *,
+    recursion_limit: int = DEFAULT_RECURSION_LIMIT,
 ) -> None:
-    """Load the service's settings from the environment, build its app and serve it."""
+    """Load the service's settings from the environment, build its app and serve it.
+
+    The recursion limit is set once everything is imported (importing is what raises it); a
+    service whose own code needs more (the ledger's EVM) declares it here.
+    """
     settings = load_settings(service, settings_cls)
-    serve(build_app(settings), settings)
+    app = build_app(settings)
+    sys.setrecursionlimit(recursion_limit)
+    log.info(
+        "serving",
+        extra={
+            "recursion_limit": sys.getrecursionlimit(),
+            "max_request_line_bytes": settings.max_request_line_bytes,
+            "max_header_bytes": settings.max_header_bytes,
+            "header_timeout_s": settings.header_timeout_s,
+        },
+    )
+    serve(app, settings)

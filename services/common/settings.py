@@ -7,12 +7,13 @@ addresses and ports fixed in ARCHITECTURE.md so ``make up`` needs no configurati
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal, TypeVar
+from typing import Annotated, Literal, Self, TypeVar
 
-from pydantic import BeforeValidator, Field
+from pydantic import BeforeValidator, Field, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from robocloud.config import SERVICES as DEFAULT_PORTS
+from robocloud.signing import DEPLOYMENT_ID, SERVICE_NAME
 
 
 def _split_commas(value: object) -> object:
@@ -36,7 +37,21 @@ class ServiceSettings(BaseSettings):
     data_dir: Path | None = None
     auth: Literal["registered", "signed"] = "registered"
     allowed_addresses: CommaList = Field(default_factory=list)
+    audience_name: str | None = Field(
+        default=None,
+        pattern=SERVICE_NAME.pattern,
+        description="the service part of this service's audience; default the service's name",
+    )
+    deployment_id: str | None = Field(
+        default=None,
+        pattern=DEPLOYMENT_ID.pattern,
+        description="signed mode: the deployment id (default local); registered mode: must "
+        "equal the ledger's when set",
+    )
     max_body_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
+    max_request_line_bytes: int = Field(default=8 * 1024, ge=64)
+    max_header_bytes: int = Field(default=64 * 1024, ge=256)
+    header_timeout_s: float = Field(default=30.0, gt=0)
     max_clock_skew_s: int = Field(default=300, gt=0)
     log_level: str = "INFO"
     cas_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['cas']}"
@@ -45,8 +60,17 @@ class ServiceSettings(BaseSettings):
     broker_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['broker']}"
     fl_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['fl']}"
 
+    @model_validator(mode="after")
+    def _request_line_within_head(self) -> Self:
+        if self.max_request_line_bytes > self.max_header_bytes:
+            raise ValueError("max_request_line_bytes must not exceed max_header_bytes")
+        return self
+
     def resolved_port(self) -> int:
         return self.port or DEFAULT_PORTS.get(self.service, 8000)
+
+    def resolved_audience_name(self) -> str:
+        return self.audience_name or self.service
 
     def resolved_data_dir(self) -> Path:
         return self.data_dir or Path("data") / self.service

@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field, SecretStr
 
 import services.ledger
+from robocloud.signing import chain_deployment_id
 from services.common.app import create_app
 from services.common.auth import SignedAddress
 from services.common.bodies import read_json
@@ -170,6 +171,7 @@ def build_app(settings: LedgerSettings) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         ledger = await anyio.to_thread.run_sync(_open, settings)
         app.state.ledger = ledger
+        app.state.audience.learn(chain_deployment_id(ledger.chain_id, ledger.deployment.registry))
         try:
             async with anyio.create_task_group() as tasks:
                 follow = getattr(ledger, "follow", None)
@@ -200,5 +202,6 @@ def build_app(settings: LedgerSettings) -> FastAPI:
         lifespan=lifespan,
         unsigned_paths=["/rpc"],
         description=services.ledger.__doc__ or "",
+        deployment_source="service",
     )
     return app

@@ -18,6 +18,7 @@ from robocloud.config import SERVICES
 from robocloud.identity import Identity
 from robocloud.signing import sign_request
 from tests.compose.deployment import Deployment
+from tests.procs import audience_of
 
 pytestmark = pytest.mark.compose
 
@@ -33,9 +34,14 @@ def signed_whoami(deployment: Deployment, service: str, headers: dict[str, str])
     )
 
 
-def whoami_headers(identity: Identity) -> dict[str, str]:
+def whoami_headers(deployment: Deployment, service: str, identity: Identity) -> dict[str, str]:
     return sign_request(
-        identity.account, "POST", "/v1/whoami", "", hashlib.sha256(BODY).hexdigest()
+        identity.account,
+        audience_of(deployment.urls[service]),
+        "POST",
+        "/v1/whoami",
+        "",
+        hashlib.sha256(BODY).hexdigest(),
     )
 
 
@@ -125,7 +131,7 @@ def test_signer_outside_the_deployment_is_refused_in_registered_mode(
 ) -> None:
     stranger = Identity.generate()
     for service in SERVICES:
-        response = signed_whoami(deployment, service, whoami_headers(stranger))
+        response = signed_whoami(deployment, service, whoami_headers(deployment, service, stranger))
         # The ledger lets any signer in: robots use its faucet before they can register.
         if os.environ.get("ROBOCLOUD_AUTH", "registered") == "registered" and service != "ledger":
             assert_error(response, 403, "address_not_allowed")
@@ -134,7 +140,9 @@ def test_signer_outside_the_deployment_is_refused_in_registered_mode(
 
 
 def test_used_nonces_survive_restart_and_new_containers(deployment: Deployment) -> None:
-    used = {service: whoami_headers(deployment.identity) for service in SERVICES}
+    used = {
+        service: whoami_headers(deployment, service, deployment.identity) for service in SERVICES
+    }
     for service, headers in used.items():
         assert signed_whoami(deployment, service, headers).status_code == 200
         assert_error(signed_whoami(deployment, service, headers), 401, "replayed_nonce")
@@ -144,7 +152,9 @@ def test_used_nonces_survive_restart_and_new_containers(deployment: Deployment) 
     for service, headers in used.items():
         assert deployment.container(service)["State"]["StartedAt"] != started[service]
         assert_error(signed_whoami(deployment, service, headers), 401, "replayed_nonce")
-        fresh = signed_whoami(deployment, service, whoami_headers(deployment.identity))
+        fresh = signed_whoami(
+            deployment, service, whoami_headers(deployment, service, deployment.identity)
+        )
         assert fresh.json()["address"] == deployment.identity.address
 
     ids = {service: deployment.container(service)["Id"] for service in SERVICES}

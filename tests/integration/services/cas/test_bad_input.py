@@ -94,7 +94,8 @@ def test_upload_cut_off_mid_body_stores_nothing(
 ) -> None:
     body, content_type = multipart(("big", bytes(range(256)) * 4096))
     digest = hashlib.sha256(body).hexdigest()
-    headers = sign_request(identity.account, "POST", "/api/v0/add", "", digest)
+    audience = cas_service.audience
+    headers = sign_request(identity.account, audience, "POST", "/api/v0/add", "", digest)
     head = "".join(f"{name}: {value}\r\n" for name, value in headers.items())
     request = (
         f"POST /api/v0/add HTTP/1.1\r\nHost: 127.0.0.1\r\n{head}"
@@ -113,7 +114,12 @@ def test_body_not_matching_its_signed_digest_stores_nothing(
     body, content_type = multipart(("f", b"what was signed"))
     tampered, _ = multipart(("f", b"what was sent!!"), boundary=content_type.split("=")[1])
     headers = sign_request(
-        identity.account, "POST", "/api/v0/add", "", hashlib.sha256(body).hexdigest()
+        identity.account,
+        cas_service.audience,
+        "POST",
+        "/api/v0/add",
+        "",
+        hashlib.sha256(body).hexdigest(),
     )
     response = httpx.post(
         f"{cas_service.url}/api/v0/add",

@@ -124,7 +124,12 @@ def test_get_refuses_what_a_lying_gateway_sends(car: bytes, message: str, tmp_pa
 
 def test_add_refuses_a_wrong_answer(tmp_path: Path) -> None:
     lie = b'{"Name":"f","Hash":"bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"}\n'
-    for url in gateway_answering(lambda _: (200, "application/json", lie)):
+    audience = b'{"audience":"cas@local","service":"cas","deployment":"local"}'
+
+    def answer(path: str) -> tuple[int, str, bytes]:
+        return 200, "application/json", audience if path == "/v1/audience" else lie
+
+    for url in gateway_answering(answer):
         client = Cas(url, Identity.generate(), retries=0)
         with client, pytest.raises(CasError, match="but the file's CID is"):
             client.add_bytes(b"not hello world")

@@ -29,6 +29,7 @@ from robocloud.errors import (
 from robocloud.identity import Identity
 from robocloud.signing import EMPTY_SHA256, sign_request
 from tests.conftest import ServiceFactory
+from tests.integration.services.common.test_hostile_requests import serving_line
 from tests.procs import ServiceProcess
 
 BODY = b'{"challenge":"c-1"}'
@@ -46,12 +47,15 @@ def http(storage: ServiceProcess) -> Iterator[httpx.Client]:
         yield client
 
 
+AUDIENCE = "storage@local"
+
+
 def signed_headers(
     identity: Identity, path: str = "/v1/whoami", body: bytes = BODY, **kwargs: object
 ) -> dict[str, str]:
     raw_path, _, query = path.partition("?")
     digest = hashlib.sha256(body).hexdigest() if body else EMPTY_SHA256
-    headers = sign_request(identity.account, "POST", raw_path, query, digest, **kwargs)  # type: ignore[arg-type]
+    headers = sign_request(identity.account, AUDIENCE, "POST", raw_path, query, digest, **kwargs)  # type: ignore[arg-type]
     return {**headers, "Content-Type": "application/json"}
 
 
@@ -72,7 +76,13 @@ def test_framework_endpoints(http: httpx.Client) -> None:
     openapi = http.get("/openapi.json").json()
     assert openapi["info"]["title"] == "robocloud storage"
     assert "/v1/whoami" in openapi["paths"]
-    assert "swagger-ui" in http.get("/docs").text
+    assert 'src="/docs/assets/swagger-ui-bundle.js"' in http.get("/docs").text
+    assert http.get("/docs/assets/swagger-ui-bundle.js").status_code == 200
+    assert http.get("/v1/audience").json() == {
+        "audience": "storage@local",
+        "service": "storage",
+        "deployment": "local",
+    }
     metrics = http.get("/metrics")
     assert metrics.headers["content-type"].startswith("text/plain")
     assert 'robocloud_http_requests_total{method="GET",route="/healthz"' in metrics.text
@@ -269,6 +279,10 @@ def test_each_service_starts_and_answers_whoami(
 ) -> None:
     service = service_factory(name)
     assert httpx.get(f"{service.url}/healthz").json()["service"] == name
+    # py-evm needs its own limit for nested EVM calls; every other service runs with CPython's.
+    assert serving_line(service)["recursion_limit"] == (12288 if name == "ledger" else 1000)
+    deployment = "local" if name != "ledger" else service.audience.split("@")[1]
+    assert service.audience == f"{name}@{deployment}"
     with ServiceClient(service.url, identity) as client:
         assert client.post_json("/v1/whoami") == {
             "address": identity.address,

@@ -15,7 +15,7 @@ import pytest
 from robocloud.identity import Identity
 from robocloud.ledger import Ledger
 from robocloud.signing import sign_request
-from tests.procs import ServiceProcess
+from tests.procs import ServiceProcess, audience_of
 
 PASSPHRASE = "integration-tests-only"
 LEDGER_ENV = {
@@ -94,7 +94,11 @@ def signed_post(url: str, path: str, identity: Identity, body: Any) -> httpx.Res
     """A signed JSON POST, answered whatever its status (the SDK would raise on errors)."""
     content = json.dumps(body).encode()
     headers = sign_request(
-        identity.account, "POST", path, content_sha256=hashlib.sha256(content).hexdigest()
+        identity.account,
+        audience_of(url),
+        "POST",
+        path,
+        content_sha256=hashlib.sha256(content).hexdigest(),
     )
     headers["Content-Type"] = "application/json"
     return httpx.post(f"{url}{path}", content=content, headers=headers, timeout=30)

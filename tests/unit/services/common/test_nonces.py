@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from services.common.nonces import NonceStore
@@ -51,3 +53,63 @@ def test_torn_last_line_is_ignored(tmp_path: Path) -> None:
     with path.open("a") as handle:
         handle.write("0xdead torn")
     assert len(NonceStore(path, window_s=300)) == 1
+
+
+def test_each_nonce_of_an_address_is_separate(tmp_path: Path) -> None:
+    store = NonceStore(tmp_path / "nonces.log", window_s=300)
+    now = int(time.time())
+    nonces = [f"nonce-{i:012d}" for i in range(50)]
+    assert all(store.use(ADDRESS, nonce, now) for nonce in nonces)
+    assert not any(store.use(ADDRESS, nonce, now) for nonce in nonces)
+    assert len(store) == 50
+
+
+def test_concurrent_uses_of_one_nonce_let_exactly_one_through(tmp_path: Path) -> None:
+    """Two copies of a request racing on two threads: the lock makes the check-and-record one."""
+    store = NonceStore(tmp_path / "nonces.log", window_s=300)
+    now = int(time.time())
+    start = threading.Barrier(8)
+
+    def use() -> bool:
+        start.wait()
+        return store.use(ADDRESS, "raced-nonce-0001", now)
+
+    with ThreadPoolExecutor(8) as pool:
+        outcomes = list(pool.map(lambda _: use(), range(8)))
+    assert outcomes.count(True) == 1
+
+
+def test_a_nonce_is_forgotten_only_once_its_timestamp_is_out_of_the_window(
+    tmp_path: Path,
+) -> None:
+    """Forgetting is harmless then: the request's timestamp alone gets a replay refused."""
+    store = NonceStore(tmp_path / "nonces.log", window_s=300)
+    now = int(time.time())
+    assert store.use(ADDRESS, "inside-window-001", now - 299)
+    assert not store.use(ADDRESS, "inside-window-001", now - 299)
+    assert store.use(ADDRESS, "long-expired-0001", now - 302)
+    assert store.use(ADDRESS, "long-expired-0001", now - 302)
+
+
+def test_restart_loads_only_live_entries(tmp_path: Path) -> None:
+    path = tmp_path / "nonces.log"
+    store = NonceStore(path, window_s=300)
+    now = int(time.time())
+    assert store.use(ADDRESS, "live-nonce-000001", now)
+    assert store.use(ADDRESS, "dead-nonce-000001", now - 400)
+    store.close()
+    reopened = NonceStore(path, window_s=300)
+    assert len(reopened) == 1
+    assert not reopened.use(ADDRESS, "live-nonce-000001", now)
+
+
+def test_compaction_keeps_what_is_live_across_a_restart(tmp_path: Path) -> None:
+    path = tmp_path / "nonces.log"
+    store = NonceStore(path, window_s=300, compact_after=10)
+    now = int(time.time())
+    for i in range(9):
+        assert store.use(ADDRESS, f"expired-{i:08d}", now - 400)
+    assert store.use(ADDRESS, "kept-nonce-000001", now)
+    assert path.read_text().splitlines() == [f"{ADDRESS.lower()} kept-nonce-000001 {now + 301}"]
+    store.close()
+    assert not NonceStore(path, window_s=300).use(ADDRESS, "kept-nonce-000001", now)

@@ -1,0 +1,199 @@
+"""The HTTP/1.1 server protocol: uvicorn's h11 protocol, bounding each request head as it arrives.
+
+uvicorn's default parser (httptools) has no bound on a request head: it buffers a header
+field until it ends, so a 200 MiB header took 47 s and 400 MiB of memory, and a 64 MiB one
+stalled every other request. Here the bytes of each request head are counted before the
+parser sees them: a request line longer than ``max_request_line_bytes`` is answered 414 and a
+head (request line and header fields) longer than ``max_header_bytes`` 431, both as soon as
+the bytes that break the limit arrive, and the connection is closed without reading the rest.
+A head must also be complete within ``header_timeout_s`` of its first byte (408), so that
+connections dribbling a byte at a time cannot be held open until the process runs out of
+file descriptors: uvicorn times out only idle kept-alive connections.
+h11 buffers at most one head, and its own bound (``h11_max_incomplete_event_size``) is set to
+the same limit as a backstop for pipelined requests, whose bytes may arrive together with an
+earlier request's body.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import re
+import uuid
+from dataclasses import dataclass
+from http import HTTPStatus
+from typing import Any, ClassVar
+
+import h11
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+from services.common.errors import error_body
+from services.common.logs import request_id_var
+
+log = logging.getLogger("robocloud.http")
+
+_BLANK_LINE = re.compile(rb"\n\r?\n")
+"""The end of a head as h11 finds it (a CRLF or bare LF line, then an empty one)."""
+
+
+@dataclass(frozen=True)
+class HeadRefusal:
+    """Why a request head is refused: the status and the JSON error that says so."""
+
+    status: int
+    code: str
+    message: str
+    details: dict[str, float]
+
+
+class HeadMeter:
+    """Counts the bytes of one request head as they arrive, and says when one is too long.
+
+    ``feed`` sees each received chunk; it looks only at new bytes (plus two carried over, for
+    a blank line split between chunks), so a head sent a byte at a time costs linear time.
+    """
+
+    def __init__(self, max_request_line_bytes: int, max_header_bytes: int) -> None:
+        self.max_request_line_bytes = max_request_line_bytes
+        self.max_header_bytes = max_header_bytes
+        self.start()
+
+    def start(self) -> None:
+        """Begin counting a new head (at connection start and after each request)."""
+        self.counting = True
+        self._line_open = True
+        self._line_bytes = 0
+        self._head_bytes = 0
+        self._tail = b""
+
+    def feed(self, data: bytes) -> HeadRefusal | None:
+        """Count ``data``; a refusal once the head breaks a limit, else None."""
+        if not self.counting or not data:
+            return None
+        if self._line_open:
+            line_end = data.find(b"\n")
+            self._line_bytes += len(data) if line_end == -1 else line_end
+            self._line_open = line_end == -1
+            if self._line_bytes > self.max_request_line_bytes:
+                return HeadRefusal(
+                    414,
+                    "request_line_too_long",
+                    f"the request line exceeds {self.max_request_line_bytes} bytes",
+                    {"limit": self.max_request_line_bytes},
+                )
+        window = self._tail + data
+        end = _BLANK_LINE.search(window)
+        if end is None:
+            self._head_bytes += len(data)
+            self._tail = window[-2:]
+        else:
+            self._head_bytes += end.end() - len(self._tail)
+            self.counting = False
+        if self._head_bytes > self.max_header_bytes:
+            return HeadRefusal(
+                431,
+                "headers_too_large",
+                f"the request head (request line and header fields) exceeds "
+                f"{self.max_header_bytes} bytes",
+                {"limit": self.max_header_bytes},
+            )
+        return None
+
+
+class BoundedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol with :class:`HeadMeter` in front of the parser.
+
+    Use :func:`bounded_protocol` to get a subclass carrying a service's limits: uvicorn builds
+    one protocol object per connection from the class alone.
+    """
+
+    max_request_line_bytes: ClassVar[int] = 8 * 1024
+    max_header_bytes: ClassVar[int] = 64 * 1024
+    header_timeout_s: ClassVar[float] = 30.0
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._head = HeadMeter(self.max_request_line_bytes, self.max_header_bytes)
+        self._head_deadline: asyncio.TimerHandle | None = None
+        self._refused = False
+
+    def data_received(self, data: bytes) -> None:
+        if self._refused:
+            return
+        if self.conn.their_state is h11.IDLE:
+            refusal = None
+            if not self._head.counting:
+                # A new request: count what h11 kept of it from earlier reads, then the rest.
+                self._head.start()
+                refusal = self._head.feed(self.conn.trailing_data[0])
+            refusal = refusal or self._head.feed(data)
+            if refusal is not None:
+                self._refuse(refusal)
+                return
+            if self._head.counting and self._head_deadline is None:
+                self._head_deadline = self.loop.call_later(self.header_timeout_s, self._too_slow)
+            elif not self._head.counting:
+                self._cancel_deadline()
+        super().data_received(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._cancel_deadline()
+        super().connection_lost(exc)
+
+    def _cancel_deadline(self) -> None:
+        if self._head_deadline is not None:
+            self._head_deadline.cancel()
+            self._head_deadline = None
+
+    def _too_slow(self) -> None:
+        self._head_deadline = None
+        if self._head.counting and self.conn.their_state is h11.IDLE and not self._refused:
+            self._refuse(
+                HeadRefusal(
+                    408,
+                    "header_timeout",
+                    f"the request head did not arrive within {self.header_timeout_s:g} s",
+                    {"limit_s": self.header_timeout_s},
+                )
+            )
+
+    def _refuse(self, refusal: HeadRefusal) -> None:
+        """Answer in the error model and close without reading the rest of the request."""
+        self._refused = True
+        self._cancel_deadline()
+        request_id = uuid.uuid4().hex
+        token = request_id_var.set(request_id)
+        try:
+            log.warning(
+                "request head refused",
+                extra={"status": refusal.status, "code": refusal.code, "client": self.client},
+            )
+        finally:
+            request_id_var.reset(token)
+        error = error_body(refusal.code, refusal.message, refusal.details, request_id)
+        body = json.dumps(error).encode()
+        head = (
+            f"HTTP/1.1 {refusal.status} {HTTPStatus(refusal.status).phrase}\r\n"
+            "content-type: application/json\r\n"
+            f"content-length: {len(body)}\r\n"
+            "connection: close\r\n"
+            f"x-request-id: {request_id}\r\n\r\n"
+        ).encode()
+        self.transport.write(head + body)
+        self.transport.close()
+
+
+def bounded_protocol(
+    max_request_line_bytes: int, max_header_bytes: int, header_timeout_s: float
+) -> type[H11Protocol]:
+    """The protocol class for uvicorn's ``http=`` with these limits."""
+    return type(
+        "BoundedH11Protocol",
+        (BoundedH11Protocol,),
+        {
+            "max_request_line_bytes": max_request_line_bytes,
+            "max_header_bytes": max_header_bytes,
+            "header_timeout_s": header_timeout_s,
+        },
+    )

@@ -1,0 +1,222 @@
+"""Requests meant to freeze or crash a service, against a real process: refused, service up.
+
+A request head is bounded in the server itself (431 for the head, 414 for the request line),
+as soon as the bytes that break the bound arrive; a deeply nested JSON body is 400 and the
+process runs with a recursion limit its C stack can hold.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import select
+import socket
+from typing import Any
+
+import httpx
+import pytest
+
+from robocloud.identity import Identity
+from robocloud.signing import sign_request
+from tests.conftest import ServiceFactory
+from tests.procs import ServiceProcess
+
+MiB = 1 << 20
+HEADER_LIMIT = 64 * 1024
+LINE_LIMIT = 8 * 1024
+
+
+def memory_kib(process: ServiceProcess) -> dict[str, int]:
+    """VmRSS (now) and VmHWM (the peak so far) of the service process, in KiB."""
+    assert process.process is not None
+    fields = {}
+    with open(f"/proc/{process.process.pid}/status") as status:
+        for line in status:
+            name, _, value = line.partition(":")
+            if name in ("VmRSS", "VmHWM"):
+                fields[name] = int(value.split()[0])
+    return fields
+
+
+def read_answer(sock: socket.socket, received: bytes = b"") -> tuple[int, dict[str, Any]]:
+    """Status and JSON body of one answer, read until its Content-Length is complete."""
+    sock.setblocking(True)
+    sock.settimeout(30)
+    while b"\r\n\r\n" not in received:
+        received += sock.recv(65536)
+    head, _, body = received.partition(b"\r\n\r\n")
+    lines = head.decode().split("\r\n")
+    headers = dict(line.lower().split(": ", 1) for line in lines[1:])
+    while len(body) < int(headers["content-length"]):
+        chunk = sock.recv(65536)
+        assert chunk, "connection closed mid-answer"
+        body += chunk
+    answer: dict[str, Any] = json.loads(body)
+    assert (
+        answer.get("error", {}).get("request_id", headers["x-request-id"])
+        == (headers["x-request-id"])
+    )
+    return int(lines[0].split()[1]), answer
+
+
+def stream_until_answered(sock: socket.socket, total: int) -> tuple[int, int, dict[str, Any]]:
+    """Send up to ``total`` bytes of header value; stop when the service answers or hangs up.
+
+    Returns the bytes sent, and the answer's status and body.
+    """
+    sock.setblocking(False)
+    chunk = b"a" * 65536
+    sent = 0
+    received = b""
+    while sent < total:
+        readable, writable, _ = select.select([sock], [sock], [], 30)
+        if readable:
+            data = sock.recv(65536)
+            received += data
+            if not data or b"\r\n\r\n" in received:
+                break
+        elif writable:
+            try:
+                sent += sock.send(chunk)
+            except (BrokenPipeError, ConnectionResetError):
+                break
+        else:
+            pytest.fail("the service neither read nor answered for 30 s")
+    status, answer = read_answer(sock, received)
+    return sent, status, answer
+
+
+@pytest.fixture
+def storage(service_factory: ServiceFactory) -> ServiceProcess:
+    return service_factory("storage")
+
+
+def healthz(service: ServiceProcess) -> dict[str, Any]:
+    answer: dict[str, Any] = httpx.get(f"{service.url}/healthz", timeout=10).json()
+    return answer
+
+
+def test_200_mib_header_is_cut_off_with_431_and_the_service_stays_responsive(
+    storage: ServiceProcess,
+) -> None:
+    peak_before = memory_kib(storage)["VmHWM"]
+    attackers = [socket.create_connection(("127.0.0.1", storage.port)) for _ in range(10)]
+    try:
+        for sock in attackers:
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 60_000)
+        assert healthz(storage)["status"] == "ok", "partial heads held open stall nobody"
+        sent, status, answer = stream_until_answered(attackers[0], 200 * MiB)
+    finally:
+        for sock in attackers:
+            sock.close()
+    assert status == 431
+    assert answer["error"]["code"] == "headers_too_large"
+    assert answer["error"]["details"] == {"limit": HEADER_LIMIT}
+    assert sent < 32 * MiB, f"refused after {sent} bytes, not at the limit"
+    growth_kib = memory_kib(storage)["VmHWM"] - peak_before
+    assert growth_kib < 32 * 1024, f"peak memory grew by {growth_kib} KiB"
+    assert healthz(storage)["status"] == "ok"
+
+
+def test_100_kb_url_is_414_naming_the_limit(storage: ServiceProcess) -> None:
+    with socket.create_connection(("127.0.0.1", storage.port)) as sock:
+        sock.sendall(b"GET /" + b"a" * 100_000)
+        status, answer = read_answer(sock)
+    assert status == 414
+    assert answer["error"]["code"] == "request_line_too_long"
+    assert answer["error"]["details"] == {"limit": LINE_LIMIT}
+    assert healthz(storage)["status"] == "ok"
+
+
+def test_heads_within_the_limit_are_served_on_a_kept_alive_connection(
+    storage: ServiceProcess,
+) -> None:
+    """The bound is per request head: each request on a connection is counted afresh."""
+    big_header = b"X-Big: " + b"a" * 60_000 + b"\r\n"
+    request = b"GET /healthz HTTP/1.1\r\nHost: x\r\n" + big_header + b"\r\n"
+    with socket.create_connection(("127.0.0.1", storage.port)) as sock:
+        for _ in range(3):
+            sock.sendall(request)
+            status, answer = read_answer(sock)
+            assert (status, answer["status"]) == (200, "ok")
+        sock.sendall(request.replace(b"a" * 60_000, b"a" * 70_000))
+        status, answer = read_answer(sock)
+    assert (status, answer["error"]["code"]) == (431, "headers_too_large")
+
+
+def test_limits_are_the_services_settings(service_factory: ServiceFactory) -> None:
+    service = service_factory(
+        "fl", {"ROBOCLOUD_MAX_HEADER_BYTES": "4096", "ROBOCLOUD_MAX_REQUEST_LINE_BYTES": "1024"}
+    )
+    assert httpx.get(f"{service.url}/healthz", headers={"X-A": "a" * 3000}).status_code == 200
+    too_big = httpx.get(f"{service.url}/healthz", headers={"X-A": "a" * 5000})
+    assert too_big.status_code == 431
+    assert too_big.json()["error"]["details"] == {"limit": 4096}
+    too_long = httpx.get(f"{service.url}/healthz?q=" + "b" * 2000)
+    assert too_long.status_code == 414
+    assert too_long.json()["error"]["details"] == {"limit": 1024}
+
+
+def test_head_dribbled_a_byte_at_a_time_is_cut_off_with_408(
+    service_factory: ServiceFactory,
+) -> None:
+    """Slowloris: each byte arrives well within any idle timeout, the head never completes."""
+    service = service_factory("broker", {"ROBOCLOUD_HEADER_TIMEOUT_S": "1"})
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+        answered = False
+        for _ in range(300):  # 60 s at most; the service cuts it off after 1 s
+            if select.select([sock], [], [], 0.2)[0]:
+                answered = True
+                break
+            sock.sendall(b"X")
+        assert answered, "the service never cut the slow head off"
+        status, answer = read_answer(sock)
+    assert status == 408
+    assert answer["error"]["code"] == "header_timeout"
+    assert answer["error"]["details"] == {"limit_s": 1.0}
+    assert healthz(service)["status"] == "ok"
+
+
+def test_kept_alive_connection_is_not_timed_out_between_quick_requests(
+    service_factory: ServiceFactory,
+) -> None:
+    """The head deadline starts with a head's first byte and ends with its last."""
+    service = service_factory("broker", {"ROBOCLOUD_HEADER_TIMEOUT_S": "1"})
+    with socket.create_connection(("127.0.0.1", service.port)) as sock:
+        for _ in range(3):
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert read_answer(sock) == (200, healthz(service))
+            select.select([], [], [], 0.7)  # together longer than the deadline, each shorter
+
+
+def test_100000_deep_json_body_is_400_and_the_service_stays_up(
+    storage: ServiceProcess, identity: Identity
+) -> None:
+    """200 KB of brackets: the depth is measured without recursion, and the process runs
+    with the recursion limit CPython's C stack is sized for, not py_ecc's 100,000."""
+    body = b"[" * 100_000 + b"]" * 100_000
+    digest = hashlib.sha256(body).hexdigest()
+    headers = sign_request(identity.account, storage.audience, "POST", "/v1/whoami", "", digest)
+    response = httpx.post(
+        f"{storage.url}/v1/whoami",
+        content=body,
+        headers={**headers, "Content-Type": "application/json"},
+        timeout=30,
+    )
+    assert response.status_code == 400
+    error = response.json()["error"]
+    assert (error["code"], error["details"]) == ("json_too_deep", {"max_depth": 64})
+    assert storage.process is not None
+    assert storage.process.poll() is None
+    assert healthz(storage)["status"] == "ok"
+    assert serving_line(storage)["recursion_limit"] == 1000
+
+
+def serving_line(service: ServiceProcess) -> dict[str, Any]:
+    """The runner's ``serving`` log line: the limits the process actually runs with."""
+    for line in service.log().splitlines():
+        if line.startswith("{") and json.loads(line).get("msg") == "serving":
+            entry: dict[str, Any] = json.loads(line)
+            return entry
+    raise AssertionError(f"no serving line in the log of {service.name}")

@@ -1,0 +1,384 @@
+"""Each layer of the request guard, alone, in process over ``httpx.ASGITransport``.
+
+The layers wrap small ASGI apps that report what reached them, so each test shows what a
+layer lets through, what it answers itself, and what it hands down.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import logging
+from collections.abc import Awaitable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from prometheus_client import Counter
+from starlette.requests import Request
+from starlette.responses import JSONResponse
+from starlette.routing import Route, Router
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from robocloud.identity import Identity
+from robocloud.signing import HEADER_AUDIENCE, HEADER_NONCE, sign_request
+from services.common.audience import ServiceAudience
+from services.common.auth import Allowlist, AnySigner, Authorizer
+from services.common.logs import request_id_var
+from services.common.metrics import ServiceMetrics
+from services.common.middleware import (
+    AccessLogLayer,
+    BodyLimitLayer,
+    RequestIdLayer,
+    SignatureLayer,
+)
+from services.common.nonces import NonceStore
+
+AUDIENCE = "cas@local"
+
+
+def call(app: ASGIApp, method: str, path: str, **kwargs: Any) -> httpx.Response:
+    async def go() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            return await client.request(method, path, **kwargs)
+
+    return asyncio.run(go())
+
+
+async def echo(scope: Scope, receive: Receive, send: Send) -> None:
+    """Reads the whole body and answers what reached it: body size, request id, signer."""
+    body = b""
+    while True:
+        message = await receive()
+        body += message.get("body", b"")
+        if not message.get("more_body", False):
+            break
+    signature = scope.get("state", {}).get("signature")
+    answer = {
+        "body_bytes": len(body),
+        "request_id": request_id_var.get(),
+        "signer": signature.address if signature else None,
+    }
+    await JSONResponse(answer)(scope, receive, send)
+
+
+def never_called(scope: Scope, receive: Receive, send: Send) -> Awaitable[None]:
+    raise AssertionError("the layer should have answered without calling the app")
+
+
+def error_of(response: httpx.Response, status: int, code: str) -> dict[str, Any]:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/json"
+    error: dict[str, Any] = response.json()["error"]
+    assert error["code"] == code
+    return error
+
+
+# RequestIdLayer
+
+
+def test_request_id_is_generated_kept_or_replaced_and_seen_by_the_app() -> None:
+    app = RequestIdLayer(echo)
+    generated = call(app, "GET", "/")
+    assert len(generated.headers["x-request-id"]) == 32
+    assert generated.json()["request_id"] == generated.headers["x-request-id"]
+    kept = call(app, "GET", "/", headers={"X-Request-Id": "robot-req-0001"})
+    assert kept.headers["x-request-id"] == kept.json()["request_id"] == "robot-req-0001"
+    for unsafe in ("short", "has space in it", "x" * 65, "semi;colon-1234"):
+        replaced = call(app, "GET", "/", headers={"X-Request-Id": unsafe})
+        assert replaced.headers["x-request-id"] != unsafe
+        assert len(replaced.headers["x-request-id"]) == 32
+    assert request_id_var.get() == "-", "the id does not leak out of the request"
+
+
+def test_unhandled_exception_is_a_500_in_the_error_model_logged_with_the_id(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    seen: list[str] = []
+
+    async def broken(scope: Scope, receive: Receive, send: Send) -> None:
+        seen.append(request_id_var.get())
+        raise RuntimeError("secret internal detail")
+
+    with caplog.at_level(logging.ERROR, logger="robocloud.http"):
+        response = call(
+            RequestIdLayer(broken), "GET", "/", headers={"X-Request-Id": "req-00000042"}
+        )
+    error = error_of(response, 500, "internal_error")
+    assert error["request_id"] == response.headers["x-request-id"] == seen[0] == "req-00000042"
+    assert "secret" not in response.text
+    [record] = [r for r in caplog.records if r.getMessage() == "unhandled error"]
+    assert record.exc_info is not None
+    assert "secret internal detail" in str(record.exc_info[1])
+
+
+def test_exception_after_the_answer_started_is_not_answered_twice() -> None:
+    async def breaks_mid_answer(scope: Scope, receive: Receive, send: Send) -> None:
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        raise RuntimeError("after the start")
+
+    with pytest.raises(RuntimeError, match="after the start"):
+        call(RequestIdLayer(breaks_mid_answer), "GET", "/")
+
+
+# AccessLogLayer
+
+
+def routed_app() -> Router:
+    """A bare router (no Starlette app around it, whose error middleware would answer 500)."""
+
+    async def item(request: Request) -> JSONResponse:
+        return JSONResponse({"id": request.path_params["item_id"]})
+
+    async def broken(request: Request) -> JSONResponse:
+        raise RuntimeError("boom")
+
+    return Router(routes=[Route("/items/{item_id}", item), Route("/broken", broken)])
+
+
+def requests_counted(metrics: ServiceMetrics) -> dict[tuple[str, str, str], float]:
+    counted = {}
+    for metric in metrics.registry.collect():
+        for sample in metric.samples:
+            if sample.name == "robocloud_http_requests_total":
+                labels = sample.labels
+                counted[(labels["method"], labels["route"], labels["status"])] = sample.value
+    return counted
+
+
+def test_metrics_are_labelled_by_route_template_never_by_raw_path() -> None:
+    metrics = ServiceMetrics("test")
+    app = AccessLogLayer(routed_app(), metrics)
+    for item_id in ("a", "b", "c"):
+        assert call(app, "GET", f"/items/{item_id}").json() == {"id": item_id}
+    assert call(app, "GET", "/nowhere/1").status_code == 404
+    assert call(app, "GET", "/nowhere/2").status_code == 404
+    assert requests_counted(metrics) == {
+        ("GET", "/items/{item_id}", "200"): 3.0,
+        ("GET", "unmatched", "404"): 2.0,
+    }
+
+
+def test_exception_passing_through_counts_as_500_and_is_logged(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    metrics = ServiceMetrics("test")
+    app = RequestIdLayer(AccessLogLayer(routed_app(), metrics))
+    with caplog.at_level(logging.INFO, logger="robocloud.http"):
+        assert call(app, "GET", "/broken").status_code == 500
+    assert requests_counted(metrics) == {("GET", "/broken", "500"): 1.0}
+    [line] = [r for r in caplog.records if r.getMessage() == "request"]
+    assert (line.method, line.path, line.route, line.status) == ("GET", "/broken", "/broken", 500)  # type: ignore[attr-defined]
+
+
+def test_access_log_names_the_signer_of_a_signed_request(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    robot = Identity.generate()
+    app = AccessLogLayer(signature_layer(tmp_path, echo), ServiceMetrics("test"))
+    with caplog.at_level(logging.INFO, logger="robocloud.http"):
+        assert call(app, "POST", "/w", headers=signed(robot, "/w")).status_code == 200
+    [line] = [r for r in caplog.records if r.getMessage() == "request"]
+    assert line.signer == robot.address  # type: ignore[attr-defined]
+    assert line.status == 200  # type: ignore[attr-defined]
+
+
+def test_services_register_their_own_collectors_beside_the_layers() -> None:
+    metrics = ServiceMetrics("test")
+    Counter("robocloud_test_things", "Things.", registry=metrics.registry).inc()
+    rendered = metrics.render().decode()
+    assert "robocloud_test_things_total 1.0" in rendered
+
+
+# BodyLimitLayer
+
+
+def test_declared_oversized_body_is_413_before_the_app_runs() -> None:
+    app = BodyLimitLayer(never_called, default_limit=100)
+    response = call(app, "POST", "/x", content=b"x" * 101)
+    error = error_of(response, 413, "payload_too_large")
+    assert error["details"] == {"header": "Content-Length", "limit": 100}
+
+
+def test_streamed_body_is_cut_off_when_it_passes_the_limit() -> None:
+    """No Content-Length (chunked): the meter counts and refuses once the limit is passed."""
+    reached: list[int] = []
+
+    async def reads_until_refused(scope: Scope, receive: Receive, send: Send) -> None:
+        while True:
+            message = await receive()
+            reached.append(len(message.get("body", b"")))
+            if not message.get("more_body", False):
+                break
+        await JSONResponse({"read": sum(reached)})(scope, receive, send)
+
+    def chunks() -> Any:
+        async def gen() -> Any:
+            for _ in range(10):
+                yield b"y" * 40
+
+        return gen()
+
+    app = BodyLimitLayer(reads_until_refused, default_limit=100)
+    response = call(app, "POST", "/x", content=chunks())
+    error = error_of(response, 413, "payload_too_large")
+    assert error["details"] == {"limit": 100}
+    assert sum(reached) <= 100, "the chunk that passed the limit never reached the app"
+
+
+def test_body_within_the_limit_reaches_the_app_whole() -> None:
+    app = BodyLimitLayer(echo, default_limit=100)
+    assert call(app, "POST", "/x", content=b"z" * 100).json()["body_bytes"] == 100
+
+
+def test_longest_matching_prefix_sets_the_limit() -> None:
+    layer = BodyLimitLayer(echo, default_limit=10, limits={"/up": 1000, "/up/small": 20})
+    assert (layer.limit_for("/other"), layer.limit_for("/up/big")) == (10, 1000)
+    assert layer.limit_for("/up/small/x") == 20
+    assert call(layer, "POST", "/up/big", content=b"a" * 500).json()["body_bytes"] == 500
+    error = error_of(call(layer, "POST", "/up/small", content=b"a" * 21), 413, "payload_too_large")
+    assert error["details"]["limit"] == 20
+
+
+# SignatureLayer
+
+
+def signature_layer(
+    tmp_path: Path,
+    app: ASGIApp,
+    *,
+    authorizer: Authorizer | None = None,
+    audience: ServiceAudience | None = None,
+) -> SignatureLayer:
+    return SignatureLayer(
+        app,
+        audience=audience or ServiceAudience("cas", "local", source="test"),
+        nonces=NonceStore(tmp_path / "nonces.log", 300),
+        authorizer=authorizer or AnySigner(),
+        max_clock_skew_s=300,
+        unsigned_paths=["/rpc"],
+    )
+
+
+def signed(
+    robot: Identity, path: str, body: bytes = b"", audience: str = AUDIENCE, **kwargs: Any
+) -> dict[str, str]:
+    digest = hashlib.sha256(body).hexdigest()
+    return sign_request(robot.account, audience, "POST", path, "", digest, **kwargs)
+
+
+def test_reads_and_unsigned_paths_pass_without_a_signature(tmp_path: Path) -> None:
+    app = signature_layer(tmp_path, echo)
+    assert call(app, "GET", "/anything").json()["signer"] is None
+    assert call(app, "POST", "/rpc", content=b"{}").json()["body_bytes"] == 2
+
+
+def test_unsigned_write_is_401_before_the_app_runs(tmp_path: Path) -> None:
+    response = call(signature_layer(tmp_path, never_called), "POST", "/w", content=b"{}")
+    error = error_of(response, 401, "missing_signature_header")
+    assert error["details"] == {"header": "X-Robocloud-Address"}
+
+
+def test_signed_write_reaches_the_app_with_its_verified_signer(tmp_path: Path) -> None:
+    robot = Identity.generate()
+    body = b'{"a": 1}'
+    response = call(
+        signature_layer(tmp_path, echo),
+        "POST",
+        "/w",
+        content=body,
+        headers=signed(robot, "/w", body),
+    )
+    assert response.json() == {"body_bytes": len(body), "request_id": "-", "signer": robot.address}
+
+
+def test_wrong_audience_is_401_naming_both_and_burns_no_nonce(tmp_path: Path) -> None:
+    robot = Identity.generate()
+    app = signature_layer(tmp_path, echo)
+    nonce = "fixed-nonce-00000001"
+    for other in ("ledger@local", "cas@1337:0x" + "ab" * 20):
+        headers = signed(robot, "/w", audience=other, nonce=nonce)
+        error = error_of(call(app, "POST", "/w", headers=headers), 401, "wrong_audience")
+        assert error["details"] == {
+            "header": HEADER_AUDIENCE,
+            "expected": AUDIENCE,
+            "received": other,
+        }
+    own = call(app, "POST", "/w", headers=signed(robot, "/w", nonce=nonce))
+    assert own.json()["signer"] == robot.address, "the refused requests left the nonce unused"
+
+
+def test_v1_request_is_401_naming_v2(tmp_path: Path) -> None:
+    robot = Identity.generate()
+    headers = signed(robot, "/w")
+    del headers[HEADER_AUDIENCE]
+    response = call(signature_layer(tmp_path, never_called), "POST", "/w", headers=headers)
+    error = error_of(response, 401, "unsupported_signature_version")
+    assert "ROBOCLOUD-REQUEST-V2" in error["message"]
+    assert error["details"] == {"header": HEADER_AUDIENCE}
+
+
+def test_replayed_nonce_is_401(tmp_path: Path) -> None:
+    robot = Identity.generate()
+    app = signature_layer(tmp_path, echo)
+    headers = signed(robot, "/w")
+    assert call(app, "POST", "/w", headers=headers).status_code == 200
+    error = error_of(call(app, "POST", "/w", headers=headers), 401, "replayed_nonce")
+    assert error["details"] == {"header": HEADER_NONCE}
+
+
+def test_nonce_is_checked_before_the_authorizer_is_asked(tmp_path: Path) -> None:
+    """A refused signer's replay is refused for its nonce: no second authorizer lookup, and a
+    request refused once (403, or 503 while the ledger is down) can never be replayed into
+    success later, after the signer was registered."""
+    robot = Identity.generate()
+    allowlist = Allowlist([])
+    app = signature_layer(tmp_path, never_called, authorizer=allowlist)
+    headers = signed(robot, "/w")
+    first = error_of(call(app, "POST", "/w", headers=headers), 403, "address_not_allowed")
+    assert first["details"] == {"address": robot.address}
+    allowlist.addresses = frozenset({robot.address})
+    error_of(call(app, "POST", "/w", headers=headers), 401, "replayed_nonce")
+
+
+def test_unknown_audience_is_503_until_learned(tmp_path: Path) -> None:
+    robot = Identity.generate()
+    audience = ServiceAudience("cas", source="the ledger at http://ledger")
+    app = signature_layer(tmp_path, echo, audience=audience)
+    deployment = "1337:0x" + "ab" * 20
+    headers = signed(robot, "/w", audience=f"cas@{deployment}")
+    error = error_of(call(app, "POST", "/w", headers=headers), 503, "audience_unknown")
+    assert "the ledger at http://ledger" in error["message"]
+    audience.learn(deployment)
+    assert call(app, "POST", "/w", headers=headers).json()["signer"] == robot.address
+
+
+def test_body_not_matching_the_signed_digest_is_400_when_it_ends(tmp_path: Path) -> None:
+    robot = Identity.generate()
+    headers = signed(robot, "/w", b"what was signed")
+    response = call(
+        signature_layer(tmp_path, echo), "POST", "/w", content=b"what was sent", headers=headers
+    )
+    error = error_of(response, 400, "body_digest_mismatch")
+    assert error["details"]["header"] == "X-Robocloud-Content-SHA256"
+
+
+def test_layers_compose_outermost_request_id_first(tmp_path: Path) -> None:
+    """In the order create_app installs them, a refusal deep inside carries the request id."""
+    metrics = ServiceMetrics("test")
+    app = RequestIdLayer(
+        AccessLogLayer(BodyLimitLayer(signature_layer(tmp_path, echo), default_limit=10), metrics)
+    )
+    response = call(app, "POST", "/w", content=b"{}", headers={"X-Request-Id": "compose-0001"})
+    error = error_of(response, 401, "missing_signature_header")
+    assert error["request_id"] == "compose-0001"
+    too_big = call(app, "POST", "/w", content=b"x" * 11)
+    assert (
+        error_of(too_big, 413, "payload_too_large")["request_id"] == too_big.headers["x-request-id"]
+    )
+    assert requests_counted(metrics) == {
+        ("POST", "unmatched", "401"): 1.0,
+        ("POST", "unmatched", "413"): 1.0,
+    }
