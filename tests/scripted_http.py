@@ -3,11 +3,14 @@
 The SDK's retries, bounds and error translation are tested against real sockets rather than a
 fake transport, so what httpx does with a dropped connection or a stalled answer is what the
 test sees. A script gets each request and returns ``(status, headers, body)``, or ``None`` to
-close the connection without answering (a crash after the request arrived).
+close the connection without answering (a crash after the request arrived). Like every
+robocloud service, the server answers ``GET /v1/audience`` itself (signed requests name it),
+outside the script and the record, unless it is told to leave that to the script too.
 """
 
 from __future__ import annotations
 
+import json
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -50,8 +53,11 @@ def scripted_client(
         yield server, client
 
 
+AUDIENCE = {"audience": "scripted@local", "service": "scripted", "deployment": "local"}
+
+
 @contextmanager
-def scripted_server(script: Script) -> Iterator[ScriptedServer]:
+def scripted_server(script: Script, *, answer_audience: bool = True) -> Iterator[ScriptedServer]:
     """Serve ``script`` on a free loopback port until the block ends."""
     record: list[Exchange] = []
 
@@ -64,8 +70,11 @@ def scripted_server(script: Script) -> Iterator[ScriptedServer]:
             exchange = Exchange(
                 self.command, self.path, {k.lower(): v for k, v in self.headers.items()}, body
             )
-            record.append(exchange)
-            reply = script(exchange)
+            if answer_audience and (self.command, self.path) == ("GET", "/v1/audience"):
+                reply = json_reply(json.dumps(AUDIENCE))
+            else:
+                record.append(exchange)
+                reply = script(exchange)
             if reply is None:
                 self.close_connection = True
                 return

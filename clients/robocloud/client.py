@@ -136,6 +136,7 @@ class BaseClient(Closeable):
         self.identity = identity
         self.retry = RetryPolicy(retries=retries, backoff_s=backoff_s)
         self.max_answer_bytes = max_answer_bytes
+        self._audience: str | None = None
         self._http = httpx.Client(
             base_url=self.base_url,
             timeout=timeout,
@@ -321,8 +322,6 @@ class BaseClient(Closeable):
         name = f"the {self.service} service" if self.service else "the service"
         return f"{name} at {self.base_url}"
 
-    _audience: str | None = None
-
     def audience(self) -> str:
         """The service's audience, ``GET /v1/audience``, fetched once per client.
 
@@ -330,7 +329,9 @@ class BaseClient(Closeable):
         is refused by every other service and deployment.
         """
         if self._audience is None:
-            answer = self.request("GET", "/v1/audience", signed=False)
+            answer = self.send("GET", "/v1/audience", signed=False)
+            if answer.status_code >= 400:
+                raise api_error(answer)
             self._audience = str(audience_from_answer(answer.content))
         return self._audience
 
