@@ -31,7 +31,7 @@ SERVICES = {
     "ledger": {"ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": "fuzz-tests-only"},
     "storage": {},
 }
-EXAMPLES = 60
+EXAMPLES = 150
 VALID_CID = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
 
 
@@ -201,6 +201,7 @@ header_sets = st.dictionaries(
 FUZZ = settings(
     max_examples=EXAMPLES,
     deadline=None,
+    database=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 
