@@ -15,70 +15,25 @@ from typing import Any
 import anyio
 from fastapi import APIRouter, FastAPI, Query, Request
 from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel, Field, SecretStr
+from pydantic import BaseModel, Field
 
 import services.ledger
 from robocloud.signing import chain_deployment_id
 from services.common.app import create_app
 from services.common.auth import SignedAddress
 from services.common.bodies import read_json
-from services.common.errors import Forbidden, NotFound, TooManyRequests, Unavailable
-from services.common.settings import ServiceSettings
+from services.common.errors import Forbidden, Unavailable
 from services.ledger import views
-from services.ledger.calls import CallLimits
-from services.ledger.external import ExternalLedger
-from services.ledger.faucet import FaucetLimits, RateLimited
-from services.ledger.node import EmbeddedLedger, FaucetUnavailable, Ledger
-
-
-class LedgerSettings(ServiceSettings):
-    ledger_admin_passphrase: SecretStr | None = Field(
-        default=None, description="encrypts the operator keystores; generated when unset"
-    )
-    ledger_rpc_url: str | None = Field(default=None, description="an external Ethereum node")
-    ledger_registry_address: str | None = None
-    ledger_anchor_log_address: str | None = None
-    ledger_poll_interval_s: float = Field(default=1.0, gt=0)
-    ledger_log_page_blocks: int = Field(default=2000, gt=0)
-    ledger_confirmations: int = Field(default=0, ge=0)
-    ledger_start_block: int = Field(default=0, ge=0)
-    ledger_faucet_amount_wei: int = Field(default=10**18, gt=0)
-    ledger_faucet_interval_s: float = Field(default=3600.0, ge=0)
-    ledger_faucet_per_minute: int = Field(default=60, gt=0)
-    ledger_rpc_gas_cap: int | None = Field(
-        default=None, gt=0, description="gas an eth_call may use; unset: the block gas limit"
-    )
-    ledger_rpc_evm_timeout_s: float = Field(
-        default=5.0, gt=0, description="wall-clock limit of one eth_call or eth_estimateGas"
-    )
-
+from services.ledger.backend import open_ledger
+from services.ledger.errors import ERRORS
+from services.ledger.node import Ledger
+from services.ledger.settings import LedgerSettings
 
 READY_TIMEOUT_S = 2.0
 
 
 class FaucetRequest(BaseModel):
     address: str = Field(max_length=64)
-
-
-def _open(settings: LedgerSettings) -> Ledger:
-    passphrase = (
-        settings.ledger_admin_passphrase.get_secret_value()
-        if settings.ledger_admin_passphrase
-        else None
-    )
-    data_dir = settings.resolved_data_dir()
-    if settings.ledger_rpc_url:
-        return ExternalLedger(settings, data_dir, passphrase)
-    data_dir.mkdir(parents=True, exist_ok=True)
-    limits = FaucetLimits(
-        data_dir / "faucet.sqlite",
-        settings.ledger_faucet_interval_s,
-        settings.ledger_faucet_per_minute,
-    )
-    call_limits = CallLimits(settings.ledger_rpc_gas_cap, settings.ledger_rpc_evm_timeout_s)
-    return EmbeddedLedger(
-        data_dir, passphrase, limits, settings.ledger_faucet_amount_wei, call_limits
-    )
 
 
 def _ledger(request: Request) -> Ledger:
@@ -151,17 +106,7 @@ def _router() -> APIRouter:
                 code="faucet_signer_mismatch",
                 details={"address": address, "signer": signer},
             )
-        try:
-            return await anyio.to_thread.run_sync(ledger.fund, address)
-        except RateLimited as exc:
-            raise TooManyRequests(
-                f"faucet rate limit: {exc}",
-                retry_after_s=exc.retry_after_s,
-                code="faucet_rate_limited",
-                details={"address": address},
-            ) from exc
-        except FaucetUnavailable as exc:
-            raise NotFound(str(exc), code="faucet_unavailable") from exc
+        return await anyio.to_thread.run_sync(ledger.fund, address)
 
     return router
 
@@ -169,7 +114,7 @@ def _router() -> APIRouter:
 def build_app(settings: LedgerSettings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        ledger = await anyio.to_thread.run_sync(_open, settings)
+        ledger = await anyio.to_thread.run_sync(open_ledger, settings)
         app.state.ledger = ledger
         app.state.audience.learn(chain_deployment_id(ledger.chain_id, ledger.deployment.registry))
         try:
@@ -201,6 +146,7 @@ def build_app(settings: LedgerSettings) -> FastAPI:
         readiness_checks=[chain_answers],
         lifespan=lifespan,
         unsigned_paths=["/rpc"],
+        errors=ERRORS,
         description=services.ledger.__doc__ or "",
         deployment_source="service",
     )

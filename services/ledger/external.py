@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import anyio
 from eth_utils.address import is_address, to_checksum_address
@@ -31,9 +31,7 @@ from services.ledger.index import EventIndex
 from services.ledger.node import FaucetUnavailable
 from services.ledger.operator import load_or_create, passphrase
 from services.ledger.rpc import METHOD_NOT_FOUND, Dispatcher, RpcFailure
-
-if TYPE_CHECKING:
-    from services.ledger.app import LedgerSettings
+from services.ledger.settings import LedgerSettings
 
 log = logging.getLogger("robocloud.ledger.external")
 

@@ -24,10 +24,11 @@ GRANTS_SCHEMA = (
 
 
 class RateLimited(Exception):
-    """Refused; ``retry_after_s`` says when the same request would be granted."""
+    """Refused; ``retry_after_s`` says when the same request for ``address`` would be granted."""
 
-    def __init__(self, message: str, retry_after_s: float) -> None:
-        super().__init__(message)
+    def __init__(self, address: str, reason: str, retry_after_s: float) -> None:
+        super().__init__(f"faucet rate limit: {reason}")
+        self.address = address
         self.retry_after_s = retry_after_s
 
 
@@ -61,10 +62,10 @@ class FaucetLimits:
             last = self._last.get(address)
             if last is not None and now - last < self.interval_s:
                 wait = self.interval_s - (now - last)
-                raise RateLimited(f"{address} was funded {now - last:.0f} s ago", wait)
+                raise RateLimited(address, f"{address} was funded {now - last:.0f} s ago", wait)
             if len(self._window) >= self.global_per_minute:
                 wait = 60.0 - (now - self._window[0])
-                raise RateLimited("the faucet's budget for this minute is spent", wait)
+                raise RateLimited(address, "the faucet's budget for this minute is spent", wait)
             self._db.execute(
                 "INSERT OR REPLACE INTO grants (address, granted_at) VALUES (?, ?)", (address, now)
             )

@@ -10,42 +10,45 @@ from typing import Any
 
 from eth_utils.address import is_address, to_checksum_address
 
-from robocloud.cid import CID, CIDError
+from robocloud.cid import CID, CIDError, parse_cid
 from robocloud.ledger.models import Role
-from services.common.errors import BadRequest, NotFound
 from services.ledger.node import Ledger
 
 ROLE_NAMES = {role.id: role.value for role in Role}
 MAX_LIMIT = 1000
 
 
+class InvalidAddress(ValueError):
+    """A parameter that should hold an Ethereum address does not."""
+
+    def __init__(self, name: str, value: str) -> None:
+        super().__init__(f"{name} {value!r} is not an Ethereum address")
+        self.name = name
+        self.value = value
+
+
+class InvalidLimit(ValueError):
+    def __init__(self, value: int) -> None:
+        super().__init__(f"limit must be between 1 and {MAX_LIMIT}")
+        self.value = value
+
+
+class RobotNotFound(LookupError):
+    def __init__(self, address: str) -> None:
+        super().__init__(f"robot {address} is not registered on this ledger")
+        self.address = address
+
+
 def address_param(value: str, name: str) -> str:
-    """A checksummed address, or 400 naming the parameter and what was sent."""
+    """A checksummed address, or :class:`InvalidAddress` naming the parameter."""
     if not is_address(value):
-        raise BadRequest(
-            f"{name} {value!r} is not an Ethereum address",
-            code="invalid_address",
-            details={name: value},
-        )
+        raise InvalidAddress(name, value)
     return str(to_checksum_address(value))
-
-
-def cid_param(value: str) -> bytes:
-    try:
-        return CID.decode(value).binary
-    except (CIDError, ValueError) as exc:
-        raise BadRequest(
-            f"cid {value!r} is not a CID: {exc}", code="invalid_cid", details={"cid": value}
-        ) from exc
 
 
 def limit_param(value: int) -> int:
     if not 1 <= value <= MAX_LIMIT:
-        raise BadRequest(
-            f"limit must be between 1 and {MAX_LIMIT}",
-            code="invalid_limit",
-            details={"limit": value},
-        )
+        raise InvalidLimit(value)
     return value
 
 
@@ -62,11 +65,7 @@ def robot(ledger: Ledger, address: str) -> dict[str, Any]:
     checked = address_param(address, "address")
     found = ledger.index.robot(checked)
     if found is None:
-        raise NotFound(
-            f"robot {checked} is not registered on this ledger",
-            code="robot_not_found",
-            details={"address": checked},
-        )
+        raise RobotNotFound(checked)
     return {
         "address": checked,
         "did": f"did:pkh:eip155:{ledger.chain_id}:{checked}",
@@ -84,7 +83,7 @@ def advertisements(
     ledger: Ledger, cid: str | None, advertiser: str | None, since: int, limit: int
 ) -> dict[str, Any]:
     rows = ledger.index.advertisements(
-        cid_param(cid) if cid else None,
+        parse_cid(cid, "cid").binary if cid else None,
         address_param(advertiser, "advertiser") if advertiser else None,
         since,
         limit_param(limit),

@@ -1,0 +1,37 @@
+"""Settings of the ledger service (``ROBOCLOUD_LEDGER_*``), beside those every service has."""
+
+from __future__ import annotations
+
+from pydantic import Field, SecretStr
+
+from services.common.settings import ServiceSettings
+from services.ledger.calls import CallLimits
+
+
+class LedgerSettings(ServiceSettings):
+    ledger_admin_passphrase: SecretStr | None = Field(
+        default=None, description="encrypts the operator keystores; generated when unset"
+    )
+    ledger_rpc_url: str | None = Field(default=None, description="an external Ethereum node")
+    ledger_registry_address: str | None = None
+    ledger_anchor_log_address: str | None = None
+    ledger_poll_interval_s: float = Field(default=1.0, gt=0)
+    ledger_log_page_blocks: int = Field(default=2000, gt=0)
+    ledger_confirmations: int = Field(default=0, ge=0)
+    ledger_start_block: int = Field(default=0, ge=0)
+    ledger_faucet_amount_wei: int = Field(default=10**18, gt=0)
+    ledger_faucet_interval_s: float = Field(default=3600.0, ge=0)
+    ledger_faucet_per_minute: int = Field(default=60, gt=0)
+    ledger_rpc_gas_cap: int | None = Field(
+        default=None, gt=0, description="gas an eth_call may use; unset: the block gas limit"
+    )
+    ledger_rpc_evm_timeout_s: float = Field(
+        default=5.0, gt=0, description="wall-clock limit of one eth_call or eth_estimateGas"
+    )
+
+    def admin_passphrase(self) -> str | None:
+        secret = self.ledger_admin_passphrase
+        return secret.get_secret_value() if secret is not None else None
+
+    def call_limits(self) -> CallLimits:
+        return CallLimits(self.ledger_rpc_gas_cap, self.ledger_rpc_evm_timeout_s)
