@@ -10,31 +10,19 @@ from pathlib import Path
 import anyio
 from fastapi import FastAPI
 from prometheus_client import Counter
-from pydantic import Field
 
 import services.cas
 from robocloud.cid import CID
 from services.cas import gateway, kubo
-from services.cas.blockstore import Blockstore
-from services.cas.peers import PeerFetcher
+from services.cas.errors import ERRORS
+from services.cas.settings import CasSettings
 from services.cas.store import ContentStore
 from services.common.app import create_app
-from services.common.settings import CommaList, ServiceSettings
 
 log = logging.getLogger("robocloud.cas")
 
 UPLOAD_PATHS = ("/api/v0/add", "/api/v0/dag/import")
 MAX_BLOCK_PUT_BYTES = 4 * 1024 * 1024
-
-
-class CasSettings(ServiceSettings):
-    cas_peers: CommaList = Field(
-        default_factory=list, description="other gateways to fetch missing blocks from"
-    )
-    cas_peer_timeout_s: float = Field(default=10.0, gt=0)
-    cas_max_upload_bytes: int = Field(default=4 * 1024**3, gt=0)
-    cas_gc_grace_s: float = Field(default=3600.0, ge=0)
-    cas_gc_interval_s: float = Field(default=3600.0, ge=0, description="0 disables periodic GC")
 
 
 def _open_store(settings: CasSettings, app: FastAPI) -> ContentStore:
@@ -57,14 +45,13 @@ def _open_store(settings: CasSettings, app: FastAPI) -> ContentStore:
     def on_outcome(peer: str, outcome: str) -> None:
         fetches.labels(peer, outcome).inc()
 
-    root = settings.resolved_data_dir()
-    blocks = Blockstore(root, on_corrupt=on_corrupt)
-    peers = None
-    if settings.cas_peers:
-        peers = PeerFetcher(
-            settings.cas_peers, timeout_s=settings.cas_peer_timeout_s, on_outcome=on_outcome
-        )
-    return ContentStore(root, blocks, peers)
+    return ContentStore.open(
+        settings.resolved_data_dir(),
+        settings.cas_peers,
+        peer_timeout_s=settings.cas_peer_timeout_s,
+        on_corrupt=on_corrupt,
+        on_peer_outcome=on_outcome,
+    )
 
 
 async def _collect_periodically(store: ContentStore, settings: CasSettings) -> None:
@@ -88,7 +75,7 @@ def build_app(settings: CasSettings) -> FastAPI:
         store.close()
 
     async def blockstore_writable() -> None:
-        app.state.store.blocks.packs.stat()
+        app.state.store.check_writable()
 
     app = create_app(
         "cas",
@@ -101,6 +88,7 @@ def build_app(settings: CasSettings) -> FastAPI:
             **{path: settings.cas_max_upload_bytes for path in UPLOAD_PATHS},
             "/api/v0/block/put": MAX_BLOCK_PUT_BYTES,
         },
+        errors=ERRORS,
         description=services.cas.__doc__ or "",
     )
     app.state.store = _open_store(settings, app)

@@ -14,11 +14,11 @@ import anyio
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
-from robocloud.cid import CID
+from robocloud.cid import CID, parse_cid
 from services.cas.ranges import byte_range
-from services.cas.store import ContentStore, parse_cid
+from services.cas.store import BlockUnavailable, ContentStore
 from services.cas.streams import threaded_stream
-from services.common.errors import BadRequest, NotFound, ServiceError
+from services.common.errors import BadRequest, ServiceError
 
 RAW_MEDIA_TYPE = "application/vnd.ipld.raw"
 CAR_MEDIA_TYPE = "application/vnd.ipld.car"
@@ -85,7 +85,7 @@ async def ipfs(
         if kind == "car":
             return await _car(request, store, root, dag_scope, use_peers, head)
         return await _file(request, store, root, use_peers, head)
-    except NotFound as miss:
+    except BlockUnavailable as miss:
         if not use_peers:
             raise PreconditionFailed(
                 f"{root} is not in this gateway's store", details={"cid": str(root)}

@@ -16,12 +16,11 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
 import robocloud
-from robocloud.cid import CID, CODEC_NAMES
-from robocloud.unixfs import ImportParams, PBNode, UnixfsError
-from services.cas.multipart import boundary_of
-from services.cas.store import ContentStore, parse_cid
+from robocloud.cid import CODEC_NAMES, parse_cid
+from robocloud.unixfs import ImportParams, UnixfsError
+from services.cas.store import ContentStore
 from services.cas.streams import threaded_stream
-from services.cas.uploads import CarSpool, receive_parts
+from services.cas.uploads import BlockCollector, CarImport, FileAdder, upload
 from services.common.auth import SignedAddress
 from services.common.errors import BadRequest
 
@@ -78,13 +77,8 @@ async def add(
 ) -> Response:
     """Add files from a multipart body; the answer has one ``{"Name","Hash","Size"}`` line each."""
     params = _import_params(cid_version, raw_leaves, chunker, profile)
-    boundary = boundary_of(request.headers.get("content-type"))
-    adder = _store(request).adder(params, only_hash=only_hash)
-    try:
-        await receive_parts(request.stream(), boundary, adder)
-        added = await anyio.to_thread.run_sync(adder.commit, address, pin)
-    finally:
-        adder.discard()
+    adder = FileAdder(_store(request), params, only_hash=only_hash, pin=pin)
+    added = await upload(request.stream(), request.headers.get("content-type"), adder, address)
     return _lines(
         {"Name": item.name, "Hash": str(item.cid), "Size": str(item.dag_size)} for item in added
     )
@@ -98,49 +92,23 @@ async def cat(
     length: Annotated[int | None, Query(ge=0)] = None,
 ) -> Response:
     """A file's bytes (or ``length`` of them from ``offset``), every block verified on read."""
-    root = parse_cid(arg)
+    root = parse_cid(arg, "arg")
     body = await threaded_stream(_store(request).read(root, offset, length))
     return StreamingResponse(body, media_type="application/octet-stream")
 
 
 @router.post("/block/get")
 async def block_get(request: Request, arg: Arg) -> Response:
-    cid = parse_cid(arg)
+    cid = parse_cid(arg, "arg")
     data = await anyio.to_thread.run_sync(_store(request).get_block, cid)
     return Response(data, media_type="application/octet-stream")
 
 
 @router.post("/block/stat")
 async def block_stat(request: Request, arg: Arg) -> dict[str, Any]:
-    cid = parse_cid(arg)
+    cid = parse_cid(arg, "arg")
     size = await anyio.to_thread.run_sync(_store(request).block_size, cid)
     return {"Key": str(cid), "Size": size}
-
-
-class _BlockCollector:
-    """Collects the blocks of a ``block/put`` body and stages each once it checked out."""
-
-    def __init__(self, codec: int) -> None:
-        self.codec = codec
-        self.blocks: list[bytes] = []
-        self._current = bytearray()
-
-    def begin(self, name: str) -> None:
-        self._current = bytearray()
-
-    def write(self, data: bytes) -> None:
-        self._current += data
-
-    def end(self) -> None:
-        data = bytes(self._current)
-        if self.codec == CODECS["dag-pb"]:
-            try:
-                PBNode.decode(data)
-            except UnixfsError as exc:
-                raise BadRequest(
-                    f"block {len(self.blocks)} is not valid dag-pb: {exc}", code="invalid_block"
-                ) from exc
-        self.blocks.append(data)
 
 
 @router.post("/block/put")
@@ -164,18 +132,9 @@ async def block_put(
             code="invalid_hash",
             details={"field": "mhtype"},
         )
-    collector = _BlockCollector(CODECS[cid_codec])
-    await receive_parts(
-        request.stream(), boundary_of(request.headers.get("content-type")), collector
-    )
-    store = _store(request)
-    cids = await anyio.to_thread.run_sync(
-        lambda: store.put_blocks(collector.blocks, collector.codec, address, pin=pin)
-    )
-    return _lines(
-        {"Key": str(cid), "Size": len(data)}
-        for cid, data in zip(cids, collector.blocks, strict=True)
-    )
+    collector = BlockCollector(_store(request), CODECS[cid_codec], pin=pin)
+    blocks = await upload(request.stream(), request.headers.get("content-type"), collector, address)
+    return _lines({"Key": str(block.cid), "Size": len(block.data)} for block in blocks)
 
 
 @router.post("/pin/add")
@@ -187,7 +146,7 @@ async def pin_add(
         raise BadRequest(
             "only recursive pins are supported", code="unsupported", details={"field": "recursive"}
         )
-    roots = [parse_cid(text) for text in arg]
+    roots = [parse_cid(text, "arg") for text in arg]
     store = _store(request)
     for root in roots:
         await anyio.to_thread.run_sync(store.pin, root, address)
@@ -197,8 +156,8 @@ async def pin_add(
 @router.post("/pin/rm")
 async def pin_rm(request: Request, address: SignedAddress, arg: Args) -> dict[str, list[str]]:
     """Remove the signing robot's own pins; another robot's pin is 403."""
-    roots = [parse_cid(text) for text in arg]
-    await anyio.to_thread.run_sync(_store(request).pins.remove, roots, address)
+    roots = [parse_cid(text, "arg") for text in arg]
+    await anyio.to_thread.run_sync(_store(request).unpin, roots, address)
     return {"Pins": [str(root) for root in roots]}
 
 
@@ -209,17 +168,9 @@ async def pin_ls(
     type: Annotated[str, Query(description="all or recursive")] = "all",
 ) -> dict[str, dict[str, dict[str, Any]]]:
     """Pinned roots with their owners (``Owners`` is robocloud's addition to kubo's answer)."""
-    pins = _store(request).pins.snapshot()
     if type not in ("all", "recursive"):
         return {"Keys": {}}
-    if arg:
-        wanted = [parse_cid(text) for text in arg]
-        missing = [cid for cid in wanted if cid not in pins]
-        if missing:
-            raise BadRequest(
-                f"{missing[0]} is not pinned", code="not_pinned", details={"cid": str(missing[0])}
-            )
-        pins = {cid: pins[cid] for cid in wanted}
+    pins = _store(request).pinned([parse_cid(text, "arg") for text in arg or []])
     return {
         "Keys": {
             str(cid): {"Type": "recursive", "Owners": sorted(owners)}
@@ -231,7 +182,7 @@ async def pin_ls(
 @router.post("/dag/export")
 async def dag_export(request: Request, arg: Arg) -> Response:
     """The whole DAG under a root as a CARv1 stream."""
-    root = parse_cid(arg)
+    root = parse_cid(arg, "arg")
     body = await threaded_stream(_store(request).export_car(root, "all"))
     return StreamingResponse(body, media_type="application/vnd.ipld.car")
 
@@ -243,35 +194,11 @@ async def dag_import(
     pin_roots: Annotated[bool, Query(alias="pin-roots")] = True,
 ) -> Response:
     """Import CARs: every block is verified, and one bad block rejects the whole upload."""
-    store = _store(request)
-    boundary = boundary_of(request.headers.get("content-type"))
-    with store.blocks.stage() as staging:
-        spool = CarSpool(store, staging)
-        await receive_parts(request.stream(), boundary, spool)
-
-        def commit() -> list[dict[str, Any]]:
-            # Each root's DAG is walked before anything is committed: one too deep or
-            # malformed to pin rejects the whole import, leaving the store as it was.
-            missing = {root: store.missing_block(root, staging) for root in spool.roots}
-            staging.commit()
-            return [
-                _pin_root(store, root, missing[root], address, pin_roots) for root in spool.roots
-            ]
-
-        answers = await anyio.to_thread.run_sync(commit)
-    return _lines(answers)
-
-
-def _pin_root(
-    store: ContentStore, root: CID, missing: CID | None, owner: str, pin: bool
-) -> dict[str, Any]:
-    error = ""
-    if pin:
-        if missing is None:
-            store.pins.add(root, owner)
-        else:
-            error = f"block {missing} of the DAG is missing; {root} was not pinned"
-    return {"Root": {"Cid": {"/": str(root)}, "PinErrorMsg": error}}
+    car_import = CarImport(_store(request), pin_roots=pin_roots)
+    roots = await upload(request.stream(), request.headers.get("content-type"), car_import, address)
+    return _lines(
+        {"Root": {"Cid": {"/": str(root.cid)}, "PinErrorMsg": root.pin_error}} for root in roots
+    )
 
 
 @router.post("/repo/gc")
@@ -285,7 +212,7 @@ async def repo_gc(request: Request, _: SignedAddress) -> Response:
 @router.post("/repo/stat")
 async def repo_stat(request: Request) -> dict[str, Any]:
     """Stored blocks and the bytes their packs use on disk."""
-    count, size = await anyio.to_thread.run_sync(_store(request).blocks.usage)
+    count, size = await anyio.to_thread.run_sync(_store(request).usage)
     return {"NumObjects": count, "RepoSize": size, "RepoPath": "", "Version": "robocloud-packs-1"}
 
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from services.common.errors import BadRequest, UnsupportedMediaType
-
 MAX_HEADER_BYTES = 16 * 1024
 _BOUNDARY = re.compile(r'boundary=(?:"([^"]{1,70})"|([^\s;,]{1,70}))', re.IGNORECASE)
 _PARAM = re.compile(r'(\w+)\*?=(?:"((?:[^"\\]|\\.)*)"|([^;\s]+))')
@@ -53,21 +51,37 @@ class PartEnd:
 Event = Part | PartData | PartEnd
 
 
+class NotMultipart(ValueError):
+    """The body is not declared ``multipart/form-data``."""
+
+    def __init__(self, content_type: str | None) -> None:
+        super().__init__("the body must be multipart/form-data")
+        self.content_type = content_type
+
+
+class MultipartError(ValueError):
+    """Malformed multipart framing; ``header`` names the request header at fault, if one is."""
+
+    def __init__(self, message: str, header: str | None = None) -> None:
+        super().__init__(message)
+        self.header = header
+
+
+class TruncatedMultipart(MultipartError):
+    def __init__(self) -> None:
+        super().__init__(
+            "the multipart body is truncated: its closing boundary is missing; nothing was stored"
+        )
+
+
 def boundary_of(content_type: str | None) -> bytes:
-    """The boundary of a multipart/form-data Content-Type; 415 or 400 naming the header."""
+    """The boundary of a multipart/form-data Content-Type."""
     media = (content_type or "").split(";", 1)[0].strip().lower()
     if media != "multipart/form-data":
-        raise UnsupportedMediaType(
-            "the body must be multipart/form-data",
-            details={"header": "Content-Type", "received": content_type},
-        )
+        raise NotMultipart(content_type)
     match = _BOUNDARY.search(content_type or "")
     if match is None:
-        raise BadRequest(
-            "multipart/form-data without a boundary",
-            code="invalid_multipart",
-            details={"header": "Content-Type"},
-        )
+        raise MultipartError("multipart/form-data without a boundary", header="Content-Type")
     return (match.group(1) or match.group(2)).encode("latin-1")
 
 
@@ -89,11 +103,7 @@ class MultipartParser:
 
     def close(self) -> None:
         if self._state != "done":
-            raise BadRequest(
-                "the multipart body is truncated: its closing boundary is missing; "
-                "nothing was stored",
-                code="truncated_multipart",
-            )
+            raise TruncatedMultipart()
 
     def _step(self, events: list[Event]) -> bool:
         if self._state == "preamble":
@@ -111,7 +121,7 @@ class MultipartParser:
         at = self._buffer.find(self._first)
         if at < 0:
             if len(self._buffer) > MAX_HEADER_BYTES:
-                raise BadRequest("no multipart boundary found", code="invalid_multipart")
+                raise MultipartError("no multipart boundary found")
             return False
         del self._buffer[: at + len(self._first)]
         self._state = "after_boundary"
@@ -127,20 +137,20 @@ class MultipartParser:
         elif marker == b"\r\n":
             self._state = "headers"
         else:
-            raise BadRequest("malformed multipart boundary line", code="invalid_multipart")
+            raise MultipartError("malformed multipart boundary line")
         return True
 
     def _headers(self, events: list[Event]) -> bool:
         end = self._buffer.find(b"\r\n\r\n")
         if end < 0:
             if len(self._buffer) > MAX_HEADER_BYTES:
-                raise BadRequest("multipart part headers too large", code="invalid_multipart")
+                raise MultipartError("multipart part headers too large")
             return False
         headers: dict[str, str] = {}
         for line in bytes(self._buffer[:end]).decode("utf-8", "replace").split("\r\n"):
             name, colon, value = line.partition(":")
             if not colon:
-                raise BadRequest(f"malformed part header {line!r}", code="invalid_multipart")
+                raise MultipartError(f"malformed part header {line!r}")
             headers[name.strip().lower()] = value.strip()
         del self._buffer[: end + 4]
         events.append(Part(headers))

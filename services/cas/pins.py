@@ -14,7 +14,21 @@ from pathlib import Path
 
 from robocloud.cid import CID
 from services.common.durable import AppendLog
-from services.common.errors import Forbidden, NotFound
+
+
+class NotPinned(LookupError):
+    def __init__(self, cid: CID) -> None:
+        super().__init__(f"{cid} is not pinned")
+        self.cid = cid
+
+
+class PinNotOwned(PermissionError):
+    """Only other robots pinned it: one robot never removes another's pin."""
+
+    def __init__(self, cid: CID, owner: str) -> None:
+        super().__init__(f"{cid} is pinned by other robots; {owner} can only remove its own pins")
+        self.cid = cid
+        self.owner = owner
 
 
 class PinSet:
@@ -58,7 +72,8 @@ class PinSet:
     def remove(self, cids: list[CID], owner: str) -> None:
         """Remove ``owner``'s pins on every CID, or none of them.
 
-        404 if nobody pinned one of them, 403 if only other robots did.
+        :class:`NotPinned` if nobody pinned one of them, :class:`PinNotOwned` if only other
+        robots did.
         """
         with self._lock:
             for cid in cids:
@@ -70,13 +85,9 @@ class PinSet:
     def _check_removable(self, cid: CID, owner: str) -> None:
         owners = self._owners.get(cid)
         if not owners:
-            raise NotFound(f"{cid} is not pinned", code="not_pinned", details={"cid": str(cid)})
+            raise NotPinned(cid)
         if owner not in owners:
-            raise Forbidden(
-                f"{cid} is pinned by other robots; {owner} can only remove its own pins",
-                code="pin_not_owned",
-                details={"cid": str(cid), "address": owner},
-            )
+            raise PinNotOwned(cid, owner)
 
     def owners(self, cid: CID) -> frozenset[str]:
         with self._lock:

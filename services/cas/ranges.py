@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import re
 
-from services.common.errors import RangeNotSatisfiable
-
 _RANGE = re.compile(r"bytes=(\d*)-(\d*)")
 _MAX_DIGITS = 19
 _BEYOND_ANY_FILE = 10**_MAX_DIGITS
@@ -54,9 +52,13 @@ def byte_range(header: str | None, size: int) -> tuple[int, int] | None:
     return start, end
 
 
-def _unsatisfiable(header: str, size: int) -> RangeNotSatisfiable:
-    return RangeNotSatisfiable(
-        f"range {header!r} is outside the file of {size} bytes",
-        details={"header": "Range", "size": size},
-        headers={"Content-Range": f"bytes */{size}"},
-    )
+class UnsatisfiableRange(ValueError):
+    """A range wholly outside the file; ``size`` is the file's, for ``Content-Range``."""
+
+    def __init__(self, header: str, size: int) -> None:
+        super().__init__(f"range {header!r} is outside the file of {size} bytes")
+        self.size = size
+
+
+def _unsatisfiable(header: str, size: int) -> UnsatisfiableRange:
+    return UnsatisfiableRange(header[:100], size)

@@ -1,7 +1,8 @@
 """The content store: blocks, pins and peers behind the operations robots ask for.
 
 Everything here is synchronous file work with no knowledge of HTTP; the routes run it in
-worker threads. Errors are :mod:`services.common.errors` exceptions naming the CID at fault.
+worker threads. Failures are the exceptions below, each naming the CID at fault;
+``services.cas.errors`` says how each is answered.
 """
 
 from __future__ import annotations
@@ -13,39 +14,75 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from robocloud.car import ByteSource, CarError, CarReader, write_car
-from robocloud.cid import CID, DAG_PB, CIDError
-from robocloud.unixfs import (
-    Block,
-    Importer,
-    ImportParams,
-    PBNode,
-    UnixfsError,
-    file_size,
-    read_file,
-    walk_dag,
+from robocloud.cid import CID, DAG_PB
+from robocloud.unixfs import Block, PBNode, UnixfsError, file_size, read_file, walk_dag
+from services.cas.blockstore import (
+    BlockNotFound,
+    Blockstore,
+    CorruptionHook,
+    Staging,
+    cid_for_multihash,
 )
-from services.cas.blockstore import BlockNotFound, Blockstore, Staging, cid_for_multihash
-from services.cas.peers import PeerFetcher
+from services.cas.peers import OutcomeHook, PeerFetcher
 from services.cas.pins import PinSet
-from services.common.errors import BadRequest, NotFound, ServiceError
 
 log = logging.getLogger("robocloud.cas.store")
 
 DAG_SCOPES = ("block", "entity", "all")
 
 
-def parse_cid(text: str, field: str = "arg") -> CID:
-    """A CID from a request, or 400 naming the field and quoting the value."""
-    try:
-        return CID.decode(text)
-    except CIDError as exc:
-        raise BadRequest(
-            str(exc), code="invalid_cid", details={"field": field, "cid": text}
-        ) from exc
+class BlockUnavailable(LookupError):
+    """No verified copy of a block here or at any peer asked."""
+
+    def __init__(self, cid: CID, reason: str) -> None:
+        super().__init__(f"block {cid} is {reason}")
+        self.cid = cid
 
 
-class NotAFile(BadRequest):
-    code = "not_a_file"
+class DagIncomplete(LookupError):
+    """A DAG to pin lacks a block that neither this store nor its peers have."""
+
+    def __init__(self, root: CID, missing: CID) -> None:
+        super().__init__(f"cannot pin {root}: block {missing} of its DAG is not available")
+        self.root = root
+        self.missing = missing
+
+
+class NotAFile(ValueError):
+    """The CID names something that is not a readable UnixFS file (or lies about its size)."""
+
+    def __init__(self, cid: CID, reason: str) -> None:
+        super().__init__(reason)
+        self.cid = cid
+
+
+class InvalidDag(ValueError):
+    """A DAG that cannot be walked: a block that does not decode, or a path too deep."""
+
+    def __init__(self, cid: CID, reason: str) -> None:
+        super().__init__(reason)
+        self.cid = cid
+
+
+class CarRejected(ValueError):
+    """An imported CAR with a bad block or framing; nothing of it was stored."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(f"rejected the CAR, nothing was stored: {reason}")
+
+
+class UnknownScope(ValueError):
+    def __init__(self, scope: str) -> None:
+        super().__init__(f"unknown dag-scope {scope!r}: expected one of {', '.join(DAG_SCOPES)}")
+        self.scope = scope
+
+
+class UnpinnedArgument(ValueError):
+    """A CID asked about in a pin listing that nobody pinned."""
+
+    def __init__(self, cid: CID) -> None:
+        super().__init__(f"{cid} is not pinned")
+        self.cid = cid
 
 
 @dataclass(frozen=True)
@@ -60,60 +97,10 @@ class AddedFile:
 
 @dataclass(frozen=True)
 class ImportedRoot:
+    """A root of an imported CAR; ``pin_error`` says why it was not pinned, if it was not."""
+
     cid: CID
     pin_error: str
-
-
-class FileAdder:
-    """Imports the files of one upload into a staging area; ``commit`` makes them visible.
-
-    Fed from a worker thread while the body streams in; nothing is visible in the store until
-    the whole body has arrived and matched its signed digest.
-    """
-
-    def __init__(self, store: ContentStore, params: ImportParams, *, only_hash: bool) -> None:
-        self.store = store
-        self.params = params
-        self.only_hash = only_hash
-        self.staging = store.blocks.stage()
-        self.added: list[AddedFile] = []
-        self._importer: Importer | None = None
-        self._name = ""
-        self._dag_size = 0
-
-    def begin(self, name: str) -> None:
-        self._importer = Importer(self.params)
-        self._name = name
-        self._dag_size = 0
-
-    def write(self, data: bytes) -> None:
-        assert self._importer is not None, "write before begin"
-        self._stage(self._importer.feed(data))
-
-    def end(self) -> None:
-        assert self._importer is not None, "end before begin"
-        blocks, root, size = self._importer.finish()
-        self._stage(blocks)
-        self.added.append(AddedFile(self._name or str(root), root, self._dag_size, size))
-        self._importer = None
-
-    def _stage(self, blocks: list[Block]) -> None:
-        for block in blocks:
-            self._dag_size += len(block.data)
-            if not self.only_hash:
-                self.staging.add(block.cid, block.data)
-
-    def commit(self, owner: str, pin: bool) -> list[AddedFile]:
-        if not self.only_hash:
-            self.staging.commit()
-            if pin:
-                for added in self.added:
-                    self.store.pins.add(added.cid, owner)
-        self.staging.discard()
-        return self.added
-
-    def discard(self) -> None:
-        self.staging.discard()
 
 
 class ContentStore:
@@ -121,6 +108,30 @@ class ContentStore:
         self.blocks = blocks
         self.pins = PinSet(root / "pins.log")
         self.peers = peers
+
+    @classmethod
+    def open(
+        cls,
+        root: Path,
+        peers: list[str],
+        *,
+        peer_timeout_s: float = 10.0,
+        on_corrupt: CorruptionHook | None = None,
+        on_peer_outcome: OutcomeHook | None = None,
+    ) -> ContentStore:
+        """The store under ``root``, fetching missing blocks from ``peers`` (gateway URLs)."""
+        fetcher = None
+        if peers:
+            fetcher = PeerFetcher(peers, timeout_s=peer_timeout_s, on_outcome=on_peer_outcome)
+        return cls(root, Blockstore(root, on_corrupt=on_corrupt), fetcher)
+
+    def check_writable(self) -> None:
+        """Raise ``OSError`` unless the pack directory is there (a readiness check)."""
+        self.blocks.packs.stat()
+
+    def usage(self) -> tuple[int, int]:
+        """Blocks stored, and the bytes their packs take on disk."""
+        return self.blocks.usage()
 
     # ---- blocks ----
 
@@ -136,9 +147,7 @@ class ContentStore:
                 self.blocks.put(cid, data)
                 return data
             reason += "; no peer has it"
-        raise NotFound(
-            f"block {cid} is {reason}", code="block_not_found", details={"cid": str(cid)}
-        )
+        raise BlockUnavailable(cid, reason)
 
     def block_size(self, cid: CID, *, use_peers: bool = True) -> int:
         if self.blocks.has(cid):
@@ -163,7 +172,7 @@ class ContentStore:
         try:
             return file_size(root, lambda cid: self.get_block(cid, use_peers=use_peers))
         except UnixfsError as exc:
-            raise NotAFile(str(exc), details={"cid": str(root)}) from exc
+            raise NotAFile(root, str(exc)) from exc
 
     def read(
         self, root: CID, offset: int = 0, length: int | None = None, *, use_peers: bool = True
@@ -174,10 +183,7 @@ class ContentStore:
                 root, lambda cid: self.get_block(cid, use_peers=use_peers), offset, length
             )
         except UnixfsError as exc:
-            raise NotAFile(str(exc), details={"cid": str(root)}) from exc
-
-    def adder(self, params: ImportParams, *, only_hash: bool = False) -> FileAdder:
-        return FileAdder(self, params, only_hash=only_hash)
+            raise NotAFile(root, str(exc)) from exc
 
     # ---- DAGs and CARs ----
 
@@ -185,15 +191,11 @@ class ContentStore:
         self, root: CID, scope: str = "all", *, use_peers: bool = True
     ) -> Iterator[Block]:
         if scope not in DAG_SCOPES:
-            raise BadRequest(
-                f"unknown dag-scope {scope!r}: expected one of {', '.join(DAG_SCOPES)}",
-                code="invalid_dag_scope",
-                details={"field": "dag-scope"},
-            )
+            raise UnknownScope(scope)
         try:
             yield from walk_dag(root, lambda cid: self.get_block(cid, use_peers=use_peers), scope)
         except UnixfsError as exc:
-            raise BadRequest(str(exc), code="invalid_dag", details={"cid": str(root)}) from exc
+            raise InvalidDag(root, str(exc)) from exc
 
     def export_car(
         self, root: CID, scope: str = "all", *, use_peers: bool = True
@@ -207,9 +209,7 @@ class ContentStore:
             for block in reader:
                 staging.add(block.cid, block.data)
         except CarError as exc:
-            raise BadRequest(
-                f"rejected the CAR, nothing was stored: {exc}", code="invalid_car"
-            ) from exc
+            raise CarRejected(str(exc)) from exc
         return reader.roots
 
     def missing_block(self, root: CID, staging: Staging | None = None) -> CID | None:
@@ -220,7 +220,7 @@ class ContentStore:
         except _Missing as missing:
             return missing.cid
         except UnixfsError as exc:
-            raise BadRequest(str(exc), code="invalid_dag", details={"cid": str(root)}) from exc
+            raise InvalidDag(root, str(exc)) from exc
         return None
 
     def _staged_or_stored(self, cid: CID, staging: Staging | None) -> bytes:
@@ -228,7 +228,7 @@ class ContentStore:
             return staging.get(cid)
         try:
             return self.get_block(cid)
-        except ServiceError:
+        except BlockUnavailable:
             raise _Missing(cid) from None
 
     # ---- pins and garbage collection ----
@@ -237,12 +237,22 @@ class ContentStore:
         """Pin a DAG for ``owner`` once all its blocks are here (fetched from peers if need be)."""
         missing = self.missing_block(root)
         if missing is not None:
-            raise NotFound(
-                f"cannot pin {root}: block {missing} of its DAG is not available",
-                code="block_not_found",
-                details={"cid": str(root), "missing": str(missing)},
-            )
+            raise DagIncomplete(root, missing)
         self.pins.add(root, owner)
+
+    def unpin(self, roots: list[CID], owner: str) -> None:
+        """Remove ``owner``'s pins on every root, or none (see ``PinSet.remove``)."""
+        self.pins.remove(roots, owner)
+
+    def pinned(self, wanted: list[CID] | None = None) -> dict[CID, frozenset[str]]:
+        """Pinned roots and their owners; only ``wanted`` ones, each of which must be pinned."""
+        pins = self.pins.snapshot()
+        if not wanted:
+            return pins
+        for cid in wanted:
+            if cid not in pins:
+                raise UnpinnedArgument(cid)
+        return {cid: pins[cid] for cid in wanted}
 
     def collect_garbage(self, grace_s: float, now: float | None = None) -> list[CID]:
         """Remove every unpinned block older than ``grace_s``; never a block of a pinned DAG.

@@ -1,29 +1,54 @@
-"""Streaming uploads: multipart parsed as it arrives, content imported in a worker thread.
+"""Uploads: a multipart body streamed into one of three sinks, then committed or discarded.
 
 The event loop receives the body (the request guard hashes it against the signed digest on
-the way) and parses the multipart framing; a worker thread imports the file bytes, hashing
-and staging blocks. The two overlap through a queue of two batches, which bounds memory
-whatever the upload size and keeps both cores busy.
+the way) and parses the multipart framing; a worker thread feeds the parts to the sink, which
+stages blocks in a new pack. The two overlap through a queue of two batches, which bounds
+memory whatever the upload size and keeps both cores busy. Only when the whole body arrived
+does the sink commit; any failure before discards everything staged.
+
+The sinks: :class:`FileAdder` (``add``: files through the UnixFS importer), :class:`CarImport`
+(``dag/import``: CARs, every block verified) and :class:`BlockCollector` (``block/put``: raw
+blocks as sent).
 """
 
 from __future__ import annotations
 
 import tempfile
 from collections.abc import AsyncIterator
-from typing import Protocol
+from typing import Generic, Protocol, TypeVar
 
 import anyio
 from anyio.streams.memory import MemoryObjectReceiveStream
 
-from robocloud.cid import CID
-from services.cas.blockstore import Staging
-from services.cas.multipart import Event, MultipartParser, Part, PartData
-from services.cas.store import ContentStore
+from robocloud.cid import CID, DAG_PB
+from robocloud.unixfs import Block, Importer, ImportParams, PBNode, UnixfsError
+from services.cas.multipart import Event, MultipartParser, Part, PartData, boundary_of
+from services.cas.store import AddedFile, ContentStore, ImportedRoot
 from services.cas.streams import first_error
-from services.common.errors import BadRequest
+
+R = TypeVar("R")
 
 BATCH_BYTES = 1 << 20
 Command = tuple[str, bytes | str]
+
+
+class DirectoryPart(ValueError):
+    def __init__(self, name: str) -> None:
+        super().__init__(f"part {name!r} is a directory; only files can be added")
+        self.name = name
+
+
+class NoFilePart(ValueError):
+    def __init__(self) -> None:
+        super().__init__("the multipart body holds no file")
+
+
+class InvalidBlock(ValueError):
+    """A ``block/put`` part that does not decode as the codec it was declared with."""
+
+    def __init__(self, index: int, reason: str) -> None:
+        super().__init__(f"block {index} is not valid dag-pb: {reason}")
+        self.index = index
 
 
 class PartSink(Protocol):
@@ -34,6 +59,25 @@ class PartSink(Protocol):
     def write(self, data: bytes) -> None: ...
 
     def end(self) -> None: ...
+
+
+class Sink(PartSink, Protocol, Generic[R]):
+    """A part sink that makes what it received visible (``commit``) or drops it."""
+
+    def commit(self, owner: str) -> list[R]: ...
+
+    def discard(self) -> None: ...
+
+
+async def upload(
+    body: AsyncIterator[bytes], content_type: str | None, sink: Sink[R], owner: str
+) -> list[R]:
+    """Stream a multipart ``body`` into ``sink`` and commit it for ``owner``, or store nothing."""
+    try:
+        await receive_parts(body, boundary_of(content_type), sink)
+        return await anyio.to_thread.run_sync(sink.commit, owner)
+    finally:
+        sink.discard()
 
 
 def _apply(sink: PartSink, commands: list[Command]) -> None:
@@ -80,11 +124,7 @@ class _Batcher:
 
 def _file_name(part: Part) -> str:
     if part.content_type == "application/x-directory":
-        raise BadRequest(
-            f"part {part.filename!r} is a directory; only files can be added",
-            code="unsupported_part",
-            details={"part": part.filename},
-        )
+        raise DirectoryPart(part.filename)
     return part.filename
 
 
@@ -105,16 +145,67 @@ async def receive_parts(body: AsyncIterator[bytes], boundary: bytes, sink: PartS
     except BaseExceptionGroup as group_error:
         raise first_error(group_error) from None
     if batcher.files == 0:
-        raise BadRequest("the multipart body holds no file", code="no_file")
+        raise NoFilePart()
     return batcher.files
 
 
-class CarSpool:
-    """Spools each CAR part to a file, then stages its blocks, verifying every one."""
+class FileAdder:
+    """``add``: each part through the UnixFS importer, its blocks staged as they come."""
 
-    def __init__(self, store: ContentStore, staging: Staging) -> None:
+    def __init__(
+        self, store: ContentStore, params: ImportParams, *, only_hash: bool, pin: bool
+    ) -> None:
         self.store = store
-        self.staging = staging
+        self.params = params
+        self.only_hash = only_hash
+        self.pin = pin
+        self.staging = store.blocks.stage()
+        self.added: list[AddedFile] = []
+        self._importer: Importer | None = None
+        self._name = ""
+        self._dag_size = 0
+
+    def begin(self, name: str) -> None:
+        self._importer = Importer(self.params)
+        self._name = name
+        self._dag_size = 0
+
+    def write(self, data: bytes) -> None:
+        assert self._importer is not None, "write before begin"
+        self._stage(self._importer.feed(data))
+
+    def end(self) -> None:
+        assert self._importer is not None, "end before begin"
+        blocks, root, size = self._importer.finish()
+        self._stage(blocks)
+        self.added.append(AddedFile(self._name or str(root), root, self._dag_size, size))
+        self._importer = None
+
+    def _stage(self, blocks: list[Block]) -> None:
+        for block in blocks:
+            self._dag_size += len(block.data)
+            if not self.only_hash:
+                self.staging.add(block.cid, block.data)
+
+    def commit(self, owner: str) -> list[AddedFile]:
+        if not self.only_hash:
+            self.staging.commit()
+            if self.pin:
+                for added in self.added:
+                    self.store.pins.add(added.cid, owner)
+        return self.added
+
+    def discard(self) -> None:
+        self.staging.discard()
+
+
+class CarImport:
+    """``dag/import``: each CAR part spooled to a file, then every block verified and staged."""
+
+    def __init__(self, store: ContentStore, *, pin_roots: bool) -> None:
+        self.store = store
+        self.pin_roots = pin_roots
+        self.staging = store.blocks.stage()
         self.roots: list[CID] = []
         self._file: tempfile._TemporaryFileWrapper[bytes] | None = None
 
@@ -133,3 +224,57 @@ class CarSpool:
             spooled.seek(0)
             self.roots.extend(self.store.import_car(self.staging, spooled))
         self._file = None
+
+    def commit(self, owner: str) -> list[ImportedRoot]:
+        """Walk every root's DAG first: one too deep or malformed rejects the whole import."""
+        missing = {root: self.store.missing_block(root, self.staging) for root in self.roots}
+        self.staging.commit()
+        return [self._pin(root, missing[root], owner) for root in self.roots]
+
+    def _pin(self, root: CID, missing: CID | None, owner: str) -> ImportedRoot:
+        if not self.pin_roots:
+            return ImportedRoot(root, "")
+        if missing is not None:
+            reason = f"block {missing} of the DAG is missing; {root} was not pinned"
+            return ImportedRoot(root, reason)
+        self.store.pins.add(root, owner)
+        return ImportedRoot(root, "")
+
+    def discard(self) -> None:
+        self.staging.discard()
+
+
+class BlockCollector:
+    """``block/put``: each part one block of ``codec``, checked, then all stored as one pack.
+
+    A ``block/put`` body is small (its own body limit), so the blocks wait in memory.
+    """
+
+    def __init__(self, store: ContentStore, codec: int, *, pin: bool) -> None:
+        self.store = store
+        self.codec = codec
+        self.pin = pin
+        self.blocks: list[bytes] = []
+        self._current = bytearray()
+
+    def begin(self, name: str) -> None:
+        self._current = bytearray()
+
+    def write(self, data: bytes) -> None:
+        self._current += data
+
+    def end(self) -> None:
+        data = bytes(self._current)
+        if self.codec == DAG_PB:
+            try:
+                PBNode.decode(data)
+            except UnixfsError as exc:
+                raise InvalidBlock(len(self.blocks), str(exc)) from exc
+        self.blocks.append(data)
+
+    def commit(self, owner: str) -> list[Block]:
+        cids = self.store.put_blocks(self.blocks, self.codec, owner, pin=self.pin)
+        return [Block(cid, data) for cid, data in zip(cids, self.blocks, strict=True)]
+
+    def discard(self) -> None:
+        self.blocks.clear()

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import pytest
 
-from services.cas.multipart import MultipartParser, Part, PartData, PartEnd, boundary_of
-from services.common.errors import BadRequest, UnsupportedMediaType
+from services.cas.multipart import (
+    MultipartError,
+    MultipartParser,
+    NotMultipart,
+    Part,
+    PartData,
+    PartEnd,
+    boundary_of,
+)
 
 BOUNDARY = b"xYz-boundary"
 BODY = (
@@ -46,20 +53,20 @@ def test_any_split_gives_the_same_files(step: int) -> None:
 
 @pytest.mark.parametrize("cut", [20, 120, len(BODY) - 12])
 def test_a_truncated_body_raises_on_close(cut: int) -> None:
-    with pytest.raises(BadRequest, match="truncated"):
+    with pytest.raises(MultipartError, match="truncated"):
         parse(BODY[:cut], 5)
 
 
 def test_boundary_from_content_type() -> None:
     assert boundary_of('multipart/form-data; boundary="a b"') == b"a b"
     assert boundary_of("multipart/form-data; charset=x; boundary=abc") == b"abc"
-    with pytest.raises(UnsupportedMediaType):
+    with pytest.raises(NotMultipart):
         boundary_of("application/json")
-    with pytest.raises(BadRequest, match="boundary"):
+    with pytest.raises(MultipartError, match="boundary"):
         boundary_of("multipart/form-data")
 
 
 def test_oversized_part_headers_are_refused() -> None:
     parser = MultipartParser(BOUNDARY)
-    with pytest.raises(BadRequest, match="headers too large"):
+    with pytest.raises(MultipartError, match="headers too large"):
         parser.feed(b"--xYz-boundary\r\nX: " + b"a" * 20_000)

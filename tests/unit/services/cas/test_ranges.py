@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from services.cas.ranges import byte_range
-from services.common.errors import RangeNotSatisfiable
+from services.cas.errors import ERRORS
+from services.cas.ranges import UnsatisfiableRange, byte_range
 
 
 @pytest.mark.parametrize(
@@ -36,6 +36,11 @@ def test_served_ranges(header: str | None, expected: tuple[int, int] | None) -> 
     [("bytes=100-", 100), ("bytes=-0", 100), ("bytes=0-", 0), ("bytes=" + "9" * 5000 + "-", 100)],
 )
 def test_unsatisfiable(header: str, size: int) -> None:
-    with pytest.raises(RangeNotSatisfiable) as exc:
+    with pytest.raises(UnsatisfiableRange) as exc:
         byte_range(header, size)
-    assert exc.value.headers == {"Content-Range": f"bytes */{size}"}
+    assert exc.value.size == size
+    error = ERRORS.to_service_error(exc.value)
+    assert error is not None
+    assert (error.status, error.code) == (416, "range_not_satisfiable")
+    assert error.headers == {"Content-Range": f"bytes */{size}"}
+    assert len(error.message) < 200

@@ -1,0 +1,65 @@
+"""How the cas's domain exceptions are answered: status, code and details, in one place."""
+
+from __future__ import annotations
+
+from services.cas.multipart import MultipartError, NotMultipart, TruncatedMultipart
+from services.cas.pins import NotPinned, PinNotOwned
+from services.cas.ranges import UnsatisfiableRange
+from services.cas.store import (
+    BlockUnavailable,
+    CarRejected,
+    DagIncomplete,
+    InvalidDag,
+    NotAFile,
+    UnknownScope,
+    UnpinnedArgument,
+)
+from services.cas.uploads import DirectoryPart, InvalidBlock, NoFilePart
+from services.common.errors import ErrorMap, ErrorRule
+
+
+def _cid(
+    exc: BlockUnavailable | NotAFile | InvalidDag | NotPinned | UnpinnedArgument,
+) -> dict[str, str]:
+    return {"cid": str(exc.cid)}
+
+
+ERRORS = ErrorMap(
+    {
+        BlockUnavailable: ErrorRule(404, "block_not_found", _cid),
+        DagIncomplete: ErrorRule(
+            404,
+            "block_not_found",
+            lambda exc: {"cid": str(exc.root), "missing": str(exc.missing)},
+        ),
+        NotAFile: ErrorRule(400, "not_a_file", _cid),
+        InvalidDag: ErrorRule(400, "invalid_dag", _cid),
+        CarRejected: ErrorRule(400, "invalid_car"),
+        UnknownScope: ErrorRule(400, "invalid_dag_scope", lambda _: {"field": "dag-scope"}),
+        UnpinnedArgument: ErrorRule(400, "not_pinned", _cid),
+        NotPinned: ErrorRule(404, "not_pinned", _cid),
+        PinNotOwned: ErrorRule(
+            403, "pin_not_owned", lambda exc: {"cid": str(exc.cid), "address": exc.owner}
+        ),
+        NotMultipart: ErrorRule(
+            415,
+            "unsupported_media_type",
+            lambda exc: {"header": "Content-Type", "received": exc.content_type},
+        ),
+        MultipartError: ErrorRule(
+            400,
+            "invalid_multipart",
+            lambda exc: {"header": exc.header} if exc.header else {},
+        ),
+        TruncatedMultipart: ErrorRule(400, "truncated_multipart"),
+        DirectoryPart: ErrorRule(400, "unsupported_part", lambda exc: {"part": exc.name}),
+        NoFilePart: ErrorRule(400, "no_file"),
+        InvalidBlock: ErrorRule(400, "invalid_block", lambda exc: {"index": exc.index}),
+        UnsatisfiableRange: ErrorRule(
+            416,
+            "range_not_satisfiable",
+            lambda exc: {"header": "Range", "size": exc.size},
+            lambda exc: {"Content-Range": f"bytes */{exc.size}"},
+        ),
+    }
+)

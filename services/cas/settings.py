@@ -1,0 +1,17 @@
+"""Settings of the cas service (``ROBOCLOUD_CAS_*``), beside those every service has."""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from services.common.settings import CommaList, ServiceSettings
+
+
+class CasSettings(ServiceSettings):
+    cas_peers: CommaList = Field(
+        default_factory=list, description="other gateways to fetch missing blocks from"
+    )
+    cas_peer_timeout_s: float = Field(default=10.0, gt=0)
+    cas_max_upload_bytes: int = Field(default=4 * 1024**3, gt=0)
+    cas_gc_grace_s: float = Field(default=3600.0, ge=0)
+    cas_gc_interval_s: float = Field(default=3600.0, ge=0, description="0 disables periodic GC")
