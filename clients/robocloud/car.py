@@ -10,10 +10,13 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator
 from typing import Protocol
 
-from robocloud.cid import CID, CIDError, encode_varint
-from robocloud.unixfs import Block
+from robocloud.cid import CID, Block, CIDError, encode_varint
+from robocloud.errors import FormatError
 
 MAX_HEADER_BYTES = 1 << 20
+MAX_HEADER_DEPTH = 8
+"""A CARv1 header nests three levels (map, roots list, CID tag); more is not a CAR header."""
+MAX_ROOTS = 1024
 MAX_SECTION_BYTES = 8 << 20
 CID_TAG = 42
 
@@ -24,7 +27,7 @@ class ByteSource(Protocol):
     def read(self, size: int = -1, /) -> bytes: ...
 
 
-class CarError(ValueError):
+class CarError(FormatError):
     """A CAR that is malformed or carries a block that does not match its CID."""
 
 
@@ -79,13 +82,16 @@ class _Cbor:
         self.pos += width
         return major, value
 
-    def _key(self) -> str:
-        key = self.item()
+    def _key(self, depth: int) -> str:
+        key = self.item(depth)
         if not isinstance(key, str):
             raise CarError("dag-cbor map keys must be strings")
         return key
 
-    def item(self) -> object:
+    def item(self, depth: int = 0) -> object:
+        """The next item; containers recurse at most ``MAX_HEADER_DEPTH`` levels."""
+        if depth > MAX_HEADER_DEPTH:
+            raise CarError(f"CAR header nested deeper than {MAX_HEADER_DEPTH} levels")
         major, value = self._head()
         if major == 0:
             return value
@@ -94,13 +100,18 @@ class _Cbor:
             if len(raw) != value:
                 raise CarError("truncated CAR header")
             self.pos += value
-            return raw if major == 2 else raw.decode()
+            if major == 2:
+                return raw
+            try:
+                return raw.decode()
+            except UnicodeDecodeError as exc:
+                raise CarError(f"a CAR header string that is not UTF-8: {exc}") from exc
         if major == 4:
-            return [self.item() for _ in range(value)]
+            return [self.item(depth + 1) for _ in range(value)]
         if major == 5:
-            return {self._key(): self.item() for _ in range(value)}
+            return {self._key(depth + 1): self.item(depth + 1) for _ in range(value)}
         if major == 6 and value == CID_TAG:
-            tagged = self.item()
+            tagged = self.item(depth + 1)
             if not isinstance(tagged, bytes) or tagged[:1] != b"\x00":
                 raise CarError("CID tag without a multibase-identity byte string")
             return CID.from_bytes(tagged[1:])
@@ -148,6 +159,8 @@ class CarReader:
         roots = header.get("roots")
         if not isinstance(roots, list) or not all(isinstance(r, CID) for r in roots):
             raise CarError("CAR header roots must be a list of CIDs")
+        if len(roots) > MAX_ROOTS:
+            raise CarError(f"a CAR header with {len(roots)} roots, more than {MAX_ROOTS}")
         self.roots: list[CID] = roots
 
     def __iter__(self) -> Iterator[Block]:

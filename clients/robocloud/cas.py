@@ -24,14 +24,11 @@ from robocloud.client import ServiceClient
 from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
 from robocloud.unixfs import (
     DEFAULT_MAX_LINKS,
-    FILE,
     PROFILES,
-    RAW_TYPE,
-    Block,
     Importer,
     ImportParams,
     UnixfsError,
-    decode_node,
+    assemble_file,
     file_size,
 )
 
@@ -279,7 +276,7 @@ class Cas(ServiceClient):
             reader = CarReader(_IteratorReader(response.iter_bytes(READ_SIZE)))
             if root not in reader.roots:
                 raise CasError(f"the gateway's CAR is rooted at {reader.roots}, not {root}")
-            return FileAssembler(root, out, progress).run(iter(reader))
+            return assemble_file(root, iter(reader), out, progress)
         except (CarError, UnixfsError) as exc:
             raise CasError(f"refused the gateway's CAR for {root}: {exc}") from exc
         finally:
@@ -366,78 +363,6 @@ def _publish(partial: Path, path: Path, overwrite: bool) -> None:
         return
     os.link(partial, path)
     partial.unlink()
-
-
-class FileAssembler:
-    """Writes a file from a CAR stream in DFS order, checking each block is the one due.
-
-    Every block was already hashed against its own CID by the CAR reader; this checks that
-    it is the next block of *this* file's DAG, so the bytes written are exactly those the
-    root CID commits to, streamed with bounded memory. A gateway sends a repeated block (a
-    run of zeros) only once, so leaves are remembered by their place in ``out`` and inner
-    nodes by their links, and a repeat is replayed from there.
-    """
-
-    def __init__(self, root: CID, out: BinaryIO, progress: Progress) -> None:
-        self.root = root
-        self.out = out
-        self.progress = progress
-        self.written = 0
-        self._leaves: dict[CID, tuple[int, int]] = {}
-        self._inner: dict[CID, tuple[bytes, list[CID]]] = {}
-        self._due: list[CID] = [root]
-
-    def run(self, blocks: Iterator[Block]) -> int:
-        while self._due:
-            cid = self._due.pop()
-            if not self._replay(cid):
-                block = next(blocks, None)
-                if block is None:
-                    raise CasError(f"the gateway's CAR ends before block {cid} of {self.root}")
-                if block.cid != cid:
-                    raise CasError(
-                        f"the gateway's CAR has {block.cid} where {cid} of {self.root} is due"
-                    )
-                self._take(block)
-        if next(blocks, None) is not None:
-            raise CasError(f"the gateway's CAR has blocks beyond the file {self.root}")
-        return self.written
-
-    def _replay(self, cid: CID) -> bool:
-        if cid in self._leaves:
-            offset, length = self._leaves[cid]
-            self.out.seek(offset)
-            data = self.out.read(length)
-            self.out.seek(0, io.SEEK_END)
-            self._write(data)
-            return True
-        if cid in self._inner:
-            data, links = self._inner[cid]
-            self._write(data)
-            self._due.extend(reversed(links))
-            return True
-        return False
-
-    def _take(self, block: Block) -> None:
-        if block.cid.codec == RAW:
-            self._leaves[block.cid] = (self.written, len(block.data))
-            self._write(block.data)
-            return
-        node, unixfs = decode_node(block.cid, block.data)
-        if unixfs.type not in (FILE, RAW_TYPE):
-            raise CasError(f"{block.cid} is not part of a file (UnixFS type {unixfs.type})")
-        links = [link.cid for link in node.links]
-        if links:
-            self._inner[block.cid] = (unixfs.data, links)
-        else:
-            self._leaves[block.cid] = (self.written, len(unixfs.data))
-        self._write(unixfs.data)
-        self._due.extend(reversed(links))
-
-    def _write(self, data: bytes) -> None:
-        self.out.write(data)
-        self.written += len(data)
-        self.progress(len(data))
 
 
 def _import_options(params: ImportParams) -> dict[str, str]:

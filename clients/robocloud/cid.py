@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import hashlib
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from robocloud.errors import FormatError
 
@@ -216,3 +217,10 @@ def _check_multihash(code: int, size: int) -> None:
         raise CIDError(f"identity digest of {size} bytes exceeds {MAX_IDENTITY_DIGEST}")
     if code not in (SHA2_256, IDENTITY):
         raise CIDError(f"unsupported multihash 0x{code:x}: only sha2-256 and identity")
+
+
+class Block(NamedTuple):
+    """A block and the CID it is stored under; whoever made the pair checked it."""
+
+    cid: CID
+    data: bytes

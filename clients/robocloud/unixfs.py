@@ -9,11 +9,14 @@ touching only the blocks the range needs (UnixFS ``blocksizes`` say where each c
 
 from __future__ import annotations
 
+import io
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import BinaryIO, NamedTuple
 
-from robocloud.cid import CID, DAG_PB, RAW, CIDError, decode_varint, encode_varint
+from robocloud.cid import CID, DAG_PB, RAW, Block, decode_varint
+from robocloud.dagpb import DagPbError, Link, PBNode, fields, len_field, uint_field
+from robocloud.errors import FormatError
 
 DEFAULT_CHUNK_SIZE = 262_144
 DEFAULT_MAX_LINKS = 174
@@ -33,13 +36,8 @@ PROFILES: dict[str, tuple[int, int, bool, int]] = {
 RAW_TYPE, DIRECTORY, FILE, METADATA, SYMLINK, HAMT_SHARD = range(6)
 
 
-class UnixfsError(ValueError):
+class UnixfsError(FormatError):
     """Bad import parameters, or a block that is not valid dag-pb/UnixFS."""
-
-
-class Block(NamedTuple):
-    cid: CID
-    data: bytes
 
 
 GetBlock = Callable[[CID], bytes]
@@ -95,47 +93,6 @@ def parse_chunker(chunker: str) -> int:
     return value
 
 
-# ---- protobuf, just the two messages dag-pb and UnixFS need ----
-
-
-def _key(field_number: int, wire_type: int) -> bytes:
-    return encode_varint(field_number << 3 | wire_type)
-
-
-def _len_field(field_number: int, payload: bytes) -> bytes:
-    return _key(field_number, 2) + encode_varint(len(payload)) + payload
-
-
-def _uint_field(field_number: int, value: int) -> bytes:
-    return _key(field_number, 0) + encode_varint(value)
-
-
-def _fields(data: bytes) -> Iterator[tuple[int, int | bytes]]:
-    """Decode protobuf fields as ``(field number, int or bytes)``; varint and length only."""
-    pos = 0
-    while pos < len(data):
-        key, pos = decode_varint(data, pos)
-        number, wire = key >> 3, key & 7
-        if wire == 0:
-            value, pos = decode_varint(data, pos)
-            yield number, value
-        elif wire == 2:
-            size, pos = decode_varint(data, pos)
-            if pos + size > len(data):
-                raise UnixfsError("truncated protobuf field")
-            yield number, data[pos : pos + size]
-            pos += size
-        else:
-            raise UnixfsError(f"unsupported protobuf wire type {wire}")
-
-
-@dataclass
-class Link:
-    cid: CID
-    name: str
-    tsize: int
-
-
 @dataclass
 class UnixfsData:
     type: int
@@ -144,19 +101,26 @@ class UnixfsData:
     blocksizes: list[int] = field(default_factory=list)
 
     def encode(self) -> bytes:
-        out = _uint_field(1, self.type)
+        out = uint_field(1, self.type)
         if self.data:
-            out += _len_field(2, self.data)
+            out += len_field(2, self.data)
         if self.filesize is not None:
-            out += _uint_field(3, self.filesize)
+            out += uint_field(3, self.filesize)
         for size in self.blocksizes:
-            out += _uint_field(4, size)
+            out += uint_field(4, size)
         return out
 
     @classmethod
     def decode(cls, raw: bytes) -> UnixfsData:
+        try:
+            return cls._decode(raw)
+        except (DagPbError, ValueError) as exc:
+            raise UnixfsError(f"invalid UnixFS data: {exc}") from exc
+
+    @classmethod
+    def _decode(cls, raw: bytes) -> UnixfsData:
         node = cls(type=-1)
-        for number, value in _fields(raw):
+        for number, value in fields(raw):
             if number == 1 and isinstance(value, int):
                 node.type = value
             elif number == 2 and isinstance(value, bytes):
@@ -173,54 +137,6 @@ class UnixfsData:
         if node.type < 0:
             raise UnixfsError("UnixFS data without a type")
         return node
-
-
-@dataclass
-class PBNode:
-    links: list[Link]
-    data: bytes | None
-
-    def encode(self) -> bytes:
-        """dag-pb's canonical order: every link, then the data."""
-        out = bytearray()
-        for link in self.links:
-            body = _len_field(1, link.cid.binary) + _len_field(2, link.name.encode())
-            body += _uint_field(3, link.tsize)
-            out += _len_field(2, body)
-        if self.data is not None:
-            out += _len_field(1, self.data)
-        return bytes(out)
-
-    @classmethod
-    def decode(cls, raw: bytes) -> PBNode:
-        links: list[Link] = []
-        data: bytes | None = None
-        try:
-            for number, value in _fields(raw):
-                if number == 2 and isinstance(value, bytes):
-                    links.append(_decode_link(value))
-                elif number == 1 and isinstance(value, bytes):
-                    data = value
-                else:
-                    raise UnixfsError(f"unexpected dag-pb field {number}")
-        except (ValueError, CIDError) as exc:
-            raise UnixfsError(f"invalid dag-pb node: {exc}") from exc
-        return cls(links, data)
-
-
-def _decode_link(raw: bytes) -> Link:
-    cid: CID | None = None
-    name, tsize = "", 0
-    for number, value in _fields(raw):
-        if number == 1 and isinstance(value, bytes):
-            cid = CID.from_bytes(value)
-        elif number == 2 and isinstance(value, bytes):
-            name = value.decode()
-        elif number == 3 and isinstance(value, int):
-            tsize = value
-    if cid is None:
-        raise UnixfsError("dag-pb link without a hash")
-    return Link(cid, name, tsize)
 
 
 # ---- importer ----
@@ -328,8 +244,16 @@ def import_bytes(data: bytes, params: ImportParams | None = None) -> tuple[list[
 # ---- reader ----
 
 
+def _pb_node(cid: CID, data: bytes) -> PBNode:
+    """The dag-pb node of a block; a block that is not one is a UnixFS error naming it."""
+    try:
+        return PBNode.decode(data)
+    except DagPbError as exc:
+        raise UnixfsError(f"{cid} is not a dag-pb node: {exc}") from exc
+
+
 def decode_node(cid: CID, data: bytes) -> tuple[PBNode, UnixfsData]:
-    node = PBNode.decode(data)
+    node = _pb_node(cid, data)
     if node.data is None:
         raise UnixfsError(f"{cid} is dag-pb without UnixFS data")
     return node, UnixfsData.decode(node.data)
@@ -428,6 +352,111 @@ def _check_size(span: _Span, actual: int, root: CID) -> None:
         )
 
 
+def assemble_file(
+    root: CID, blocks: Iterator[Block], out: BinaryIO, progress: Callable[[int], object]
+) -> int:
+    """Write the file ``root`` from its blocks in DFS order (a CAR's), each checked as it comes.
+
+    The streamed counterpart of :func:`read_file`, with the same rules (file nodes only,
+    declared sizes kept, ``MAX_DAG_DEPTH``): each block was hashed against its own CID by
+    whoever produced ``blocks``; this checks that it is the next block of *this* file's DAG,
+    so the bytes written are exactly those ``root`` commits to, with bounded memory. A
+    sender may send a repeated block (a run of zeros) only once, so leaves are remembered by
+    their place in ``out`` (which must be readable) and inner nodes by their links, and a
+    repeat is replayed from there. Returns the number of bytes written.
+    """
+    return _Assembly(root, out, progress).run(blocks)
+
+
+class _Due(NamedTuple):
+    cid: CID
+    declared: int | None
+    depth: int
+
+
+class _Assembly:
+    def __init__(self, root: CID, out: BinaryIO, progress: Callable[[int], object]) -> None:
+        self.root = root
+        self.out = out
+        self.progress = progress
+        self.written = 0
+        self._leaves: dict[CID, tuple[int, int]] = {}
+        self._inner: dict[CID, tuple[bytes, list[Link], list[int]]] = {}
+        self._due: list[_Due] = [_Due(root, None, 0)]
+
+    def run(self, blocks: Iterator[Block]) -> int:
+        while self._due:
+            due = self._due.pop()
+            if due.depth > MAX_DAG_DEPTH:
+                raise UnixfsError(
+                    f"{due.cid} lies deeper than {MAX_DAG_DEPTH} levels in {self.root}"
+                )
+            if not self._replay(due):
+                block = next(blocks, None)
+                if block is None:
+                    raise UnixfsError(f"the blocks end before block {due.cid} of {self.root}")
+                if block.cid != due.cid:
+                    raise UnixfsError(
+                        f"block {block.cid} came where {due.cid} of {self.root} is due"
+                    )
+                self._take(due, block.data)
+        if next(blocks, None) is not None:
+            raise UnixfsError(f"there are blocks beyond the file {self.root}")
+        return self.written
+
+    def _replay(self, due: _Due) -> bool:
+        if due.cid in self._leaves:
+            offset, length = self._leaves[due.cid]
+            self._check(due, length)
+            self.out.seek(offset)
+            data = self.out.read(length)
+            self.out.seek(0, io.SEEK_END)
+            self._write(data)
+            return True
+        if due.cid in self._inner:
+            data, links, sizes = self._inner[due.cid]
+            self._check(due, len(data) + sum(sizes))
+            self._write(data)
+            self._expect(links, sizes, due.depth)
+            return True
+        return False
+
+    def _take(self, due: _Due, block: bytes) -> None:
+        if due.cid.codec == RAW:
+            self._check(due, len(block))
+            self._leaves[due.cid] = (self.written, len(block))
+            self._write(block)
+            return
+        if due.cid.codec != DAG_PB:
+            raise UnixfsError(f"{due.cid} is neither raw nor dag-pb")
+        node, unixfs = _file_node(due.cid, block)
+        self._check(due, len(unixfs.data) + sum(unixfs.blocksizes))
+        if node.links:
+            self._inner[due.cid] = (unixfs.data, node.links, unixfs.blocksizes)
+        else:
+            self._leaves[due.cid] = (self.written, len(unixfs.data))
+        self._write(unixfs.data)
+        self._expect(node.links, unixfs.blocksizes, due.depth)
+
+    def _expect(self, links: list[Link], sizes: list[int], depth: int) -> None:
+        self._due.extend(
+            _Due(link.cid, size, depth + 1)
+            for link, size in zip(reversed(links), reversed(sizes), strict=True)
+        )
+
+    def _check(self, due: _Due, actual: int) -> None:
+        if due.declared is not None and actual != due.declared:
+            raise UnixfsError(
+                f"{due.cid} holds {actual} bytes but its parent in {self.root} declares "
+                f"{due.declared}"
+            )
+
+    def _write(self, data: bytes) -> None:
+        self.out.write(data)
+        self.written += len(data)
+        self.progress(len(data))
+
+
 def list_directory(root: CID, get_block: GetBlock) -> list[Link]:
     """The entries of a (non-sharded) UnixFS directory."""
     node, unixfs = decode_node(root, get_block(root))
@@ -457,7 +486,7 @@ def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Blo
         yield Block(cid, data)
         if scope == "block" or cid.codec != DAG_PB:
             continue
-        node = PBNode.decode(data)
+        node = _pb_node(cid, data)
         children = [link.cid for link in node.links]
         if scope == "entity" and node.data is not None:
             kind = UnixfsData.decode(node.data).type

@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from robocloud.car import ByteSource, CarError, CarReader, write_car
-from robocloud.cid import CID, DAG_PB
-from robocloud.unixfs import Block, PBNode, UnixfsError, file_size, read_file, walk_dag
+from robocloud.cid import CID, DAG_PB, Block
+from robocloud.dagpb import DagPbError, PBNode
+from robocloud.unixfs import UnixfsError, file_size, read_file, walk_dag
 from services.cas.blockstore import (
     BlockNotFound,
     Blockstore,
@@ -285,7 +286,7 @@ class ContentStore:
                 continue
             try:
                 node = PBNode.decode(self.blocks.get(cid))
-            except (BlockNotFound, UnixfsError):
+            except (BlockNotFound, DagPbError):
                 log.warning("pinned DAG incomplete during gc", extra={"cid": str(cid)})
                 continue
             stack.extend(link.cid for link in node.links)

@@ -20,8 +20,9 @@ from typing import Generic, Protocol, TypeVar
 import anyio
 from anyio.streams.memory import MemoryObjectReceiveStream
 
-from robocloud.cid import CID, DAG_PB
-from robocloud.unixfs import Block, Importer, ImportParams, PBNode, UnixfsError
+from robocloud.cid import CID, DAG_PB, Block
+from robocloud.dagpb import DagPbError, PBNode
+from robocloud.unixfs import Importer, ImportParams
 from services.cas.multipart import Event, MultipartParser, Part, PartData, boundary_of
 from services.cas.store import AddedFile, ContentStore, ImportedRoot
 from services.cas.streams import first_error
@@ -268,7 +269,7 @@ class BlockCollector:
         if self.codec == DAG_PB:
             try:
                 PBNode.decode(data)
-            except UnixfsError as exc:
+            except DagPbError as exc:
                 raise InvalidBlock(len(self.blocks), str(exc)) from exc
         self.blocks.append(data)
 

@@ -6,9 +6,8 @@ import io
 
 import pytest
 
-from robocloud.car import CarError, CarReader, encode_header, write_car
-from robocloud.cid import CID, encode_varint
-from robocloud.unixfs import Block
+from robocloud.car import MAX_ROOTS, CarError, CarReader, encode_header, write_car
+from robocloud.cid import CID, Block, encode_varint
 from tests.unit.robocloud.ipfs_vectors import car_path, vectors
 
 
@@ -62,3 +61,26 @@ def test_oversized_section_is_refused_before_reading_it() -> None:
     car = encode_varint(len(encode_header([]))) + encode_header([]) + encode_varint(1 << 30)
     with pytest.raises(CarError, match="exceeds"):
         list(CarReader(io.BytesIO(car)))
+
+
+@pytest.mark.parametrize(
+    ("header", "message"),
+    [
+        (b"\x81" * 100_000, "nested deeper than 8 levels"),
+        (b"\xa1\x65roots" + b"\x81" * 50 + b"\x00", "nested deeper than 8 levels"),
+        (b"\xa1\x62\xff\xfe\x01", "not UTF-8"),
+        (b"\x9b" + b"\xff" * 8, "truncated CAR header"),
+    ],
+    ids=["deep", "deep-roots", "not-utf8", "huge-count"],
+)
+def test_hostile_headers_are_car_errors(header: bytes, message: str) -> None:
+    stream = io.BytesIO(encode_varint(len(header)) + header)
+    with pytest.raises(CarError, match=message):
+        CarReader(stream)
+
+
+def test_too_many_roots_are_refused() -> None:
+    cid = CID.from_block(b"x")
+    header = encode_header([cid] * (MAX_ROOTS + 1))
+    with pytest.raises(CarError, match="more than 1024"):
+        CarReader(io.BytesIO(encode_varint(len(header)) + header))

@@ -7,9 +7,8 @@ import io
 import pytest
 
 from robocloud.car import CarReader
-from robocloud.cid import CID, DAG_PB, RAW
+from robocloud.cid import CID, DAG_PB, RAW, Block
 from robocloud.unixfs import (
-    Block,
     Importer,
     ImportParams,
     UnixfsError,
@@ -53,7 +52,7 @@ def test_more_than_174_chunks_makes_a_two_level_tree() -> None:
 
 
 def list_links(cid: CID, store: dict[CID, bytes]) -> list[CID]:
-    from robocloud.unixfs import PBNode
+    from robocloud.dagpb import PBNode
 
     return [link.cid for link in PBNode.decode(store[cid]).links]
 

@@ -4,17 +4,18 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from robocloud.cid import CID, DAG_PB, RAW
+from robocloud.cid import CID, DAG_PB, RAW, Block
+from robocloud.dagpb import Link, PBNode
 from robocloud.unixfs import (
     FILE,
     MAX_DAG_DEPTH,
-    Link,
-    PBNode,
     UnixfsData,
     UnixfsError,
+    assemble_file,
     file_size,
     read_file,
     walk_dag,
@@ -96,3 +97,31 @@ def test_filesize_disagreeing_with_the_blocksizes_is_refused_from_the_root() -> 
 def test_ranges_of_an_honest_file_are_unaffected() -> None:
     root, blocks = chain(3)
     assert b"".join(read_file(root, blocks.__getitem__, 2, 5)) == LEAF[2:7]
+
+
+def dfs_blocks(root: CID, blocks: dict[CID, bytes]) -> list[Block]:
+    return [Block(cid, blocks[cid]) for cid in _dfs_order(root, blocks)]
+
+
+def _dfs_order(root: CID, blocks: dict[CID, bytes]) -> list[CID]:
+    order: list[CID] = []
+    stack = [root]
+    while stack:
+        cid = stack.pop()
+        order.append(cid)
+        if cid.codec == DAG_PB:
+            stack.extend(reversed([link.cid for link in PBNode.decode(blocks[cid]).links]))
+    return order
+
+
+def test_the_streamed_reader_keeps_the_same_rules(tmp_path: Path) -> None:
+    with (tmp_path / "ok").open("w+b") as out:
+        root, blocks = chain(MAX_DAG_DEPTH)
+        assert assemble_file(root, iter(dfs_blocks(root, blocks)), out, lambda _: None) == 10
+    for root, blocks, message in (
+        (*chain(MAX_DAG_DEPTH + 1), f"deeper than {MAX_DAG_DEPTH} levels"),
+        (*lying_root(len(LEAF) + 1), f"holds {len(LEAF)} bytes but its parent"),
+        (*lying_root(len(LEAF) - 1), f"holds {len(LEAF)} bytes but its parent"),
+    ):
+        with (tmp_path / "bad").open("w+b") as out, pytest.raises(UnixfsError, match=message):
+            assemble_file(root, iter(dfs_blocks(root, blocks)), out, lambda _: None)

@@ -11,12 +11,12 @@ import pytest
 
 from robocloud.car import write_car
 from robocloud.cas import Cas
-from robocloud.cid import CID
+from robocloud.cid import CID, Block
 from robocloud.client import ServiceClient
 from robocloud.errors import ApiError
 from robocloud.identity import Identity
 from robocloud.signing import sign_request
-from robocloud.unixfs import Block, ImportParams, import_bytes
+from robocloud.unixfs import ImportParams, import_bytes
 from tests.conftest import ServiceFactory
 from tests.integration.services.cas.conftest import QUIET_GC, error_of, multipart, repo_stat
 from tests.procs import ServiceProcess

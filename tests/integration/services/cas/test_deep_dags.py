@@ -10,10 +10,11 @@ import httpx
 import pytest
 
 from robocloud.car import write_car
-from robocloud.cid import CID, DAG_PB
+from robocloud.cid import CID, DAG_PB, Block
 from robocloud.client import ServiceClient
+from robocloud.dagpb import Link, PBNode
 from robocloud.errors import ApiError
-from robocloud.unixfs import FILE, MAX_DAG_DEPTH, Block, Link, PBNode, UnixfsData
+from robocloud.unixfs import FILE, MAX_DAG_DEPTH, UnixfsData
 from tests.integration.services.cas.conftest import error_of, multipart, repo_stat
 from tests.procs import ServiceProcess
 from tests.unit.robocloud.test_unixfs_hostile import LEAF, chain

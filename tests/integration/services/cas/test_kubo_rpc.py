@@ -13,8 +13,9 @@ from robocloud.car import CarReader, write_car
 from robocloud.cas import Cas
 from robocloud.cid import CID, DAG_PB, RAW
 from robocloud.client import ServiceClient
+from robocloud.dagpb import PBNode
 from robocloud.errors import ApiError
-from robocloud.unixfs import ImportParams, PBNode, import_bytes
+from robocloud.unixfs import ImportParams, import_bytes
 from tests.integration.services.cas.conftest import error_of, multipart, repo_stat
 from tests.procs import ServiceProcess
 from tests.unit.robocloud.ipfs_vectors import PROFILES, car_path, input_named, vectors

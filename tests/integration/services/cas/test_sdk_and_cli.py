@@ -18,10 +18,11 @@ from typer.testing import CliRunner
 import robocloud
 from robocloud.car import write_car
 from robocloud.cas import Cas, CasError, ContentTooLargeError
-from robocloud.cid import CID, DAG_PB
+from robocloud.cid import CID, DAG_PB, Block
 from robocloud.cli import app
+from robocloud.dagpb import Link, PBNode
 from robocloud.identity import Identity
-from robocloud.unixfs import FILE, Block, ImportParams, Link, PBNode, UnixfsData, import_bytes
+from robocloud.unixfs import FILE, ImportParams, UnixfsData, import_bytes
 from tests.procs import ServiceProcess, free_port
 from tests.scripted_http import nested_json
 
@@ -108,7 +109,7 @@ def car_of(blocks: list[Block], root: CID = ROOT) -> bytes:
     [
         (car_of([*BLOCKS[:-1], BLOCKS[-1]]), "is due"),  # the root last
         (car_of([BLOCKS[-1], BLOCKS[1], BLOCKS[0], *BLOCKS[2:-1]]), "is due"),
-        (car_of([BLOCKS[-1], BLOCKS[0]]), "ends before block"),
+        (car_of([BLOCKS[-1], BLOCKS[0]]), "end before block"),
         (car_of([BLOCKS[-1], *BLOCKS[:-1], Block(CID.from_block(b"x"), b"x")]), "beyond"),
         (car_of(BLOCKS[:1], BLOCKS[0].cid), "rooted at"),
         (car_of([BLOCKS[-1], Block(BLOCKS[0].cid, b"forged"), *BLOCKS[1:-1]]), "does not match"),
@@ -359,15 +360,15 @@ def test_get_refuses_a_dag_declaring_more_than_the_free_disk_space(tmp_path: Pat
     assert [path.split("?")[1] for path in requests] == ["format=raw"]
 
 
-def test_get_stops_a_dag_that_holds_more_than_its_root_declares(tmp_path: Path) -> None:
-    """The root says 1,000 bytes; the DAG expands to 10**9 MiB: stopped at --max-size."""
+def test_get_refuses_a_dag_that_holds_more_than_its_root_declares(tmp_path: Path) -> None:
+    """The root says 1,000 bytes; its first child alone holds 10**6 MiB: refused right there."""
     blocks, root = expanding_dag(levels=3, fanout=1000, declared=1000)
     out = tmp_path / "out.bin"
     for url in gateway_answering(serving_dag(blocks, root)):
         done = robocloud_cli("get", str(root), "-o", str(out), "--max-size", "5MiB", "--cas", url)
-    assert done.returncode == 1, done.stderr
-    assert done.stderr.startswith(f"error: {root} holds more than the limit of 5242880 bytes")
-    assert "pass a larger --max-size" in done.stderr
+    assert done.returncode == 6, done.stderr
+    assert done.stderr.startswith(f"error: refused the gateway's CAR for {root}")
+    assert f"holds {1000**2 << 20} bytes but its parent in {root} declares 1" in done.stderr
     assert list(tmp_path.iterdir()) == []
 
 
