@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 NODE_STAMP := contracts/node_modules/.package-lock.json
 
-.PHONY: up test lint test-compose bench demo lock clean
+.PHONY: up test lint compose-up compose-down test-compose bench demo lock clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -29,6 +29,15 @@ lint: $(STAMP)
 
 test: lint $(NODE_STAMP)
 	$(VENV)/bin/pytest
+
+# Docker Compose on any machine, offline too: the engine, Compose, the wheelhouse and the base
+# image when missing, then `docker compose up -d --wait --build` (scripts/docker/compose-up.sh).
+# The venv builds the wheelhouse. ARGS go to `docker compose up` / `down` (`--volumes`).
+compose-up: $(STAMP)
+	bash scripts/docker/compose-up.sh $(ARGS)
+
+compose-down:
+	bash scripts/docker/compose-down.sh $(ARGS)
 
 test-compose: $(STAMP)
 	bash scripts/test-compose.sh

@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
-# `make test-compose`: deploy robocloud with Docker Compose and test it from the host.
+# `make test-compose`: deploy robocloud with the README's own command and test it from the host.
 #
-# Installs and starts the Docker engine and Compose v2 when missing, builds the wheelhouse and
-# (without a registry) an offline base image, builds the image, runs `docker compose up -d
-# --wait` under its own project name on free loopback ports, runs pytest tests/compose, and
-# always finishes with `docker compose down -v` (and stops dockerd if it started it). Runs are
-# serialised by a lock, since several people share one engine and one working tree.
+# Installs and starts the Docker engine and Compose v2 when missing, removes this test's image
+# and volumes so that it starts from a clean state, runs `make compose-up` (the README's
+# command: wheelhouse, base image, `docker compose up -d --wait --build`) under its own
+# project name and image tag on free loopback ports, runs pytest tests/compose, and always
+# finishes with `docker compose down -v`, removes the image, and stops dockerd if it started it.
+# Runs are serialised by a lock, since several people share one engine.
 # It never skips: anything that cannot be set up fails the run.
 #
 # Environment: ROBOCLOUD_COMPOSE_PROJECT (default robocloud-compose-test),
@@ -16,19 +17,27 @@ set -euo pipefail
 SCRIPTS="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 # shellcheck source=scripts/docker/engine.sh
 source "${SCRIPTS}/docker/engine.sh"
-# shellcheck source=scripts/docker/base-image.sh
-source "${SCRIPTS}/docker/base-image.sh"
-# shellcheck source=scripts/docker/wheelhouse.sh
-source "${SCRIPTS}/docker/wheelhouse.sh"
 
 PROJECT="${ROBOCLOUD_COMPOSE_PROJECT:-robocloud-compose-test}"
+# Its own tag, so that the test never replaces or removes the image of a local deployment.
 export ROBOCLOUD_IMAGE="robocloud:${PROJECT}"
+# `make compose-up` runs `docker compose` in the checkout: this makes it the test's project.
+export COMPOSE_PROJECT_NAME="${PROJECT}"
 COMPOSE_FILE_PATH="${REPO_ROOT}/compose.yaml"
+COMPOSE_UP_LOG="${BUILD_DIR}/compose-up.log"
 SERVICES=(cas ledger storage broker fl)
 DEPLOYED=0
 
 compose() {
     docker compose --project-name "${PROJECT}" --file "${COMPOSE_FILE_PATH}" "$@"
+}
+
+# The project's containers, network and volumes, and the image the test builds.
+remove_deployment() {
+    compose down --volumes --remove-orphans --timeout 10 >&2 || return 1
+    if docker image inspect "${ROBOCLOUD_IMAGE}" >/dev/null 2>&1; then
+        docker image rm "${ROBOCLOUD_IMAGE}" >/dev/null || return 1
+    fi
 }
 
 # On failure the containers' last log lines are the first thing anyone needs.
@@ -40,8 +49,8 @@ finish() {
             log "failed (exit ${status}); last container logs:"
             compose logs --no-color --tail 40 >&2 || true
         fi
-        log "docker compose down -v"
-        compose down --volumes --remove-orphans --timeout 10 >&2 || status=1
+        log "docker compose down -v, and removing ${ROBOCLOUD_IMAGE}"
+        remove_deployment || status=1
     fi
     stop_engine_if_started || status=1
     exit "${status}"
@@ -73,22 +82,20 @@ timed() {
     log "$1 took $((SECONDS - started)) s"
 }
 
-# The build stage is tagged too, so that pruning the images a rebuild left untagged never
-# removes the cached dependency layer it sits on.
-build_image() {
-    local base stage
-    base="$(ensure_base_image)"
-    log "building ${ROBOCLOUD_IMAGE} on ${base}"
-    for stage in build runtime; do
-        local tag="${ROBOCLOUD_IMAGE}"
-        [[ "${stage}" == build ]] && tag="${ROBOCLOUD_IMAGE}-build"
-        docker build --quiet --target "${stage}" --tag "${tag}" \
-            --build-arg "BASE_IMAGE=${base}" "${REPO_ROOT}" >/dev/null || die "docker build failed"
-    done
-    docker image prune --force --filter "label=org.robocloud.image=robocloud" >/dev/null
+# What the README's newcomer has: no image of this deployment, no volume. A run killed before
+# its trap ran leaves its project behind; this removes it too.
+clean_state() {
+    remove_deployment || die "cannot remove the previous test deployment"
+    if docker image inspect "${ROBOCLOUD_IMAGE}" >/dev/null 2>&1; then
+        die "${ROBOCLOUD_IMAGE} still exists"
+    fi
+    local volumes
+    volumes="$(docker volume ls --quiet --filter "label=com.docker.compose.project=${PROJECT}")"
+    [[ -z "${volumes}" ]] || die "volumes of ${PROJECT} still exist: ${volumes}"
+    log "clean state: no ${ROBOCLOUD_IMAGE}, no volume of ${PROJECT}"
 }
 
-deploy() {
+configure() {
     local ports key service index=0
     read -r -a ports <<<"$(free_ports "${#SERVICES[@]}")"
     key="$(new_test_key)"
@@ -101,9 +108,21 @@ deploy() {
         export "ROBOCLOUD_${service^^}_URL=http://127.0.0.1:${ports[index]}"
         index=$((index + 1))
     done
+}
+
+# The README's command, as a newcomer types it; its full output (the image build included)
+# goes to a log whose tail is shown on failure.
+compose_up() {
+    # tests/compose/test_image.py checks what appeared besides these.
+    ROBOCLOUD_COMPOSE_IMAGES_BEFORE="$(docker images --quiet --no-trunc | sort -u | tr '\n' ' ')"
+    export ROBOCLOUD_COMPOSE_IMAGES_BEFORE
     DEPLOYED=1
-    log "docker compose up -d --wait (project ${PROJECT}, auth ${ROBOCLOUD_AUTH})"
-    compose up --detach --wait --wait-timeout 120 --no-build >&2 || die "compose up failed"
+    log "make compose-up (project ${PROJECT}, image ${ROBOCLOUD_IMAGE}, auth ${ROBOCLOUD_AUTH})"
+    if ! make --no-print-directory -C "${REPO_ROOT}" compose-up >"${COMPOSE_UP_LOG}" 2>&1; then
+        tail -n 60 "${COMPOSE_UP_LOG}" >&2
+        die "make compose-up failed (log: ${COMPOSE_UP_LOG})"
+    fi
+    grep -E '^\[[0-9:]{8}\]|^  [a-z]+ +http' "${COMPOSE_UP_LOG}" >&2 || true
 }
 
 run_tests() {
@@ -123,11 +142,9 @@ main() {
     trap 'exit 130' INT
     trap 'exit 143' TERM
     timed ensure_docker
-    # A run killed before its trap ran leaves its project behind; start clean.
-    compose down --volumes --remove-orphans --timeout 5 >/dev/null 2>&1 || true
-    timed build_wheelhouse
-    timed build_image
-    timed deploy
+    timed clean_state
+    configure
+    timed compose_up
     timed run_tests
 }
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The Docker engine and Compose v2, installed and started when missing (ENVIRONMENT.md).
-# Sourced by scripts/test-compose.sh; `bash scripts/docker/engine.sh` alone sets both up and
-# leaves the engine running.
+# Sourced by scripts/test-compose.sh and scripts/docker/compose-{up,down}.sh; `bash
+# scripts/docker/engine.sh` alone sets both up and leaves the engine running.
 
 # shellcheck source=scripts/docker/common.sh
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
@@ -10,6 +10,9 @@ COMPOSE_VERSION="5.6.1.0"
 # Shared by every clone on the machine, so a fresh clone does not reinstall Compose.
 COMPOSE_VENV="${ROBOCLOUD_COMPOSE_VENV:-${XDG_CACHE_HOME:-${HOME}/.cache}/robocloud/compose-${COMPOSE_VERSION}}"
 DOCKERD_LOG="${BUILD_DIR}/dockerd.log"
+# The dockerd this checkout started and left running (make compose-up), so that make
+# compose-down can stop it and nothing else.
+DOCKERD_PID_FILE="${BUILD_DIR}/dockerd.pid"
 # Set when this shell started dockerd, so that only the starter stops it.
 STARTED_DOCKERD_PID=""
 
@@ -31,6 +34,7 @@ ensure_engine_running() {
     log "starting dockerd (log: ${DOCKERD_LOG})"
     setsid dockerd >"${DOCKERD_LOG}" 2>&1 </dev/null &
     STARTED_DOCKERD_PID=$!
+    printf '%s\n' "${STARTED_DOCKERD_PID}" >"${DOCKERD_PID_FILE}"
     local deadline=$((SECONDS + 60))
     until docker info >/dev/null 2>&1; do
         if ! kill -0 "${STARTED_DOCKERD_PID}" 2>/dev/null; then
@@ -43,19 +47,40 @@ ensure_engine_running() {
     log "dockerd running (pid ${STARTED_DOCKERD_PID})"
 }
 
-# Stops dockerd only if this shell started it, and waits for it so containers are gone.
-stop_engine_if_started() {
-    [[ -n "${STARTED_DOCKERD_PID}" ]] || return 0
-    log "stopping dockerd (pid ${STARTED_DOCKERD_PID})"
-    kill -TERM "${STARTED_DOCKERD_PID}" 2>/dev/null || true
+# SIGTERM, then SIGKILL after 30 s; waits so that its containers are gone when this returns.
+stop_dockerd() {
+    local pid=$1
+    log "stopping dockerd (pid ${pid})"
+    kill -TERM "${pid}" 2>/dev/null || true
     local deadline=$((SECONDS + 30))
-    while kill -0 "${STARTED_DOCKERD_PID}" 2>/dev/null && ((SECONDS < deadline)); do
+    while kill -0 "${pid}" 2>/dev/null && ((SECONDS < deadline)); do
         sleep 0.2
     done
-    if kill -0 "${STARTED_DOCKERD_PID}" 2>/dev/null; then
-        kill -KILL "${STARTED_DOCKERD_PID}"
+    if kill -0 "${pid}" 2>/dev/null; then
+        kill -KILL "${pid}"
     fi
+    rm -f "${DOCKERD_PID_FILE}"
+}
+
+# Stops dockerd only if this shell started it.
+stop_engine_if_started() {
+    [[ -n "${STARTED_DOCKERD_PID}" ]] || return 0
+    stop_dockerd "${STARTED_DOCKERD_PID}"
     STARTED_DOCKERD_PID=""
+}
+
+# The PID of the dockerd an earlier run from this checkout started and left running, if that
+# process is still a dockerd (a PID file can outlive its process and the PID be reused).
+dockerd_left_running() {
+    local pid
+    [[ -f "${DOCKERD_PID_FILE}" ]] || return 1
+    pid="$(cat "${DOCKERD_PID_FILE}")"
+    if [[ "${pid}" =~ ^[0-9]+$ && "$(cat "/proc/${pid}/comm" 2>/dev/null)" == dockerd ]]; then
+        printf '%s\n' "${pid}"
+        return 0
+    fi
+    rm -f "${DOCKERD_PID_FILE}"
+    return 1
 }
 
 # Compose v2 is required: Debian's docker-compose 1.29 ignores --wait and starts nothing.

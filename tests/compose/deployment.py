@@ -2,7 +2,8 @@
 
 The script deploys, then runs pytest with the deployment in the environment: the services'
 published URLs in the SDK's own ``ROBOCLOUD_<SERVICE>_URL`` variables, the Compose project and
-file (so tests can restart containers), and the key of the identity the deployment lets write.
+file (so tests can restart containers), the key of the identity the deployment lets write, and
+the image tag it built with the images that existed before (so tests can count what it made).
 """
 
 from __future__ import annotations
@@ -21,7 +22,14 @@ from robocloud.client import ServiceClient
 from robocloud.config import SERVICES, service_url
 from robocloud.identity import Identity
 
-REQUIRED_ENV = ("ROBOCLOUD_COMPOSE_PROJECT", "ROBOCLOUD_COMPOSE_FILE", "ROBOCLOUD_COMPOSE_KEY")
+REQUIRED_ENV = (
+    "ROBOCLOUD_COMPOSE_PROJECT",
+    "ROBOCLOUD_COMPOSE_FILE",
+    "ROBOCLOUD_COMPOSE_KEY",
+    "ROBOCLOUD_IMAGE",
+)
+# Set even when empty: on a fresh machine no image exists before the build.
+IMAGES_BEFORE_ENV = "ROBOCLOUD_COMPOSE_IMAGES_BEFORE"
 
 
 class DeploymentMissingError(RuntimeError):
@@ -30,16 +38,20 @@ class DeploymentMissingError(RuntimeError):
 
 @dataclass(frozen=True)
 class Deployment:
-    """Published service URLs, the Compose project, and the identity allowed to write."""
+    """Published service URLs, the Compose project, the identity allowed to write, the image."""
 
     project: str
     compose_file: str
     urls: dict[str, str]
     identity: Identity
+    image: str
+    images_before: frozenset[str]
 
     @classmethod
     def from_env(cls) -> Deployment:
         missing = [name for name in REQUIRED_ENV if not os.environ.get(name)]
+        if IMAGES_BEFORE_ENV not in os.environ:
+            missing.append(IMAGES_BEFORE_ENV)
         if missing:
             raise DeploymentMissingError(
                 f"{', '.join(missing)} not set: run these tests with `make test-compose`"
@@ -49,6 +61,8 @@ class Deployment:
             compose_file=os.environ["ROBOCLOUD_COMPOSE_FILE"],
             urls={name: service_url(name) for name in SERVICES},
             identity=Identity.from_key(os.environ["ROBOCLOUD_COMPOSE_KEY"]),
+            image=os.environ["ROBOCLOUD_IMAGE"],
+            images_before=frozenset(os.environ[IMAGES_BEFORE_ENV].split()),
         )
 
     def client(self, service: str, identity: Identity | None = None) -> ServiceClient:
@@ -86,10 +100,7 @@ class Deployment:
         container_id = self.compose("ps", "--quiet", service).strip()
         if not container_id:
             raise RuntimeError(f"no container for {service} in project {self.project}")
-        inspected = subprocess.run(
-            ["docker", "inspect", container_id], capture_output=True, text=True, check=True
-        )
-        return dict(json.loads(inspected.stdout)[0])
+        return dict(json.loads(docker("inspect", container_id))[0])
 
     def wait_ready(self, services: Sequence[str], timeout_s: float = 60) -> None:
         """Poll each service until it answers ``/readyz`` and Docker reports it healthy."""
@@ -109,3 +120,18 @@ class Deployment:
         except httpx.HTTPError:
             return False
         return bool(self.container(service)["State"]["Health"]["Status"] == "healthy")
+
+
+def top_level_images() -> frozenset[str]:
+    """Full IDs of the tagged and the untagged (dangling) images, no intermediate layers."""
+    return frozenset(docker("images", "--quiet", "--no-trunc").split())
+
+
+def docker(*args: str) -> str:
+    """Run the ``docker`` CLI; fail with its output."""
+    result = subprocess.run(
+        ["docker", *args], capture_output=True, text=True, timeout=60, check=False
+    )
+    if result.returncode != 0:
+        raise RuntimeError(f"docker {' '.join(args)} failed:\n{result.stderr}")
+    return result.stdout
