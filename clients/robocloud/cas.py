@@ -223,17 +223,20 @@ class Cas(ServiceClient):
             raise
         return written
 
-    def block(self, cid: CID | str) -> bytes:
-        """One raw block from the gateway, verified against its CID."""
+    def block(self, cid: CID | str, *, cached_only: bool = False) -> bytes:
+        """One raw block from the gateway, verified against its CID.
+
+        ``cached_only`` asks the gateway to answer from its own store (412 otherwise), as
+        gateways ask each other so that two that list each other never bounce a miss around.
+        """
         root = _as_cid(cid)
         url = f"/ipfs/{root}"
+        headers = {"Accept": RAW_MEDIA_TYPE}
+        if cached_only:
+            headers["Cache-Control"] = "only-if-cached"
         with self.translate_errors("GET", f"{self.base_url}{url}"):
             response = self.request(
-                "GET",
-                url,
-                params={"format": "raw"},
-                headers={"Accept": RAW_MEDIA_TYPE},
-                stream=True,
+                "GET", url, params={"format": "raw"}, headers=headers, stream=True
             )
             data = bytearray()
             try:

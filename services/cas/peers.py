@@ -11,15 +11,15 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 
-import httpx
-
-from robocloud.cid import CID, CIDError
+from robocloud.cas import Cas, CasError
+from robocloud.cid import CID
+from robocloud.errors import ApiError, RobocloudError
 
 log = logging.getLogger("robocloud.cas.peers")
 
-RAW_MEDIA_TYPE = "application/vnd.ipld.raw"
-MAX_BLOCK_BYTES = 4 * 1024 * 1024
 OutcomeHook = Callable[[str, str], None]
+NOT_THERE = (404, 412)
+"""A peer that does not hold the block answers 404, or 412 to ``only-if-cached``."""
 
 
 class PeerFetcher:
@@ -34,7 +34,7 @@ class PeerFetcher:
     ) -> None:
         self.peers = [peer.rstrip("/") for peer in peers]
         self.on_outcome = on_outcome
-        self._http = httpx.Client(timeout=timeout_s, follow_redirects=False)
+        self._clients = {peer: Cas(peer, timeout=timeout_s, retries=0) for peer in self.peers}
 
     def fetch(self, cid: CID) -> bytes | None:
         for peer in self.peers:
@@ -45,33 +45,21 @@ class PeerFetcher:
 
     def _fetch_from(self, peer: str, cid: CID) -> bytes | None:
         try:
-            data = self._download(peer, cid)
-        except httpx.HTTPError as exc:
-            self._report(peer, cid, "error", reason=str(exc) or type(exc).__name__)
+            data = self._clients[peer].block(cid, cached_only=True)
+        except CasError as exc:
+            self._report(peer, cid, "bad_block", reason=str(exc))
             return None
-        if data is None:
-            self._report(peer, cid, "miss")
+        except ApiError as exc:
+            if exc.status in NOT_THERE:
+                self._report(peer, cid, "miss")
+            else:
+                self._report(peer, cid, "error", reason=str(exc))
             return None
-        try:
-            cid.verify(data)
-        except CIDError:
-            self._report(peer, cid, "bad_block", reason="returned bytes that do not match the CID")
+        except RobocloudError as exc:
+            self._report(peer, cid, "error", reason=str(exc))
             return None
         self._report(peer, cid, "ok")
         return data
-
-    def _download(self, peer: str, cid: CID) -> bytes | None:
-        headers = {"Accept": RAW_MEDIA_TYPE, "Cache-Control": "only-if-cached"}
-        url = f"{peer}/ipfs/{cid}"
-        with self._http.stream("GET", url, params={"format": "raw"}, headers=headers) as response:
-            if response.status_code != 200:
-                return None
-            body = bytearray()
-            for chunk in response.iter_bytes():
-                body += chunk
-                if len(body) > MAX_BLOCK_BYTES:
-                    raise httpx.DecodingError(f"block larger than {MAX_BLOCK_BYTES} bytes")
-            return bytes(body)
 
     def _report(self, peer: str, cid: CID, outcome: str, reason: str = "") -> None:
         level = logging.WARNING if outcome in ("bad_block", "error") else logging.DEBUG
@@ -84,4 +72,5 @@ class PeerFetcher:
             self.on_outcome(peer, outcome)
 
     def close(self) -> None:
-        self._http.close()
+        for client in self._clients.values():
+            client.close()

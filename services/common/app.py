@@ -224,6 +224,7 @@ def create_app(
                 tasks.cancel_scope.cancel()
         finally:
             nonces.close()
+            authorizer.close()
             log.info("stopped")
 
     app = FastAPIOffline(

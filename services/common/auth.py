@@ -25,11 +25,18 @@ class Authorizer(Protocol):
         """Return if allowed; raise :class:`Forbidden` naming the address otherwise."""
         ...
 
+    def close(self) -> None:
+        """Release what the authorizer holds (connections to the ledger)."""
+        ...
+
 
 class AnySigner:
     """``ROBOCLOUD_AUTH=signed``: any valid signature may write (development, single service)."""
 
     async def authorize(self, address: str, role: str | None = None) -> None:
+        return None
+
+    def close(self) -> None:
         return None
 
 
@@ -46,6 +53,9 @@ class Allowlist:
                 code="address_not_allowed",
                 details={"address": address},
             )
+
+    def close(self) -> None:
+        return None
 
 
 def build_authorizer(settings: ServiceSettings) -> Authorizer:

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable
-from typing import Any
 
-import httpx
+import anyio
 from eth_utils.address import is_address, to_checksum_address
 
+from robocloud.errors import ApiError, InvalidAnswerError, TransportError
+from robocloud.ledger import LedgerService
+from robocloud.ledger.models import RegisteredRobot
 from services.common.errors import Forbidden, Unavailable
 
 MAX_CACHED = 10_000
@@ -39,12 +41,12 @@ class RegistryAuthorizer:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.ledger_url = ledger_url.rstrip("/")
+        self.ledger = LedgerService(self.ledger_url, timeout=timeout_s, retries=1)
         self.allowed = frozenset(to_checksum_address(a) for a in allowed if is_address(a))
         self.cache_s = cache_s
         self.negative_cache_s = negative_cache_s
-        self.timeout_s = timeout_s
         self.clock = clock
-        self._cache: dict[str, tuple[float, dict[str, Any] | None]] = {}
+        self._cache: dict[str, tuple[float, RegisteredRobot | None]] = {}
 
     async def authorize(self, address: str, role: str | None = None) -> None:
         if address in self.allowed:
@@ -57,20 +59,20 @@ class RegistryAuthorizer:
                 code="address_not_allowed",
                 details={"address": address},
             )
-        if not robot.get("active"):
+        if not robot.active:
             raise Forbidden(
                 f"robot {address} is deactivated or suspended",
                 code="robot_inactive",
                 details={"address": address},
             )
-        if role is not None and role not in robot.get("roles", []):
+        if role is not None and role not in robot.roles:
             raise Forbidden(
                 f"robot {address} does not hold the role {role}",
                 code="role_required",
                 details={"address": address, "role": role},
             )
 
-    async def robot(self, address: str) -> dict[str, Any] | None:
+    async def robot(self, address: str) -> RegisteredRobot | None:
         """The ledger's record of ``address`` (None when unregistered), cached briefly."""
         now = self.clock()
         cached = self._cache.get(address)
@@ -83,24 +85,21 @@ class RegistryAuthorizer:
         self._cache[address] = (now + lifetime, robot)
         return robot
 
-    async def _fetch(self, address: str) -> dict[str, Any] | None:
-        url = f"{self.ledger_url}/v1/robots/{address}"
+    async def _fetch(self, address: str) -> RegisteredRobot | None:
         try:
-            async with httpx.AsyncClient(timeout=self.timeout_s) as client:
-                response = await client.get(url)
-        except httpx.HTTPError as exc:
+            return await anyio.to_thread.run_sync(self.ledger.robot, address)
+        except TransportError as exc:
             raise Unavailable(
                 "cannot reach the ledger to check the signer's registration",
                 code="ledger_unreachable",
                 details={"ledger_url": self.ledger_url},
             ) from exc
-        if response.status_code == 404:
-            return None
-        if response.status_code != 200:
+        except (ApiError, InvalidAnswerError) as exc:
             raise Unavailable(
-                f"the ledger answered {response.status_code} to a registration check",
+                f"the ledger could not answer a registration check: {exc}",
                 code="ledger_unavailable",
                 details={"ledger_url": self.ledger_url},
-            )
-        body: dict[str, Any] = response.json()
-        return body
+            ) from exc
+
+    def close(self) -> None:
+        self.ledger.close()
