@@ -2,16 +2,25 @@
 pragma solidity ^0.8.24;
 
 /// @title robocloud Registry: robots, their roles, and first-advertiser timestamping of CIDs.
-/// @notice Robots register themselves with the binary CID of their metadata. The admin (the
-/// deployer) grants roles and may suspend a robot; a robot may deactivate itself. Any active
-/// robot may advertise a CID: the first advertiser and its block timestamp are kept forever,
-/// and every advertisement is logged so that indexers see who else holds the data.
+/// @notice Robots register themselves with the binary CID of their metadata. In the `Open`
+/// registration mode (development) that is enough; in the `Approved` mode a registration
+/// waits until the admin or a robot with the registrar role approves (or rejects) it, so that
+/// "registered" means someone vouched for the robot. The admin (the deployer) grants roles,
+/// sets the mode and may suspend a robot; a robot may deactivate itself. Any active robot may
+/// advertise a CID: the first advertiser and its block timestamp are kept forever, and every
+/// advertisement is logged so that indexers see who else holds the data.
 /// @dev Reverts use `require` strings prefixed with "Registry: " so that any Ethereum client
 /// can show them without this contract's ABI.
 contract Registry {
     bytes32 public constant STORAGE_NODE = keccak256("robocloud.role.storage_node");
     bytes32 public constant REVIEWER = keccak256("robocloud.role.reviewer");
     bytes32 public constant AGGREGATOR = keccak256("robocloud.role.aggregator");
+    bytes32 public constant REGISTRAR = keccak256("robocloud.role.registrar");
+
+    enum RegistrationMode {
+        Open,
+        Approved
+    }
 
     /// CIDv1 with a SHA-256 multihash is 36 bytes; the bound keeps storage and gas predictable.
     uint256 public constant MAX_CID_LENGTH = 128;
@@ -22,6 +31,7 @@ contract Registry {
         bool registered;
         bool active;
         bool suspended;
+        bool pending;
     }
 
     struct Advertisement {
@@ -34,12 +44,18 @@ contract Registry {
 
     address public admin;
     uint256 public robotCount;
+    uint256 public pendingCount;
+    RegistrationMode public registrationMode;
 
     mapping(address => Robot) private _robots;
     mapping(address => mapping(bytes32 => bool)) private _roles;
     mapping(bytes32 => Advertisement) private _advertisements;
 
     event RobotRegistered(address indexed robot, bytes metadataCid, uint64 timestamp);
+    event RegistrationRequested(address indexed robot, bytes metadataCid, uint64 timestamp);
+    event RegistrationApproved(address indexed robot, address indexed registrar);
+    event RegistrationRejected(address indexed robot, address indexed registrar);
+    event RegistrationModeChanged(RegistrationMode mode);
     event MetadataUpdated(address indexed robot, bytes metadataCid);
     event RobotActivationChanged(address indexed robot, bool active);
     event RobotSuspensionChanged(address indexed robot, bool suspended);
@@ -60,6 +76,15 @@ contract Registry {
         _;
     }
 
+    /// The admin, or an active robot holding the registrar role.
+    modifier onlyRegistrar() {
+        require(
+            msg.sender == admin || (_roles[msg.sender][REGISTRAR] && isActive(msg.sender)),
+            "Registry: caller is not a registrar"
+        );
+        _;
+    }
+
     modifier onlyRegistered() {
         require(_robots[msg.sender].registered, "Registry: caller is not registered");
         _;
@@ -72,16 +97,51 @@ contract Registry {
 
     // ----- robots -----
 
+    /// @notice Register the caller; in the Approved mode the registration waits for a registrar.
     function register(bytes calldata metadataCid) external {
         _checkCid(metadataCid, "Registry: empty metadata CID");
         Robot storage robot = _robots[msg.sender];
         require(!robot.registered, "Registry: already registered");
+        require(!robot.pending, "Registry: registration already pending");
         robot.metadataCid = metadataCid;
         robot.registeredAt = uint64(block.timestamp);
-        robot.registered = true;
-        robot.active = true;
-        robotCount += 1;
-        emit RobotRegistered(msg.sender, metadataCid, uint64(block.timestamp));
+        if (registrationMode == RegistrationMode.Approved) {
+            robot.pending = true;
+            pendingCount += 1;
+            emit RegistrationRequested(msg.sender, metadataCid, uint64(block.timestamp));
+            return;
+        }
+        _admit(msg.sender);
+    }
+
+    /// @notice Admit a pending robot; its registration time becomes the approval's.
+    function approve(address account) external onlyRegistrar {
+        Robot storage robot = _robots[account];
+        require(robot.pending, "Registry: no pending registration");
+        robot.pending = false;
+        pendingCount -= 1;
+        robot.registeredAt = uint64(block.timestamp);
+        emit RegistrationApproved(account, msg.sender);
+        _admit(account);
+    }
+
+    /// @notice Refuse a pending robot; it may ask again.
+    function reject(address account) external onlyRegistrar {
+        Robot storage robot = _robots[account];
+        require(robot.pending, "Registry: no pending registration");
+        delete _robots[account];
+        pendingCount -= 1;
+        emit RegistrationRejected(account, msg.sender);
+    }
+
+    function isPending(address account) external view returns (bool) {
+        return _robots[account].pending;
+    }
+
+    function setRegistrationMode(RegistrationMode mode) external onlyAdmin {
+        require(registrationMode != mode, "Registry: registration mode unchanged");
+        registrationMode = mode;
+        emit RegistrationModeChanged(mode);
     }
 
     function updateMetadata(bytes calldata metadataCid) external onlyRegistered {
@@ -208,6 +268,14 @@ contract Registry {
 
     // ----- internal -----
 
+    function _admit(address account) private {
+        Robot storage robot = _robots[account];
+        robot.registered = true;
+        robot.active = true;
+        robotCount += 1;
+        emit RobotRegistered(account, robot.metadataCid, robot.registeredAt);
+    }
+
     function _checkCid(bytes calldata cid, string memory emptyReason) private pure {
         require(cid.length > 0, emptyReason);
         require(cid.length <= MAX_CID_LENGTH, "Registry: CID too long");
@@ -215,7 +283,7 @@ contract Registry {
 
     function _checkRole(bytes32 role) private pure {
         require(
-            role == STORAGE_NODE || role == REVIEWER || role == AGGREGATOR,
+            role == STORAGE_NODE || role == REVIEWER || role == AGGREGATOR || role == REGISTRAR,
             "Registry: unknown role"
         );
     }

@@ -15,6 +15,7 @@ class Role(Enum):
     STORAGE_NODE = "storage_node"
     REVIEWER = "reviewer"
     AGGREGATOR = "aggregator"
+    REGISTRAR = "registrar"
 
     @property
     def id(self) -> bytes:

@@ -161,6 +161,7 @@ def test_role_ids_are_the_documented_hashes(chain: Chain) -> None:
         ("STORAGE_NODE", "storage_node"),
         ("REVIEWER", "reviewer"),
         ("AGGREGATOR", "aggregator"),
+        ("REGISTRAR", "registrar"),
     ]:
         assert role(chain, name) == Web3.keccak(text=f"robocloud.role.{label}")
 
