@@ -59,6 +59,13 @@ class RegistryAuthorizer:
                 code="address_not_allowed",
                 details={"address": address},
             )
+        if robot.pending:
+            raise Forbidden(
+                f"robot {address} asked to register and awaits approval by the ledger's admin or "
+                f"a registrar (`robocloud admin approve {address}`)",
+                code="registration_pending",
+                details={"address": address},
+            )
         if not robot.active:
             raise Forbidden(
                 f"robot {address} is deactivated or suspended",
@@ -81,7 +88,9 @@ class RegistryAuthorizer:
         robot = await self._fetch(address)
         if len(self._cache) >= MAX_CACHED:
             self._cache.clear()
-        lifetime = self.cache_s if robot is not None else self.negative_cache_s
+        lifetime = (
+            self.cache_s if robot is not None and not robot.pending else self.negative_cache_s
+        )
         self._cache[address] = (now + lifetime, robot)
         return robot
 

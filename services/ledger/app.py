@@ -64,8 +64,13 @@ def _router() -> APIRouter:
 
     @router.get("/v1/robots/{address}")
     async def robot(request: Request, address: str) -> dict[str, Any]:
-        """A registered robot: metadata CID, activity, roles (from the event index)."""
+        """A robot: status (registered or pending), metadata CID, activity, roles (indexed)."""
         return views.robot(_ledger(request), address)
+
+    @router.get("/v1/registrations")
+    async def registrations(request: Request, limit: int = 100) -> dict[str, Any]:
+        """Registrations awaiting the admin or a registrar (the Approved mode), oldest first."""
+        return views.pending_registrations(_ledger(request), limit)
 
     @router.get("/v1/advertisements")
     async def advertisements(

@@ -29,4 +29,5 @@ def open_ledger(settings: LedgerSettings) -> Ledger:
         limits,
         settings.ledger_faucet_amount_wei,
         settings.call_limits(),
+        settings.registration_mode(),
     )

@@ -19,7 +19,8 @@ from eth_utils.crypto import keccak
 
 from robocloud.identity import Identity
 from robocloud.ledger.abi import ContractAbi
-from services.ledger.chain import ChainError, EmbeddedChain
+from robocloud.ledger.models import RegistrationMode
+from services.ledger.chain import CallRequest, ChainError, EmbeddedChain
 
 ARTIFACTS = Path(__file__).resolve().parents[2] / "contracts" / "build"
 CONTRACT_NAMES = ("Registry", "AnchorLog")
@@ -96,6 +97,27 @@ def deploy(chain: EmbeddedChain, admin: Identity) -> Deployment:
         if not chain.code(bytes.fromhex(address[2:]), "latest"):
             raise ChainError(f"{name} has no code at {address}: its deployment failed")
     return deployment
+
+
+def apply_registration_mode(
+    chain: EmbeddedChain, admin: Identity, deployment: Deployment, mode: RegistrationMode
+) -> bool:
+    """Make the Registry's registration mode ``mode``; whether a transaction was needed.
+
+    The setting is the operator's intent at every start, so changing it and restarting the
+    ledger switches the mode; pending registrations stay pending across a switch to Open.
+    """
+    registry = ContractAbi("Registry", artifact("Registry")["abi"])
+    target = bytes.fromhex(deployment.registry[2:])
+    answer = chain.call(
+        CallRequest(sender=b"\x00" * 20, to=target, data=registry.encode_call("registrationMode")),
+        "latest",
+    )
+    if RegistrationMode(registry.decode_output("registrationMode", answer)[0]) == mode:
+        return False
+    data = registry.encode_call("setRegistrationMode", mode.value)
+    send_as(chain, admin, deployment.registry, data, gas=100_000)
+    return True
 
 
 def _creation(name: str) -> bytes:

@@ -47,6 +47,11 @@ CREATE TABLE IF NOT EXISTS robots (
     address TEXT PRIMARY KEY, metadata_cid BLOB NOT NULL, registered_at INTEGER NOT NULL,
     registered_block INTEGER NOT NULL, active INTEGER NOT NULL, suspended INTEGER NOT NULL
 );
+CREATE TABLE IF NOT EXISTS registrations (
+    address TEXT PRIMARY KEY, metadata_cid BLOB NOT NULL, requested_at INTEGER NOT NULL,
+    requested_block INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS registrations_block ON registrations (requested_block);
 CREATE TABLE IF NOT EXISTS roles (
     address TEXT NOT NULL, role BLOB NOT NULL, PRIMARY KEY (address, role)
 ) WITHOUT ROWID;
@@ -118,7 +123,7 @@ class EventIndex:
         external chain reorganised, and re-derive the state tables from the logs left."""
         with self._transaction():
             self._db.execute("DELETE FROM logs WHERE block_number > ?", (to_block,))
-            for table in ("robots", "roles", "advertisements", "anchors"):
+            for table in ("robots", "registrations", "roles", "advertisements", "anchors"):
                 self._db.execute(f"DELETE FROM {table}")
             rows = self._db.execute("SELECT * FROM logs ORDER BY block_number, log_index")
             for row in rows.fetchall():
@@ -219,6 +224,22 @@ class EventIndex:
             "roles": [bytes(role[0]) for role in roles],
         }
 
+    def pending(self, address: str | None = None, limit: int = 100) -> list[dict[str, Any]]:
+        """Registrations awaiting a registrar (Approved mode), oldest first."""
+        where, params = ("WHERE address = ?", [address]) if address else ("", [])
+        sql = f"SELECT * FROM registrations {where} ORDER BY requested_block, address LIMIT ?"
+        with self._lock:
+            rows = self._db.execute(sql, [*params, limit]).fetchall()
+        return [
+            {
+                "address": who,
+                "metadata_cid": bytes(metadata),
+                "requested_at": requested_at,
+                "requested_block": block,
+            }
+            for who, metadata, requested_at, block in rows
+        ]
+
     def advertisements(
         self, cid: bytes | None, advertiser: str | None, since: int, limit: int
     ) -> list[dict[str, Any]]:
@@ -298,6 +319,18 @@ def _registered(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> Non
     )
 
 
+def _requested(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
+    db.execute(
+        "INSERT OR REPLACE INTO registrations VALUES (?, ?, ?, ?)",
+        (log.args["robot"], log.args["metadataCid"], log.args["timestamp"], entry.block_number),
+    )
+
+
+def _decided(db: sqlite3.Connection, log: DecodedLog, _: LogEntry) -> None:
+    """Approved or rejected: no longer pending (an approval also emits RobotRegistered)."""
+    db.execute("DELETE FROM registrations WHERE address = ?", (log.args["robot"],))
+
+
 def _metadata(db: sqlite3.Connection, log: DecodedLog, _: LogEntry) -> None:
     db.execute(
         "UPDATE robots SET metadata_cid = ? WHERE address = ?",
@@ -363,6 +396,9 @@ def _anchored(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
 
 _HANDLERS = {
     "RobotRegistered": _registered,
+    "RegistrationRequested": _requested,
+    "RegistrationApproved": _decided,
+    "RegistrationRejected": _decided,
     "MetadataUpdated": _metadata,
     "RobotActivationChanged": _activation,
     "RobotSuspensionChanged": _suspension,

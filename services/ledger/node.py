@@ -11,10 +11,11 @@ import logging
 from pathlib import Path
 from typing import Any, Protocol
 
+from robocloud.ledger.models import RegistrationMode
 from services.ledger import encoding
 from services.ledger.calls import CallLimits
 from services.ledger.chain import ChainError, EmbeddedChain, MinedBlock
-from services.ledger.contracts import Deployment, deploy, send_as
+from services.ledger.contracts import Deployment, apply_registration_mode, deploy, send_as
 from services.ledger.faucet import FaucetLimits
 from services.ledger.index import EventIndex
 from services.ledger.operator import OperatorKeys, load_or_create, passphrase
@@ -50,6 +51,7 @@ class EmbeddedLedger:
         limits: FaucetLimits,
         faucet_amount_wei: int,
         call_limits: CallLimits,
+        registration_mode: RegistrationMode,
     ) -> None:
         keys: OperatorKeys = load_or_create(data_dir, passphrase(data_dir, configured_passphrase))
         self.faucet_key = keys.faucet
@@ -58,6 +60,8 @@ class EmbeddedLedger:
         self.chain = EmbeddedChain(data_dir / "chain.sqlite", keys.genesis_state(), call_limits)
         self.chain_id = self.chain.chain_id
         self.deployment = deploy(self.chain, keys.admin)
+        if apply_registration_mode(self.chain, keys.admin, self.deployment, registration_mode):
+            log.info("registration mode set", extra={"mode": registration_mode.name.lower()})
         self.index = EventIndex(
             data_dir / "index.sqlite", self.deployment.registry, self.deployment.anchor_log
         )

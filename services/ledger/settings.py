@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, SecretStr
 
+from robocloud.ledger.models import RegistrationMode
 from services.common.settings import ServiceSettings
 from services.ledger.calls import CallLimits
 
@@ -28,6 +31,10 @@ class LedgerSettings(ServiceSettings):
     ledger_rpc_evm_timeout_s: float = Field(
         default=5.0, gt=0, description="wall-clock limit of one eth_call or eth_estimateGas"
     )
+    ledger_registration_mode: Literal["open", "approved"] = Field(
+        default="open",
+        description="open: robots register themselves; approved: a registrar approves each",
+    )
 
     def admin_passphrase(self) -> str | None:
         secret = self.ledger_admin_passphrase
@@ -35,3 +42,6 @@ class LedgerSettings(ServiceSettings):
 
     def call_limits(self) -> CallLimits:
         return CallLimits(self.ledger_rpc_gas_cap, self.ledger_rpc_evm_timeout_s)
+
+    def registration_mode(self) -> RegistrationMode:
+        return RegistrationMode[self.ledger_registration_mode.upper()]

@@ -62,20 +62,46 @@ def cid_view(binary: bytes) -> dict[str, str | None]:
 
 
 def robot(ledger: Ledger, address: str) -> dict[str, Any]:
+    """A registered robot, or one whose registration awaits a registrar (``status``)."""
     checked = address_param(address, "address")
     found = ledger.index.robot(checked)
-    if found is None:
+    if found is not None:
+        return {
+            "address": checked,
+            "did": f"did:pkh:eip155:{ledger.chain_id}:{checked}",
+            "status": "registered",
+            "metadata": cid_view(found["metadata_cid"]),
+            "registered_at": found["registered_at"],
+            "registered_block": found["registered_block"],
+            "active": found["active"] and not found["suspended"],
+            "deactivated": not found["active"],
+            "suspended": found["suspended"],
+            "roles": sorted(ROLE_NAMES.get(role, "0x" + role.hex()) for role in found["roles"]),
+        }
+    pending = ledger.index.pending(checked, 1)
+    if not pending:
         raise RobotNotFound(checked)
+    return _pending_view(ledger, pending[0])
+
+
+def pending_registrations(ledger: Ledger, limit: int) -> dict[str, Any]:
+    """Registrations awaiting the admin or a registrar, oldest first."""
+    rows = ledger.index.pending(None, limit_param(limit))
+    return {"pending": [_pending_view(ledger, row) for row in rows]}
+
+
+def _pending_view(ledger: Ledger, row: dict[str, Any]) -> dict[str, Any]:
     return {
-        "address": checked,
-        "did": f"did:pkh:eip155:{ledger.chain_id}:{checked}",
-        "metadata": cid_view(found["metadata_cid"]),
-        "registered_at": found["registered_at"],
-        "registered_block": found["registered_block"],
-        "active": found["active"] and not found["suspended"],
-        "deactivated": not found["active"],
-        "suspended": found["suspended"],
-        "roles": sorted(ROLE_NAMES.get(role, "0x" + role.hex()) for role in found["roles"]),
+        "address": row["address"],
+        "did": f"did:pkh:eip155:{ledger.chain_id}:{row['address']}",
+        "status": "pending",
+        "metadata": cid_view(row["metadata_cid"]),
+        "registered_at": row["requested_at"],
+        "registered_block": row["requested_block"],
+        "active": False,
+        "deactivated": False,
+        "suspended": False,
+        "roles": [],
     }
 
 

@@ -71,22 +71,22 @@ def register_robot(
     metadata_cid = cid_bytes(metadata) if metadata else None
     identity = load_identity(keystore)
     with Ledger.connect(ledger_url, identity) as ledger:
-        if ledger.robot(identity.address).registered:
-            if as_json:
-                show_json({"address": identity.address, "registered": True, "new": False})
-            else:
-                show(f"robot    {identity.address} is already registered")
+        known = ledger.robot(identity.address).registered or ledger.is_pending(identity.address)
+        if known:
+            _show_registration(identity.address, ledger.is_pending(identity.address), as_json)
             return
         funded = None
         if faucet and ledger.balance() == 0:
             ledger.faucet()
             funded = ledger.balance()
         receipt = ledger.register(metadata_cid or did_cid(identity, ledger.chain_id))
+        pending = ledger.is_pending(identity.address)
     if as_json:
         show_json(
             {
                 "address": identity.address,
-                "registered": True,
+                "registered": not pending,
+                "pending": pending,
                 "new": True,
                 "funded_wei": funded,
                 "tx": receipt.tx_hash,
@@ -94,11 +94,25 @@ def register_robot(
             }
         )
         return
-    lines = [("robot", f"{identity.address} registered")]
+    outcome = (
+        "asked to register; awaits approval by the admin or a registrar"
+        if pending
+        else "registered"
+    )
+    lines = [("robot", f"{identity.address} {outcome}")]
     if funded is not None:
         lines.insert(0, ("funded", f"{funded} wei from the faucet"))
     lines.append(("tx", f"{receipt.tx_hash} (block {receipt.block_number})"))
     show(*rows(lines))
+
+
+def _show_registration(address: str, pending: bool, as_json: bool) -> None:
+    if as_json:
+        show_json({"address": address, "registered": not pending, "pending": pending, "new": False})
+    elif pending:
+        show(f"robot    {address} already asked to register; awaits approval")
+    else:
+        show(f"robot    {address} is already registered")
 
 
 def advertise(
@@ -145,7 +159,7 @@ def advertise(
     show(*rows(lines))
 
 
-def _address(value: str | None) -> str | None:
+def robot_address(value: str | None) -> str | None:
     if value is None:
         return None
     try:
@@ -160,7 +174,7 @@ def robot(
         help="The robot's address.",
         metavar="ADDRESS",
         show_default="this robot's (read from the keystore, no passphrase needed)",
-        callback=_address,
+        callback=robot_address,
     ),
     keystore: Path | None = KeystoreOption,
     ledger_url: str | None = LedgerOption,
@@ -170,13 +184,22 @@ def robot(
     target = address or Identity.keystore_address(keystore_path(keystore))
     with Ledger.connect(ledger_url, None) as ledger:
         record = ledger.robot(target)
-    if not record.registered:
+        pending = not record.registered and ledger.is_pending(target)
+    if not record.registered and not pending:
         fail(
             f"{record.address} is not registered",
             ExitCode.ERROR,
             "`robocloud register` registers this robot",
         )
-    state = "active" if record.is_active else "suspended" if record.suspended else "inactive"
+    state = (
+        "pending approval"
+        if pending
+        else "active"
+        if record.is_active
+        else "suspended"
+        if record.suspended
+        else "inactive"
+    )
     registered = iso8601(record.registered_at)
     if as_json:
         show_json(

@@ -19,6 +19,7 @@ from robocloud.ledger.models import (
     Advertisement,
     Anchor,
     RegisteredRobot,
+    RegistrationMode,
     Robot,
     Role,
 )
@@ -39,6 +40,7 @@ __all__ = [
     "LedgerService",
     "Receipt",
     "RegisteredRobot",
+    "RegistrationMode",
     "RevertError",
     "Robot",
     "Role",

@@ -26,7 +26,15 @@ from robocloud.ledger.errors import (
     LedgerError,
     RpcError,
 )
-from robocloud.ledger.models import Advertised, Advertisement, Anchor, RegisteredRobot, Robot, Role
+from robocloud.ledger.models import (
+    Advertised,
+    Advertisement,
+    Anchor,
+    RegisteredRobot,
+    RegistrationMode,
+    Robot,
+    Role,
+)
 from robocloud.ledger.rpc import JsonRpcClient, as_revert
 from robocloud.ledger.transactions import Receipt, Transactor, quantity
 
@@ -89,17 +97,26 @@ class LedgerService(ServiceClient):
         return self.post_json("/v1/faucet", {"address": checksum(address)})
 
     def robot(self, address: str) -> RegisteredRobot | None:
-        """``GET /v1/robots/{address}``: the indexed record, or None when not registered."""
+        """``GET /v1/robots/{address}``: the indexed record (registered or pending), or None."""
         try:
             body = self.get_json(f"/v1/robots/{checksum(address)}")
         except NotFoundError:
             return None
-        try:
-            return RegisteredRobot.from_service(body)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InvalidAnswerError(
-                f"the ledger's record of {address} is malformed: {exc}"
-            ) from exc
+        return _robot_record(body, f"the ledger's record of {address}")
+
+    def pending(self, limit: int = 100) -> list[RegisteredRobot]:
+        """``GET /v1/registrations``: robots awaiting a registrar, oldest first."""
+        body = self.get_json("/v1/registrations", params={"limit": limit})
+        if not isinstance(body, dict) or not isinstance(body.get("pending"), list):
+            raise InvalidAnswerError("the ledger's pending registrations are not a list")
+        return [_robot_record(item, "a pending registration") for item in body["pending"]]
+
+
+def _robot_record(body: Any, what: str) -> RegisteredRobot:
+    try:
+        return RegisteredRobot.from_service(body)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidAnswerError(f"{what} is malformed: {exc}") from exc
 
 
 class Ledger(Closeable):
@@ -223,6 +240,18 @@ class Ledger(Closeable):
             self.registry, self.addresses.registry, "setSuspended", checksum(account), suspended
         )
 
+    def approve(self, account: str) -> Receipt:
+        """Admit a pending registration (the admin, or an active robot with the registrar role)."""
+        return self._send(self.registry, self.addresses.registry, "approve", checksum(account))
+
+    def reject(self, account: str) -> Receipt:
+        """Refuse a pending registration (the admin or a registrar); the robot may ask again."""
+        return self._send(self.registry, self.addresses.registry, "reject", checksum(account))
+
+    def set_registration_mode(self, mode: RegistrationMode) -> Receipt:
+        """Admin only."""
+        return self._send(self.registry, self.addresses.registry, "setRegistrationMode", mode.value)
+
     # ----- Registry reads -----
 
     def robot(self, address: str) -> Robot:
@@ -231,6 +260,16 @@ class Ledger(Closeable):
             self.registry, self.addresses.registry, "getRobot", target
         )
         return Robot(target, metadata, registered_at, registered, active, suspended)
+
+    def is_pending(self, address: str) -> bool:
+        """Whether ``address`` asked to register and awaits a registrar (Approved mode)."""
+        return bool(
+            self._call(self.registry, self.addresses.registry, "isPending", checksum(address))[0]
+        )
+
+    def registration_mode(self) -> RegistrationMode:
+        mode = self._call(self.registry, self.addresses.registry, "registrationMode")[0]
+        return RegistrationMode(int(mode))
 
     def is_active(self, address: str) -> bool:
         return bool(

@@ -22,6 +22,13 @@ class Role(Enum):
         return keccak(text=f"robocloud.role.{self.value}")
 
 
+class RegistrationMode(Enum):
+    """How the Registry admits robots; the values are the contract's enum."""
+
+    OPEN = 0
+    APPROVED = 1
+
+
 @dataclass(frozen=True)
 class Robot:
     """A Registry record; an unknown address reads as ``registered=False``."""
@@ -44,7 +51,10 @@ class RegisteredRobot:
     """A robot as the ledger service's index reports it (``GET /v1/robots/{address}``).
 
     ``metadata_cid`` is the text form (None when the bytes on chain are not a CID);
-    ``active`` already accounts for suspension, as the service reports it.
+    ``active`` already accounts for suspension, as the service reports it. ``status`` is
+    ``registered``, or ``pending`` for a robot that asked to register and awaits a registrar
+    (Approved mode): such a robot is not active, holds no role, and its ``registered_at`` is
+    when it asked.
     """
 
     address: str
@@ -54,6 +64,11 @@ class RegisteredRobot:
     active: bool
     suspended: bool
     roles: tuple[str, ...]
+    status: str = "registered"
+
+    @property
+    def pending(self) -> bool:
+        return self.status == "pending"
 
     @classmethod
     def from_service(cls, body: Any) -> RegisteredRobot:
@@ -69,6 +84,7 @@ class RegisteredRobot:
             active=body["active"],
             suspended=body["suspended"],
             roles=tuple(body["roles"]),
+            status=body.get("status", "registered"),
         )
         robot._check_types()
         return robot
@@ -81,6 +97,7 @@ class RegisteredRobot:
             "registered_at": int,
             "active": bool,
             "suspended": bool,
+            "status": str,
         }
         for name, kind in expected.items():
             if not isinstance(getattr(self, name), kind):

@@ -80,7 +80,12 @@ def test_register_prints_json(service: Service, keystore: tuple[Path, Identity])
     assert first["tx"].startswith("0x")
     assert isinstance(first["block"], int)
     again = json.loads(runner.invoke(app, ["register", *common]).stdout)
-    assert again == {"address": identity.address, "registered": True, "new": False}
+    assert again == {
+        "address": identity.address,
+        "registered": True,
+        "pending": False,
+        "new": False,
+    }
 
 
 def test_advertise_records_the_first_advertiser(
