@@ -13,7 +13,7 @@ import os
 import shutil
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -45,7 +45,7 @@ def node_binary(kind: str) -> Path | None:
     raise ValueError(f"unknown node {kind!r}")
 
 
-def node_command(kind: str, port: int) -> list[str]:
+def node_command(kind: str, port: int, extra: Sequence[str] = ()) -> list[str]:
     """How to start ``kind`` on ``port``; in CI a missing node fails, never silently skips."""
     binary = node_binary(kind)
     if binary is None or shutil.which("node") is None:
@@ -53,16 +53,17 @@ def node_command(kind: str, port: int) -> list[str]:
             pytest.fail(f"{kind} missing: run `npm ci --prefix contracts` before the tests")
         pytest.skip(f"{kind} missing (npm ci --prefix contracts)")
     if kind == "hardhat":
-        return [str(binary), "node", "--hostname", "127.0.0.1", "--port", str(port)]
+        return [str(binary), "node", "--hostname", "127.0.0.1", "--port", str(port), *extra]
     address = ["--host", "127.0.0.1", "--port", str(port)]
-    return [str(binary), *address, "--chain-id", str(CHAIN_ID), "--accounts", "1"]
+    return [str(binary), *address, "--chain-id", str(CHAIN_ID), "--accounts", "1", *extra]
 
 
 @contextmanager
-def ethereum_node(log_path: Path, kind: str = "anvil") -> Iterator[str]:
-    """Run a node of ``kind`` on a free loopback port; yield its RPC URL; always stop it."""
+def ethereum_node(log_path: Path, kind: str = "anvil", extra: Sequence[str] = ()) -> Iterator[str]:
+    """Run a node of ``kind`` (with ``extra`` arguments) on a free loopback port; yield its RPC
+    URL; always stop it."""
     port = free_port()
-    command = node_command(kind, port)
+    command = node_command(kind, port, extra)
     url = f"http://127.0.0.1:{port}"
     with log_path.open("wb") as log:
         process = subprocess.Popen(

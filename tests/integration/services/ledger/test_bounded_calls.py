@@ -13,6 +13,8 @@ import pytest
 from web3 import HTTPProvider, Web3
 
 from robocloud.identity import Identity
+from robocloud.ledger import JsonRpcClient
+from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
 from tests.integration.services.ledger.conftest import faucet, rpc, start_ledger
 from tests.procs import ServiceProcess
 
@@ -42,21 +44,26 @@ def deploy_loop(url: str) -> str:
     """A contract whose code loops forever, deployed by a faucet-funded robot."""
     robot = Identity.generate()
     assert faucet(url, robot).status_code == 200
-    w3 = Web3(HTTPProvider(f"{url}/rpc"))
+    return deploy_code(f"{url}/rpc", robot, DEPLOY_LOOP, LOOP_RUNTIME)
+
+
+def deploy_code(rpc_url: str, robot: Identity, init_code: str, runtime: str) -> str:
+    """Deploy raw ``init_code`` from a funded ``robot``; the contract's address."""
+    w3 = Web3(HTTPProvider(rpc_url))
     signed = robot.account.sign_transaction(
         {
             "chainId": 1337,
-            "nonce": 0,
-            "gas": 100_000,
+            "nonce": w3.eth.get_transaction_count(robot.address),
+            "gas": 200_000,
             "maxFeePerGas": 10**10,
             "maxPriorityFeePerGas": 10**9,
-            "data": "0x" + DEPLOY_LOOP,
+            "data": "0x" + init_code,
         }
     )
     receipt = w3.eth.wait_for_transaction_receipt(
         w3.eth.send_raw_transaction(signed.raw_transaction), timeout=30
     )
-    assert w3.eth.get_code(receipt["contractAddress"]).hex() == LOOP_RUNTIME
+    assert w3.eth.get_code(receipt["contractAddress"]).hex() == runtime
     return str(receipt["contractAddress"])
 
 
@@ -131,3 +138,60 @@ def test_sigterm_stops_the_service_while_a_call_runs(tmp_path: Path) -> None:
         assert outcome in (["500"], ["RemoteProtocolError"]), outcome
     finally:
         process.stop()
+
+
+# Called with n, calls itself with n - 1 and returns what it got; at n = 0 returns 1. So it
+# answers 1 exactly when n nested calls fit in the EVM's depth limit of 1024, else nothing.
+RECURSE_RUNTIME = (
+    "60003580156027576001900360005260206000602060006000305af1503d600060003e3d6000f3"
+    "5b600160005260206000f3"
+)
+DEPLOY_RECURSE = "603280600b6000396000f3" + RECURSE_RUNTIME
+DEEP_GAS = 10**13
+"""With the 63/64 rule, 1,024 nested calls need more gas than a block holds."""
+
+
+def call_recurse(rpc_url: str, address: str, depth: int) -> str:
+    payload = {
+        "jsonrpc": "2.0",
+        "id": 1,
+        "method": "eth_call",
+        "params": [
+            {"to": address, "data": "0x" + depth.to_bytes(32, "big").hex(), "gas": hex(DEEP_GAS)},
+            "latest",
+        ],
+    }
+    answer: str = httpx.post(rpc_url, json=payload, timeout=120).json()["result"]
+    return answer
+
+
+def test_calls_nest_to_the_evm_depth_limit_as_anvil_does(tmp_path: Path) -> None:
+    """py-evm recurses in Python for every nested call: the ledger must give it the room."""
+    ledger = start_ledger(
+        tmp_path / "data",
+        {
+            "ROBOCLOUD_LEDGER_RPC_GAS_CAP": str(DEEP_GAS),
+            "ROBOCLOUD_LEDGER_RPC_EVM_TIMEOUT_S": "120",
+        },
+    )
+    try:
+        robot = Identity.generate()
+        assert faucet(ledger.url, robot).status_code == 200
+        ours = deploy_code(f"{ledger.url}/rpc", robot, DEPLOY_RECURSE, RECURSE_RUNTIME)
+        with ethereum_node(tmp_path / "anvil.log", extra=["--gas-limit", str(DEEP_GAS)]) as anvil:
+            fund(JsonRpcClient(anvil), robot)
+            theirs = deploy_code(anvil, robot, DEPLOY_RECURSE, RECURSE_RUNTIME)
+            answers = {
+                depth: (
+                    call_recurse(f"{ledger.url}/rpc", ours, depth),
+                    call_recurse(anvil, theirs, depth),
+                )
+                for depth in (1, 1024, 1025)
+            }
+        assert answers[1][0] == answers[1024][0] == "0x" + "00" * 31 + "01"
+        assert answers[1025][0] == "0x"
+        assert all(mine == node for mine, node in answers.values())
+        assert ledger.process is not None
+        assert ledger.process.poll() is None
+    finally:
+        ledger.stop()
