@@ -1,0 +1,120 @@
+"""The JSON-RPC 2.0 envelope, apart from any chain: batches, notifications, every error code."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+from services.ledger.chain import ChainError, Reverted
+from services.ledger.index import IndexLimitError
+from services.ledger.rpc import (
+    INTERNAL_ERROR,
+    INVALID_REQUEST,
+    MAX_BATCH,
+    METHOD_NOT_FOUND,
+    PARSE_ERROR,
+    Dispatcher,
+    RpcFailure,
+)
+
+
+def fail(exception: Exception) -> Any:
+    def method(_: list[Any]) -> Any:
+        raise exception
+
+    return method
+
+
+DISPATCHER = Dispatcher(
+    {
+        "echo": lambda params: params,
+        "refuse": fail(RpcFailure(-32602, "bad argument", {"field": 0})),
+        "chain": fail(ChainError("nonce too low")),
+        "revert": fail(Reverted(bytes.fromhex("08c379a0") + bytes(96))),
+        "index": fail(IndexLimitError("too many logs")),
+        "crash": fail(KeyError("secret internals")),
+    }
+)
+
+
+def call(method: str, params: Any = None, request_id: Any = 1) -> dict[str, Any]:
+    request: dict[str, Any] = {"jsonrpc": "2.0", "method": method, "id": request_id}
+    if params is not None:
+        request["params"] = params
+    return request
+
+
+def handle(document: Any) -> Any:
+    return DISPATCHER.handle(json.dumps(document).encode())
+
+
+def test_a_call_is_answered_with_its_id() -> None:
+    assert handle(call("echo", [1, "a"], "x")) == {"jsonrpc": "2.0", "id": "x", "result": [1, "a"]}
+
+
+def test_a_notification_gets_no_answer_even_when_it_fails() -> None:
+    notification = {"jsonrpc": "2.0", "method": "echo", "params": []}
+    assert handle(notification) is None
+    assert handle({**notification, "method": "crash"}) is None
+
+
+@pytest.mark.parametrize(
+    ("method", "code", "message"),
+    [
+        ("missing", METHOD_NOT_FOUND, "the method missing does not exist/is not available"),
+        ("refuse", -32602, "bad argument"),
+        ("chain", -32000, "nonce too low"),
+        ("index", -32005, "too many logs"),
+        ("crash", INTERNAL_ERROR, "internal error in crash"),
+    ],
+)
+def test_failures_become_error_objects(method: str, code: int, message: str) -> None:
+    answer = handle(call(method, []))
+    assert answer["id"] == 1
+    assert (answer["error"]["code"], answer["error"]["message"]) == (code, message)
+    assert "secret" not in json.dumps(answer)
+
+
+def test_a_revert_carries_code_3_and_its_data() -> None:
+    error = handle(call("revert", []))["error"]
+    assert error["code"] == 3
+    assert error["data"].startswith("0x08c379a0")
+
+
+@pytest.mark.parametrize(
+    "document",
+    [
+        {"method": "echo", "id": 1},
+        {"jsonrpc": "1.0", "method": "echo", "id": 1},
+        {"jsonrpc": "2.0", "method": 7, "id": 1},
+        {"jsonrpc": "2.0", "method": "echo", "params": {"named": 1}, "id": 1},
+        "just a string",
+    ],
+)
+def test_malformed_requests_are_invalid(document: Any) -> None:
+    assert handle(document)["error"]["code"] == INVALID_REQUEST
+
+
+def test_a_batch_answers_each_call_and_skips_notifications() -> None:
+    answers = handle(
+        [call("echo", [1], 1), {"jsonrpc": "2.0", "method": "echo"}, call("missing", [], 2)]
+    )
+    assert [answer["id"] for answer in answers] == [1, 2]
+    assert answers[0]["result"] == [1]
+    assert answers[1]["error"]["code"] == METHOD_NOT_FOUND
+
+
+def test_a_batch_of_notifications_only_gets_no_answer() -> None:
+    assert handle([{"jsonrpc": "2.0", "method": "echo"}] * 3) is None
+
+
+def test_empty_and_oversized_batches_are_invalid() -> None:
+    assert handle([])["error"]["code"] == INVALID_REQUEST
+    assert handle([call("echo", [])] * (MAX_BATCH + 1))["error"]["code"] == INVALID_REQUEST
+
+
+def test_bodies_that_are_not_json_are_parse_errors() -> None:
+    assert DISPATCHER.handle(b'{"jsonrpc": ')["error"]["code"] == PARSE_ERROR
+    assert DISPATCHER.handle(b"\xff")["error"]["code"] == PARSE_ERROR
