@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import secrets
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,34 @@ QUIET_GC = {"ROBOCLOUD_CAS_GC_INTERVAL_S": "0"}
 
 @pytest.fixture
 def cas_service(service_factory: ServiceFactory) -> ServiceProcess:
+    """A fresh cas for this test alone: for tests that look at the store as a whole."""
     return service_factory("cas", QUIET_GC)
+
+
+@pytest.fixture(scope="module")
+def shared_cas_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One cas for a whole test module; a module opts in by overriding ``cas_service``.
+
+    Tests on a shared store check changes (``store_unchanged``), never absolute contents.
+    """
+    process = ServiceProcess("cas", tmp_path_factory.mktemp("shared-cas") / "cas", QUIET_GC)
+    process.start()
+    try:
+        yield process
+    finally:
+        process.stop()
+
+
+@contextmanager
+def store_unchanged(service: ServiceProcess) -> Iterator[None]:
+    """Assert that what runs inside stores no block and changes no pin."""
+    before = (repo_stat(service.url)["NumObjects"], pin_list(service.url))
+    yield
+    assert (repo_stat(service.url)["NumObjects"], pin_list(service.url)) == before
+
+
+def pin_list(url: str) -> Any:
+    return httpx.post(f"{url}/api/v0/pin/ls").json()
 
 
 @pytest.fixture

@@ -101,10 +101,13 @@ def test_upload_cut_off_mid_body_stores_nothing(
         f"POST /api/v0/add HTTP/1.1\r\nHost: 127.0.0.1\r\n{head}"
         f"Content-Type: {content_type}\r\nContent-Length: {len(body)}\r\n\r\n"
     ).encode()
+    logged = cas_service.log().count('"path": "/api/v0/add"')
     with socket.create_connection(("127.0.0.1", cas_service.port)) as sock:
         sock.sendall(request + body[: len(body) // 2])
-        time.sleep(0.3)
-    time.sleep(0.5)
+    deadline = time.monotonic() + 30
+    while cas_service.log().count('"path": "/api/v0/add"') == logged:
+        assert time.monotonic() < deadline, "the cut-off upload never ended on the service"
+        time.sleep(0.05)
     nothing_stored(cas_service)
 
 

@@ -13,6 +13,13 @@ from robocloud.cid import CID
 from robocloud.unixfs import ImportParams, import_bytes
 from tests.procs import ServiceProcess
 
+
+@pytest.fixture(scope="module")
+def cas_service(shared_cas_service: ServiceProcess) -> ServiceProcess:
+    """This module's tests share one cas: none of them needs an empty store."""
+    return shared_cas_service
+
+
 DATA = bytes(range(251)) * 5000  # 1,255,000 bytes: five leaves under one root
 RAW = "application/vnd.ipld.raw"
 CAR = "application/vnd.ipld.car"
