@@ -26,9 +26,10 @@ import time
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar, Self, TypedDict
 
 import httpx
+from typing_extensions import Unpack
 
 from robocloud import bounded_json
 from robocloud.config import service_url
@@ -104,6 +105,19 @@ def _checked_url(url: str, service: str | None) -> str:
     return url.rstrip("/")
 
 
+class RequestOptions(TypedDict, total=False):
+    """What one request may say beside its method and path (see ``BaseClient.send``)."""
+
+    params: Mapping[str, Any] | None
+    json: Any
+    content: bytes | Iterable[bytes] | None
+    content_sha256: str | None
+    headers: Mapping[str, str] | None
+    signed: bool | None
+    idempotent: bool | None
+    stream: bool
+
+
 class BaseClient(Closeable):
     """One service endpoint: an httpx client with signing, retries and the SDK's errors.
 
@@ -147,7 +161,19 @@ class BaseClient(Closeable):
     def close(self) -> None:
         self._http.close()
 
-    def send(
+    def send(self, method: str, path: str, **options: Unpack[RequestOptions]) -> httpx.Response:
+        """Send one request (retrying what is safe) and return the response, whatever its status.
+
+        ``signed`` defaults to signing every method but GET, HEAD and OPTIONS; ``idempotent``
+        to RFC 9110's idempotent methods (a POST that only reads may say so). Without
+        ``stream`` the answer is read whole, at most ``max_answer_bytes``; with it the caller
+        reads and closes it (use it as a context manager), except an error answer (status
+        400 or more), which is always read.
+        """
+        response, _ = self._send_counting(method, path, **options)
+        return response
+
+    def _send_counting(
         self,
         method: str,
         path: str,
@@ -160,42 +186,6 @@ class BaseClient(Closeable):
         signed: bool | None = None,
         idempotent: bool | None = None,
         stream: bool = False,
-    ) -> httpx.Response:
-        """Send one request (retrying what is safe) and return the response, whatever its status.
-
-        ``signed`` defaults to signing every method but GET, HEAD and OPTIONS; ``idempotent``
-        to RFC 9110's idempotent methods (a POST that only reads may say so). Without
-        ``stream`` the answer is read whole, at most ``max_answer_bytes``; with it the caller
-        reads and closes it (use it as a context manager), except an error answer (status
-        400 or more), which is always read.
-        """
-        response, _ = self._send_counting(
-            method,
-            path,
-            params=params,
-            json=json,
-            content=content,
-            content_sha256=content_sha256,
-            headers=headers,
-            signed=signed,
-            idempotent=idempotent,
-            stream=stream,
-        )
-        return response
-
-    def _send_counting(
-        self,
-        method: str,
-        path: str,
-        *,
-        params: Mapping[str, Any] | None,
-        json: Any,
-        content: bytes | Iterable[bytes] | None,
-        content_sha256: str | None,
-        headers: Mapping[str, str] | None,
-        signed: bool | None,
-        idempotent: bool | None,
-        stream: bool,
     ) -> tuple[httpx.Response, int]:
         """``send``, also saying how many attempts it took (a resend may have doubled a write)."""
         method = method.upper()
@@ -354,33 +344,9 @@ class BaseClient(Closeable):
 class ServiceClient(BaseClient):
     """A robocloud REST service: error statuses become typed ``ApiError``s."""
 
-    def request(
-        self,
-        method: str,
-        path: str,
-        *,
-        params: Mapping[str, Any] | None = None,
-        json: Any = None,
-        content: bytes | Iterable[bytes] | None = None,
-        content_sha256: str | None = None,
-        headers: Mapping[str, str] | None = None,
-        signed: bool | None = None,
-        idempotent: bool | None = None,
-        stream: bool = False,
-    ) -> httpx.Response:
+    def request(self, method: str, path: str, **options: Unpack[RequestOptions]) -> httpx.Response:
         """``send``, raising the ``ApiError`` subclass of an error status."""
-        response = self.send(
-            method,
-            path,
-            params=params,
-            json=json,
-            content=content,
-            content_sha256=content_sha256,
-            headers=headers,
-            signed=signed,
-            idempotent=idempotent,
-            stream=stream,
-        )
+        response = self.send(method, path, **options)
         if response.status_code >= 400:
             raise api_error(response)
         return response

@@ -59,9 +59,7 @@ def approve(
     as_json: bool = JsonOption,
 ) -> None:
     """Admit a robot whose registration awaits approval (admin or registrar)."""
-    with Ledger.connect(ledger_url, load_identity(keystore)) as ledger:
-        receipt = ledger.approve(address)
-    _report("approved", address, receipt, as_json)
+    _decide(address, approved=True, keystore=keystore, ledger_url=ledger_url, as_json=as_json)
 
 
 @admin_app.command("reject")
@@ -72,9 +70,15 @@ def reject(
     as_json: bool = JsonOption,
 ) -> None:
     """Refuse a pending registration; the robot may ask again (admin or registrar)."""
+    _decide(address, approved=False, keystore=keystore, ledger_url=ledger_url, as_json=as_json)
+
+
+def _decide(
+    address: str, *, approved: bool, keystore: Path | None, ledger_url: str | None, as_json: bool
+) -> None:
     with Ledger.connect(ledger_url, load_identity(keystore)) as ledger:
-        receipt = ledger.reject(address)
-    _report("rejected", address, receipt, as_json)
+        receipt = ledger.approve(address) if approved else ledger.reject(address)
+    _report("approved" if approved else "rejected", address, receipt, as_json)
 
 
 @admin_app.command("pending")

@@ -130,14 +130,7 @@ def pin(
     as_json: bool = JsonOption,
 ) -> None:
     """Pin content to this robot so garbage collection keeps it."""
-    root = cid_argument(cid)
-    identity = load_identity(keystore)
-    with Cas(cas, identity) as client:
-        client.pin(root)
-    if as_json:
-        show_json({"cid": str(root), "pinned": True})
-    else:
-        show(f"pinned {root}")
+    _set_pin(cid, True, cas, keystore, as_json)
 
 
 def unpin(
@@ -147,14 +140,20 @@ def unpin(
     as_json: bool = JsonOption,
 ) -> None:
     """Remove this robot's pin."""
+    _set_pin(cid, False, cas, keystore, as_json)
+
+
+def _set_pin(cid: str, pinned: bool, cas: str | None, keystore: Path | None, as_json: bool) -> None:
     root = cid_argument(cid)
-    identity = load_identity(keystore)
-    with Cas(cas, identity) as client:
-        client.unpin(root)
+    with Cas(cas, load_identity(keystore)) as client:
+        if pinned:
+            client.pin(root)
+        else:
+            client.unpin(root)
     if as_json:
-        show_json({"cid": str(root), "pinned": False})
+        show_json({"cid": str(root), "pinned": pinned})
     else:
-        show(f"unpinned {root}")
+        show(f"{'pinned' if pinned else 'unpinned'} {root}")
 
 
 def pins(cas: str | None = CasOption, as_json: bool = JsonOption) -> None:

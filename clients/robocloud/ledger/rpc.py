@@ -121,16 +121,7 @@ class JsonRpcClient(BaseClient):
         payload = {"jsonrpc": "2.0", "id": request_id, "method": method, "params": params}
         resend_is_safe = method in READ_METHODS or method == SEND_RAW_TRANSACTION
         response, attempts = self._send_counting(
-            "POST",
-            self.url,
-            params=None,
-            json=payload,
-            content=None,
-            content_sha256=None,
-            headers=None,
-            signed=False,
-            idempotent=resend_is_safe,
-            stream=False,
+            "POST", self.url, json=payload, signed=False, idempotent=resend_is_safe
         )
         try:
             return self._result(method, request_id, response)
