@@ -13,16 +13,13 @@ from __future__ import annotations
 import logging
 
 import anyio
-import httpx
 
-from robocloud.errors import FormatError
-from robocloud.signing import CHAIN_DEPLOYMENT_ID, Audience, AudienceError, audience_from_answer
+from robocloud.errors import RobocloudError
+from robocloud.ledger import LedgerService
+from robocloud.signing import CHAIN_DEPLOYMENT_ID, Audience, AudienceError, parse_audience
 from services.common.errors import Unavailable
 
 log = logging.getLogger("robocloud.audience")
-
-MAX_ANSWER_BYTES = 4096
-"""An audience answer is under 200 bytes; anything longer is not one."""
 
 
 class ServiceAudience:
@@ -72,13 +69,12 @@ async def learn_from_ledger(
     ``expected`` (``ROBOCLOUD_DEPLOYMENT_ID`` in registered mode) pins the deployment: a ledger
     of any other deployment leaves the service unready, with the reason in ``/readyz``.
     """
-    url = f"{ledger_url.rstrip('/')}/v1/audience"
     delay = retry_s
-    async with httpx.AsyncClient(timeout=timeout_s) as client:
+    with LedgerService(ledger_url, timeout=timeout_s, retries=0) as ledger:
         while True:
             try:
-                deployment = await _ask(client, url)
-            except (httpx.HTTPError, FormatError, _NotAnswered) as exc:
+                deployment = await anyio.to_thread.run_sync(_deployment_of, ledger)
+            except RobocloudError as exc:
                 audience.problem = f"the ledger at {ledger_url} did not tell it ({exc})"
                 log.warning("deployment id not learned yet", extra={"reason": str(exc)})
             else:
@@ -94,20 +90,9 @@ async def learn_from_ledger(
             delay = min(delay * 2, max_retry_s)
 
 
-class _NotAnswered(Exception):
-    """The ledger answered, but not with its audience (starting, or not a ledger)."""
-
-
-async def _ask(client: httpx.AsyncClient, url: str) -> str:
-    async with client.stream("GET", url) as response:
-        if response.status_code != 200:
-            raise _NotAnswered(f"{url} answered {response.status_code}")
-        body = b""
-        async for chunk in response.aiter_bytes():
-            body += chunk
-            if len(body) > MAX_ANSWER_BYTES:
-                raise _NotAnswered(f"{url} answered more than {MAX_ANSWER_BYTES} bytes")
-    deployment = audience_from_answer(body).deployment
+def _deployment_of(ledger: LedgerService) -> str:
+    """The deployment id the ledger's audience names (the SDK bounds and parses the answer)."""
+    deployment = parse_audience(ledger.audience()).deployment
     if not CHAIN_DEPLOYMENT_ID.fullmatch(deployment):
-        raise _NotAnswered(f"the ledger's deployment {deployment!r} is not <chain id>:<registry>")
+        raise AudienceError(f"the ledger's deployment {deployment!r} is not <chain id>:<registry>")
     return deployment

@@ -11,8 +11,14 @@ import typer
 from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
 
 from robocloud.cas import Cas, ContentTooLargeError
-from robocloud.cid import CID, CIDError, parse_cid
-from robocloud.cli.context import JsonOption, KeystoreOption, fail, load_identity, parse_size
+from robocloud.cli.context import (
+    JsonOption,
+    KeystoreOption,
+    cid_argument,
+    fail,
+    load_identity,
+    parse_size,
+)
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.output import console, show, show_json, size_text, untrusted
 from robocloud.unixfs import ImportParams, UnixfsError
@@ -24,14 +30,6 @@ CasOption = typer.Option(
     show_default="$ROBOCLOUD_CAS_URL, else http://127.0.0.1:8080",
 )
 PROGRESS_THRESHOLD = 8 << 20
-
-
-def cid_argument(text: str) -> CID:
-    """A CID argument; bad text is a usage error (exit 2) naming what was given."""
-    try:
-        return parse_cid(text, "CID")
-    except CIDError as exc:
-        raise typer.BadParameter(f"{untrusted(text, 80)!r} is not a CID: {exc}") from exc
 
 
 @contextmanager

@@ -9,7 +9,9 @@ from typing import NoReturn
 
 import typer
 
+from robocloud.cid import CID, CIDError, parse_cid
 from robocloud.cli.exits import ExitCode, Failure, report
+from robocloud.cli.output import untrusted
 from robocloud.identity import PASSPHRASE_ENV, Identity, default_keystore_path
 
 JsonOption = typer.Option(False, "--json", help="Print one JSON document instead of text.")
@@ -61,3 +63,11 @@ def parse_size(text: str) -> int:
             f"{text!r} is not a size: use bytes or a number with B, kB, MB, GB, TB, KiB, MiB, GiB"
         )
     return int(match.group(1)) * _SIZE_UNITS[(match.group(2) or "b").lower()]
+
+
+def cid_argument(text: str) -> CID:
+    """A CID argument; bad text is a usage error (exit 2) naming what was given."""
+    try:
+        return parse_cid(text, "CID")
+    except CIDError as exc:
+        raise typer.BadParameter(f"{untrusted(text, 80)!r} is not a CID: {exc}") from exc

@@ -15,6 +15,7 @@ from robocloud.cid import CID, CIDError
 from robocloud.cli.context import (
     JsonOption,
     KeystoreOption,
+    cid_argument,
     fail,
     keystore_path,
     load_identity,
@@ -35,11 +36,12 @@ LedgerOption = typer.Option(
 
 def cid_bytes(text: str) -> bytes:
     """The binary form of a CID as it goes on chain; ``0x``-hex of that form is accepted too."""
+    if not text.startswith("0x"):
+        return cid_argument(text).binary
     try:
-        cid = CID.from_bytes(bytes.fromhex(text[2:])) if text.startswith("0x") else CID.decode(text)
+        return CID.from_bytes(bytes.fromhex(text[2:])).binary
     except (CIDError, ValueError) as exc:
         raise typer.BadParameter(f"{untrusted(text, 80)!r} is not a CID: {exc}") from exc
-    return cid.binary
 
 
 def cid_text(binary: bytes) -> str:
