@@ -5,6 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 NODE_STAMP := contracts/node_modules/.package-lock.json
+REFERENCE_STAMP := tests/reference/node_modules/.package-lock.json
 
 .PHONY: up test lint compose-up compose-down test-compose bench demo lock clean
 
@@ -19,6 +20,10 @@ $(STAMP): pyproject.toml constraints.txt
 $(NODE_STAMP): contracts/package-lock.json
 	npm ci --prefix contracts --no-audit --no-fund
 
+# js-ipfs-unixfs's importer: the independent implementation directory CIDs are compared with.
+$(REFERENCE_STAMP): tests/reference/package-lock.json
+	npm ci --prefix tests/reference --no-audit --no-fund
+
 up: $(STAMP)
 	$(PY) -m services.common.supervisor
 
@@ -27,7 +32,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
-test: lint $(NODE_STAMP)
+test: lint $(NODE_STAMP) $(REFERENCE_STAMP)
 	$(VENV)/bin/pytest
 
 # Docker Compose on any machine, offline too: the engine, Compose, the wheelhouse and the base

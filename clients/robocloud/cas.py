@@ -375,10 +375,10 @@ def _import_options(params: ImportParams) -> dict[str, str]:
         "raw-leaves": str(params.raw_leaves).lower(),
         "chunker": f"size-{params.chunk_size}",
     }
-    if params.max_links == DEFAULT_MAX_LINKS:
+    if params.max_links == DEFAULT_MAX_LINKS and not params.block_sized_shards:
         return options
-    for name, (_, _, _, links) in PROFILES.items():
-        if links == params.max_links:
+    for name, (_, _, _, links, exact) in PROFILES.items():
+        if (links, exact) == (params.max_links, params.block_sized_shards):
             return {"profile": name, **options}
     raise ValueError(
         f"a gateway cannot be asked for {params.max_links} links per node; "

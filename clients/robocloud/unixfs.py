@@ -26,10 +26,10 @@ MAX_DAG_DEPTH = 1024
 of 1 TiB is 4 levels deep, trickle layouts and HAMT shards a few dozen, directories as deep as
 paths nest, and Linux's PATH_MAX of 4096 bytes allows at most 2048); a chain built to be deep
 is refused instead of followed."""
-PROFILES: dict[str, tuple[int, int, bool, int]] = {
-    # name: (cid_version, chunk size, raw leaves, max links)
-    "unixfs-v0-2015": (0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS),
-    "unixfs-v1-2025": (1, 1_048_576, True, 1024),
+PROFILES: dict[str, tuple[int, int, bool, int, bool]] = {
+    # name: (cid_version, chunk size, raw leaves, max links, shard by exact block size)
+    "unixfs-v0-2015": (0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS, False),
+    "unixfs-v1-2025": (1, 1_048_576, True, 1024, True),
 }
 
 # UnixFS Data.Type
@@ -45,10 +45,14 @@ GetBlock = Callable[[CID], bytes]
 
 @dataclass(frozen=True)
 class ImportParams:
+    """How files and directories become blocks. ``block_sized_shards`` picks IPIP-499's exact
+    block-size estimate for the HAMT threshold over kubo's legacy name-plus-CID estimate."""
+
     cid_version: int = 1
     raw_leaves: bool = True
     chunk_size: int = DEFAULT_CHUNK_SIZE
     max_links: int = DEFAULT_MAX_LINKS
+    block_sized_shards: bool = False
 
     def __post_init__(self) -> None:
         if self.cid_version not in (0, 1):
@@ -67,11 +71,11 @@ class ImportParams:
         profile: str | None = None,
     ) -> ImportParams:
         """kubo's semantics: ``--cid-version=1`` implies raw leaves unless said otherwise."""
-        version, chunk, raw, links = 0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS
+        version, chunk, raw, links, exact = 0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS, False
         if profile is not None:
             if profile not in PROFILES:
                 raise UnixfsError(f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
-            version, chunk, raw, links = PROFILES[profile]
+            version, chunk, raw, links, exact = PROFILES[profile]
         if cid_version is not None:
             version = cid_version
             raw = raw or cid_version == 1
@@ -79,7 +83,7 @@ class ImportParams:
             raw = raw_leaves
         if chunker is not None:
             chunk = parse_chunker(chunker)
-        return cls(version, raw, chunk, links)
+        return cls(version, raw, chunk, links, exact)
 
 
 def parse_chunker(chunker: str) -> int:
@@ -95,10 +99,14 @@ def parse_chunker(chunker: str) -> int:
 
 @dataclass
 class UnixfsData:
+    """The UnixFS ``Data`` message; ``hash_type`` and ``fanout`` belong to HAMT shards."""
+
     type: int
     data: bytes = b""
     filesize: int | None = None
     blocksizes: list[int] = field(default_factory=list)
+    hash_type: int | None = None
+    fanout: int | None = None
 
     def encode(self) -> bytes:
         out = uint_field(1, self.type)
@@ -108,6 +116,10 @@ class UnixfsData:
             out += uint_field(3, self.filesize)
         for size in self.blocksizes:
             out += uint_field(4, size)
+        if self.hash_type is not None:
+            out += uint_field(5, self.hash_type)
+        if self.fanout is not None:
+            out += uint_field(6, self.fanout)
         return out
 
     @classmethod
@@ -134,6 +146,10 @@ class UnixfsData:
                 while pos < len(value):
                     size, pos = decode_varint(value, pos)
                     node.blocksizes.append(size)
+            elif number == 5 and isinstance(value, int):
+                node.hash_type = value
+            elif number == 6 and isinstance(value, int):
+                node.fanout = value
         if node.type < 0:
             raise UnixfsError("UnixFS data without a type")
         return node

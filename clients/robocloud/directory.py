@@ -1,0 +1,293 @@
+"""UnixFS directories: built as ``ipfs add -r`` builds them, listed, and walked by path.
+
+A directory is a dag-pb node of UnixFS type Directory whose links, sorted by name bytes, are
+its entries. When the entries would make the node too large, kubo (boxo) shards it into a HAMT
+instead: nodes of type HAMTShard with a fanout of 256, where an entry's bucket at each level is
+the next byte of the 64-bit murmur3 (x64, 128-bit variant, first half) hash of its name. A
+bucket holding one entry links to it under ``<2 hex digits><name>``; a bucket holding several
+links to a child shard under ``<2 hex digits>`` alone. The layout depends on the set of names
+only, so building it from the final entries gives kubo's CIDs.
+
+The decision follows boxo: shard when the directory's estimated size exceeds 256 KiB (a
+directory exactly at the threshold stays basic), estimated by default as kubo always has, the
+sum over entries of ``len(name) + len(cid bytes)``, or, for the ``unixfs-v1-2025`` profile
+(IPIP-499), as the exact size of the basic directory's block.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import mmh3
+
+from robocloud.cid import CID, DAG_PB, Block
+from robocloud.dagpb import Link, PBNode
+from robocloud.unixfs import (
+    DIRECTORY,
+    HAMT_SHARD,
+    MAX_DAG_DEPTH,
+    UnixfsData,
+    UnixfsError,
+    decode_node,
+)
+
+SHARDING_THRESHOLD = 256 * 1024
+HAMT_FANOUT = 256
+MURMUR3_X64_64 = 0x22
+MAX_NAME_BYTES = 255
+"""What POSIX file systems allow for one path segment; longer names are refused."""
+
+GetBlock = Callable[[CID], bytes]
+
+
+class PathError(UnixfsError):
+    """A path that cannot be followed; ``segment`` is the one at fault, ``at`` where it failed."""
+
+    def __init__(self, message: str, *, segment: str, at: CID) -> None:
+        super().__init__(message)
+        self.segment = segment
+        self.at = at
+
+
+class PathNotFound(PathError):
+    """A segment that names no entry of its directory."""
+
+
+class NotADirectory(PathError):
+    """A segment asked of something that is not a directory (a file, a raw block)."""
+
+
+def check_name(name: str) -> str:
+    """An entry name as UnixFS allows it: one non-empty segment, not ``.`` or ``..``."""
+    if name in ("", ".", "..") or "/" in name or "\x00" in name:
+        raise UnixfsError(f"{name!r} is not a valid directory entry name")
+    if len(name.encode()) > MAX_NAME_BYTES:
+        raise UnixfsError(f"an entry name of more than {MAX_NAME_BYTES} bytes")
+    return name
+
+
+# ---- building ----
+
+
+def directory_node(
+    entries: list[Link], cid_version: int = 1, *, block_sized: bool = False
+) -> tuple[list[Block], Link]:
+    """The blocks of one directory over ``entries``, basic or sharded, and the link to it.
+
+    The link's name is empty and its ``tsize`` is the whole directory's cumulative size.
+    """
+    names = [entry.name for entry in entries]
+    if len(set(names)) != len(names):
+        raise UnixfsError("a directory with two entries of the same name")
+    for name in names:
+        check_name(name)
+    links = sorted(entries, key=lambda entry: entry.name.encode())
+    data = UnixfsData(DIRECTORY)
+    if block_sized:
+        estimated = len(PBNode(links, data.encode()).encode())
+    else:
+        estimated = sum(len(entry.name.encode()) + len(entry.cid.binary) for entry in entries)
+    if estimated > SHARDING_THRESHOLD:
+        return sharded_directory(entries, cid_version)
+    return _node(links, data, cid_version)
+
+
+def _node(links: list[Link], data: UnixfsData, cid_version: int) -> tuple[list[Block], Link]:
+    encoded = PBNode(links, data.encode()).encode()
+    cid = CID.from_block(encoded, DAG_PB, cid_version)
+    return [Block(cid, encoded)], Link(cid, "", len(encoded) + sum(link.tsize for link in links))
+
+
+def name_hash(name: str) -> bytes:
+    """The 8 bytes that place ``name`` in a HAMT: murmur3 x64 128's first half, big-endian."""
+    first, _ = mmh3.hash64(name.encode(), seed=0, x64arch=True, signed=False)
+    return int(first).to_bytes(8, "big")
+
+
+def _prefix(index: int) -> str:
+    return f"{index:02X}"
+
+
+def sharded_directory(entries: list[Link], cid_version: int = 1) -> tuple[list[Block], Link]:
+    """A HAMT over ``entries`` whatever their size (kubo with sharding forced), deepest first."""
+    hashed = [(name_hash(entry.name), entry) for entry in entries]
+    blocks: list[Block] = []
+    return blocks, _buildsharded_directory(hashed, 0, cid_version, blocks)
+
+
+def _buildsharded_directory(
+    hashed: list[tuple[bytes, Link]], depth: int, cid_version: int, blocks: list[Block]
+) -> Link:
+    if depth >= 8:
+        raise UnixfsError("two entry names share a 64-bit HAMT hash; kubo cannot shard them")
+    buckets: dict[int, list[tuple[bytes, Link]]] = {}
+    for item in hashed:
+        buckets.setdefault(item[0][depth], []).append(item)
+    links: list[Link] = []
+    for index in sorted(buckets):
+        members = buckets[index]
+        if len(members) == 1:
+            entry = members[0][1]
+            links.append(Link(entry.cid, _prefix(index) + entry.name, entry.tsize))
+        else:
+            child = _buildsharded_directory(members, depth + 1, cid_version, blocks)
+            links.append(Link(child.cid, _prefix(index), child.tsize))
+    occupied = sum(1 << index for index in buckets)
+    # Big-endian without leading zero bytes, as go-bitfield writes it (boxo's encoding).
+    bitfield = occupied.to_bytes((occupied.bit_length() + 7) // 8, "big")
+    data = UnixfsData(HAMT_SHARD, bitfield, hash_type=MURMUR3_X64_64, fanout=HAMT_FANOUT)
+    node_blocks, link = _node(links, data, cid_version)
+    blocks.extend(node_blocks)
+    return link
+
+
+class DirectoryBuilder:
+    """Collects the files and directories of a tree, then builds every directory bottom-up.
+
+    Paths are ``/``-separated and relative; a file's parent directories exist implicitly.
+    """
+
+    def __init__(self, cid_version: int = 1, *, block_sized_shards: bool = False) -> None:
+        self.cid_version = cid_version
+        self.block_sized_shards = block_sized_shards
+        self._directories: set[tuple[str, ...]] = {()}
+        self._files: dict[tuple[str, ...], Link] = {}
+
+    def add_directory(self, path: str) -> None:
+        parts = split_path(path)
+        for depth in range(1, len(parts) + 1):
+            self._directories.add(parts[:depth])
+
+    def add_file(self, path: str, cid: CID, tsize: int) -> None:
+        parts = split_path(path)
+        if not parts:
+            raise UnixfsError("a file needs a name")
+        if parts in self._files:
+            raise UnixfsError(f"{path!r} is given twice")
+        self.add_directory("/".join(parts[:-1]))
+        self._files[parts] = Link(cid, parts[-1], tsize)
+
+    def finish(self) -> tuple[list[Block], dict[str, Link]]:
+        """Every directory's blocks, and each directory's link by path (the root is ``""``)."""
+        clash = self._directories & self._files.keys()
+        if clash:
+            raise UnixfsError(f"{'/'.join(min(clash))!r} is both a file and a directory")
+        children: dict[tuple[str, ...], list[Link]] = {parts: [] for parts in self._directories}
+        for parts, link in self._files.items():
+            children[parts[:-1]].append(link)
+        blocks: list[Block] = []
+        built: dict[str, Link] = {}
+        for parts in sorted(self._directories, key=len, reverse=True):
+            node_blocks, link = directory_node(
+                children[parts], self.cid_version, block_sized=self.block_sized_shards
+            )
+            blocks.extend(node_blocks)
+            built["/".join(parts)] = link
+            if parts:
+                children[parts[:-1]].append(Link(link.cid, parts[-1], link.tsize))
+        return blocks, built
+
+
+def split_path(path: str) -> tuple[str, ...]:
+    """The segments of a relative path; ``..``, ``.`` and empty segments are refused."""
+    if path in ("", "."):
+        return ()
+    if path.startswith("/"):
+        raise UnixfsError(f"{path!r} is not a relative path")
+    parts = tuple(path.split("/"))
+    if len(parts) > MAX_DAG_DEPTH:
+        raise UnixfsError(f"a path deeper than {MAX_DAG_DEPTH} segments")
+    return tuple(check_name(part) for part in parts)
+
+
+# ---- reading ----
+
+
+@dataclass(frozen=True)
+class Resolved:
+    """Where a path led: the target, and every block read on the way (for a CAR of the path)."""
+
+    cid: CID
+    path_blocks: list[CID]
+
+
+def resolve(root: CID, segments: list[str], get_block: GetBlock) -> Resolved:
+    """Follow ``segments`` from ``root`` through directories and HAMT shards."""
+    visited: list[CID] = []
+    current = root
+    for segment in segments:
+        visited.append(current)
+        entry, shards = _find(current, segment, get_block)
+        visited.extend(shards)
+        current = entry
+    return Resolved(current, visited)
+
+
+def _find(directory: CID, name: str, get_block: GetBlock) -> tuple[CID, list[CID]]:
+    """The CID ``name`` names in ``directory``, and the shard nodes read below its root."""
+    if directory.codec != DAG_PB:
+        raise NotADirectory(f"{directory} is not a directory", segment=name, at=directory)
+    node, unixfs = decode_node(directory, get_block(directory))
+    if unixfs.type == DIRECTORY:
+        for link in node.links:
+            if link.name == name:
+                return link.cid, []
+        raise PathNotFound(f"{directory} has no entry {name!r}", segment=name, at=directory)
+    if unixfs.type != HAMT_SHARD:
+        raise NotADirectory(f"{directory} is not a directory", segment=name, at=directory)
+    return _find_insharded_directory(directory, node, unixfs, name, get_block)
+
+
+def _find_insharded_directory(
+    root: CID, node: PBNode, unixfs: UnixfsData, name: str, get_block: GetBlock
+) -> tuple[CID, list[CID]]:
+    digest = name_hash(name)
+    width = _prefix_width(root, unixfs)
+    shards: list[CID] = []
+    for depth in range(8):
+        prefix = f"{digest[depth]:0{width}X}"
+        link = next((link for link in node.links if link.name[:width] == prefix), None)
+        if link is None:
+            break
+        if link.name[width:] == name:
+            return link.cid, shards
+        if len(link.name) != width:
+            break
+        shards.append(link.cid)
+        node, unixfs = decode_node(link.cid, get_block(link.cid))
+        if unixfs.type != HAMT_SHARD:
+            raise UnixfsError(f"{link.cid} is linked as a HAMT shard but is not one")
+    raise PathNotFound(f"{root} has no entry {name!r}", segment=name, at=root)
+
+
+def _prefix_width(cid: CID, unixfs: UnixfsData) -> int:
+    fanout = unixfs.fanout or 0
+    if unixfs.hash_type != MURMUR3_X64_64 or fanout < 2 or fanout & (fanout - 1):
+        raise UnixfsError(f"{cid} is a HAMT shard of an unsupported kind (hash, fanout)")
+    return len(f"{fanout - 1:X}")
+
+
+def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
+    """The entries of a directory, basic or sharded (shards in link order, depth first)."""
+    node, unixfs = decode_node(directory, get_block(directory))
+    if unixfs.type == DIRECTORY:
+        yield from node.links
+        return
+    if unixfs.type != HAMT_SHARD:
+        raise NotADirectory(f"{directory} is not a directory", segment="", at=directory)
+    width = _prefix_width(directory, unixfs)
+    stack: list[Iterator[Link]] = [iter(node.links)]
+    while stack:
+        link = next(stack[-1], None)
+        if link is None:
+            stack.pop()
+        elif len(link.name) != width:
+            yield Link(link.cid, link.name[width:], link.tsize)
+        elif len(stack) > MAX_DAG_DEPTH:
+            raise UnixfsError(f"the HAMT of {directory} is deeper than {MAX_DAG_DEPTH} levels")
+        else:
+            child, data = decode_node(link.cid, get_block(link.cid))
+            if data.type != HAMT_SHARD:
+                raise UnixfsError(f"{link.cid} is linked as a HAMT shard but is not one")
+            stack.append(iter(child.links))
