@@ -327,24 +327,48 @@ def read_file(
     so a server that already promised a length can cut the response off instead of sending
     a short body as if it were complete.
     """
-    stack = [_Span(root, offset, None if length is None else offset + length, None, 0)]
+    end = None if length is None else offset + length
+    for _, content, span in _file_blocks(root, get_block, offset, end):
+        if content:
+            yield content[span.start : span.end]
+
+
+def file_range_blocks(
+    root: CID, get_block: GetBlock, start: int, end: int | None
+) -> Iterator[Block]:
+    """The blocks of a file needed to verify its bytes ``[start, end)``, in CAR order."""
+    for block, _, _ in _file_blocks(root, get_block, start, end, whole_root=True):
+        yield block
+
+
+def _file_blocks(
+    root: CID, get_block: GetBlock, start: int, end: int | None, *, whole_root: bool = False
+) -> Iterator[tuple[Block, bytes, _Span]]:
+    """Each block a byte range of a file needs, with the file bytes it holds itself.
+
+    The root is read even for an empty range when ``whole_root`` (a CAR of it must hold
+    something to verify).
+    """
+    stack = [_Span(root, start, end, None, 0)]
     while stack:
         span = stack.pop()
-        if span.end is not None and span.end <= span.start:
+        empty = span.end is not None and span.end <= span.start
+        if empty and not (whole_root and span.cid == root and span.depth == 0):
             continue
         if span.depth > MAX_DAG_DEPTH:
             raise UnixfsError(f"{span.cid} lies deeper than {MAX_DAG_DEPTH} levels in {root}")
         data = get_block(span.cid)
         if span.cid.codec == RAW:
             _check_size(span, len(data), root)
-            yield data[span.start : span.end]
+            yield Block(span.cid, data), data, span
             continue
         if span.cid.codec != DAG_PB:
             raise UnixfsError(f"{span.cid} is neither raw nor dag-pb")
         node, unixfs = _file_node(span.cid, data)
         _check_size(span, len(unixfs.data) + sum(unixfs.blocksizes), root)
-        if unixfs.data and span.start < len(unixfs.data):
-            yield unixfs.data[span.start : span.end]
+        yield Block(span.cid, data), unixfs.data, span
+        if empty:
+            continue
         children: list[_Span] = []
         position = len(unixfs.data)
         for link, size in zip(node.links, unixfs.blocksizes, strict=True):
@@ -355,8 +379,9 @@ def read_file(
                 local_end = (
                     None if span.end is None or span.end >= child_end else span.end - position
                 )
-                start = max(0, span.start - position)
-                children.append(_Span(link.cid, start, local_end, size, span.depth + 1))
+                children.append(
+                    _Span(link.cid, max(0, span.start - position), local_end, size, span.depth + 1)
+                )
             position = child_end
         stack.extend(reversed(children))
 
@@ -484,15 +509,16 @@ def list_directory(root: CID, get_block: GetBlock) -> list[Link]:
 def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Block]:
     """Blocks in CAR order (depth first, links in order, each block once).
 
-    ``block``: the root only. ``entity``: the whole file, or a directory's own nodes (HAMT
-    shards included) without its entries' content. ``all``: everything reachable.
+    ``block``: the root only. ``entity``: the whole file, or a directory's own nodes (every
+    level of a HAMT's shards included) without its entries' content. ``all``: everything
+    reachable.
     """
     if scope not in ("block", "entity", "all"):
         raise UnixfsError(f"unknown dag-scope {scope!r}: expected block, entity or all")
     seen: set[CID] = set()
-    stack: list[tuple[CID, bool, int]] = [(root, True, 0)]
+    stack: list[tuple[CID, int]] = [(root, 0)]
     while stack:
-        cid, is_root, depth = stack.pop()
+        cid, depth = stack.pop()
         if cid in seen:
             continue
         if depth > MAX_DAG_DEPTH:
@@ -503,11 +529,22 @@ def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Blo
         if scope == "block" or cid.codec != DAG_PB:
             continue
         node = _pb_node(cid, data)
-        children = [link.cid for link in node.links]
+        links = node.links
         if scope == "entity" and node.data is not None:
-            kind = UnixfsData.decode(node.data).type
-            if kind == DIRECTORY or (kind == HAMT_SHARD and not is_root):
-                children = []
-            elif kind == HAMT_SHARD:
-                children = [link.cid for link in node.links if len(link.name) == 2]
-        stack.extend((child, False, depth + 1) for child in reversed(children))
+            links = _entity_links(cid, node)
+        stack.extend((link.cid, depth + 1) for link in reversed(links))
+
+
+def _entity_links(cid: CID, node: PBNode) -> list[Link]:
+    """The links an entity walk follows: all of a file's, a HAMT's shard links, no entries."""
+    assert node.data is not None
+    unixfs = UnixfsData.decode(node.data)
+    if unixfs.type == DIRECTORY:
+        return []
+    if unixfs.type == HAMT_SHARD:
+        fanout = unixfs.fanout or 0
+        if fanout < 2 or fanout & (fanout - 1):
+            raise UnixfsError(f"{cid} is a HAMT shard with an invalid fanout {fanout}")
+        width = len(f"{fanout - 1:X}")
+        return [link for link in node.links if len(link.name) == width]
+    return node.links

@@ -20,7 +20,13 @@ from robocloud.directory import (
     resolve,
     sharded_directory,
 )
-from robocloud.unixfs import ImportParams, UnixfsError, import_bytes
+from robocloud.unixfs import (
+    ImportParams,
+    UnixfsError,
+    file_range_blocks,
+    import_bytes,
+    walk_dag,
+)
 from tests.procs import REPO, SHARED_DATA
 
 FIXTURES = SHARED_DATA / "ipfs" / "car" / "gateway-conformance"
@@ -202,3 +208,23 @@ def test_the_v1_2025_profile_shards_by_block_size_as_the_reference_does(tmp_path
     legacy, _ = build_tree(root, V1)
     assert legacy[""] != ours[""]
     assert ours[""] in store
+
+
+def test_an_entity_walk_of_a_hamt_takes_every_shard_level_and_no_entry() -> None:
+    """237 of the fixture's 243 blocks: every shard (two levels), none of the 6 file blocks."""
+    root, blocks = car_blocks("single-layer-hamt-with-multi-block-files.car")
+    entity = list(walk_dag(root, blocks.__getitem__, "entity"))
+    assert len(entity) == 237
+    assert entity[0].cid == root
+    assert len(list(walk_dag(root, blocks.__getitem__, "all"))) == len(blocks)
+
+
+def test_a_byte_range_of_a_file_needs_only_the_blocks_that_cover_it() -> None:
+    data = bytes(range(256)) * 4096  # four 256 KiB leaves under one root
+    blocks, root = import_bytes(data, V1)
+    store = {block.cid: block.data for block in blocks}
+    leaves = [block.cid for block in blocks if block.cid != root]
+    chunk = 262_144
+    covering = list(file_range_blocks(root, store.__getitem__, chunk + 10, 2 * chunk + 1))
+    assert [block.cid for block in covering] == [root, leaves[1], leaves[2]]
+    assert [block.cid for block in file_range_blocks(root, store.__getitem__, 0, 0)] == [root]
