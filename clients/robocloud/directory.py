@@ -142,6 +142,14 @@ def _buildsharded_directory(
     return link
 
 
+@dataclass(frozen=True)
+class BuiltDirectory:
+    """One directory of a tree: the link to it and the blocks only it adds (HAMT shards too)."""
+
+    link: Link
+    blocks: list[Block]
+
+
 class DirectoryBuilder:
     """Collects the files and directories of a tree, then builds every directory bottom-up.
 
@@ -168,25 +176,23 @@ class DirectoryBuilder:
         self.add_directory("/".join(parts[:-1]))
         self._files[parts] = Link(cid, parts[-1], tsize)
 
-    def finish(self) -> tuple[list[Block], dict[str, Link]]:
-        """Every directory's blocks, and each directory's link by path (the root is ``""``)."""
+    def finish(self) -> dict[str, BuiltDirectory]:
+        """Every directory by path (the root is ``""``), built deepest first."""
         clash = self._directories & self._files.keys()
         if clash:
             raise UnixfsError(f"{'/'.join(min(clash))!r} is both a file and a directory")
         children: dict[tuple[str, ...], list[Link]] = {parts: [] for parts in self._directories}
         for parts, link in self._files.items():
             children[parts[:-1]].append(link)
-        blocks: list[Block] = []
-        built: dict[str, Link] = {}
+        built: dict[str, BuiltDirectory] = {}
         for parts in sorted(self._directories, key=len, reverse=True):
-            node_blocks, link = directory_node(
+            blocks, link = directory_node(
                 children[parts], self.cid_version, block_sized=self.block_sized_shards
             )
-            blocks.extend(node_blocks)
-            built["/".join(parts)] = link
+            built["/".join(parts)] = BuiltDirectory(link, blocks)
             if parts:
                 children[parts[:-1]].append(Link(link.cid, parts[-1], link.tsize))
-        return blocks, built
+        return built
 
 
 def split_path(path: str) -> tuple[str, ...]:

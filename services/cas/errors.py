@@ -14,7 +14,13 @@ from services.cas.store import (
     UnknownScope,
     UnpinnedArgument,
 )
-from services.cas.uploads import DirectoryPart, InvalidBlock, NoFilePart
+from services.cas.uploads import (
+    DirectoryPart,
+    InvalidBlock,
+    InvalidPath,
+    NoFilePart,
+    TooManyParts,
+)
 from services.common.errors import ErrorMap, ErrorRule
 
 
@@ -54,6 +60,10 @@ ERRORS = ErrorMap(
         TruncatedMultipart: ErrorRule(400, "truncated_multipart"),
         DirectoryPart: ErrorRule(400, "unsupported_part", lambda exc: {"part": exc.name}),
         NoFilePart: ErrorRule(400, "no_file"),
+        InvalidPath: ErrorRule(400, "invalid_path", lambda exc: {"part": exc.name}),
+        TooManyParts: ErrorRule(
+            413, "too_many_entries", lambda exc: {"field": "entries", "limit": exc.limit}
+        ),
         InvalidBlock: ErrorRule(400, "invalid_block", lambda exc: {"index": exc.index}),
         UnsatisfiableRange: ErrorRule(
             416,

@@ -64,6 +64,42 @@ def _import_params(
         raise BadRequest(str(exc), code="invalid_import_options") from exc
 
 
+ADD_OPTIONS = frozenset(
+    {
+        *("cid-version", "raw-leaves", "chunker", "profile", "pin", "only-hash"),
+        *("wrap-with-directory", "progress", "hash", "trickle", "inline", "nocopy", "fscache"),
+        *("quiet", "quieter", "silent", "stream-channels", "recursive"),
+    }
+)
+"""kubo's ``add`` parameters robocloud honours; the presentation ones (``quiet`` and its
+kin, ``stream-channels``, ``recursive``) only shape what kubo's own CLI prints or reads."""
+NOT_IMPLEMENTED = {"trickle": "true", "inline": "true", "nocopy": "true", "fscache": "true"}
+
+
+def _refuse_unimplemented(request: Request, hash_function: str) -> None:
+    """Every option is honoured or refused: never a CID for another layout than asked for."""
+    for name in request.query_params:
+        if name not in ADD_OPTIONS:
+            raise BadRequest(
+                f"the add option {name!r} is not supported by this gateway",
+                code="unsupported_option",
+                details={"field": name},
+            )
+    for name, refused in NOT_IMPLEMENTED.items():
+        if request.query_params.get(name, "false").lower() == refused:
+            raise BadRequest(
+                f"{name}={refused} is not supported: CIDs would differ from kubo's",
+                code="unsupported_option",
+                details={"field": name},
+            )
+    if hash_function != "sha2-256":
+        raise BadRequest(
+            f"unsupported hash {hash_function!r}: only sha2-256",
+            code="unsupported_option",
+            details={"field": "hash"},
+        )
+
+
 @router.post("/add")
 async def add(
     request: Request,
@@ -74,14 +110,32 @@ async def add(
     profile: Annotated[str | None, Query(description="unixfs-v0-2015 or unixfs-v1-2025")] = None,
     pin: bool = True,
     only_hash: Annotated[bool, Query(alias="only-hash")] = False,
+    wrap_with_directory: Annotated[bool, Query(alias="wrap-with-directory")] = False,
+    progress: bool = False,
+    hash_function: Annotated[str, Query(alias="hash")] = "sha2-256",
 ) -> Response:
-    """Add files from a multipart body; the answer has one ``{"Name","Hash","Size"}`` line each."""
+    """Add files and directories from kubo's multipart body (``ipfs add -r``, ``-w``).
+
+    The answer has one ``{"Name","Hash","Size"}`` line per file, then per directory (after
+    its contents), as kubo's; with ``progress``, a ``{"Name","Bytes"}`` line before each file.
+    """
+    _refuse_unimplemented(request, hash_function)
     params = _import_params(cid_version, raw_leaves, chunker, profile)
-    adder = FileAdder(_store(request), params, only_hash=only_hash, pin=pin)
-    added = await upload(request.stream(), request.headers.get("content-type"), adder, address)
-    return _lines(
-        {"Name": item.name, "Hash": str(item.cid), "Size": str(item.dag_size)} for item in added
+    adder = FileAdder(
+        _store(request),
+        params,
+        only_hash=only_hash,
+        pin=pin,
+        wrap=wrap_with_directory,
+        max_parts=request.app.state.settings.cas_max_upload_entries,
     )
+    added = await upload(request.stream(), request.headers.get("content-type"), adder, address)
+    lines: list[dict[str, Any]] = []
+    for item in added:
+        if progress and item.file_size is not None:
+            lines.append({"Name": item.name, "Bytes": item.file_size})
+        lines.append({"Name": item.name, "Hash": str(item.cid), "Size": str(item.dag_size)})
+    return _lines(lines)
 
 
 @router.post("/cat")

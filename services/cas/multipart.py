@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from urllib.parse import unquote_plus
 
 MAX_HEADER_BYTES = 16 * 1024
 _BOUNDARY = re.compile(r'boundary=(?:"([^"]{1,70})"|([^\s;,]{1,70}))', re.IGNORECASE)
@@ -34,8 +35,26 @@ class Part:
 
     @property
     def filename(self) -> str:
-        """kubo's clients put the file's path in ``filename`` (URL-escaped); keep it as sent."""
-        return self.disposition("filename") or self.disposition("name") or ""
+        """The part's path, unescaped as kubo does (Go's ``url.QueryUnescape``)."""
+        raw = self.disposition("filename") or self.disposition("name") or ""
+        return query_unescape(raw)
+
+    @property
+    def is_directory(self) -> bool:
+        return self.content_type == "application/x-directory"
+
+
+_BAD_ESCAPE = re.compile(r"%(?![0-9A-Fa-f]{2})")
+
+
+def query_unescape(text: str) -> str:
+    """``+`` is a space and ``%XX`` a byte of UTF-8; a malformed escape is an error, as in Go."""
+    if _BAD_ESCAPE.search(text):
+        raise MultipartError(f"the part name {text[:80]!r} has a malformed %-escape")
+    try:
+        return unquote_plus(text, errors="strict")
+    except UnicodeDecodeError as exc:
+        raise MultipartError(f"the part name {text[:80]!r} is not UTF-8 once unescaped") from exc
 
 
 @dataclass

@@ -13,5 +13,8 @@ class CasSettings(ServiceSettings):
     )
     cas_peer_timeout_s: float = Field(default=10.0, gt=0)
     cas_max_upload_bytes: int = Field(default=4 * 1024**3, gt=0)
+    cas_max_upload_entries: int = Field(
+        default=250_000, gt=0, description="files and directories one add may hold"
+    )
     cas_gc_grace_s: float = Field(default=3600.0, ge=0)
     cas_gc_interval_s: float = Field(default=3600.0, ge=0, description="0 disables periodic GC")

@@ -87,16 +87,6 @@ class UnpinnedArgument(ValueError):
 
 
 @dataclass(frozen=True)
-class AddedFile:
-    """One file of an ``add``: kubo reports its name, root CID and cumulative DAG size."""
-
-    name: str
-    cid: CID
-    dag_size: int
-    file_size: int
-
-
-@dataclass(frozen=True)
 class ImportedRoot:
     """A root of an imported CAR; ``pin_error`` says why it was not pinned, if it was not."""
 

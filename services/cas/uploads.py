@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import tempfile
 from collections.abc import AsyncIterator
+from dataclasses import dataclass
 from typing import Generic, Protocol, TypeVar
 
 import anyio
@@ -22,9 +23,10 @@ from anyio.streams.memory import MemoryObjectReceiveStream
 
 from robocloud.cid import CID, DAG_PB, Block
 from robocloud.dagpb import DagPbError, PBNode
-from robocloud.unixfs import Importer, ImportParams
+from robocloud.directory import DirectoryBuilder, split_path
+from robocloud.unixfs import Importer, ImportParams, UnixfsError
 from services.cas.multipart import Event, MultipartParser, Part, PartData, boundary_of
-from services.cas.store import AddedFile, ContentStore, ImportedRoot
+from services.cas.store import ContentStore, ImportedRoot
 from services.cas.streams import first_error
 
 R = TypeVar("R")
@@ -37,6 +39,20 @@ class DirectoryPart(ValueError):
     def __init__(self, name: str) -> None:
         super().__init__(f"part {name!r} is a directory; only files can be added")
         self.name = name
+
+
+class InvalidPath(ValueError):
+    """A part name that is not a safe relative path (``..``, absolute, empty segments)."""
+
+    def __init__(self, name: str, reason: str) -> None:
+        super().__init__(f"part {name[:200]!r}: {reason}")
+        self.name = name
+
+
+class TooManyParts(ValueError):
+    def __init__(self, limit: int) -> None:
+        super().__init__(f"the upload holds more than {limit} files and directories")
+        self.limit = limit
 
 
 class NoFilePart(ValueError):
@@ -53,7 +69,9 @@ class InvalidBlock(ValueError):
 
 
 class PartSink(Protocol):
-    """Receives the files of a multipart body in order, in a worker thread."""
+    """Receives the files (and directories) of a multipart body in order, in a worker thread."""
+
+    def directory(self, name: str) -> None: ...
 
     def begin(self, name: str) -> None: ...
 
@@ -86,11 +104,11 @@ def _apply(sink: PartSink, commands: list[Command]) -> None:
         if kind == "data":
             assert isinstance(value, bytes)
             sink.write(value)
-        elif kind == "begin":
-            assert isinstance(value, str)
-            sink.begin(value)
-        else:
+        elif kind == "end":
             sink.end()
+        else:
+            assert isinstance(value, str)
+            (sink.begin if kind == "begin" else sink.directory)(value)
 
 
 async def _drain(receive: MemoryObjectReceiveStream[list[Command]], sink: PartSink) -> None:
@@ -100,21 +118,31 @@ async def _drain(receive: MemoryObjectReceiveStream[list[Command]], sink: PartSi
 
 
 class _Batcher:
-    """Turns parser events into commands for the sink, handed over about 1 MiB at a time."""
+    """Turns parser events into commands for the sink, handed over about 1 MiB at a time.
+
+    A directory part (kubo's ``application/x-directory``) is one ``directory`` command; its
+    empty body is dropped.
+    """
 
     def __init__(self) -> None:
         self.commands: list[Command] = []
         self.pending = 0
-        self.files = 0
+        self.parts = 0
+        self._in_directory = False
 
     def take(self, events: list[Event]) -> None:
         for event in events:
-            if isinstance(event, PartData):
+            if isinstance(event, Part):
+                self.parts += 1
+                self._in_directory = event.is_directory
+                self.commands.append(
+                    ("directory" if event.is_directory else "begin", event.filename)
+                )
+            elif self._in_directory:
+                continue
+            elif isinstance(event, PartData):
                 self.commands.append(("data", event.data))
                 self.pending += len(event.data)
-            elif isinstance(event, Part):
-                self.commands.append(("begin", _file_name(event)))
-                self.files += 1
             else:
                 self.commands.append(("end", b""))
 
@@ -123,14 +151,8 @@ class _Batcher:
         return commands
 
 
-def _file_name(part: Part) -> str:
-    if part.content_type == "application/x-directory":
-        raise DirectoryPart(part.filename)
-    return part.filename
-
-
 async def receive_parts(body: AsyncIterator[bytes], boundary: bytes, sink: PartSink) -> int:
-    """Feed every file part of a multipart body to ``sink``; returns how many there were."""
+    """Feed every part of a multipart body to ``sink``; returns how many there were."""
     parser = MultipartParser(boundary)
     batcher = _Batcher()
     send, receive = anyio.create_memory_object_stream[list[Command]](max_buffer_size=1)
@@ -145,31 +167,66 @@ async def receive_parts(body: AsyncIterator[bytes], boundary: bytes, sink: PartS
             await send.send(batcher.flush())
     except BaseExceptionGroup as group_error:
         raise first_error(group_error) from None
-    if batcher.files == 0:
+    if batcher.parts == 0:
         raise NoFilePart()
-    return batcher.files
+    return batcher.parts
+
+
+@dataclass(frozen=True)
+class Added:
+    """One line of an ``add`` answer: a file or a directory, its path, root and DAG size."""
+
+    name: str
+    cid: CID
+    dag_size: int
+    file_size: int | None = None
+    """A file's size in bytes; None for a directory."""
 
 
 class FileAdder:
-    """``add``: each part through the UnixFS importer, its blocks staged as they come."""
+    """``add``: files through the UnixFS importer, directories built as ``ipfs add -r`` does.
+
+    Files are staged as they stream in; directories (kubo's ``application/x-directory``
+    parts, and the parents a file's path implies) are built at commit, with
+    ``wrap-with-directory`` adding one around everything.
+    """
 
     def __init__(
-        self, store: ContentStore, params: ImportParams, *, only_hash: bool, pin: bool
+        self,
+        store: ContentStore,
+        params: ImportParams,
+        *,
+        only_hash: bool,
+        pin: bool,
+        wrap: bool = False,
+        max_parts: int = 250_000,
     ) -> None:
         self.store = store
         self.params = params
         self.only_hash = only_hash
         self.pin = pin
+        self.wrap = wrap
+        self.max_parts = max_parts
         self.staging = store.blocks.stage()
-        self.added: list[AddedFile] = []
+        self.files: list[Added] = []
+        self.directories: list[str] = []
         self._importer: Importer | None = None
         self._name = ""
         self._dag_size = 0
 
+    def directory(self, name: str) -> None:
+        self._count()
+        self.directories.append("/".join(_path(name)))
+
     def begin(self, name: str) -> None:
+        self._count()
+        self._name = "/".join(_path(name)) if name or self.wrap else ""
         self._importer = Importer(self.params)
-        self._name = name
         self._dag_size = 0
+
+    def _count(self) -> None:
+        if len(self.files) + len(self.directories) >= self.max_parts:
+            raise TooManyParts(self.max_parts)
 
     def write(self, data: bytes) -> None:
         assert self._importer is not None, "write before begin"
@@ -179,7 +236,7 @@ class FileAdder:
         assert self._importer is not None, "end before begin"
         blocks, root, size = self._importer.finish()
         self._stage(blocks)
-        self.added.append(AddedFile(self._name or str(root), root, self._dag_size, size))
+        self.files.append(Added(self._name or str(root), root, self._dag_size, size))
         self._importer = None
 
     def _stage(self, blocks: list[Block]) -> None:
@@ -188,16 +245,57 @@ class FileAdder:
             if not self.only_hash:
                 self.staging.add(block.cid, block.data)
 
-    def commit(self, owner: str) -> list[AddedFile]:
+    def commit(self, owner: str) -> list[Added]:
+        """Kubo's order: the files as they came, the directories after their contents."""
+        directories = self._build_directories() if self.directories or self.wrap else []
         if not self.only_hash:
             self.staging.commit()
             if self.pin:
-                for added in self.added:
-                    self.store.pins.add(added.cid, owner)
-        return self.added
+                for root in self._roots(directories):
+                    self.store.pins.add(root.cid, owner)
+        return self.files + directories
+
+    def _build_directories(self) -> list[Added]:
+        tree = DirectoryBuilder(
+            self.params.cid_version, block_sized_shards=self.params.block_sized_shards
+        )
+        try:
+            for path in self.directories:
+                tree.add_directory(path)
+            for added in self.files:
+                tree.add_file(added.name, added.cid, added.dag_size)
+            built = tree.finish()
+        except UnixfsError as exc:
+            raise InvalidPath("", str(exc)) from exc
+        wanted = [path for path in sorted(built, key=_post_order) if path or self.wrap]
+        for path in wanted:
+            for block in built[path].blocks:
+                self._stage([block])
+        return [Added(path, built[path].link.cid, built[path].link.tsize) for path in wanted]
+
+    def _roots(self, directories: list[Added]) -> list[Added]:
+        """What an ``add`` pins: the wrapping directory, else every top-level item."""
+        if self.wrap:
+            return [directories[-1]]
+        return [added for added in self.files + directories if "/" not in added.name]
 
     def discard(self) -> None:
         self.staging.discard()
+
+
+def _path(name: str) -> tuple[str, ...]:
+    try:
+        return split_path(name)
+    except UnixfsError as exc:
+        raise InvalidPath(name, str(exc)) from exc
+
+
+def _post_order(path: str) -> tuple[bytes, ...]:
+    """Sort key putting every directory after those inside it, siblings by name bytes.
+
+    0xff never occurs in UTF-8, so it sorts a directory after all its entries.
+    """
+    return (*(part.encode() for part in path.split("/") if part), b"\xff")
 
 
 class CarImport:
@@ -209,6 +307,9 @@ class CarImport:
         self.staging = store.blocks.stage()
         self.roots: list[CID] = []
         self._file: tempfile._TemporaryFileWrapper[bytes] | None = None
+
+    def directory(self, name: str) -> None:
+        raise DirectoryPart(name)
 
     def begin(self, name: str) -> None:
         # Closed in end(), or with the staging directory when the upload fails.
@@ -257,6 +358,9 @@ class BlockCollector:
         self.pin = pin
         self.blocks: list[bytes] = []
         self._current = bytearray()
+
+    def directory(self, name: str) -> None:
+        raise DirectoryPart(name)
 
     def begin(self, name: str) -> None:
         self._current = bytearray()

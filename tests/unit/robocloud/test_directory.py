@@ -47,9 +47,10 @@ def build_tree(root: Path, params: ImportParams) -> tuple[dict[str, CID], dict[C
         blocks, cid = import_bytes(path.read_bytes(), params)
         store.update((block.cid, block.data) for block in blocks)
         builder.add_file(relative, cid, sum(len(block.data) for block in blocks))
-    blocks, built = builder.finish()
-    store.update((block.cid, block.data) for block in blocks)
-    return {path: link.cid for path, link in built.items()}, store
+    built = builder.finish()
+    for directory in built.values():
+        store.update((block.cid, block.data) for block in directory.blocks)
+    return {path: directory.link.cid for path, directory in built.items()}, store
 
 
 def car_blocks(name: str) -> tuple[CID, dict[CID, bytes]]:
@@ -79,8 +80,7 @@ def test_kubo_add_rw_wraps_a_directory_as_the_fixture_was_made() -> None:
     blocks, cid = import_bytes(b"hello application/vnd.ipld.raw\n", V1)
     builder = DirectoryBuilder(1)
     builder.add_file("dir/ascii.txt", cid, sum(len(block.data) for block in blocks))
-    _, built = builder.finish()
-    assert built[""].cid == car_blocks("gateway-raw-block.car")[0]
+    assert builder.finish()[""].link.cid == car_blocks("gateway-raw-block.car")[0]
 
 
 def test_kubo_add_r_with_a_tiny_chunker_as_the_fixture_was_made() -> None:
@@ -90,7 +90,7 @@ def test_kubo_add_r_with_a_tiny_chunker_as_the_fixture_was_made() -> None:
     for path, text in (("sub1/hello.txt", b"abc123\n"), ("sub2/hello.txt", b"xyz456\n")):
         blocks, cid = import_bytes(text, params)
         builder.add_file(path, cid, sum(len(block.data) for block in blocks))
-    assert builder.finish()[1][""].cid == car_blocks("tooling-car-issue-54.car")[0]
+    assert builder.finish()[""].link.cid == car_blocks("tooling-car-issue-54.car")[0]
 
 
 def test_the_hamt_fixture_rebuilds_byte_for_byte_and_resolves_every_name() -> None:

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote_plus
 
 import httpx
 import pytest
@@ -81,6 +82,38 @@ def multipart(*files: tuple[str, bytes], boundary: str | None = None) -> tuple[b
         body += data + b"\r\n"
     body += f"--{boundary}--\r\n".encode()
     return body, f"multipart/form-data; boundary={boundary}"
+
+
+def tree_multipart(root: Path, name: str | None = None) -> tuple[bytes, str]:
+    """A directory as ``ipfs add -r`` sends it: each directory part before its entries.
+
+    Names are escaped with Go's ``url.QueryEscape``, as kubo's clients do.
+    """
+    boundary = secrets.token_hex(8)
+    body = bytearray()
+    top = name or root.name
+
+    def part(path: str, content_type: str, data: bytes) -> None:
+        body.extend(
+            (
+                f"--{boundary}\r\n"
+                f'Content-Disposition: form-data; name="file"; filename="{quote_plus(path)}"\r\n'
+                f"Content-Type: {content_type}\r\n\r\n"
+            ).encode()
+        )
+        body.extend(data + b"\r\n")
+
+    def walk(directory: Path, path: str) -> None:
+        part(path, "application/x-directory", b"")
+        for entry in sorted(directory.iterdir(), key=lambda entry: entry.name.encode()):
+            if entry.is_dir():
+                walk(entry, f"{path}/{entry.name}")
+            else:
+                part(f"{path}/{entry.name}", "application/octet-stream", entry.read_bytes())
+
+    walk(root, top)
+    body.extend(f"--{boundary}--\r\n".encode())
+    return bytes(body), f"multipart/form-data; boundary={boundary}"
 
 
 def repo_stat(url: str) -> dict[str, Any]:

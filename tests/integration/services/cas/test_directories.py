@@ -1,0 +1,152 @@
+"""``ipfs add -r`` and ``-w`` through kubo's multipart: the CIDs kubo and js-ipfs-unixfs give."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from robocloud.client import ServiceClient
+from robocloud.errors import ApiError
+from robocloud.identity import Identity
+from tests.conftest import ServiceFactory
+from tests.integration.services.cas.conftest import (
+    QUIET_GC,
+    error_of,
+    multipart,
+    pin_list,
+    store_unchanged,
+    tree_multipart,
+)
+from tests.procs import SHARED_DATA, ServiceProcess
+
+FIXTURE_DIR = SHARED_DATA / "ipfs" / "car" / "gateway-conformance" / "dag_car_input" / "dir"
+HAMT_10000 = "bafybeig6pxxinjawyoovbpcplssgrpnuf3pisprbis7mccrfieojv22eny"
+"""js-ipfs-unixfs's importer on 10,000 files ``file-NNNNN.txt`` holding ``file N\\n`` (CIDv1)."""
+
+
+@pytest.fixture(scope="module")
+def cas_service(shared_cas_service: ServiceProcess) -> ServiceProcess:
+    return shared_cas_service
+
+
+def add(
+    signed: ServiceClient, body: bytes, content_type: str, **params: Any
+) -> list[dict[str, Any]]:
+    response = signed.request(
+        "POST", "/api/v0/add", params=params, content=body, headers={"Content-Type": content_type}
+    )
+    return [json.loads(line) for line in response.text.splitlines()]
+
+
+def test_a_directory_adds_to_the_fixtures_cids_in_kubos_order(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    body, content_type = tree_multipart(FIXTURE_DIR)
+    lines = add(signed, body, content_type, **{"cid-version": 1})
+    assert [(line["Name"], line["Hash"]) for line in lines] == [
+        ("dir/a-file.txt", "bafkreidw23elffhagxz3oi6ctoibqouzfowfn3bwcvq2yzgd5n5h4gjyou"),
+        ("dir/b-file.txt", "bafkreiaeqsxxqwmsnhzhrlyr2udn25hpj24bs7gzcgkhbrkmhcuikcgh4a"),
+        ("dir/subdir/leaf.txt", "bafkreihdhgb5vyuqu7jssreyo3h567obewtqq37fi5hr2w4um5icacry7m"),
+        ("dir/subdir", "bafybeiaq6e55xratife7s5cmzjcmwy4adzzlk74sbdpfcq72gus6cweeeq"),
+        ("dir", "bafybeidlbwbu73tbjr3atntjz4lq5ego5w2uyof35vvwcnheaftzi3rndu"),
+    ]
+    pins = pin_list(cas_service.url)["Keys"]
+    assert "bafybeidlbwbu73tbjr3atntjz4lq5ego5w2uyof35vvwcnheaftzi3rndu" in pins
+    assert "bafkreidw23elffhagxz3oi6ctoibqouzfowfn3bwcvq2yzgd5n5h4gjyou" not in pins
+
+
+def test_wrap_with_directory_matches_kubos_add_rw(signed: ServiceClient, tmp_path: Path) -> None:
+    """gateway-raw-block.car was made with ``ipfs add -Qrw --cid-version 1 dir``."""
+    root = tmp_path / "dir"
+    root.mkdir()
+    (root / "ascii.txt").write_bytes(b"hello application/vnd.ipld.raw\n")
+    body, content_type = tree_multipart(root)
+    lines = add(signed, body, content_type, **{"cid-version": 1, "wrap-with-directory": "true"})
+    assert lines[-1] == {
+        "Name": "",
+        "Hash": "bafybeie72edlprgtlwwctzljf6gkn2wnlrddqjbkxo3jomh4n7omwblxly",
+        "Size": lines[-1]["Size"],
+    }
+
+
+def test_ten_thousand_entries_shard_as_the_reference_does(
+    signed: ServiceClient, tmp_path: Path
+) -> None:
+    root = tmp_path / "dir"
+    root.mkdir()
+    for i in range(10_000):
+        (root / f"file-{i:05d}.txt").write_bytes(f"file {i}\n".encode())
+    body, content_type = tree_multipart(root)
+    lines = add(signed, body, content_type, **{"cid-version": 1})
+    assert len(lines) == 10_001
+    assert lines[-1]["Hash"] == HAMT_10000
+
+
+def test_escaped_names_are_unescaped_as_kubo_does(signed: ServiceClient) -> None:
+    body, content_type = multipart(("%C3%A4%20b.bin", b"x"), ("plus+sign.txt", b"y"))
+    lines = add(signed, body, content_type, **{"cid-version": 1})
+    assert [line["Name"] for line in lines] == ["ä b.bin", "plus sign.txt"]
+
+
+@pytest.mark.parametrize(
+    "name", ["../x", "dir/../../x", "/etc/passwd", "a//b", "dir/./x", "%zz"], ids=repr
+)
+def test_names_that_escape_the_root_store_nothing(
+    signed: ServiceClient, cas_service: ServiceProcess, name: str
+) -> None:
+    body, content_type = multipart((name, b"escape"))
+    with store_unchanged(cas_service), pytest.raises(ApiError) as exc:
+        add(signed, body, content_type, **{"wrap-with-directory": "true"})
+    assert exc.value.status == 400
+    assert exc.value.code in ("invalid_path", "invalid_multipart")
+
+
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [
+        ("trickle", "true"),
+        ("inline", "true"),
+        ("nocopy", "true"),
+        ("hash", "sha3-256"),
+        ("mtime", "1"),
+        ("to-files", "/x"),
+    ],
+)
+def test_an_option_not_implemented_is_refused_not_ignored(
+    signed: ServiceClient, cas_service: ServiceProcess, option: str, value: str
+) -> None:
+    body, content_type = multipart(("f", b"hello"))
+    with store_unchanged(cas_service), pytest.raises(ApiError) as exc:
+        add(signed, body, content_type, **{option: value})
+    assert error_of(exc, 400, "unsupported_option").details == {"field": option}
+
+
+def test_the_harmless_defaults_of_kubos_clients_are_accepted(signed: ServiceClient) -> None:
+    body, content_type = multipart(("f", b"defaults"))
+    lines = add(
+        signed,
+        body,
+        content_type,
+        **{"trickle": "false", "hash": "sha2-256", "progress": "true", "stream-channels": "true"},
+    )
+    assert lines[0] == {"Name": "f", "Bytes": 8}
+    assert lines[1]["Name"] == "f"
+
+
+def test_too_many_entries_are_refused_whole(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    small = service_factory("cas", {**QUIET_GC, "ROBOCLOUD_CAS_MAX_UPLOAD_ENTRIES": "5"})
+    root = tmp_path / "dir"
+    root.mkdir()
+    for i in range(5):
+        (root / f"{i}.txt").write_bytes(b"x")
+    body, content_type = tree_multipart(root)
+    with ServiceClient(small.url, identity, retries=0) as signed, pytest.raises(ApiError) as exc:
+        add(signed, body, content_type)
+    assert error_of(exc, 413, "too_many_entries").details == {"field": "entries", "limit": 5}
+    assert httpx.post(f"{small.url}/api/v0/repo/stat").json()["NumObjects"] == 0
