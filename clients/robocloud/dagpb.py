@@ -8,6 +8,8 @@ carried inside a node's data field, uses the same encoding.
 
 from __future__ import annotations
 
+import base64
+import json
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -118,3 +120,21 @@ def _decode_link(raw: bytes) -> Link:
     if cid is None:
         raise DagPbError("dag-pb link without a hash")
     return Link(cid, name, tsize)
+
+
+def to_dag_json(node: PBNode) -> bytes:
+    """The node in DAG-JSON (``application/vnd.ipld.dag-json``), as kubo's gateway renders it.
+
+    The dag-pb data model: ``Data`` (bytes, as ``{"/": {"bytes": <base64, no padding>}}``)
+    when present, ``Links`` with ``Hash`` (``{"/": <cid>}``), ``Name`` and ``Tsize``; map keys in
+    byte order and no whitespace, as DAG-JSON requires.
+    """
+    document: dict[str, object] = {}
+    if node.data is not None:
+        encoded = base64.b64encode(node.data).decode().rstrip("=")
+        document["Data"] = {"/": {"bytes": encoded}}
+    document["Links"] = [
+        {"Hash": {"/": str(link.cid)}, "Name": link.name, "Tsize": link.tsize}
+        for link in node.links
+    ]
+    return json.dumps(document, separators=(",", ":"), ensure_ascii=False).encode()

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from robocloud.directory import NotADirectory, PathNotFound
 from services.cas.multipart import MultipartError, NotMultipart, TruncatedMultipart
 from services.cas.pins import NotPinned, PinNotOwned
-from services.cas.ranges import UnsatisfiableRange
+from services.cas.ranges import InvalidEntityBytes, UnsatisfiableRange
 from services.cas.store import (
     BlockUnavailable,
     CarRejected,
@@ -65,6 +66,15 @@ ERRORS = ErrorMap(
             413, "too_many_entries", lambda exc: {"field": "entries", "limit": exc.limit}
         ),
         InvalidBlock: ErrorRule(400, "invalid_block", lambda exc: {"index": exc.index}),
+        PathNotFound: ErrorRule(
+            404, "path_not_found", lambda exc: {"segment": exc.segment, "cid": str(exc.at)}
+        ),
+        NotADirectory: ErrorRule(
+            400, "not_a_directory", lambda exc: {"segment": exc.segment, "cid": str(exc.at)}
+        ),
+        InvalidEntityBytes: ErrorRule(
+            400, "invalid_entity_bytes", lambda _: {"field": "entity-bytes"}
+        ),
         UnsatisfiableRange: ErrorRule(
             416,
             "range_not_satisfiable",

@@ -1,29 +1,38 @@
-"""The trustless gateway: ``GET|HEAD /ipfs/{cid}`` as file bytes, one raw block, or a CAR.
+"""The gateway: ``GET|HEAD /ipfs/{cid}[/{path}]`` as file bytes, a listing, a block, or a CAR.
 
-Follows the IPFS trustless gateway and path gateway specs for what a verifying client needs:
-``format`` or ``Accept`` picks the response type, ``dag-scope`` the CAR's extent, ``Range``
-a byte range of a file, ``If-None-Match`` a 304, and ``Cache-Control: only-if-cached`` an
-answer from the local store alone (412 on a miss), which is what peers ask each other.
+Follows the IPFS trustless and path gateway specs for what a verifying client needs:
+``format`` or ``Accept`` picks the response type, ``dag-scope`` and ``entity-bytes`` the CAR's
+extent (after the blocks that verify each path segment), ``Range`` a byte range of a file,
+``If-None-Match`` a 304, and ``Cache-Control: only-if-cached`` an answer from the local store
+alone (412 on a miss), which is what peers ask each other. A directory answers its
+``index.html`` when it holds one, else a listing (HTML, or the node as DAG-JSON).
 """
 
 from __future__ import annotations
 
 from typing import Annotated
+from urllib.parse import unquote
 
 import anyio
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import Response, StreamingResponse
+from fastapi.responses import RedirectResponse, Response, StreamingResponse
 
-from robocloud.cid import CID, parse_cid
-from services.cas.ranges import byte_range
+from robocloud.cid import CID, DAG_PB, parse_cid
+from robocloud.dagpb import PBNode, to_dag_json
+from robocloud.directory import PathNotFound, Resolved
+from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD
+from services.cas.listing import directory_page
+from services.cas.ranges import byte_range, entity_bytes
 from services.cas.store import BlockUnavailable, ContentStore
 from services.cas.streams import threaded_stream
 from services.common.errors import BadRequest, ServiceError
 
 RAW_MEDIA_TYPE = "application/vnd.ipld.raw"
 CAR_MEDIA_TYPE = "application/vnd.ipld.car"
+DAG_JSON_MEDIA_TYPE = "application/vnd.ipld.dag-json"
 IMMUTABLE = "public, max-age=29030400, immutable"
-FORMATS = {"raw": RAW_MEDIA_TYPE, "car": CAR_MEDIA_TYPE}
+FORMATS = {"raw": RAW_MEDIA_TYPE, "car": CAR_MEDIA_TYPE, "dag-json": DAG_JSON_MEDIA_TYPE}
+MAX_PATH_SEGMENTS = 256
 
 router = APIRouter(tags=["gateway"])
 
@@ -34,11 +43,11 @@ class PreconditionFailed(ServiceError):
 
 
 def response_format(requested: str | None, accept: str) -> str:
-    """``file``, ``raw`` or ``car``: the ``format`` parameter wins over ``Accept``."""
+    """``file``, ``raw``, ``car`` or ``dag-json``: the ``format`` parameter wins over ``Accept``."""
     if requested is not None:
         if requested not in FORMATS:
             raise BadRequest(
-                f"unsupported format {requested!r}: expected raw or car",
+                f"unsupported format {requested!r}: expected {', '.join(FORMATS)}",
                 code="invalid_format",
                 details={"field": "format"},
             )
@@ -50,12 +59,42 @@ def response_format(requested: str | None, accept: str) -> str:
     return "file"
 
 
-def _headers(cid: CID, etag: str) -> dict[str, str]:
+def content_path(request: Request, cid: str) -> tuple[list[str], bool]:
+    """The path's segments after ``/ipfs/{cid}``, percent-decoded one by one, and whether it
+    ends with ``/``. Decoding each segment apart keeps an escaped ``/`` inside a name."""
+    raw = request.scope.get("raw_path", request.url.path.encode()).split(b"?", 1)[0]
+    rest = raw.decode("latin-1").split("/")[3:]
+    trailing = len(rest) > 0 and rest[-1] == ""
+    if trailing:
+        rest = rest[:-1]
+    if len(rest) > MAX_PATH_SEGMENTS:
+        raise BadRequest(
+            f"a path of more than {MAX_PATH_SEGMENTS} segments",
+            code="invalid_path",
+            details={"path": f"/ipfs/{cid}/..."},
+        )
+    segments = []
+    for encoded in rest:
+        try:
+            segment = unquote(encoded, errors="strict")
+        except UnicodeDecodeError:
+            segment = ""
+        if segment in ("", ".", "..") or "\x00" in segment:
+            raise BadRequest(
+                f"path segment {encoded[:80]!r} is empty, `.`, `..` or not UTF-8",
+                code="invalid_path",
+                details={"segment": encoded[:80]},
+            )
+        segments.append(segment)
+    return segments, trailing
+
+
+def _headers(root: CID, path: list[str], target: CID, etag: str) -> dict[str, str]:
     return {
         "ETag": etag,
         "Cache-Control": IMMUTABLE,
-        "X-Ipfs-Path": f"/ipfs/{cid}",
-        "X-Ipfs-Roots": str(cid),
+        "X-Ipfs-Path": "/".join(["", "ipfs", str(root), *path]),
+        "X-Ipfs-Roots": str(target),
         "X-Content-Type-Options": "nosniff",
         "Vary": "Accept",
     }
@@ -67,42 +106,60 @@ def _not_modified(request: Request, etag: str) -> bool:
 
 
 @router.api_route("/ipfs/{cid}", methods=["GET", "HEAD"])
+@router.api_route("/ipfs/{cid}/{path:path}", methods=["GET", "HEAD"])
 async def ipfs(
     request: Request,
     cid: str,
-    format: Annotated[str | None, Query(description="raw (one block) or car (a DAG)")] = None,
+    format: Annotated[
+        str | None, Query(description="raw (one block), car (a DAG) or dag-json (a node)")
+    ] = None,
     dag_scope: Annotated[str, Query(alias="dag-scope", description="block, entity or all")] = "all",
+    entity_range: Annotated[
+        str | None, Query(alias="entity-bytes", description="from:to of a file, for a CAR")
+    ] = None,
 ) -> Response:
-    """Content by CID: every byte can be checked against the CID by the client."""
+    """Content by CID and path: every byte can be checked against the CID by the client."""
     root = parse_cid(cid, "cid")
+    segments, trailing = content_path(request, cid)
     store: ContentStore = request.app.state.store
     use_peers = "only-if-cached" not in request.headers.get("cache-control", "").lower()
     kind = response_format(format, request.headers.get("accept", ""))
     head = request.method == "HEAD"
     try:
-        if kind == "raw":
-            return await _raw(request, store, root, use_peers, head)
+        resolved = await anyio.to_thread.run_sync(
+            lambda: store.resolve(root, segments, use_peers=use_peers)
+        )
         if kind == "car":
-            return await _car(request, store, root, dag_scope, use_peers, head)
-        return await _file(request, store, root, use_peers, head)
+            return await _car(request, store, root, segments, resolved, dag_scope, entity_range)
+        if kind == "raw":
+            return await _raw(request, store, root, segments, resolved.cid, use_peers, head)
+        if kind == "dag-json":
+            return await _dag_json(request, store, root, segments, resolved.cid, use_peers, head)
+        return await _content(request, store, root, segments, trailing, resolved.cid, use_peers)
     except BlockUnavailable as miss:
         if not use_peers:
             raise PreconditionFailed(
-                f"{root} is not in this gateway's store", details={"cid": str(root)}
+                f"{miss.cid} is not in this gateway's store", details={"cid": str(miss.cid)}
             ) from miss
         raise
 
 
 async def _raw(
-    request: Request, store: ContentStore, root: CID, use_peers: bool, head: bool
+    request: Request,
+    store: ContentStore,
+    root: CID,
+    path: list[str],
+    target: CID,
+    use_peers: bool,
+    head: bool,
 ) -> Response:
-    etag = f'"{root}.raw"'
-    headers = _headers(root, etag) | {
-        "Content-Disposition": f'attachment; filename="{root}.bin"',
+    etag = f'"{target}.raw"'
+    headers = _headers(root, path, target, etag) | {
+        "Content-Disposition": f'attachment; filename="{target}.bin"',
     }
     if _not_modified(request, etag):
         return Response(status_code=304, headers=headers)
-    data = await anyio.to_thread.run_sync(lambda: store.get_block(root, use_peers=use_peers))
+    data = await anyio.to_thread.run_sync(lambda: store.get_block(target, use_peers=use_peers))
     if head:
         headers["Content-Length"] = str(len(data))
         return Response(status_code=200, headers=headers, media_type=RAW_MEDIA_TYPE)
@@ -110,30 +167,112 @@ async def _raw(
 
 
 async def _car(
-    request: Request, store: ContentStore, root: CID, scope: str, use_peers: bool, head: bool
+    request: Request,
+    store: ContentStore,
+    root: CID,
+    path: list[str],
+    resolved: Resolved,
+    scope: str,
+    entity_range: str | None,
 ) -> Response:
-    etag = f'"{root}.car.{scope}"'
-    headers = _headers(root, etag) | {
-        "Content-Disposition": f'attachment; filename="{root}.car"',
+    use_peers = "only-if-cached" not in request.headers.get("cache-control", "").lower()
+    span = None
+    if entity_range is not None:
+        scope = "entity"
+        target = await anyio.to_thread.run_sync(
+            lambda: store.kind(resolved.cid, use_peers=use_peers)
+        )
+        if target.type == FILE and target.size is not None:
+            span = entity_bytes(entity_range, target.size)
+    etag = f'"{resolved.cid}.car.{scope}.{entity_range or ""}"'
+    headers = _headers(root, path, resolved.cid, etag) | {
+        "Content-Disposition": f'attachment; filename="{resolved.cid}.car"',
     }
     media_type = f"{CAR_MEDIA_TYPE}; version=1; order=dfs; dups=n"
     if _not_modified(request, etag):
         return Response(status_code=304, headers=headers)
-    body = await threaded_stream(store.export_car(root, scope, use_peers=use_peers))
-    if head:
+    blocks = store.export_path_car(root, resolved, scope, span, use_peers=use_peers)
+    body = await threaded_stream(blocks)
+    if request.method == "HEAD":
         await body.aclose()
         return Response(status_code=200, headers=headers, media_type=media_type)
     return StreamingResponse(body, headers=headers, media_type=media_type)
 
 
-async def _file(
-    request: Request, store: ContentStore, root: CID, use_peers: bool, head: bool
+async def _dag_json(
+    request: Request,
+    store: ContentStore,
+    root: CID,
+    path: list[str],
+    target: CID,
+    use_peers: bool,
+    head: bool,
 ) -> Response:
-    etag = f'"{root}"'
-    headers = _headers(root, etag) | {"Accept-Ranges": "bytes"}
+    if target.codec != DAG_PB:
+        raise BadRequest(
+            f"{target} is not a dag-pb node: ask for format=raw",
+            code="invalid_format",
+            details={"field": "format", "cid": str(target)},
+        )
+    etag = f'"{target}.dag-json"'
+    headers = _headers(root, path, target, etag)
     if _not_modified(request, etag):
         return Response(status_code=304, headers=headers)
-    size = await anyio.to_thread.run_sync(lambda: store.file_size(root, use_peers=use_peers))
+    data = await anyio.to_thread.run_sync(lambda: store.get_block(target, use_peers=use_peers))
+    body = to_dag_json(PBNode.decode(data))
+    headers["Content-Length"] = str(len(body))
+    return Response(b"" if head else body, headers=headers, media_type=DAG_JSON_MEDIA_TYPE)
+
+
+async def _content(
+    request: Request,
+    store: ContentStore,
+    root: CID,
+    path: list[str],
+    trailing: bool,
+    target: CID,
+    use_peers: bool,
+) -> Response:
+    kind = await anyio.to_thread.run_sync(lambda: store.kind(target, use_peers=use_peers))
+    if kind.type not in (DIRECTORY, HAMT_SHARD):
+        return await _file(request, store, root, path, target, use_peers)
+    try:
+        index = await anyio.to_thread.run_sync(
+            lambda: store.resolve(target, ["index.html"], use_peers=use_peers)
+        )
+    except PathNotFound:
+        return await _listing(request, store, root, path, target, use_peers)
+    if not trailing:
+        location = "/".join(["", "ipfs", str(root), *path]) + "/"
+        return RedirectResponse(location, status_code=301)
+    response = await _file(request, store, root, path, index.cid, use_peers)
+    response.headers["Content-Type"] = "text/html; charset=utf-8"
+    response.headers["Content-Security-Policy"] = "sandbox"
+    return response
+
+
+async def _listing(
+    request: Request, store: ContentStore, root: CID, path: list[str], target: CID, use_peers: bool
+) -> Response:
+    etag = f'"{target}.listing"'
+    headers = _headers(root, path, target, etag)
+    if _not_modified(request, etag):
+        return Response(status_code=304, headers=headers)
+    entries = await anyio.to_thread.run_sync(lambda: store.entries(target, use_peers=use_peers))
+    page = directory_page(root, path, target, entries).encode()
+    headers["Content-Length"] = str(len(page))
+    body = b"" if request.method == "HEAD" else page
+    return Response(body, headers=headers, media_type="text/html; charset=utf-8")
+
+
+async def _file(
+    request: Request, store: ContentStore, root: CID, path: list[str], target: CID, use_peers: bool
+) -> Response:
+    etag = f'"{target}"'
+    headers = _headers(root, path, target, etag) | {"Accept-Ranges": "bytes"}
+    if _not_modified(request, etag):
+        return Response(status_code=304, headers=headers)
+    size = await anyio.to_thread.run_sync(lambda: store.file_size(target, use_peers=use_peers))
     span = byte_range(request.headers.get("range"), size)
     start, end = span or (0, size)
     status = 200
@@ -142,7 +281,7 @@ async def _file(
         headers["Content-Range"] = f"bytes {start}-{end - 1}/{size}"
     headers["Content-Length"] = str(end - start)
     media_type = "application/octet-stream"
-    if head:
+    if request.method == "HEAD":
         return Response(status_code=status, headers=headers, media_type=media_type)
-    body = await threaded_stream(store.read(root, start, end - start, use_peers=use_peers))
+    body = await threaded_stream(store.read(target, start, end - start, use_peers=use_peers))
     return StreamingResponse(body, status_code=status, headers=headers, media_type=media_type)

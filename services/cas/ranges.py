@@ -62,3 +62,35 @@ class UnsatisfiableRange(ValueError):
 
 def _unsatisfiable(header: str, size: int) -> UnsatisfiableRange:
     return UnsatisfiableRange(header[:100], size)
+
+
+_ENTITY_BYTES = re.compile(r"(-?\d{1,19}):(\*|-?\d{1,19})")
+
+
+class InvalidEntityBytes(ValueError):
+    """An ``entity-bytes`` value that is malformed, or a range wholly outside the file."""
+
+    def __init__(self, value: str, reason: str) -> None:
+        super().__init__(f"entity-bytes {value[:60]!r}: {reason}")
+
+
+def entity_bytes(value: str, size: int) -> tuple[int, int]:
+    """``[start, end)`` of the trustless gateway's ``entity-bytes=from:to`` for a file of ``size``.
+
+    ``to`` is inclusive or ``*`` (the end); negative values count from the end. A range that
+    is empty after clamping is ``(0, 0)`` (only the root block is sent); one wholly outside
+    the file is refused, as the specification advises when it can be known upfront.
+    """
+    match = _ENTITY_BYTES.fullmatch(value)
+    if match is None:
+        raise InvalidEntityBytes(value, "expected from:to with integers or *")
+    first = int(match.group(1))
+    start = size + first if first < 0 else first
+    last = match.group(2)
+    end = (
+        size if last == "*" else (size + int(last) if int(last) < 0 else int(last)) + (last != "*")
+    )
+    if (start >= size and size > 0) or (start < 0 and end <= 0):
+        raise InvalidEntityBytes(value, f"outside the file of {size} bytes")
+    start, end = max(start, 0), min(end, size)
+    return (start, end) if start < end else (0, 0)

@@ -7,16 +7,28 @@ worker threads. Failures are the exceptions below, each naming the CID at fault;
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from robocloud.car import ByteSource, CarError, CarReader, write_car
-from robocloud.cid import CID, DAG_PB, Block
-from robocloud.dagpb import DagPbError, PBNode
-from robocloud.unixfs import UnixfsError, file_size, read_file, walk_dag
+from robocloud.cid import CID, DAG_PB, IDENTITY, RAW, Block
+from robocloud.dagpb import DagPbError, Link, PBNode
+from robocloud.directory import PathError, Resolved, list_entries, resolve
+from robocloud.unixfs import (
+    FILE,
+    RAW_TYPE,
+    UnixfsError,
+    decode_node,
+    file_range_blocks,
+    file_size,
+    read_file,
+    walk_dag,
+)
 from services.cas.blockstore import (
     BlockNotFound,
     Blockstore,
@@ -127,7 +139,13 @@ class ContentStore:
     # ---- blocks ----
 
     def get_block(self, cid: CID, *, use_peers: bool = True) -> bytes:
-        """A verified block: local, else from a peer (then cached); 404 naming the CID."""
+        """A verified block: inline in an identity CID, local, else from a peer (then cached).
+
+        An identity CID carries its block in its multihash (at most 128 bytes, bounded when the
+        CID is parsed): it is answered from the CID itself, never looked up or stored.
+        """
+        if cid.hash_code == IDENTITY:
+            return cid.digest
         try:
             return self.blocks.get(cid)
         except BlockNotFound as miss:
@@ -141,6 +159,8 @@ class ContentStore:
         raise BlockUnavailable(cid, reason)
 
     def block_size(self, cid: CID, *, use_peers: bool = True) -> int:
+        if cid.hash_code == IDENTITY:
+            return len(cid.digest)
         if self.blocks.has(cid):
             return self.blocks.size(cid)
         return len(self.get_block(cid, use_peers=use_peers))
@@ -176,6 +196,41 @@ class ContentStore:
         except UnixfsError as exc:
             raise NotAFile(root, str(exc)) from exc
 
+    # ---- directories and paths ----
+
+    def resolve(self, root: CID, segments: list[str], *, use_peers: bool = True) -> Resolved:
+        """Follow a content path through directories and HAMT shards."""
+        try:
+            return resolve(root, segments, lambda cid: self.get_block(cid, use_peers=use_peers))
+        except PathError:
+            raise
+        except UnixfsError as exc:
+            raise InvalidDag(root, str(exc)) from exc
+
+    def entries(self, directory: CID, *, use_peers: bool = True) -> list[Link]:
+        """A directory's entries (a sharded one's from every shard); ``NotADirectory`` else."""
+        get = partial(self.get_block, use_peers=use_peers)
+        try:
+            return list(list_entries(directory, get))
+        except PathError:
+            raise
+        except UnixfsError as exc:
+            raise InvalidDag(directory, str(exc)) from exc
+
+    def kind(self, cid: CID, *, use_peers: bool = True) -> UnixfsKind:
+        """What a CID names, from its root block: a file, a directory, or another block."""
+        if cid.codec == RAW:
+            return UnixfsKind(FILE, len(self.get_block(cid, use_peers=use_peers)))
+        if cid.codec != DAG_PB:
+            return UnixfsKind(None, None)
+        try:
+            _, unixfs = decode_node(cid, self.get_block(cid, use_peers=use_peers))
+        except UnixfsError:
+            return UnixfsKind(None, None)
+        if unixfs.type in (FILE, RAW_TYPE):
+            return UnixfsKind(FILE, len(unixfs.data) + sum(unixfs.blocksizes))
+        return UnixfsKind(unixfs.type, None)
+
     # ---- DAGs and CARs ----
 
     def blocks_of(
@@ -192,6 +247,28 @@ class ContentStore:
         self, root: CID, scope: str = "all", *, use_peers: bool = True
     ) -> Iterator[bytes]:
         return write_car([root], self.blocks_of(root, scope, use_peers=use_peers))
+
+    def export_path_car(
+        self,
+        root: CID,
+        resolved: Resolved,
+        scope: str,
+        entity_bytes: tuple[int, int | None] | None = None,
+        *,
+        use_peers: bool = True,
+    ) -> Iterator[bytes]:
+        """A CAR of a path: the blocks that verify each segment, then the target's scope.
+
+        With ``entity_bytes`` (``[start, end)``, already resolved against the file's size) a
+        file target contributes only the blocks covering those bytes.
+        """
+        get = partial(self.get_block, use_peers=use_peers)
+        if entity_bytes is not None and self.kind(resolved.cid, use_peers=use_peers).type == FILE:
+            target: Iterator[Block] = file_range_blocks(resolved.cid, get, *entity_bytes)
+        else:
+            target = self.blocks_of(resolved.cid, scope, use_peers=use_peers)
+        path = (Block(cid, get(cid)) for cid in resolved.path_blocks)
+        return write_car([root], _once(path, target))
 
     def import_car(self, staging: Staging, source: ByteSource) -> list[CID]:
         """Stage every block of a CAR; any bad block raises and the caller discards it all."""
@@ -285,6 +362,23 @@ class ContentStore:
         self.pins.close()
         if self.peers is not None:
             self.peers.close()
+
+
+def _once(first: Iterator[Block], rest: Iterator[Block]) -> Iterator[Block]:
+    """``first`` then ``rest``, each block once (a path may pass a block the target repeats)."""
+    seen: set[CID] = set()
+    for block in itertools.chain(first, rest):
+        if block.cid not in seen:
+            seen.add(block.cid)
+            yield block
+
+
+@dataclass(frozen=True)
+class UnixfsKind:
+    """A UnixFS type (``FILE`` for raw blocks too) and, for a file, its declared size."""
+
+    type: int | None
+    size: int | None
 
 
 class _Missing(Exception):

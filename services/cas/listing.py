@@ -1,0 +1,38 @@
+"""The HTML page a browser gets for a directory without an ``index.html``.
+
+Every name comes from a stranger's DAG: it is escaped for HTML and percent-encoded in links,
+so a name cannot inject markup or point a link elsewhere than its own entry.
+"""
+
+from __future__ import annotations
+
+from html import escape
+from urllib.parse import quote
+
+from robocloud.cid import CID
+from robocloud.dagpb import Link
+
+
+def directory_page(root: CID, path: list[str], directory: CID, entries: list[Link]) -> str:
+    """A listing of ``entries``: name (linked by path), cumulative size, CID (linked by CID)."""
+    base = "/".join(["", "ipfs", str(root), *(quote(segment, safe="") for segment in path)])
+    title = escape("/".join(["", "ipfs", str(root), *path]))
+    rows = []
+    if path:
+        parent = base.rsplit("/", 1)[0] + "/"
+        rows.append(f'<tr><td><a href="{escape(parent)}">..</a></td><td></td><td></td></tr>')
+    for entry in sorted(entries, key=lambda link: link.name.encode()):
+        href = escape(f"{base}/{quote(entry.name, safe='')}")
+        rows.append(
+            f'<tr><td><a href="{href}">{escape(entry.name)}</a></td>'
+            f"<td>{entry.tsize}</td>"
+            f'<td><a href="/ipfs/{entry.cid}">{entry.cid}</a></td></tr>'
+        )
+    return (
+        "<!DOCTYPE html>\n"
+        f'<html><head><meta charset="utf-8"><title>{title}</title></head><body>\n'
+        f"<h1>Index of {title}</h1>\n<p>{directory}</p>\n"
+        "<table><thead><tr><th>name</th><th>size (DAG)</th><th>CID</th></tr></thead><tbody>\n"
+        + "\n".join(rows)
+        + "\n</tbody></table></body></html>\n"
+    )
