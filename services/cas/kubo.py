@@ -17,7 +17,8 @@ from fastapi.responses import Response, StreamingResponse
 
 import robocloud
 from robocloud.cid import CODEC_NAMES, parse_cid
-from robocloud.unixfs import ImportParams, UnixfsError
+from robocloud.directory import Resolved
+from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD, ImportParams, UnixfsError
 from services.cas.store import ContentStore
 from services.cas.streams import threaded_stream
 from services.cas.uploads import BlockCollector, CarImport, FileAdder, upload
@@ -26,6 +27,7 @@ from services.common.errors import BadRequest
 
 READ_PATHS = (
     "/api/v0/cat",
+    "/api/v0/ls",
     "/api/v0/block/get",
     "/api/v0/block/stat",
     "/api/v0/pin/ls",
@@ -138,17 +140,67 @@ async def add(
     return _lines(lines)
 
 
+def _content_path(store: ContentStore, arg: str) -> Resolved:
+    """kubo's ``arg`` of a path: ``CID[/segment...]``, optionally after ``/ipfs/``."""
+    text = arg.removeprefix("/ipfs/")
+    cid_text, _, rest = text.partition("/")
+    root = parse_cid(cid_text, "arg")
+    segments = [segment for segment in rest.split("/") if segment] if rest else []
+    if any(segment in (".", "..") for segment in segments):
+        raise BadRequest(
+            f"path {arg[:120]!r} has a . or .. segment",
+            code="invalid_path",
+            details={"field": "arg"},
+        )
+    return store.resolve(root, segments)
+
+
 @router.post("/cat")
 async def cat(
     request: Request,
-    arg: Arg,
+    arg: Annotated[str, Query(description="a CID, or CID/path/to/file")],
     offset: Annotated[int, Query(ge=0)] = 0,
     length: Annotated[int | None, Query(ge=0)] = None,
 ) -> Response:
     """A file's bytes (or ``length`` of them from ``offset``), every block verified on read."""
-    root = parse_cid(arg, "arg")
-    body = await threaded_stream(_store(request).read(root, offset, length))
+    store = _store(request)
+    resolved = await anyio.to_thread.run_sync(_content_path, store, arg)
+    body = await threaded_stream(store.read(resolved.cid, offset, length))
     return StreamingResponse(body, media_type="application/octet-stream")
+
+
+@router.post("/ls")
+async def ls(
+    request: Request,
+    arg: Annotated[list[str], Query(description="directories: CID or CID/path")],
+    resolve_type: Annotated[bool, Query(alias="resolve-type")] = True,
+    size: bool = True,
+) -> dict[str, Any]:
+    """A directory's entries, kubo's answer shape; ``Type`` 1 is a directory, 2 a file."""
+    store = _store(request)
+
+    def listing(path: str) -> dict[str, Any]:
+        directory = _content_path(store, path).cid
+        links = []
+        for entry in store.entries(directory):
+            kind = store.kind(entry.cid) if resolve_type or size else None
+            links.append(
+                {
+                    "Name": entry.name,
+                    "Hash": str(entry.cid),
+                    "Size": (kind.size or 0) if kind is not None and size else 0,
+                    "Type": _LS_TYPES.get(kind.type, 0) if kind is not None and resolve_type else 0,
+                    "Target": "",
+                }
+            )
+        return {"Hash": path, "Links": links}
+
+    objects = [await anyio.to_thread.run_sync(listing, path) for path in arg]
+    return {"Objects": objects}
+
+
+_LS_TYPES: dict[int | None, int] = {DIRECTORY: 1, HAMT_SHARD: 1, FILE: 2}
+"""kubo's ``ls`` types: its UnixFS protobuf numbers for directories and files."""
 
 
 @router.post("/block/get")
