@@ -6,8 +6,6 @@ registers here asks, and the admin or a registrar decides.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import pytest
 
 from robocloud.ledger import Ledger, RegistrationMode, RevertError, Role
@@ -18,12 +16,12 @@ METADATA = bytes.fromhex("01701220") + bytes(range(32))
 
 
 @pytest.fixture(scope="module")
-def approved(deployment: Deployment) -> Iterator[Ledger]:
+def approved(deployment: Deployment) -> Ledger:
     """The admin's Ledger, the Registry switched to the Approved mode for the module."""
     admin = deployment.admin
     if admin.registration_mode() is RegistrationMode.OPEN:
         admin.set_registration_mode(RegistrationMode.APPROVED)
-    yield admin
+    return admin
 
 
 def address(ledger: Ledger) -> str:
