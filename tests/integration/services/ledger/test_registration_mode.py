@@ -270,3 +270,41 @@ def test_restarting_in_open_mode_opens_registration(
         assert json.loads(mode.stdout) == {"mode": "open"}
     finally:
         opened.stop()
+
+
+@pytest.mark.parametrize(
+    ("limit", "status", "code", "detail"),
+    [
+        ("0", 400, "invalid_limit", {"limit": 0}),
+        ("-1", 400, "invalid_limit", {"limit": -1}),
+        ("1001", 400, "invalid_limit", {"limit": 1001}),
+        ("abc", 422, "validation_error", None),
+        ("9" * 5000, 422, "validation_error", None),
+    ],
+    ids=["zero", "negative", "above-max", "text", "5000-digits"],
+)
+def test_the_pending_list_refuses_bad_limits_by_name(
+    ledger: ServiceProcess, limit: str, status: int, code: str, detail: dict[str, int] | None
+) -> None:
+    answer = httpx.get(f"{ledger.url}/v1/registrations", params={"limit": limit})
+    error = answer.json()["error"]
+    assert (answer.status_code, error["code"]) == (status, code)
+    if detail is not None:
+        assert error["details"] == detail
+    else:
+        assert [field["field"] for field in error["details"]["errors"]] == ["query.limit"]
+    assert httpx.get(f"{ledger.url}/readyz").status_code == 200
+
+
+def test_the_pending_list_is_oldest_first_and_bounded(
+    ledger: ServiceProcess, cli: Cli, tmp_path: Path
+) -> None:
+    for name in ("first", "second"):
+        cli("register", key=new_robot(tmp_path, name)[1])
+    everyone = httpx.get(f"{ledger.url}/v1/registrations").json()["pending"]
+    blocks = [entry["registered_block"] for entry in everyone]
+    assert len(everyone) >= 2
+    assert blocks == sorted(blocks)
+    assert all(entry["status"] == "pending" for entry in everyone)
+    oldest = httpx.get(f"{ledger.url}/v1/registrations", params={"limit": 1}).json()["pending"]
+    assert oldest == everyone[:1]
