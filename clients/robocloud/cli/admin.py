@@ -181,7 +181,11 @@ def mode(
     ledger_url: str | None = LedgerOption,
     as_json: bool = JsonOption,
 ) -> None:
-    """Show or set the Registry's registration mode (setting it: admin)."""
+    """Show or set the Registry's registration mode (setting it: admin).
+
+    A ledger holding the admin key applies its ROBOCLOUD_LEDGER_REGISTRATION_MODE again at its
+    next start; change that setting to make a switch last.
+    """
     if new_mode is None:
         with Ledger.connect(ledger_url, None) as ledger:
             current = ledger.registration_mode()
