@@ -99,24 +99,64 @@ def deploy(chain: EmbeddedChain, admin: Identity) -> Deployment:
     return deployment
 
 
+class RegistrationModeConflict(Exception):
+    """The Registry's registration mode is not the configured one, and this ledger does not
+    hold the Registry's admin key to change it: running anyway would misstate who may write."""
+
+    def __init__(self, registry: str, current: RegistrationMode, wanted: RegistrationMode) -> None:
+        super().__init__(
+            f"the Registry at {registry} is in the {current.name.lower()} registration mode, "
+            f"but ROBOCLOUD_LEDGER_REGISTRATION_MODE is {wanted.name.lower()}, and this ledger "
+            "does not hold the Registry's admin key: set the setting to the chain's mode, or "
+            f"have the admin run `robocloud admin mode {wanted.name.lower()}`"
+        )
+        self.registry = registry
+        self.current = current
+        self.wanted = wanted
+
+
+def must_switch_mode(
+    registry: str,
+    current: RegistrationMode,
+    wanted: RegistrationMode,
+    registry_admin: str,
+    operator_admin: str | None,
+) -> bool:
+    """Whether the operator must switch the Registry from ``current`` to ``wanted``.
+
+    ``ROBOCLOUD_LEDGER_REGISTRATION_MODE`` states the mode the deployment runs in. A ledger
+    holding the Registry's admin key makes it so at every start; one that does not (attached
+    to another operator's contracts, or after ``transferAdmin``) cannot, and refuses to start
+    rather than serve a deployment whose registrations mean less than its operator believes.
+    """
+    if current is wanted:
+        return False
+    if operator_admin is None or operator_admin.lower() != registry_admin.lower():
+        raise RegistrationModeConflict(registry, current, wanted)
+    return True
+
+
 def apply_registration_mode(
     chain: EmbeddedChain, admin: Identity, deployment: Deployment, mode: RegistrationMode
 ) -> bool:
     """Make the Registry's registration mode ``mode``; whether a transaction was needed.
 
-    The setting is the operator's intent at every start, so changing it and restarting the
-    ledger switches the mode; pending registrations stay pending across a switch to Open.
+    Requests pending when the mode switches to Open stay pending until a registrar decides.
     """
     registry = ContractAbi("Registry", artifact("Registry")["abi"])
     target = bytes.fromhex(deployment.registry[2:])
-    answer = chain.call(
-        CallRequest(sender=b"\x00" * 20, to=target, data=registry.encode_call("registrationMode")),
-        "latest",
-    )
-    if RegistrationMode(registry.decode_output("registrationMode", answer)[0]) == mode:
+
+    def read(function: str) -> Any:
+        request = CallRequest(sender=b"\x00" * 20, to=target, data=registry.encode_call(function))
+        return registry.decode_output(function, chain.call(request, "latest"))[0]
+
+    current = RegistrationMode(read("registrationMode"))
+    if not must_switch_mode(deployment.registry, current, mode, read("admin"), admin.address):
         return False
     data = registry.encode_call("setRegistrationMode", mode.value)
     send_as(chain, admin, deployment.registry, data, gas=100_000)
+    if RegistrationMode(read("registrationMode")) is not mode:
+        raise ChainError(f"setting the Registry's registration mode to {mode.name.lower()} failed")
     return True
 
 

@@ -3,7 +3,9 @@
 With ``ROBOCLOUD_LEDGER_RPC_URL`` the service runs no chain of its own. It attaches to the
 contracts at ``ROBOCLOUD_LEDGER_REGISTRY_ADDRESS`` / ``ROBOCLOUD_LEDGER_ANCHOR_LOG_ADDRESS``,
 or deploys them once with the operator's admin key (which must hold ether on that chain) and
-remembers where in ``contracts.json``. ``/rpc`` forwards the standard namespaces (``eth_``,
+remembers where in ``contracts.json``. ``ROBOCLOUD_LEDGER_REGISTRATION_MODE`` is applied at
+every start where that key is the Registry's admin; otherwise a Registry in another mode stops
+the start (``contracts.must_switch_mode``). ``/rpc`` forwards the standard namespaces (``eth_``,
 ``net_``, ``web3_``) and nothing else, so a node's administrative or cheat methods
 (``anvil_*``, ``debug_*``, ``personal_*``) are never exposed through the service.
 
@@ -22,14 +24,22 @@ from typing import Any
 import anyio
 from eth_utils.address import is_address, to_checksum_address
 
-from robocloud.ledger import ContractAbi, JsonRpcClient, RpcError, Transactor
+from robocloud.identity import Identity
+from robocloud.ledger import (
+    ContractAbi,
+    ContractAddresses,
+    JsonRpcClient,
+    Ledger,
+    RpcError,
+    Transactor,
+)
 from robocloud.ledger.transactions import quantity
 from services.common.durable import atomic_write
-from services.ledger.contracts import Deployment, artifact
+from services.ledger.contracts import Deployment, artifact, must_switch_mode
 from services.ledger.encoding import LogEntry
 from services.ledger.index import EventIndex
 from services.ledger.node import FaucetUnavailable
-from services.ledger.operator import load_or_create, passphrase
+from services.ledger.operator import admin_keystore, load_or_create, passphrase
 from services.ledger.rpc import METHOD_NOT_FOUND, Dispatcher, RpcFailure
 from services.ledger.settings import LedgerSettings
 
@@ -49,6 +59,7 @@ class ExternalLedger:
         self.rpc = JsonRpcClient(settings.ledger_rpc_url)
         self.chain_id = quantity(self.rpc.request("eth_chainId", []))
         self.deployment = self._attach_or_deploy(data_dir, secret)
+        self._apply_registration_mode(data_dir, secret)
         self.index = EventIndex(
             data_dir / "index.sqlite", self.deployment.registry, self.deployment.anchor_log
         )
@@ -105,6 +116,26 @@ class ExternalLedger:
         atomic_write(data_dir / DEPLOYMENT_FILE, json.dumps(record).encode())
         log.info("deployed contracts", extra=record)
         return deployment
+
+    def _apply_registration_mode(self, data_dir: Path, secret: str | None) -> None:
+        """Switch the Registry to the configured mode when the operator's key is its admin.
+
+        The keystore's address is read without its passphrase, so a ledger whose Registry is
+        already in the configured mode never decrypts the admin key.
+        """
+        wanted = self.settings.registration_mode()
+        addresses = ContractAddresses(self.deployment.registry, self.deployment.anchor_log)
+        reader = Ledger(self.rpc, addresses)
+        keystore = admin_keystore(data_dir)
+        operator = Identity.keystore_address(keystore) if keystore.exists() else None
+        current = reader.registration_mode()
+        if not must_switch_mode(addresses.registry, current, wanted, reader.admin(), operator):
+            return
+        admin = Identity.load(keystore, passphrase(data_dir, secret))
+        receipt = Ledger(self.rpc, addresses, admin).set_registration_mode(wanted)
+        log.info(
+            "registration mode set", extra={"mode": wanted.name.lower(), "tx": receipt.tx_hash}
+        )
 
     # ----- JSON-RPC -----
 

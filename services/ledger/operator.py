@@ -63,12 +63,17 @@ def passphrase(data_dir: Path, configured: str | None) -> str:
     return secret
 
 
+def admin_keystore(data_dir: Path) -> Path:
+    """Where the admin's keystore lives (it may not exist yet)."""
+    return data_dir / KEYS_DIR / "admin.json"
+
+
 def load_or_create(data_dir: Path, secret: str) -> OperatorKeys:
     """The operator's keys from their keystores, generated and saved on the first start."""
     keys = data_dir / KEYS_DIR
     keys.mkdir(parents=True, exist_ok=True)
     return OperatorKeys(
-        admin=_key(keys / "admin.json", secret), faucet=_key(keys / "faucet.json", secret)
+        admin=_key(admin_keystore(data_dir), secret), faucet=_key(keys / "faucet.json", secret)
     )
 
 

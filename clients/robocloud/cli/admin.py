@@ -21,7 +21,10 @@ from robocloud.ledger.transactions import Receipt
 
 admin_app = typer.Typer(
     name="admin",
-    help="Administer the Registry: approve registrations, grant roles, set the mode.",
+    help=(
+        "Administer the Registry: approve or reject registrations, grant and revoke roles, "
+        "suspend robots, set the registration mode."
+    ),
     no_args_is_help=True,
 )
 
@@ -122,6 +125,50 @@ def grant(
     _report(f"granted {role.value}", address, receipt, as_json)
 
 
+@admin_app.command("revoke")
+def revoke(
+    address: str = AddressArgument,
+    role: Role = typer.Argument(..., help="The role to revoke.", metavar="ROLE"),
+    keystore: Path | None = KeystoreOption,
+    ledger_url: str | None = LedgerOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Take a role back: a registrar revoked decides no more registrations (admin)."""
+    with Ledger.connect(ledger_url, load_identity(keystore)) as ledger:
+        receipt = ledger.revoke_role(address, role)
+    _report(f"revoked {role.value}", address, receipt, as_json)
+
+
+@admin_app.command("suspend")
+def suspend(
+    address: str = AddressArgument,
+    keystore: Path | None = KeystoreOption,
+    ledger_url: str | None = LedgerOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Suspend a registered robot: services refuse its writes, it advertises nothing (admin)."""
+    _suspension(address, True, keystore=keystore, ledger_url=ledger_url, as_json=as_json)
+
+
+@admin_app.command("reinstate")
+def reinstate(
+    address: str = AddressArgument,
+    keystore: Path | None = KeystoreOption,
+    ledger_url: str | None = LedgerOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Lift a robot's suspension (admin)."""
+    _suspension(address, False, keystore=keystore, ledger_url=ledger_url, as_json=as_json)
+
+
+def _suspension(
+    address: str, suspended: bool, *, keystore: Path | None, ledger_url: str | None, as_json: bool
+) -> None:
+    with Ledger.connect(ledger_url, load_identity(keystore)) as ledger:
+        receipt = ledger.set_suspended(address, suspended)
+    _report("suspended" if suspended else "reinstated", address, receipt, as_json)
+
+
 @admin_app.command("mode")
 def mode(
     new_mode: str | None = typer.Argument(
@@ -134,7 +181,11 @@ def mode(
     ledger_url: str | None = LedgerOption,
     as_json: bool = JsonOption,
 ) -> None:
-    """Show or set the Registry's registration mode (setting it: admin)."""
+    """Show or set the Registry's registration mode (setting it: admin).
+
+    A ledger holding the admin key applies its ROBOCLOUD_LEDGER_REGISTRATION_MODE again at its
+    next start; change that setting to make a switch last.
+    """
     if new_mode is None:
         with Ledger.connect(ledger_url, None) as ledger:
             current = ledger.registration_mode()

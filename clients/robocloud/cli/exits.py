@@ -126,7 +126,14 @@ def _transport(exc: TransportError) -> Failure:
 
 _API_HINTS = {
     "address_not_allowed": "run `robocloud register` to register this robot on the ledger",
-    "robot_inactive": "`robocloud robot` shows its state; the ledger's admin can reinstate it",
+    "registration_pending": (
+        "the ledger's admin or a registrar approves it (`robocloud admin pending` lists who "
+        "waits); `robocloud robot` shows its state"
+    ),
+    "robot_inactive": (
+        "`robocloud robot` shows its state; the ledger's admin can reinstate it "
+        "(`robocloud admin reinstate`)"
+    ),
     "role_required": "the ledger's admin grants roles",
     "stale_timestamp": "check this machine's clock",
     "replayed_nonce": "retry: every attempt is signed with a fresh nonce",
@@ -156,9 +163,26 @@ def _rpc_hint(exc: RpcError) -> str | None:
 
 
 def _revert_hint(exc: RevertError) -> str | None:
-    if "not an active robot" in exc.reason or "not registered" in exc.reason:
+    if "not an active robot" in exc.reason or "caller is not registered" in exc.reason:
         return "run `robocloud register` first"
-    return None
+    return _REGISTRY_ADMIN_HINTS.get(exc.reason)
+
+
+_ADMIN_KEYSTORE = (
+    "pass the Registry admin's keystore with --keystore (the ledger's "
+    "data/ledger/keys/admin.json on the embedded chain)"
+)
+_REGISTRY_ADMIN_HINTS = {
+    "Registry: caller is not the admin": _ADMIN_KEYSTORE,
+    "Registry: caller is not a registrar": (
+        f"only the admin or an active robot with the registrar role decides: {_ADMIN_KEYSTORE}"
+    ),
+    "Registry: no pending registration": "`robocloud admin pending` lists who waits",
+    "Registry: registration already pending": (
+        "the ledger's admin or a registrar must approve it; `robocloud robot` shows its state"
+    ),
+    "Registry: account is not registered": "`robocloud robot ADDRESS` shows its state",
+}
 
 
 def report(failure: Failure) -> None:

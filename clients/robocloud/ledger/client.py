@@ -102,21 +102,45 @@ class LedgerService(ServiceClient):
             body = self.get_json(f"/v1/robots/{checksum(address)}")
         except NotFoundError:
             return None
-        return _robot_record(body, f"the ledger's record of {address}")
+        record = _robot_record(body, f"the ledger's record of {address}")
+        if record.address != checksum(address):
+            raise InvalidAnswerError(
+                f"asked for the record of {checksum(address)}, the ledger answered one of "
+                f"{record.address[:64]!r}"
+            )
+        return record
 
     def pending(self, limit: int = 100) -> list[RegisteredRobot]:
-        """``GET /v1/registrations``: robots awaiting a registrar, oldest first."""
+        """``GET /v1/registrations``: robots awaiting a registrar, oldest first.
+
+        An answer holding more than ``limit`` entries, or an entry that is not pending, is an
+        ``InvalidAnswerError``: whoever approves from this list must see what it says it is.
+        """
         body = self.get_json("/v1/registrations", params={"limit": limit})
         if not isinstance(body, dict) or not isinstance(body.get("pending"), list):
             raise InvalidAnswerError("the ledger's pending registrations are not a list")
-        return [_robot_record(item, "a pending registration") for item in body["pending"]]
+        if len(body["pending"]) > limit:
+            raise InvalidAnswerError(
+                f"the ledger sent {len(body['pending'])} pending registrations, "
+                f"more than the {limit} asked for"
+            )
+        records = [_robot_record(item, "a pending registration") for item in body["pending"]]
+        for record in records:
+            if not record.pending:
+                raise InvalidAnswerError(
+                    f"the ledger listed {record.address[:64]!r} as pending, "
+                    f"with status {record.status!r}"
+                )
+        return records
 
 
 def _robot_record(body: Any, what: str) -> RegisteredRobot:
     try:
-        return RegisteredRobot.from_service(body)
+        record = RegisteredRobot.from_service(body)
+        checksum(record.address)
     except (KeyError, TypeError, ValueError) as exc:
         raise InvalidAnswerError(f"{what} is malformed: {exc}") from exc
+    return record
 
 
 class Ledger(Closeable):

@@ -104,6 +104,10 @@ class RegisteredRobot:
                 raise TypeError(f"{name} has the wrong type")
         if not all(isinstance(role, str) for role in self.roles):
             raise TypeError("roles must be strings")
+        if self.status not in ("registered", "pending"):
+            raise ValueError(f"status must be registered or pending, not {self.status[:40]!r}")
+        if self.pending and (self.active or self.roles):
+            raise ValueError("a pending robot can be neither active nor hold roles")
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import httpx
 import pytest
 
 from robocloud.identity import Identity
-from robocloud.ledger import JsonRpcClient, Ledger
+from robocloud.ledger import JsonRpcClient, Ledger, RegistrationMode
 from tests.integration.robocloud.ledger.nodes import NODES, deploy_contracts, ethereum_node, fund
 from tests.integration.services.ledger.conftest import (
     METADATA,
@@ -113,5 +113,63 @@ def test_attaches_to_configured_addresses(tmp_path: Path, node: str) -> None:
             assert contracts["Registry"]["address"] == addresses.registry
             assert wait_for_robot(process.url, robot.address)["registered_block"] > 0
             assert not (tmp_path / "data" / "keys").exists()
+        finally:
+            process.stop()
+
+
+def mode_of(url: str) -> RegistrationMode:
+    with Ledger.connect(url) as reader:
+        return reader.registration_mode()
+
+
+def test_the_operator_key_applies_the_registration_mode_at_every_start(
+    tmp_path: Path, node: str
+) -> None:
+    data_dir = tmp_path / "data"
+    admin = Identity.generate()
+    admin.save(data_dir / "keys" / "admin.json", PASSPHRASE, scrypt_n=2**14)
+    with JsonRpcClient(node) as chain:
+        fund(chain, admin)
+        process = external(data_dir, node, {"ROBOCLOUD_LEDGER_REGISTRATION_MODE": "approved"})
+        try:
+            assert mode_of(process.url) is RegistrationMode.APPROVED
+            robot = fund(chain, Identity.generate())
+            with Ledger.connect(process.url, robot, receipt_timeout_s=10) as ledger:
+                ledger.register(METADATA)
+            record = wait_for_robot(process.url, robot.address)
+            assert (record["status"], record["active"]) == ("pending", False)
+            listed = httpx.get(f"{process.url}/v1/registrations").json()["pending"]
+            assert [entry["address"] for entry in listed] == [robot.address]
+
+            process.env["ROBOCLOUD_LEDGER_REGISTRATION_MODE"] = "open"
+            process.restart()
+            assert mode_of(process.url) is RegistrationMode.OPEN
+            assert wait_for_robot(process.url, robot.address)["status"] == "pending"
+        finally:
+            process.stop()
+
+
+def test_an_attached_ledger_refuses_to_misstate_the_mode(tmp_path: Path, node: str) -> None:
+    with JsonRpcClient(node) as chain:
+        owner = fund(chain, Identity.generate())
+        addresses = deploy_contracts(chain, owner)
+        with Ledger(JsonRpcClient(node), addresses, owner) as registry_admin:
+            registry_admin.set_registration_mode(RegistrationMode.APPROVED)
+        env = {
+            "ROBOCLOUD_LEDGER_REGISTRY_ADDRESS": addresses.registry,
+            "ROBOCLOUD_LEDGER_ANCHOR_LOG_ADDRESS": addresses.anchor_log,
+        }
+        with pytest.raises(RuntimeError, match="exited at start") as exited:
+            external(tmp_path / "open", node, env | {"ROBOCLOUD_LEDGER_REGISTRATION_MODE": "open"})
+        assert f"the Registry at {addresses.registry} is in the approved registration mode" in str(
+            exited.value
+        )
+        assert not (tmp_path / "open" / "keys").exists()
+
+        process = external(
+            tmp_path / "approved", node, env | {"ROBOCLOUD_LEDGER_REGISTRATION_MODE": "approved"}
+        )
+        try:
+            assert mode_of(process.url) is RegistrationMode.APPROVED
         finally:
             process.stop()

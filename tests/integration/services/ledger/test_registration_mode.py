@@ -83,10 +83,17 @@ def write(cas: ServiceProcess, robot: Identity, data: bytes) -> str:
         return str(client.add_bytes(data))
 
 
-def refused(cas: ServiceProcess, robot: Identity) -> str:
+def refused_write(cas: ServiceProcess, robot: Identity) -> PermissionDeniedError:
+    """The cas's refusal of ``robot``'s write; it stored nothing."""
+    data = b"refused " + robot.address.encode()
     with pytest.raises(PermissionDeniedError) as denied:
-        write(cas, robot, b"refused")
-    return denied.value.code
+        write(cas, robot, data)
+    assert httpx.get(f"{cas.url}/ipfs/{CID.from_block(data)}").status_code == 404
+    return denied.value
+
+
+def refused(cas: ServiceProcess, robot: Identity) -> str:
+    return refused_write(cas, robot).code
 
 
 def eventually_writes(cas: ServiceProcess, robot: Identity, data: bytes) -> str:
@@ -109,18 +116,22 @@ def test_a_registration_waits_for_the_admin_then_the_robot_writes(
     assert "awaits approval by the admin or a registrar" in asked.stdout
     record = httpx.get(f"{ledger.url}/v1/robots/{robot.address}").json()
     assert (record["status"], record["active"], record["roles"]) == ("pending", False, [])
-    assert refused(cas, robot) == "registration_pending"
+    pending = refused_write(cas, robot)
+    assert (pending.code, pending.details) == ("registration_pending", {"address": robot.address})
+    assert "awaits approval by the ledger's admin or a registrar" in pending.message
     waiting = json.loads(cli("admin", "pending", "--json").stdout)
-    assert [entry["address"] for entry in waiting] == [robot.address]
+    assert waiting[-1]["address"] == robot.address, "oldest first: the newest request is last"
     shown = cli("robot", robot.address)
     assert "pending approval" in shown.stdout
 
     approved = cli("admin", "approve", robot.address, key=admin_key(ledger), passphrase=PASSPHRASE)
     assert f"{robot.address} approved" in approved.stdout
     assert eventually_writes(cas, robot, b"admitted") == str(CID.from_block(b"admitted"))
+    assert httpx.get(f"{cas.url}/ipfs/{CID.from_block(b'admitted')}").content == b"admitted"
     record = httpx.get(f"{ledger.url}/v1/robots/{robot.address}").json()
     assert (record["status"], record["active"]) == ("registered", True)
-    assert json.loads(cli("admin", "pending", "--json").stdout) == []
+    waiting = json.loads(cli("admin", "pending", "--json").stdout)
+    assert robot.address not in [entry["address"] for entry in waiting]
 
 
 def test_a_rejected_robot_stays_out_and_may_ask_again(
@@ -162,6 +173,80 @@ def test_a_registrar_approves_without_the_admin_key(
     assert "caller is not a registrar" in not_a_registrar.output
 
 
+def failed(*args: str, key: Path, passphrase: str = "pw") -> Result:
+    """Run ``robocloud`` expecting a failure: one line on stderr, no traceback."""
+    result = runner.invoke(
+        app, [*args, "--keystore", str(key)], env={"ROBOCLOUD_PASSPHRASE": passphrase}
+    )
+    assert result.exit_code != 0, result.output
+    assert result.output.startswith("error: "), result.output
+    assert "Traceback" not in result.output
+    return result
+
+
+def test_the_admin_suspends_revokes_and_reinstates(
+    ledger: ServiceProcess, cas: ServiceProcess, cli: Cli, tmp_path: Path
+) -> None:
+    admin = {"key": admin_key(ledger), "passphrase": PASSPHRASE}
+    registrar, registrar_key = new_robot(tmp_path, "registrar")
+    cli("register", key=registrar_key)
+    cli("admin", "approve", registrar.address, **admin)
+    cli("admin", "grant", registrar.address, "registrar", **admin)
+    suspended = json.loads(cli("admin", "suspend", registrar.address, "--json", **admin).stdout)
+    assert (suspended["address"], suspended["action"]) == (registrar.address, "suspended")
+    assert "state      suspended" in cli("robot", registrar.address).stdout
+    with pytest.raises(PermissionDeniedError) as inactive:
+        write(cas, registrar, b"suspended")
+    assert inactive.value.code == "robot_inactive"
+
+    robot, key = new_robot(tmp_path, "robot")
+    cli("register", key=key)
+    refused = failed("admin", "approve", robot.address, key=registrar_key)
+    assert refused.exit_code == 4
+    assert "caller is not a registrar" in refused.output
+    assert "registrar role" in refused.output
+    cli("admin", "reinstate", registrar.address, **admin)
+    assert "state      active" in cli("robot", registrar.address).stdout
+    cli("admin", "revoke", registrar.address, "registrar", **admin)
+    record = httpx.get(f"{ledger.url}/v1/robots/{registrar.address}").json()
+    assert (record["active"], record["roles"]) == (True, [])
+    assert failed("admin", "approve", robot.address, key=registrar_key).exit_code == 4
+    assert "pending approval" in cli("robot", robot.address).stdout
+
+
+def test_refused_admin_commands_change_nothing(
+    ledger: ServiceProcess, cli: Cli, tmp_path: Path
+) -> None:
+    robot, key = new_robot(tmp_path, "robot")
+    cli("register", key=key)
+    stranger, _ = new_robot(tmp_path, "stranger")
+    not_pending = failed(
+        "admin", "approve", stranger.address, key=admin_key(ledger), passphrase=PASSPHRASE
+    )
+    assert not_pending.exit_code == 4
+    assert "no pending registration" in not_pending.output
+    assert "robocloud admin pending" in not_pending.output
+    wrong_passphrase = failed("admin", "approve", robot.address, key=admin_key(ledger))
+    assert wrong_passphrase.exit_code == 1
+    not_the_admin = failed("admin", "mode", "open", key=key)
+    assert not_the_admin.exit_code == 4
+    assert "caller is not the admin" in not_the_admin.output
+    for args in (
+        ["admin", "approve", "0x1234"],
+        ["admin", "grant", robot.address, "overlord"],
+        ["admin", "mode", "closed"],
+    ):
+        bad = runner.invoke(app, [*args, "--keystore", str(admin_key(ledger))])
+        assert bad.exit_code == 2, bad.output
+    record = httpx.get(f"{ledger.url}/v1/robots/{robot.address}").json()
+    assert record["status"] == "pending"
+    mode = json.loads(cli("admin", "mode", "--json").stdout)
+    assert mode == {"mode": "approved"}
+    listed = cli("admin", "pending").stdout
+    assert robot.address in listed
+    assert stranger.address not in listed
+
+
 def test_restarting_in_open_mode_opens_registration(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -185,3 +270,41 @@ def test_restarting_in_open_mode_opens_registration(
         assert json.loads(mode.stdout) == {"mode": "open"}
     finally:
         opened.stop()
+
+
+@pytest.mark.parametrize(
+    ("limit", "status", "code", "detail"),
+    [
+        ("0", 400, "invalid_limit", {"limit": 0}),
+        ("-1", 400, "invalid_limit", {"limit": -1}),
+        ("1001", 400, "invalid_limit", {"limit": 1001}),
+        ("abc", 422, "validation_error", None),
+        ("9" * 5000, 422, "validation_error", None),
+    ],
+    ids=["zero", "negative", "above-max", "text", "5000-digits"],
+)
+def test_the_pending_list_refuses_bad_limits_by_name(
+    ledger: ServiceProcess, limit: str, status: int, code: str, detail: dict[str, int] | None
+) -> None:
+    answer = httpx.get(f"{ledger.url}/v1/registrations", params={"limit": limit})
+    error = answer.json()["error"]
+    assert (answer.status_code, error["code"]) == (status, code)
+    if detail is not None:
+        assert error["details"] == detail
+    else:
+        assert [field["field"] for field in error["details"]["errors"]] == ["query.limit"]
+    assert httpx.get(f"{ledger.url}/readyz").status_code == 200
+
+
+def test_the_pending_list_is_oldest_first_and_bounded(
+    ledger: ServiceProcess, cli: Cli, tmp_path: Path
+) -> None:
+    for name in ("first", "second"):
+        cli("register", key=new_robot(tmp_path, name)[1])
+    everyone = httpx.get(f"{ledger.url}/v1/registrations").json()["pending"]
+    blocks = [entry["registered_block"] for entry in everyone]
+    assert len(everyone) >= 2
+    assert blocks == sorted(blocks)
+    assert all(entry["status"] == "pending" for entry in everyone)
+    oldest = httpx.get(f"{ledger.url}/v1/registrations", params={"limit": 1}).json()["pending"]
+    assert oldest == everyone[:1]
