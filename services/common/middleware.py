@@ -28,6 +28,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from starlette.datastructures import Headers
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from robocloud.errors import SignatureError
@@ -48,6 +49,7 @@ from services.common.nonces import NonceStore
 log = logging.getLogger("robocloud.http")
 
 UNSIGNED_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+CLIENT_CLOSED_REQUEST = 499
 INTERNAL_ERROR = ServiceError("internal error; see the service log")
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{8,64}")
 
@@ -144,6 +146,10 @@ class RequestIdLayer:
         watch = _ResponseWatch(send_with_id)
         try:
             await self.app(scope, receive, watch)
+        except ClientDisconnect:
+            # Nobody is left to answer; what the route staged was discarded on the way out,
+            # and the access log's line (status 499) is the one record of it.
+            pass
         except Exception as exc:
             log.exception("unhandled error", exc_info=exc)
             if watch.status:
@@ -157,7 +163,8 @@ class AccessLogLayer:
     """Metrics by route template (bounded label cardinality) and one log line per request.
 
     The line carries method, path, route, status, duration and, for a signed request, the
-    signer. An exception passing through counts as 500, which is what the client gets.
+    signer. An exception passing through counts as 500, which is what the client gets; a
+    client that went away mid-request counts as 499, nginx's "client closed request".
     """
 
     def __init__(self, app: ASGIApp, metrics: ServiceMetrics) -> None:
@@ -170,10 +177,14 @@ class AccessLogLayer:
             return
         started = time.perf_counter()
         watch = _ResponseWatch(send)
+        status = 0
         try:
             await self.app(scope, receive, watch)
+        except ClientDisconnect:
+            status = CLIENT_CLOSED_REQUEST
+            raise
         finally:
-            self._record(scope, watch.status or 500, time.perf_counter() - started)
+            self._record(scope, watch.status or status or 500, time.perf_counter() - started)
 
     def _record(self, scope: Scope, status: int, seconds: float) -> None:
         route = scope.get("route")

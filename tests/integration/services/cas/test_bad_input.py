@@ -109,6 +109,12 @@ def test_upload_cut_off_mid_body_stores_nothing(
         assert time.monotonic() < deadline, "the cut-off upload never ended on the service"
         time.sleep(0.05)
     nothing_stored(cas_service)
+    log = cas_service.log()
+    assert "unhandled error" not in log
+    assert "Traceback" not in log
+    [line] = [entry for entry in log.splitlines() if '"path": "/api/v0/add"' in entry]
+    assert '"status": 499' in line
+    assert '"level": "info"' in line
 
 
 def test_body_not_matching_its_signed_digest_stores_nothing(
