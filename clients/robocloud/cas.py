@@ -14,13 +14,17 @@ import os
 import secrets
 import tempfile
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
+from urllib.parse import quote_plus
 
 from robocloud import bounded_json
 from robocloud.car import MAX_SECTION_BYTES, CarError, CarReader
 from robocloud.cid import CID, RAW, CIDError, parse_cid
 from robocloud.client import ServiceClient
+from robocloud.dagpb import Link
+from robocloud.directory import BuiltDirectory, DirectoryBuilder
 from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
 from robocloud.unixfs import (
     DEFAULT_MAX_LINKS,
@@ -65,43 +69,66 @@ def _no_progress(_: int) -> None:
     return None
 
 
-class _Multipart:
-    """A one-file multipart/form-data body whose bytes (and so its digest) are fixed upfront."""
+@dataclass(frozen=True)
+class _Part:
+    """One part of an upload: a file read from ``source``, or a directory when it is None."""
 
-    def __init__(self, path: Path, name: str) -> None:
-        self.path = path
+    name: str
+    source: Path | None
+
+
+class _Multipart:
+    """kubo's multipart/form-data body of an ``add``, whose bytes (and so its digest) are fixed
+    upfront: a directory part before its entries, names escaped with Go's QueryEscape."""
+
+    def __init__(self, parts: list[_Part]) -> None:
+        self.parts = parts
         self.boundary = "robocloud-" + secrets.token_hex(16)
-        safe_name = name.replace('"', "_").replace("\r", "_").replace("\n", "_")
-        self.head = (
+        self.heads = [self._head(part) for part in parts]
+        self.tail = f"--{self.boundary}--\r\n".encode()
+        self.length = len(self.tail) + sum(
+            len(head) + self._size(part) + 2 for head, part in zip(self.heads, parts, strict=True)
+        )
+
+    def _head(self, part: _Part) -> bytes:
+        kind = "application/x-directory" if part.source is None else "application/octet-stream"
+        return (
             f"--{self.boundary}\r\n"
-            f'Content-Disposition: form-data; name="file"; filename="{safe_name}"\r\n'
-            "Content-Type: application/octet-stream\r\n\r\n"
+            f'Content-Disposition: form-data; name="file"; filename="{quote_plus(part.name)}"\r\n'
+            f"Content-Type: {kind}\r\n\r\n"
         ).encode()
-        self.tail = f"\r\n--{self.boundary}--\r\n".encode()
-        self.length = len(self.head) + path.stat().st_size + len(self.tail)
+
+    @staticmethod
+    def _size(part: _Part) -> int:
+        return 0 if part.source is None else part.source.stat().st_size
 
     @property
     def content_type(self) -> str:
         return f"multipart/form-data; boundary={self.boundary}"
 
     def sha256(self) -> str:
-        """The body's digest, for the signature, read from the file without holding it."""
-        digest = hashlib.sha256(self.head)
-        buffer = bytearray(READ_SIZE)
-        view = memoryview(buffer)
-        with self.path.open("rb") as handle:
-            while read := handle.readinto(buffer):
-                digest.update(view[:read])
-        digest.update(self.tail)
+        """The body's digest, for the signature, read from the files without holding them."""
+        digest = hashlib.sha256()
+        for chunk in self.chunks(_no_progress, lambda _: None, lambda _name, _data: None):
+            digest.update(chunk)
         return digest.hexdigest()
 
-    def chunks(self, progress: Progress, on_content: Callable[[bytes], object]) -> Iterator[bytes]:
-        yield self.head
-        with self.path.open("rb") as handle:
-            while chunk := handle.read(READ_SIZE):
-                on_content(chunk)
-                progress(len(chunk))
-                yield chunk
+    def chunks(
+        self,
+        progress: Progress,
+        on_part: Callable[[_Part], object],
+        on_content: Callable[[_Part, bytes], object],
+    ) -> Iterator[bytes]:
+        for head, part in zip(self.heads, self.parts, strict=True):
+            on_part(part)
+            yield head
+            if part.source is not None:
+                with part.source.open("rb") as handle:
+                    while chunk := handle.read(READ_SIZE):
+                        on_content(part, chunk)
+                        progress(len(chunk))
+                        yield chunk
+            yield b"\r\n"
         yield self.tail
 
 
@@ -153,28 +180,75 @@ class Cas(ServiceClient):
         file while the gateway works on the previous chunk.
         """
         params = params or ImportParams()
-        body = _Multipart(path, name or path.name)
-        importer = Importer(params)
+        part = _Part(name or path.name, path)
+        tree = _LocalImport(params)
+        reported = self._add([part], tree, params, pin, progress)[-1][1]
+        expected = tree.files[part.name].cid
+        if reported != expected:
+            raise CasError(f"the gateway says {reported}, but the file's CID is {expected}")
+        return expected
+
+    def add_directory(
+        self,
+        path: Path,
+        *,
+        pin: bool = True,
+        params: ImportParams | None = None,
+        hidden: bool = False,
+        progress: Progress = _no_progress,
+    ) -> CID:
+        """Upload a directory as ``ipfs add -r`` does; its CID once the gateway's matches ours.
+
+        Entries whose names start with ``.`` are left out unless ``hidden`` (kubo's default
+        too); a symbolic link is refused, as robocloud does not store UnixFS symlinks.
+        """
+        params = params or ImportParams()
+        parts = _directory_parts(path, hidden)
+        tree = _LocalImport(params)
+        answers = self._add(parts, tree, params, pin, progress)
+        expected = tree.directories()[path.name].link.cid
+        reported = answers[-1][1]
+        if answers[-1][0] != path.name or reported != expected:
+            raise CasError(f"the gateway says {reported}, but the directory's CID is {expected}")
+        return expected
+
+    def _add(
+        self,
+        parts: list[_Part],
+        tree: _LocalImport,
+        params: ImportParams,
+        pin: bool,
+        progress: Progress,
+    ) -> list[tuple[str, CID]]:
+        """Send ``parts``, importing them locally as they go; check every file's CID."""
+        body = _Multipart(parts)
         response = self.request(
             "POST",
             "/api/v0/add",
             params={**_import_options(params), "pin": str(pin).lower()},
-            content=body.chunks(progress, importer.feed),
+            content=body.chunks(progress, tree.begin, tree.feed),
             content_sha256=body.sha256(),
             headers={"Content-Type": body.content_type, "Content-Length": str(body.length)},
         )
-        _, expected, _ = importer.finish()
-        answers = [line for line in response.content.splitlines() if line.strip()]
-        try:
-            reported = parse_cid(_json_line(answers[-1])["Hash"], "Hash")
-        except (IndexError, KeyError, TypeError, FormatError) as exc:
-            answer = response.content[:200]
-            raise CasError(
-                f"the gateway's add answer has no valid Hash ({exc}): {answer!r}"
-            ) from exc
-        if reported != expected:
-            raise CasError(f"the gateway says {reported}, but the file's CID is {expected}")
-        return expected
+        tree.finish_file()
+        answers = []
+        for line in response.content.splitlines():
+            if not line.strip():
+                continue
+            try:
+                entry = _json_line(line)
+                answers.append((str(entry["Name"]), parse_cid(entry["Hash"], "Hash")))
+            except (KeyError, TypeError, FormatError) as exc:
+                raise CasError(
+                    f"the gateway's add answer has no valid Hash ({exc}): {line[:200]!r}"
+                ) from exc
+        if not answers:
+            raise CasError("the gateway's add answer is empty")
+        for name, reported in answers:
+            expected = tree.files.get(name)
+            if expected is not None and reported != expected.cid:
+                raise CasError(f"the gateway says {reported}, but the file's CID is {expected.cid}")
+        return answers
 
     def get(self, cid: CID | str, *, max_size: int | None = None) -> bytes:
         """The verified content of a file (held in memory: bound it with ``max_size``)."""
@@ -366,6 +440,71 @@ def _publish(partial: Path, path: Path, overwrite: bool) -> None:
         return
     os.link(partial, path)
     partial.unlink()
+
+
+class _LocalImport:
+    """What the robot computes itself while it uploads: every file's CID, then directories."""
+
+    def __init__(self, params: ImportParams) -> None:
+        self.params = params
+        self.files: dict[str, Link] = {}
+        self.directory_names: list[str] = []
+        self._importer: Importer | None = None
+        self._current: _Part | None = None
+        self._size = 0
+
+    def begin(self, part: _Part) -> None:
+        self.finish_file()
+        if part.source is None:
+            self.directory_names.append(part.name)
+        else:
+            self._importer, self._current, self._size = Importer(self.params), part, 0
+
+    def feed(self, part: _Part, data: bytes) -> None:
+        assert self._importer is not None
+        self._size += sum(len(block.data) for block in self._importer.feed(data))
+
+    def finish_file(self) -> None:
+        if self._importer is None or self._current is None:
+            return
+        blocks, cid, _ = self._importer.finish()
+        size = self._size + sum(len(block.data) for block in blocks)
+        self.files[self._current.name] = Link(cid, self._current.name, size)
+        self._importer = self._current = None
+
+    def directories(self) -> dict[str, BuiltDirectory]:
+        tree = DirectoryBuilder(
+            self.params.cid_version, block_sized_shards=self.params.block_sized_shards
+        )
+        for name in self.directory_names:
+            tree.add_directory(name)
+        for name, link in self.files.items():
+            tree.add_file(name, link.cid, link.tsize)
+        return tree.finish()
+
+
+def _directory_parts(root: Path, hidden: bool) -> list[_Part]:
+    """kubo's order: each directory before its entries, entries by name bytes."""
+    if not root.is_dir():
+        raise NotADirectoryError(f"{root} is not a directory")
+    parts = [_Part(root.name, None)]
+    stack = [(root, root.name)]
+    while stack:
+        directory, name = stack.pop()
+        children: list[tuple[Path, str]] = []
+        for entry in sorted(directory.iterdir(), key=lambda item: item.name.encode()):
+            if entry.name.startswith(".") and not hidden:
+                continue
+            if entry.is_symlink():
+                raise CasError(f"{entry} is a symbolic link: robocloud stores no UnixFS symlinks")
+            path = f"{name}/{entry.name}"
+            if entry.is_dir():
+                parts.append(_Part(path, None))
+                children.append((entry, path))
+            else:
+                parts.append(_Part(path, entry))
+        stack.extend(reversed(children))
+    return parts
 
 
 def _import_options(params: ImportParams) -> dict[str, str]:
