@@ -46,32 +46,55 @@ def _progress(label: str, total: int | None) -> Iterator[Callable[[int], None]]:
 
 
 def put(
-    file: Path = typer.Argument(
-        ..., exists=True, dir_okay=False, readable=True, metavar="FILE", help="The file to add."
+    path: Path = typer.Argument(
+        ...,
+        exists=True,
+        readable=True,
+        metavar="PATH",
+        help="The file, or the directory to add with everything under it.",
     ),
     pin: bool = typer.Option(True, help="Pin the content to this robot."),
     cid_version: int = typer.Option(1, "--cid-version", help="CID version: 0 or 1."),
     chunker: str = typer.Option("size-262144", help="Chunk size, as size-<bytes>."),
+    hidden: bool = typer.Option(
+        False, "--hidden", help="Include files and directories whose names start with '.'."
+    ),
     cas: str | None = CasOption,
     keystore: Path | None = KeystoreOption,
     as_json: bool = JsonOption,
 ) -> None:
-    """Add a file and print its CID (checked against the CID computed here).
+    """Add a file or a directory (as ipfs add -r) and print its CID, checked against the CID
+    computed here.
 
-    Only the CID goes to stdout, so CID=$(robocloud put FILE) works for any size.
+    Only the CID goes to stdout, so CID=$(robocloud put PATH) works for any size.
     """
     try:
         params = ImportParams.from_options(cid_version=cid_version, chunker=chunker)
     except UnixfsError as exc:
         raise typer.BadParameter(str(exc), param_hint="--cid-version/--chunker") from exc
     identity = load_identity(keystore)
-    size = file.stat().st_size
+    size = _tree_size(path, hidden) if path.is_dir() else path.stat().st_size
     with Cas(cas, identity) as client, _progress("put", size) as advance:
-        cid = client.add_file(file, pin=pin, params=params, progress=advance)
+        if path.is_dir():
+            cid = client.add_directory(
+                path, pin=pin, params=params, hidden=hidden, progress=advance
+            )
+        else:
+            cid = client.add_file(path, pin=pin, params=params, progress=advance)
     if as_json:
         show_json({"cid": str(cid), "size": size, "pinned": pin})
     else:
         show(str(cid))
+
+
+def _tree_size(root: Path, hidden: bool) -> int:
+    """The bytes of the files ``put`` sends, for its progress bar."""
+    return sum(
+        entry.stat().st_size
+        for entry in root.rglob("*")
+        if entry.is_file()
+        and (hidden or not any(part.startswith(".") for part in entry.relative_to(root).parts))
+    )
 
 
 def get(

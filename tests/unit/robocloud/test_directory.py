@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -27,10 +24,10 @@ from robocloud.unixfs import (
     import_bytes,
     walk_dag,
 )
-from tests.procs import REPO, SHARED_DATA
+from tests.procs import SHARED_DATA
+from tests.reference import reference_cid, write_tree
 
 FIXTURES = SHARED_DATA / "ipfs" / "car" / "gateway-conformance"
-REFERENCE = REPO / "tests" / "reference"
 V1 = ImportParams.from_options(cid_version=1)
 V0 = ImportParams.from_options()
 
@@ -138,30 +135,6 @@ def test_a_name_both_file_and_directory_is_refused() -> None:
 
 
 # ---- against js-ipfs-unixfs (tests/reference), same trees, same options ----
-
-
-def reference_cid(directory: Path, *args: str) -> str:
-    node = shutil.which("node")
-    if node is None or not (REFERENCE / "node_modules").is_dir():
-        if os.environ.get("CI"):
-            pytest.fail("js reference missing: run `npm ci --prefix tests/reference`")
-        pytest.skip("js reference missing (npm ci --prefix tests/reference)")
-    done = subprocess.run(
-        [node, str(REFERENCE / "import-dir.mjs"), str(directory), *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=True,
-    )
-    return done.stdout.strip()
-
-
-def write_tree(root: Path, files: dict[str, bytes]) -> Path:
-    for path, data in files.items():
-        target = root / path
-        target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_bytes(data)
-    return root
 
 
 @pytest.fixture(scope="module")

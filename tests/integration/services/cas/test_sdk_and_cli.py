@@ -136,6 +136,25 @@ def test_add_refuses_a_wrong_answer(tmp_path: Path) -> None:
             client.add_bytes(b"not hello world")
 
 
+def test_add_directory_refuses_a_wrong_root(tmp_path: Path) -> None:
+    root = tmp_path / "dir"
+    root.mkdir()
+    (root / "f").write_bytes(b"Hello world")
+    lie = (
+        b'{"Name":"dir/f","Hash":"bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"}\n'
+        b'{"Name":"dir","Hash":"bafybeiczsscdsbs7ffqz55asqdf3smv6klcw3gofszvwlyarci47bgf354"}\n'
+    )
+    audience = b'{"audience":"cas@local","service":"cas","deployment":"local"}'
+
+    def answer(path: str) -> tuple[int, str, bytes]:
+        return 200, "application/json", audience if path == "/v1/audience" else lie
+
+    for url in gateway_answering(answer):
+        client = Cas(url, Identity.generate(), retries=0)
+        with client, pytest.raises(CasError, match="but the directory's CID is"):
+            client.add_directory(root)
+
+
 @pytest.fixture
 def work(tmp_path: Path) -> Path:
     """A directory of this test's files alone (the service keeps its data in ``tmp_path``)."""
