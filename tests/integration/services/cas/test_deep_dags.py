@@ -17,7 +17,7 @@ from robocloud.errors import ApiError
 from robocloud.unixfs import FILE, MAX_DAG_DEPTH, UnixfsData
 from tests.integration.services.cas.conftest import error_of, multipart, store_unchanged
 from tests.procs import ServiceProcess
-from tests.unit.robocloud.test_unixfs_hostile import LEAF, chain
+from tests.unit.robocloud.test_unixfs import LEAF, chain
 
 
 @pytest.fixture(scope="module")
