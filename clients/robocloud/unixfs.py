@@ -38,9 +38,9 @@ kubo's trickle layout (``ipfs add --trickle``) multiplies its leaves by 5 per le
 leaves, then 4 repeats of each depth), so 1 TiB in 256 KiB chunks is 8 levels deep and 2^64
 one-byte chunks 26. Directories nest as their paths do, one level each (plus a HAMT's
 shards, 2 to 4 levels for a million entries): macOS stops a path at 1,024 bytes (512
-one-letter levels) and Linux at 4,096. 1,024 levels hold any file below any directory a
-common system can hold, with room to spare, while a chain built to be deep (the 30,000
-levels of a 2.6 MB CAR) is refused at its 1,025th block."""
+one-letter levels) and Linux at 4,096. 1,024 levels hold any file below any directory macOS
+can name, with room to spare, while a chain built to be deep (the 30,000 levels of a 2.6 MB
+CAR) is refused when it reaches level 1,025."""
 PROFILES: dict[str, tuple[int, int, bool, int]] = {
     # name: (cid_version, chunk size, raw leaves, max links)
     "unixfs-v0-2015": (0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS),
