@@ -14,7 +14,7 @@ from robocloud.cid import CID, MAX_VARINT_BYTES, Block, CIDError, encode_varint
 from robocloud.errors import FormatError
 
 MAX_HEADER_BYTES = 1 << 20
-"""1,024 roots of the largest CID this SDK reads (an identity CID of 128 bytes) take 140 KiB."""
+"""Generous: 1,024 roots of the largest CID this SDK reads (identity, 128 bytes) take 140 KiB."""
 MAX_HEADER_DEPTH = 8
 """A CARv1 header nests three levels (map, roots list, CID tag); more is not a CAR header."""
 MAX_ROOTS = 1024
@@ -138,7 +138,7 @@ class _Cbor:
                 if not isinstance(key, str):
                     raise CarError(f"CAR header byte {key_at}: dag-cbor map keys are strings")
                 if key in entries:
-                    raise CarError(f"CAR header byte {key_at}: the key {key!r} repeats")
+                    raise CarError(f"CAR header byte {key_at}: the key {key[:64]!r} repeats")
                 entries[key] = self.item(depth + 1)
             return entries
         if major == 6 and value == CID_TAG:
