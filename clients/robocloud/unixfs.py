@@ -399,9 +399,12 @@ def read_nodes(
     children, so memory grows with the depth and never with the fan-out. A child is visited
     only when its part of the file meets the range (a whole read visits every one, empty
     ones too, as a CAR carries them). Each child must stand for exactly the size its parent
-    declared for it, and no path may be deeper than ``MAX_DAG_DEPTH``: a lying or hostile
-    DAG raises :class:`UnixfsError` naming the block, so a server that already promised a
-    length cuts the response off instead of sending a short body as if it were complete.
+    declared for it, no path may be deeper than ``MAX_DAG_DEPTH``, and the blocks visited
+    may not outnumber what :func:`visit_budget` allows for the bytes yielded: a lying or
+    hostile DAG raises :class:`UnixfsError` naming the block, so a server that already
+    promised a length cuts the response off instead of sending a short body as if it were
+    complete, and no DAG makes a read work long for little (a few blocks linked thousands
+    of times over, each standing for nothing or behind a long chain).
     """
     if offset < 0 or (length is not None and length < 0):
         raise UnixfsError(f"no bytes at offset {offset}, length {length}")
@@ -409,6 +412,7 @@ def read_nodes(
     if end is not None and end == offset:
         return
     frames: list[Iterator[_Span]] = [iter((_Span(root, offset, end, None, 0),))]
+    visited = yielded = 0
     while frames:
         span = next(frames[-1], None)
         if span is None:
@@ -419,6 +423,12 @@ def read_nodes(
                 f"{span.cid} (byte {span.at} of {root}) lies deeper than {MAX_DAG_DEPTH} "
                 "levels, the limit"
             )
+        visited += 1
+        if visited > visit_budget(yielded):
+            raise UnixfsError(
+                f"{root} takes more than {visited - 1} blocks for its first {yielded} bytes "
+                f"(the limit; at {span.cid}, byte {span.at}): its blocks repeat to no end"
+            )
         node = node_of(span.cid)
         if span.declared is not None and node.size != span.declared:
             raise UnixfsError(
@@ -426,9 +436,23 @@ def read_nodes(
                 f"{span.declared} (the block at byte {span.at} of the file)"
             )
         if span.start < len(node.data):
-            yield node.data[span.start : span.end]
+            piece = node.data[span.start : span.end]
+            yielded += len(piece)
+            yield piece
         if node.links:
             frames.append(_children(node, span))
+
+
+def visit_budget(yielded: int) -> int:
+    """How many blocks a read may have visited once it has yielded ``yielded`` bytes.
+
+    Two per byte: an importer's tree has at most one inner node per leaf plus a few on its
+    right spine (3,072 one-byte chunks under 2 links make 3,072 inner nodes), and a leaf
+    holds at least one byte (a chunk). Plus two root-to-leaf paths, the ones a range starts
+    and ends on. Reading any imported file spends at most half of it; a DAG that repeats a
+    subtree standing for nothing, or a byte behind a long chain, runs out of it.
+    """
+    return 2 * yielded + 2 * (MAX_DAG_DEPTH + 1)
 
 
 def _children(node: FileNode, span: _Span) -> Iterator[_Span]:

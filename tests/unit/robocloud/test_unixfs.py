@@ -30,6 +30,7 @@ from robocloud.unixfs import (
     list_directory,
     parse_chunker,
     read_file,
+    visit_budget,
     walk_dag,
 )
 from tests.unit.robocloud.ipfs_vectors import PROFILES, car_path, file_cases, input_named, vectors
@@ -340,7 +341,7 @@ store = {block.cid: block.data for block in reader}
 print(file_size(root, store.__getitem__))
 attempts = {
     "read": lambda: b"".join(read_file(root, store.__getitem__)),
-    "stream": lambda: assemble_file(root, iter(dfs_blocks(root, store)), io.BytesIO(), len),
+    "stream": lambda: assemble_file(root, iter(dfs_blocks(root, store)), io.BytesIO(), print),
     "walk": lambda: list(walk_dag(root, store.__getitem__)),
 }
 for name, attempt in attempts.items():
@@ -473,3 +474,56 @@ def test_entity_walks_follow_every_level_of_a_hamt_and_no_entry() -> None:
     directory = PBNode([Link(root, "sharded", 0)], UnixfsData(DIRECTORY).encode()).encode()
     top = CID.from_block(directory, DAG_PB)
     assert [b.cid for b in walk_dag(top, {top: directory}.__getitem__, "entity")] == [top]
+
+
+def fan(child: CID, child_size: int, count: int) -> tuple[CID, bytes]:
+    """A file node linking ``count`` times to the same child."""
+    unixfs = UnixfsData(FILE, b"", count * child_size, [child_size] * count)
+    encoded = PBNode([Link(child, "", child_size)] * count, unixfs.encode()).encode()
+    return CID.from_block(encoded, DAG_PB), encoded
+
+
+def test_a_dag_of_nothing_repeated_is_refused_after_its_visit_budget() -> None:
+    """Seven blocks, each linking 174 times to the next: 174^6 visits for an empty file."""
+    child = CID.from_block(b"")
+    blocks = {child: b""}
+    for _ in range(6):
+        child, encoded = fan(child, 0, 174)
+        blocks[child] = encoded
+    root = child
+    assert file_size(root, blocks.__getitem__) == 0
+    assert len(car_blocks(root, blocks)) == 7
+    message = f"{root} takes more than {visit_budget(0)} blocks for its first 0 bytes"
+    for read in (
+        lambda: b"".join(read_file(root, blocks.__getitem__)),
+        lambda: assemble_file(root, iter(car_blocks(root, blocks)), io.BytesIO(), lambda _: None),
+    ):
+        with pytest.raises(UnixfsError, match=message):
+            read()
+
+
+def test_bytes_behind_a_long_chain_repeated_are_refused_after_the_visit_budget() -> None:
+    """One byte 1,000 blocks deep, linked 174 x 174 times: 30 million visits for 30 KB."""
+    chained, blocks = chain(1000, b"!")
+    middle, middle_block = fan(chained, 1, 174)
+    root, root_block = fan(middle, 174, 174)
+    blocks |= {middle: middle_block, root: root_block}
+    assert file_size(root, blocks.__getitem__) == 174 * 174
+    for read in (
+        lambda: b"".join(read_file(root, blocks.__getitem__)),
+        lambda: assemble_file(root, iter(car_blocks(root, blocks)), io.BytesIO(), lambda _: None),
+    ):
+        with pytest.raises(UnixfsError, match=f"{root} takes more than .* blocks for its first"):
+            read()
+
+
+def test_an_imported_file_of_one_byte_chunks_under_two_links_is_within_budget() -> None:
+    """The most blocks per byte an importer makes: a leaf per byte, about as many inner nodes."""
+    data = bytes(range(256)) * 12
+    blocks, root = import_bytes(data, ImportParams(chunk_size=1, max_links=2))
+    assert len(blocks) == 2 * len(data)
+    store = dict(blocks)
+    assert b"".join(read_file(root, store.__getitem__)) == data
+    assert b"".join(read_file(root, store.__getitem__, 1000, 1)) == data[1000:1001]
+    with io.BytesIO() as out:
+        assert assemble_file(root, iter(car_blocks(root, store)), out, lambda _: None) == len(data)
