@@ -54,6 +54,14 @@ def parse_cid(text: str, field: str | None = None) -> CID:
         raise CIDError(str(exc), text=text, field=field) from exc
 
 
+MAX_VARINT_BYTES = 9
+"""The multiformats unsigned-varint limit (63 bits): longer ones are not CID varints."""
+
+
+class VarintError(FormatError):
+    """A multiformats varint that is truncated, longer than 9 bytes or not minimally encoded."""
+
+
 def encode_varint(value: int) -> bytes:
     """Unsigned LEB128, as multiformats and protobuf use it."""
     if value < 0:
@@ -70,15 +78,26 @@ def encode_varint(value: int) -> bytes:
 
 
 def decode_varint(data: bytes | memoryview, offset: int = 0) -> tuple[int, int]:
-    """``(value, next offset)``; raises ``ValueError`` on a truncated or oversized varint."""
+    """``(value, next offset)`` of the multiformats unsigned-varint at ``offset``.
+
+    The multiformats spec (and go-varint, which reads CIDs and CAR sections in Go) allows at
+    most 9 bytes and only the minimal encoding, so that every value has exactly one binary
+    form: a CID read back from bytes then re-encodes to the same bytes.
+    """
+    if offset < len(data) and data[offset] < 0x80:
+        return data[offset], offset + 1
     value = shift = 0
-    for index in range(offset, min(len(data), offset + 10)):
+    for index in range(offset, min(len(data), offset + MAX_VARINT_BYTES)):
         byte = data[index]
         value |= (byte & 0x7F) << shift
         if not byte & 0x80:
+            if byte == 0 and index > offset:
+                raise VarintError(f"varint at byte {offset} is not minimally encoded")
             return value, index + 1
         shift += 7
-    raise ValueError("truncated or oversized varint")
+    if len(data) - offset > MAX_VARINT_BYTES:
+        raise VarintError(f"varint at byte {offset} is longer than {MAX_VARINT_BYTES} bytes")
+    raise VarintError(f"varint at byte {offset} is truncated")
 
 
 def b58encode(data: bytes) -> str:
@@ -111,6 +130,8 @@ class CID:
     @classmethod
     def decode(cls, text: str) -> CID:
         """Parse a CID's text form, raising :class:`CIDError` that quotes it."""
+        if len(text) > MAX_CID_TEXT:
+            raise CIDError(f"invalid CID: {len(text)} characters, more than {MAX_CID_TEXT}")
         try:
             if len(text) == 46 and text.startswith("Qm"):
                 return cls.from_bytes(b58decode(text))
@@ -144,6 +165,14 @@ class CID:
     @classmethod
     def read(cls, data: bytes | memoryview, offset: int) -> tuple[CID, int]:
         """Parse a binary CID at ``offset``; return it and the offset after it."""
+        end = offset + 36
+        if (  # the common case first: CIDv1, a one-byte codec, sha2-256
+            end <= len(data)
+            and data[offset] == 1
+            and data[offset + 1] < 0x80
+            and data[offset + 2 : offset + 4] == b"\x12\x20"
+        ):
+            return cls(1, data[offset + 1], bytes(data[offset + 2 : end])), end
         try:
             if data[offset : offset + 2] == b"\x12\x20":
                 end = offset + 34
@@ -156,12 +185,15 @@ class CID:
             codec, pos = decode_varint(data, pos)
             code, digest_at = decode_varint(data, pos)
             size, digest_at = decode_varint(data, digest_at)
-        except (ValueError, IndexError) as exc:
-            raise CIDError(f"invalid binary CID: {exc}") from exc
-        _check_multihash(code, size)
+            _check_multihash(code, size)
+        except ValueError as exc:
+            raise CIDError(f"invalid binary CID at byte {offset}: {exc}") from exc
         end = digest_at + size
         if end > len(data):
-            raise CIDError("invalid binary CID: truncated digest")
+            raise CIDError(
+                f"invalid binary CID at byte {offset}: a {size}-byte digest, "
+                f"{len(data) - digest_at} bytes left"
+            )
         return cls(1, codec, bytes(data[pos:end])), end
 
     @classmethod

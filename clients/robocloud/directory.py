@@ -27,14 +27,15 @@ from robocloud.unixfs import (
     DIRECTORY,
     HAMT_SHARD,
     MAX_DAG_DEPTH,
+    MURMUR3_X64_64,
     UnixfsData,
     UnixfsError,
     decode_node,
+    hamt_prefix_width,
 )
 
 SHARDING_THRESHOLD = 256 * 1024
 HAMT_FANOUT = 256
-MURMUR3_X64_64 = 0x22
 MAX_NAME_BYTES = 255
 """What POSIX file systems allow for one path segment; longer names are refused."""
 
@@ -249,7 +250,7 @@ def _find_insharded_directory(
     root: CID, node: PBNode, unixfs: UnixfsData, name: str, get_block: GetBlock
 ) -> tuple[CID, list[CID]]:
     digest = name_hash(name)
-    width = _prefix_width(root, unixfs)
+    width = hamt_prefix_width(root, unixfs)
     shards: list[CID] = []
     for depth in range(8):
         prefix = f"{digest[depth]:0{width}X}"
@@ -267,13 +268,6 @@ def _find_insharded_directory(
     raise PathNotFound(f"{root} has no entry {name!r}", segment=name, at=root)
 
 
-def _prefix_width(cid: CID, unixfs: UnixfsData) -> int:
-    fanout = unixfs.fanout or 0
-    if unixfs.hash_type != MURMUR3_X64_64 or fanout < 2 or fanout & (fanout - 1):
-        raise UnixfsError(f"{cid} is a HAMT shard of an unsupported kind (hash, fanout)")
-    return len(f"{fanout - 1:X}")
-
-
 def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
     """The entries of a directory, basic or sharded (shards in link order, depth first)."""
     node, unixfs = decode_node(directory, get_block(directory))
@@ -282,7 +276,7 @@ def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
         return
     if unixfs.type != HAMT_SHARD:
         raise NotADirectory(f"{directory} is not a directory", segment="", at=directory)
-    width = _prefix_width(directory, unixfs)
+    width = hamt_prefix_width(directory, unixfs)
     stack: list[Iterator[Link]] = [iter(node.links)]
     while stack:
         link = next(stack[-1], None)

@@ -1,31 +1,48 @@
-"""UnixFS over dag-pb: the importer that gives a file its IPFS CID, and the reader.
+"""UnixFS over dag-pb: the importer that gives a file its IPFS CID, the reader, the DAG walk.
 
 The importer reproduces ``ipfs add``: fixed-size chunks, a balanced tree with at most
 ``max_links`` links per node, raw leaves with CIDv1. It is incremental (``feed`` and
 ``finish``) so a server can hash an upload while it streams in, holding one chunk plus one
-pending link list per tree level. The reader streams a file's bytes, or a byte range of them,
-touching only the blocks the range needs (UnixFS ``blocksizes`` say where each child starts).
+pending link list per tree level.
+
+There is one reader, :func:`read_nodes`, over a source of nodes: :func:`read_file` gives it a
+block store (random access: a byte range touches only the blocks it needs, UnixFS
+``blocksizes`` saying where each child starts), :func:`file_range_blocks` the same store
+while keeping the blocks it visits (a CAR of a byte range), and :func:`assemble_file` a CAR's
+stream of blocks (the SDK's verified download). All therefore keep the same rules: file
+nodes only, every child the size its parent declares, no path deeper than
+:data:`MAX_DAG_DEPTH`, no more blocks visited than :func:`visit_budget` allows.
+Nothing here recurses, so a hostile DAG meets a named limit, never Python's stack (which
+py_ecc lets grow to 100,000 frames, past what the C stack holds).
 """
 
 from __future__ import annotations
 
 import io
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import BinaryIO, NamedTuple
 
-from robocloud.cid import CID, DAG_PB, RAW, Block, decode_varint
-from robocloud.dagpb import DagPbError, Link, PBNode, fields, len_field, uint_field
+from robocloud.cid import CID, DAG_PB, RAW, Block
+from robocloud.dagpb import DagPbError, Link, PBNode, fields, len_field, read_uint, uint_field
 from robocloud.errors import FormatError
 
 DEFAULT_CHUNK_SIZE = 262_144
 DEFAULT_MAX_LINKS = 174
 MAX_CHUNK_SIZE = 2 * 1024 * 1024
 MAX_DAG_DEPTH = 1024
-"""Deepest path a walk or read follows. Importers stay far below it (a balanced 174-link tree
-of 1 TiB is 4 levels deep, trickle layouts and HAMT shards a few dozen, directories as deep as
-paths nest, and Linux's PATH_MAX of 4096 bytes allows at most 2048); a chain built to be deep
-is refused instead of followed."""
+"""Deepest level (the root is level 0) a read or walk follows; a deeper DAG is refused.
+
+A file's tree is shallow whatever made it: a balanced tree of ``max_links`` links is
+log_max_links(chunks) levels deep (3 for 1 TiB in 256 KiB chunks under 174 links, 2 under
+the 1,024 of ``unixfs-v1-2025``; 64 at worst, 2^64 one-byte chunks under 2 links), and
+kubo's trickle layout (``ipfs add --trickle``) multiplies its leaves by 5 per level (174
+leaves, then 4 repeats of each depth), so 1 TiB in 256 KiB chunks is 8 levels deep and 2^64
+one-byte chunks 26. Directories nest as their paths do, one level each (plus a HAMT's
+shards, 2 to 4 levels for a million entries): macOS stops a path at 1,024 bytes (512
+one-letter levels) and Linux at 4,096. 1,024 levels hold any file below any directory macOS
+can name, with room to spare, while a chain built to be deep (the 30,000 levels of a 2.6 MB
+CAR) is refused when it reaches level 1,025."""
 PROFILES: dict[str, tuple[int, int, bool, int, bool]] = {
     # name: (cid_version, chunk size, raw leaves, max links, shard by exact block size)
     "unixfs-v0-2015": (0, DEFAULT_CHUNK_SIZE, False, DEFAULT_MAX_LINKS, False),
@@ -34,6 +51,8 @@ PROFILES: dict[str, tuple[int, int, bool, int, bool]] = {
 
 # UnixFS Data.Type
 RAW_TYPE, DIRECTORY, FILE, METADATA, SYMLINK, HAMT_SHARD = range(6)
+MURMUR3_X64_64 = 0x22
+"""The multihash code of the hash HAMT shards bucket names by (their ``hashType``)."""
 
 
 class UnixfsError(FormatError):
@@ -99,7 +118,9 @@ def parse_chunker(chunker: str) -> int:
 
 @dataclass
 class UnixfsData:
-    """The UnixFS ``Data`` message; ``hash_type`` and ``fanout`` belong to HAMT shards."""
+    """The UnixFS ``Data`` message a dag-pb node carries (fields 1 to 6; mode and mtime,
+    which nothing here needs, are skipped). ``hash_type`` and ``fanout`` belong to HAMT
+    shards."""
 
     type: int
     data: bytes = b""
@@ -126,33 +147,68 @@ class UnixfsData:
     def decode(cls, raw: bytes) -> UnixfsData:
         try:
             return cls._decode(raw)
-        except (DagPbError, ValueError) as exc:
+        except DagPbError as exc:
             raise UnixfsError(f"invalid UnixFS data: {exc}") from exc
 
     @classmethod
     def _decode(cls, raw: bytes) -> UnixfsData:
         node = cls(type=-1)
         for number, value in fields(raw):
-            if number == 1 and isinstance(value, int):
-                node.type = value
-            elif number == 2 and isinstance(value, bytes):
-                node.data = value
-            elif number == 3 and isinstance(value, int):
-                node.filesize = value
-            elif number == 4 and isinstance(value, int):
-                node.blocksizes.append(value)
+            if number == 2:
+                node.data = _bytes_field(value, "Data")
             elif number == 4 and isinstance(value, bytes):  # packed encoding
                 pos = 0
                 while pos < len(value):
-                    size, pos = decode_varint(value, pos)
+                    size, pos = read_uint(value, pos, len(value))
                     node.blocksizes.append(size)
-            elif number == 5 and isinstance(value, int):
-                node.hash_type = value
-            elif number == 6 and isinstance(value, int):
-                node.fanout = value
-        if node.type < 0:
-            raise UnixfsError("UnixFS data without a type")
+            elif number in _UINT_FIELDS:
+                number_value = _uint_field(value, _UINT_FIELDS[number])
+                if number == 1:
+                    node.type = number_value
+                elif number == 3:
+                    node.filesize = number_value
+                elif number == 4:
+                    node.blocksizes.append(number_value)
+                elif number == 5:
+                    node.hash_type = number_value
+                elif number == 6:
+                    node.fanout = number_value
+        if not RAW_TYPE <= node.type <= HAMT_SHARD:
+            raise UnixfsError(
+                "UnixFS data without a type" if node.type < 0 else f"unknown type {node.type}"
+            )
         return node
+
+
+_UINT_FIELDS = {1: "Type", 3: "filesize", 4: "blocksizes", 5: "hashType", 6: "fanout"}
+
+
+def _uint_field(value: int | bytes, name: str) -> int:
+    if not isinstance(value, int):
+        raise UnixfsError(f"UnixFS {name} must be a varint, not bytes")
+    return value
+
+
+def _bytes_field(value: int | bytes, name: str) -> bytes:
+    if not isinstance(value, bytes):
+        raise UnixfsError(f"UnixFS {name} must be bytes, not a varint")
+    return value
+
+
+def hamt_prefix_width(cid: CID, unixfs: UnixfsData) -> int:
+    """How many hex digits name a bucket of the HAMT shard ``cid``: a link to a sub-shard is
+    named exactly that, a link to an entry that plus the entry's name.
+
+    Only shards boxo reads are accepted (murmur3 x64 64 names, a fanout that is a power of
+    two), so walking and resolving refuse the same shards kubo would.
+    """
+    fanout = unixfs.fanout or 0
+    if unixfs.hash_type != MURMUR3_X64_64 or fanout < 2 or fanout & (fanout - 1):
+        raise UnixfsError(
+            f"{cid} is a HAMT shard of an unsupported kind (hashType {unixfs.hash_type}, "
+            f"fanout {unixfs.fanout})"
+        )
+    return len(f"{fanout - 1:X}")
 
 
 # ---- importer ----
@@ -260,6 +316,24 @@ def import_bytes(data: bytes, params: ImportParams | None = None) -> tuple[list[
 # ---- reader ----
 
 
+class FileNode(NamedTuple):
+    """One block of a file as the reader sees it, whatever its codec.
+
+    ``data`` is the content the block holds itself (all of a raw leaf), ``links`` and
+    ``sizes`` its children and the content size it declares for each, ``size`` the content
+    it stands for (its data plus its children's declared sizes).
+    """
+
+    data: bytes
+    links: Sequence[CID]
+    sizes: Sequence[int]
+    size: int
+
+
+NodeSource = Callable[[CID], FileNode]
+"""Where the reader gets the next node it needs: a block store, or a CAR's stream of blocks."""
+
+
 def _pb_node(cid: CID, data: bytes) -> PBNode:
     """The dag-pb node of a block; a block that is not one is a UnixFS error naming it."""
     try:
@@ -268,27 +342,43 @@ def _pb_node(cid: CID, data: bytes) -> PBNode:
         raise UnixfsError(f"{cid} is not a dag-pb node: {exc}") from exc
 
 
-def decode_node(cid: CID, data: bytes) -> tuple[PBNode, UnixfsData]:
-    node = _pb_node(cid, data)
+def _unixfs_data(cid: CID, node: PBNode) -> UnixfsData:
     if node.data is None:
         raise UnixfsError(f"{cid} is dag-pb without UnixFS data")
-    return node, UnixfsData.decode(node.data)
+    try:
+        return UnixfsData.decode(node.data)
+    except UnixfsError as exc:
+        raise UnixfsError(f"{cid}: {exc}") from exc
 
 
-def _file_node(cid: CID, data: bytes) -> tuple[PBNode, UnixfsData]:
-    """A dag-pb file node whose declared sizes agree with each other."""
-    node, unixfs = decode_node(cid, data)
+def decode_node(cid: CID, data: bytes) -> tuple[PBNode, UnixfsData]:
+    """A dag-pb block and the UnixFS data it carries; errors name the block."""
+    node = _pb_node(cid, data)
+    return node, _unixfs_data(cid, node)
+
+
+def file_node(cid: CID, block: bytes) -> FileNode:
+    """The file node a block is, its declared sizes agreeing with each other.
+
+    A dag-pb node must be a UnixFS file (or raw) node with one blocksize per link and, when
+    it states a filesize, exactly its data plus its blocksizes.
+    """
+    if cid.codec == RAW:
+        return FileNode(block, (), (), len(block))
+    if cid.codec != DAG_PB:
+        raise UnixfsError(f"{cid} is neither raw nor dag-pb")
+    node, unixfs = decode_node(cid, block)
     if unixfs.type not in (FILE, RAW_TYPE):
         raise UnixfsError(f"{cid} is not a file (UnixFS type {unixfs.type})")
     if len(unixfs.blocksizes) != len(node.links):
         raise UnixfsError(f"{cid} has {len(node.links)} links but {len(unixfs.blocksizes)} sizes")
-    total = len(unixfs.data) + sum(unixfs.blocksizes)
-    if unixfs.filesize is not None and unixfs.filesize != total:
+    size = len(unixfs.data) + sum(unixfs.blocksizes)
+    if unixfs.filesize is not None and unixfs.filesize != size:
         raise UnixfsError(
             f"{cid} declares a file of {unixfs.filesize} bytes but its data and blocksizes "
-            f"add up to {total}"
+            f"add up to {size}"
         )
-    return node, unixfs
+    return FileNode(unixfs.data, [link.cid for link in node.links], unixfs.blocksizes, size)
 
 
 def file_size(root: CID, get_block: GetBlock) -> int:
@@ -297,23 +387,19 @@ def file_size(root: CID, get_block: GetBlock) -> int:
     The children are not read here, so this is what the root *declares*; :func:`read_file`
     checks every block it reads against it and fails rather than return fewer bytes.
     """
-    data = get_block(root)
-    if root.codec == RAW:
-        return len(data)
-    if root.codec != DAG_PB:
-        raise UnixfsError(f"{root} is neither raw nor dag-pb")
-    _, unixfs = _file_node(root, data)
-    return len(unixfs.data) + sum(unixfs.blocksizes)
+    return file_node(root, get_block(root)).size
 
 
 class _Span(NamedTuple):
-    """A block still to read: the part ``[start, end)`` of its content, and what it holds."""
+    """A block still to read: the part ``[start, end)`` of its content (``end`` None: all of
+    it from ``start``), the size its parent declares for it, and where its content begins in
+    the file (for messages)."""
 
     cid: CID
     start: int
     end: int | None
     declared: int | None
-    depth: int
+    at: int
 
 
 def read_file(
@@ -321,76 +407,113 @@ def read_file(
 ) -> Iterator[bytes]:
     """Stream ``length`` bytes of a file from ``offset`` (to the end when ``length`` is None).
 
-    Iterative, depth-first, touching only the blocks the range needs. Each child must hold
-    exactly the size its parent declared for it, and no path may be deeper than
-    ``MAX_DAG_DEPTH``: a lying or hostile DAG raises :class:`UnixfsError` naming the block,
-    so a server that already promised a length can cut the response off instead of sending
-    a short body as if it were complete.
+    Random access over a block store: only the blocks the range needs are fetched.
     """
-    end = None if length is None else offset + length
-    for _, content, span in _file_blocks(root, get_block, offset, end):
-        if content:
-            yield content[span.start : span.end]
+    return read_nodes(root, lambda cid: file_node(cid, get_block(cid)), offset, length)
 
 
 def file_range_blocks(
     root: CID, get_block: GetBlock, start: int, end: int | None
 ) -> Iterator[Block]:
-    """The blocks of a file needed to verify its bytes ``[start, end)``, in CAR order."""
-    for block, _, _ in _file_blocks(root, get_block, start, end, whole_root=True):
-        yield block
+    """The blocks of a file needed to verify its bytes ``[start, end)``, in CAR order.
 
-
-def _file_blocks(
-    root: CID, get_block: GetBlock, start: int, end: int | None, *, whole_root: bool = False
-) -> Iterator[tuple[Block, bytes, _Span]]:
-    """Each block a byte range of a file needs, with the file bytes it holds itself.
-
-    The root is read even for an empty range when ``whole_root`` (a CAR of it must hold
-    something to verify).
+    Exactly the blocks :func:`read_nodes` visits to read those bytes, so a CAR of a range
+    keeps the reader's rules and bounds (declared sizes, depth, visit budget). An empty
+    range still gives the root, checked as a file node: a CAR must hold something to verify.
     """
-    stack = [_Span(root, start, end, None, 0)]
-    while stack:
-        span = stack.pop()
-        empty = span.end is not None and span.end <= span.start
-        if empty and not (whole_root and span.cid == root and span.depth == 0):
-            continue
-        if span.depth > MAX_DAG_DEPTH:
-            raise UnixfsError(f"{span.cid} lies deeper than {MAX_DAG_DEPTH} levels in {root}")
-        data = get_block(span.cid)
-        if span.cid.codec == RAW:
-            _check_size(span, len(data), root)
-            yield Block(span.cid, data), data, span
-            continue
-        if span.cid.codec != DAG_PB:
-            raise UnixfsError(f"{span.cid} is neither raw nor dag-pb")
-        node, unixfs = _file_node(span.cid, data)
-        _check_size(span, len(unixfs.data) + sum(unixfs.blocksizes), root)
-        yield Block(span.cid, data), unixfs.data, span
-        if empty:
-            continue
-        children: list[_Span] = []
-        position = len(unixfs.data)
-        for link, size in zip(node.links, unixfs.blocksizes, strict=True):
-            child_end = position + size
-            if span.end is not None and position >= span.end:
-                break
-            if child_end > span.start:
-                local_end = (
-                    None if span.end is None or span.end >= child_end else span.end - position
-                )
-                children.append(
-                    _Span(link.cid, max(0, span.start - position), local_end, size, span.depth + 1)
-                )
-            position = child_end
-        stack.extend(reversed(children))
+    visited: list[Block] = []
+
+    def node_of(cid: CID) -> FileNode:
+        block = get_block(cid)
+        visited.append(Block(cid, block))
+        return file_node(cid, block)
+
+    if end is not None and end <= start:
+        node_of(root)
+    else:
+        for _ in read_nodes(root, node_of, start, None if end is None else end - start):
+            yield from visited
+            visited.clear()
+    yield from visited
 
 
-def _check_size(span: _Span, actual: int, root: CID) -> None:
-    if span.declared is not None and actual != span.declared:
-        raise UnixfsError(
-            f"{span.cid} holds {actual} bytes but its parent in {root} declares {span.declared}"
-        )
+def read_nodes(
+    root: CID, node_of: NodeSource, offset: int = 0, length: int | None = None
+) -> Iterator[bytes]:
+    """The one UnixFS file reader: ``length`` bytes from ``offset``, in file order.
+
+    Depth first and iterative: one frame per level, each a lazy walk over its node's
+    children, so memory grows with the depth and never with the fan-out. A child is visited
+    only when its part of the file meets the range (a whole read visits every one, empty
+    ones too, as a CAR carries them). Each child must stand for exactly the size its parent
+    declared for it, no path may be deeper than ``MAX_DAG_DEPTH``, and the blocks visited
+    may not outnumber what :func:`visit_budget` allows for the bytes yielded: a lying or
+    hostile DAG raises :class:`UnixfsError` naming the block, so a server that already
+    promised a length cuts the response off instead of sending a short body as if it were
+    complete, and no DAG makes a read work long for little (a few blocks linked thousands
+    of times over, each standing for nothing or behind a long chain).
+    """
+    if offset < 0 or (length is not None and length < 0):
+        raise UnixfsError(f"no bytes at offset {offset}, length {length}")
+    end = None if length is None else offset + length
+    if end is not None and end == offset:
+        return
+    frames: list[Iterator[_Span]] = [iter((_Span(root, offset, end, None, 0),))]
+    visited = yielded = 0
+    while frames:
+        span = next(frames[-1], None)
+        if span is None:
+            frames.pop()
+            continue
+        if len(frames) > MAX_DAG_DEPTH + 1:
+            raise UnixfsError(
+                f"{span.cid} (byte {span.at} of {root}) lies deeper than {MAX_DAG_DEPTH} "
+                "levels, the limit"
+            )
+        visited += 1
+        if visited > visit_budget(yielded):
+            raise UnixfsError(
+                f"{root} takes more than {visited - 1} blocks for its first {yielded} bytes "
+                f"(the limit; at {span.cid}, byte {span.at}): its blocks repeat to no end"
+            )
+        node = node_of(span.cid)
+        if span.declared is not None and node.size != span.declared:
+            raise UnixfsError(
+                f"{span.cid} holds {node.size} bytes but its parent in {root} declares "
+                f"{span.declared} (the block at byte {span.at} of the file)"
+            )
+        if span.start < len(node.data):
+            piece = node.data[span.start : span.end]
+            yielded += len(piece)
+            yield piece
+        if node.links:
+            frames.append(_children(node, span))
+
+
+def visit_budget(yielded: int) -> int:
+    """How many blocks a read may have visited once it has yielded ``yielded`` bytes.
+
+    Two per byte: an importer's tree has at most one inner node per leaf plus a few on its
+    right spine (3,072 one-byte chunks under 2 links make 3,072 inner nodes), and a leaf
+    holds at least one byte (a chunk). Plus two root-to-leaf paths, the ones a range starts
+    and ends on. Reading any imported file spends at most half of it; a DAG that repeats a
+    subtree standing for nothing, or a byte behind a long chain, runs out of it.
+    """
+    return 2 * yielded + 2 * (MAX_DAG_DEPTH + 1)
+
+
+def _children(node: FileNode, span: _Span) -> Iterator[_Span]:
+    """The spans of ``node``'s children that meet ``span``'s range, in order, as needed."""
+    start, end = span.start, span.end
+    position = len(node.data)
+    for cid, size in zip(node.links, node.sizes, strict=True):
+        if end is not None and position >= end:
+            return
+        child_end = position + size
+        if child_end > start or (size == 0 and position >= start):
+            local_end = None if end is None or end >= child_end else end - position
+            yield _Span(cid, max(0, start - position), local_end, size, span.at + position)
+        position = child_end
 
 
 def assemble_file(
@@ -398,104 +521,75 @@ def assemble_file(
 ) -> int:
     """Write the file ``root`` from its blocks in DFS order (a CAR's), each checked as it comes.
 
-    The streamed counterpart of :func:`read_file`, with the same rules (file nodes only,
-    declared sizes kept, ``MAX_DAG_DEPTH``): each block was hashed against its own CID by
-    whoever produced ``blocks``; this checks that it is the next block of *this* file's DAG,
-    so the bytes written are exactly those ``root`` commits to, with bounded memory. A
-    sender may send a repeated block (a run of zeros) only once, so leaves are remembered by
-    their place in ``out`` (which must be readable) and inner nodes by their links, and a
-    repeat is replayed from there. Returns the number of bytes written.
+    :func:`read_nodes` over a CAR's stream of blocks, so the rules are those of
+    :func:`read_file`: each block was hashed against its own CID by whoever produced
+    ``blocks``; the reader checks that it is the next block of *this* file's DAG, so the
+    bytes written are exactly those ``root`` commits to, with bounded memory. A CAR carries
+    a repeated block (a run of zeros) only once, so the content each node holds is
+    remembered by its place in ``out`` (which must be readable) and an inner node's
+    children by their CIDs, and a repeat is replayed from there. Returns the bytes written.
     """
-    return _Assembly(root, out, progress).run(blocks)
+    source = _CarOrder(root, blocks, out)
+    for piece in read_nodes(root, source.node):
+        out.write(piece)
+        source.written += len(piece)
+        progress(len(piece))
+    if next(blocks, None) is not None:
+        raise UnixfsError(f"there are blocks beyond the file {root}")
+    return source.written
 
 
-class _Due(NamedTuple):
-    cid: CID
-    declared: int | None
-    depth: int
+class _Replay(NamedTuple):
+    """A node already received: where its own content lies in the output, and its children."""
+
+    at: int
+    length: int
+    links: Sequence[CID]
+    sizes: Sequence[int]
+    size: int
 
 
-class _Assembly:
-    def __init__(self, root: CID, out: BinaryIO, progress: Callable[[int], object]) -> None:
+class _CarOrder:
+    """The nodes of one file from its blocks in the order a CAR of it carries them.
+
+    The reader asks for nodes in the order it writes the file, so the next unseen node asked
+    for must be the next block, and ``written`` (kept by the caller) is where that node's
+    own content goes. A node asked for again is not in the CAR again: it is rebuilt from
+    ``out`` and the links kept for it.
+    """
+
+    def __init__(self, root: CID, blocks: Iterator[Block], out: BinaryIO) -> None:
         self.root = root
+        self.blocks = blocks
         self.out = out
-        self.progress = progress
         self.written = 0
-        self._leaves: dict[CID, tuple[int, int]] = {}
-        self._inner: dict[CID, tuple[bytes, list[Link], list[int]]] = {}
-        self._due: list[_Due] = [_Due(root, None, 0)]
+        self._seen: dict[CID, _Replay] = {}
 
-    def run(self, blocks: Iterator[Block]) -> int:
-        while self._due:
-            due = self._due.pop()
-            if due.depth > MAX_DAG_DEPTH:
-                raise UnixfsError(
-                    f"{due.cid} lies deeper than {MAX_DAG_DEPTH} levels in {self.root}"
-                )
-            if not self._replay(due):
-                block = next(blocks, None)
-                if block is None:
-                    raise UnixfsError(f"the blocks end before block {due.cid} of {self.root}")
-                if block.cid != due.cid:
-                    raise UnixfsError(
-                        f"block {block.cid} came where {due.cid} of {self.root} is due"
-                    )
-                self._take(due, block.data)
-        if next(blocks, None) is not None:
-            raise UnixfsError(f"there are blocks beyond the file {self.root}")
-        return self.written
+    def node(self, cid: CID) -> FileNode:
+        seen = self._seen.get(cid)
+        if seen is not None:
+            return FileNode(self._reread(seen.at, seen.length), seen.links, seen.sizes, seen.size)
+        block = next(self.blocks, None)
+        if block is None:
+            raise UnixfsError(f"the blocks end before block {cid} of {self.root}")
+        if block.cid != cid:
+            raise UnixfsError(f"block {block.cid} came where {cid} of {self.root} is due")
+        node = file_node(cid, block.data)
+        self._seen[cid] = _Replay(self.written, len(node.data), node.links, node.sizes, node.size)
+        return node
 
-    def _replay(self, due: _Due) -> bool:
-        if due.cid in self._leaves:
-            offset, length = self._leaves[due.cid]
-            self._check(due, length)
-            self.out.seek(offset)
-            data = self.out.read(length)
-            self.out.seek(0, io.SEEK_END)
-            self._write(data)
-            return True
-        if due.cid in self._inner:
-            data, links, sizes = self._inner[due.cid]
-            self._check(due, len(data) + sum(sizes))
-            self._write(data)
-            self._expect(links, sizes, due.depth)
-            return True
-        return False
+    def _reread(self, at: int, length: int) -> bytes:
+        if not length:
+            return b""
+        self.out.seek(at)
+        data = self.out.read(length)
+        self.out.seek(0, io.SEEK_END)
+        if len(data) != length:
+            raise UnixfsError(f"the output of {self.root} lost {length - len(data)} bytes")
+        return data
 
-    def _take(self, due: _Due, block: bytes) -> None:
-        if due.cid.codec == RAW:
-            self._check(due, len(block))
-            self._leaves[due.cid] = (self.written, len(block))
-            self._write(block)
-            return
-        if due.cid.codec != DAG_PB:
-            raise UnixfsError(f"{due.cid} is neither raw nor dag-pb")
-        node, unixfs = _file_node(due.cid, block)
-        self._check(due, len(unixfs.data) + sum(unixfs.blocksizes))
-        if node.links:
-            self._inner[due.cid] = (unixfs.data, node.links, unixfs.blocksizes)
-        else:
-            self._leaves[due.cid] = (self.written, len(unixfs.data))
-        self._write(unixfs.data)
-        self._expect(node.links, unixfs.blocksizes, due.depth)
 
-    def _expect(self, links: list[Link], sizes: list[int], depth: int) -> None:
-        self._due.extend(
-            _Due(link.cid, size, depth + 1)
-            for link, size in zip(reversed(links), reversed(sizes), strict=True)
-        )
-
-    def _check(self, due: _Due, actual: int) -> None:
-        if due.declared is not None and actual != due.declared:
-            raise UnixfsError(
-                f"{due.cid} holds {actual} bytes but its parent in {self.root} declares "
-                f"{due.declared}"
-            )
-
-    def _write(self, data: bytes) -> None:
-        self.out.write(data)
-        self.written += len(data)
-        self.progress(len(data))
+# ---- directories and DAG walks ----
 
 
 def list_directory(root: CID, get_block: GetBlock) -> list[Link]:
@@ -510,18 +604,22 @@ def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Blo
     """Blocks in CAR order (depth first, links in order, each block once).
 
     ``block``: the root only. ``entity``: the whole file, or a directory's own nodes (every
-    level of a HAMT's shards included) without its entries' content. ``all``: everything
-    reachable.
+    level of a HAMT's shards, whose links to sub-shards are named by their bucket alone)
+    without its entries' content. ``all``: everything reachable. Iterative with one frame
+    per level, bounded by ``MAX_DAG_DEPTH`` as the reader is.
     """
     if scope not in ("block", "entity", "all"):
         raise UnixfsError(f"unknown dag-scope {scope!r}: expected block, entity or all")
     seen: set[CID] = set()
-    stack: list[tuple[CID, int]] = [(root, 0)]
-    while stack:
-        cid, depth = stack.pop()
+    frames: list[Iterator[CID]] = [iter((root,))]
+    while frames:
+        cid = next(frames[-1], None)
+        if cid is None:
+            frames.pop()
+            continue
         if cid in seen:
             continue
-        if depth > MAX_DAG_DEPTH:
+        if len(frames) > MAX_DAG_DEPTH + 1:
             raise UnixfsError(f"{cid} lies deeper than {MAX_DAG_DEPTH} levels under {root}")
         seen.add(cid)
         data = get_block(cid)
@@ -529,22 +627,13 @@ def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Blo
         if scope == "block" or cid.codec != DAG_PB:
             continue
         node = _pb_node(cid, data)
-        links = node.links
+        children = [link.cid for link in node.links]
         if scope == "entity" and node.data is not None:
-            links = _entity_links(cid, node)
-        stack.extend((link.cid, depth + 1) for link in reversed(links))
-
-
-def _entity_links(cid: CID, node: PBNode) -> list[Link]:
-    """The links an entity walk follows: all of a file's, a HAMT's shard links, no entries."""
-    assert node.data is not None
-    unixfs = UnixfsData.decode(node.data)
-    if unixfs.type == DIRECTORY:
-        return []
-    if unixfs.type == HAMT_SHARD:
-        fanout = unixfs.fanout or 0
-        if fanout < 2 or fanout & (fanout - 1):
-            raise UnixfsError(f"{cid} is a HAMT shard with an invalid fanout {fanout}")
-        width = len(f"{fanout - 1:X}")
-        return [link for link in node.links if len(link.name) == width]
-    return node.links
+            unixfs = _unixfs_data(cid, node)
+            if unixfs.type == DIRECTORY:
+                children = []
+            elif unixfs.type == HAMT_SHARD:
+                width = hamt_prefix_width(cid, unixfs)
+                children = [link.cid for link in node.links if len(link.name) == width]
+        if children:
+            frames.append(iter(children))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -264,11 +264,22 @@ class ContentStore:
         """
         get = partial(self.get_block, use_peers=use_peers)
         if entity_bytes is not None and self.kind(resolved.cid, use_peers=use_peers).type == FILE:
-            target: Iterator[Block] = file_range_blocks(resolved.cid, get, *entity_bytes)
+            target: Iterator[Block] = self._range_blocks(resolved.cid, get, entity_bytes)
         else:
             target = self.blocks_of(resolved.cid, scope, use_peers=use_peers)
         path = (Block(cid, get(cid)) for cid in resolved.path_blocks)
         return write_car([root], _once(path, target))
+
+    @staticmethod
+    def _range_blocks(
+        root: CID, get: Callable[[CID], bytes], span: tuple[int, int | None]
+    ) -> Iterator[Block]:
+        """The blocks covering ``span`` of the file ``root``; a DAG the reader refuses (too
+        deep, lying sizes, over its visit budget) is an ``InvalidDag`` as in any other CAR."""
+        try:
+            yield from file_range_blocks(root, get, *span)
+        except UnixfsError as exc:
+            raise InvalidDag(root, str(exc)) from exc
 
     def import_car(self, staging: Staging, source: ByteSource) -> list[CID]:
         """Stage every block of a CAR; any bad block raises and the caller discards it all."""

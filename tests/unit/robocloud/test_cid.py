@@ -7,8 +7,10 @@ import pytest
 from robocloud.cid import (
     CID,
     DAG_PB,
+    MAX_CID_TEXT,
     RAW,
     CIDError,
+    VarintError,
     b58decode,
     b58encode,
     decode_varint,
@@ -98,6 +100,38 @@ def test_identity_cid_verifies_inline_data() -> None:
 @pytest.mark.parametrize("value", [0, 1, 127, 128, 300, 2**32, 2**63 - 1])
 def test_varints_round_trip(value: int) -> None:
     assert decode_varint(encode_varint(value)) == (value, len(encode_varint(value)))
+
+
+@pytest.mark.parametrize(
+    ("encoded", "message"),
+    [
+        (b"\xff" * 10 + b"\x01", "varint at byte 0 is longer than 9 bytes"),
+        (b"\xff" * 9 + b"\x01", "varint at byte 0 is longer than 9 bytes"),
+        (b"\x81\x00", "varint at byte 0 is not minimally encoded"),
+        (b"\x80", "varint at byte 0 is truncated"),
+        (b"", "varint at byte 0 is truncated"),
+    ],
+    ids=["11-bytes", "10-bytes", "not-minimal", "truncated", "empty"],
+)
+def test_varints_follow_the_multiformats_rules(encoded: bytes, message: str) -> None:
+    with pytest.raises(VarintError, match=message):
+        decode_varint(encoded)
+
+
+def test_a_binary_cid_with_a_bad_varint_is_named_with_its_offset() -> None:
+    good = CID.decode(HELLO).binary
+    with pytest.raises(CIDError, match="invalid binary CID at byte 3: varint at byte 4 is not"):
+        CID.read(b"pad" + b"\x01\xd5\x00" + good[2:], 3)
+    with pytest.raises(CIDError, match="at byte 0: varint at byte 0 is longer than 9 bytes"):
+        CID.from_bytes(b"\xff" * 11)
+    with pytest.raises(CIDError, match="a 32-byte digest, 31 bytes left"):
+        CID.from_bytes(good[:-1])
+
+
+def test_overlong_text_is_refused_unparsed() -> None:
+    text = "z" + "2" * MAX_CID_TEXT
+    with pytest.raises(CIDError, match=f"more than {MAX_CID_TEXT}"):
+        CID.decode(text)
 
 
 def test_base58_keeps_leading_zeros() -> None:

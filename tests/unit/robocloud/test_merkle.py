@@ -257,3 +257,30 @@ def test_trivial_consistency_cases() -> None:
         verify_consistency(2, 1, ROOTS[1], ROOTS[0], [])
     with pytest.raises(ProofError):
         verify_consistency(0, 1, EMPTY_ROOT, ROOTS[0], [EMPTY_ROOT])
+
+
+def test_the_rfc_example_tree_of_7_leaves() -> None:
+    """RFC 6962 section 2.1.3 (RFC 9162 section 2.1.5): its audit paths and consistency
+    proofs, named by the nodes of its figure, for any 7 leaves d0..d6."""
+    tree = MerkleTree()
+    for index in range(7):
+        tree.append(f"d{index}".encode())
+    a, b, c, d, e, f, leaf6 = tree.leaves
+    g, h, i = node_hash(a, b), node_hash(c, d), node_hash(e, f)
+    j = leaf6
+    k, l_node = node_hash(g, h), node_hash(i, j)
+    assert tree.root() == node_hash(k, l_node)
+    assert tree.inclusion_proof(0) == [b, h, l_node]
+    assert tree.inclusion_proof(3) == [c, g, l_node]
+    assert tree.inclusion_proof(4) == [f, j, k]
+    assert tree.inclusion_proof(6) == [i, k]
+    assert tree.root(3) == node_hash(g, c)
+    assert tree.root(4) == k
+    assert tree.root(6) == node_hash(k, i)
+    assert tree.consistency_proof(3) == [c, d, g, l_node]
+    assert tree.consistency_proof(4) == [l_node]
+    assert tree.consistency_proof(6) == [i, j, k]
+    for first in (3, 4, 6):
+        verify_consistency(first, 7, tree.root(first), tree.root(), tree.consistency_proof(first))
+    for index in (0, 3, 4, 6):
+        verify_inclusion(index, 7, tree.leaves[index], tree.inclusion_proof(index), tree.root())

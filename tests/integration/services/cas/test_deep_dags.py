@@ -1,4 +1,5 @@
-"""DAGs deeper than any importer makes: refused with the limit named, the service unhurt.
+"""DAGs deeper than any importer makes, or repeating a chain to no end: refused with the limit
+named, the service unhurt.
 
 A 30,000-deep dag-pb chain (a 2.6 MB CAR) used to segfault cas when it was read back: the
 reader recursed once per level, and py_ecc had raised the recursion limit to 100,000.
@@ -6,10 +7,12 @@ reader recursed once per level, and py_ecc had raised the recursion limit to 100
 
 from __future__ import annotations
 
+import io
+
 import httpx
 import pytest
 
-from robocloud.car import write_car
+from robocloud.car import CarReader, write_car
 from robocloud.cid import CID, DAG_PB, Block
 from robocloud.client import ServiceClient
 from robocloud.dagpb import Link, PBNode
@@ -17,7 +20,7 @@ from robocloud.errors import ApiError
 from robocloud.unixfs import FILE, MAX_DAG_DEPTH, UnixfsData
 from tests.integration.services.cas.conftest import error_of, multipart, store_unchanged
 from tests.procs import ServiceProcess
-from tests.unit.robocloud.test_unixfs_hostile import LEAF, chain
+from tests.unit.robocloud.test_unixfs import LEAF, chain, fan
 
 
 @pytest.fixture(scope="module")
@@ -71,6 +74,7 @@ def test_a_too_deep_dag_put_block_by_block_is_refused_when_read(
     for request in (
         httpx.Request("GET", f"{cas_service.url}/ipfs/{root}"),
         httpx.Request("GET", f"{cas_service.url}/ipfs/{root}?format=car"),
+        httpx.Request("GET", f"{cas_service.url}/ipfs/{root}?format=car&entity-bytes=2:5"),
         httpx.Request("POST", f"{cas_service.url}/api/v0/cat?arg={root}"),
         httpx.Request("POST", f"{cas_service.url}/api/v0/dag/export?arg={root}"),
     ):
@@ -116,4 +120,37 @@ def test_a_file_shorter_than_its_root_declares_is_cut_off_not_completed(
     tail = httpx.get(url, headers={"Range": f"bytes={8 << 20}-"}, timeout=60)
     assert tail.status_code == 400
     assert "holds 5 bytes but its parent" in tail.json()["error"]["message"]
+    assert alive(cas_service)
+
+
+def test_a_dag_repeating_a_long_chain_is_refused_for_ranges_within_the_visit_budget(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    """1,003 blocks that stand for 30,276 bytes, each behind 1,002 levels: a byte range read
+    or a CAR of a byte range stops at the visit budget, named, and the service stays up."""
+    chained, blocks = chain(1000, b"!")
+    middle, middle_block = fan(chained, 1, 174)
+    root, root_block = fan(middle, 174, 174)
+    blocks |= {middle: middle_block, root: root_block}
+    import_car(signed, root, blocks)
+    whole_car = httpx.get(f"{cas_service.url}/ipfs/{root}?format=car", timeout=60)
+    assert whole_car.status_code == 200
+    assert {block.cid for block in CarReader(io.BytesIO(whole_car.content))} == set(blocks)
+    for request, code in (
+        (
+            httpx.Request("GET", f"{cas_service.url}/ipfs/{root}", headers={"Range": "bytes=100-"}),
+            "not_a_file",
+        ),
+        (
+            httpx.Request("GET", f"{cas_service.url}/ipfs/{root}?format=car&entity-bytes=100:*"),
+            "invalid_dag",
+        ),
+    ):
+        with httpx.Client(timeout=60) as client:
+            response = client.send(request)
+        assert response.status_code == 400, (request.url, response.text[:300])
+        error = response.json()["error"]
+        assert error["code"] == code
+        assert error["details"]["cid"] == str(root)
+        assert f"{root} takes more than" in error["message"]
     assert alive(cas_service)
