@@ -116,7 +116,8 @@ def test_epochs_are_anchored_and_proofs_verify_on_chain(deployment: Deployment) 
     assert epoch["heads"][0]["size"] == 300
     with Cas(deployment.cas.url) as cas:
         stored = json.loads(cas.get(epoch["manifest_cid"]))
-    assert stored == {key: epoch[key] for key in ("epoch", "node", "heads", "record_count", "tmt_root")}
+    manifest_keys = ("epoch", "node", "heads", "record_count", "tmt_root")
+    assert stored == {key: epoch[key] for key in manifest_keys}
 
     body = deployment.proof("imu-1-123").json()
     tampered = {**body, "record": {**body["record"], "data": {"i": 124}}}
@@ -124,8 +125,9 @@ def test_epochs_are_anchored_and_proofs_verify_on_chain(deployment: Deployment) 
         deployment.verify("imu-1-123", tampered)
     with pytest.raises(ProofVerificationError, match="asked for imu-1-5"):
         deployment.verify("imu-1-5", body)
-    with JsonRpcClient(f"{deployment.ledger.url}/rpc") as rpc, pytest.raises(
-        ProofVerificationError, match="trusted one"
+    with (
+        JsonRpcClient(f"{deployment.ledger.url}/rpc") as rpc,
+        pytest.raises(ProofVerificationError, match="trusted one"),
     ):
         verify_record_proof(body, rpc.request, anchor_log="0x" + "11" * 20)
 
@@ -161,6 +163,7 @@ def test_epochs_cut_while_the_ledger_is_down_are_anchored_in_order_when_it_retur
     assert deployment.verify("imu-1-15").epoch == 2
     assert deployment.verify("gps-1-4").epoch == 3
     assert deployment.verify("imu-1-3").epoch == 1
-    root = bytes.fromhex(httpx.get(f"{storage.url}/v1/epochs/2", timeout=10).json()["heads"][0]["root"])
+    epoch_2 = httpx.get(f"{storage.url}/v1/epochs/2", timeout=10).json()
+    root = bytes.fromhex(epoch_2["heads"][0]["root"])
     leaves = [merkle.leaf_hash(record("imu@1", i).record) for i in range(20)]
     assert root == merkle.root(leaves)
