@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from robocloud import jcs, merkle
-from robocloud.errors import FormatError, RobocloudError
+from robocloud.errors import FormatError, InvalidAnswerError
 
 ROOT_AT_SELECTOR = bytes.fromhex("899314ce")
 """keccak-256("rootAt(address,uint64)")[:4], checked against AnchorLog's ABI in the tests."""
@@ -55,7 +55,7 @@ class ProofFormatError(FormatError):
         self.field = field
 
 
-class ProofVerificationError(RobocloudError):
+class ProofVerificationError(InvalidAnswerError):
     """A well-formed proof that does not hold: the record is not what the chain commits to."""
 
 
