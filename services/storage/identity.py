@@ -53,6 +53,7 @@ def passphrase(data_dir: Path, configured: str | None) -> str:
 
 def load_or_create(data_dir: Path, configured_passphrase: str | None) -> Identity:
     """The node's key from its keystore, generated and saved on the first start."""
+    data_dir.mkdir(parents=True, exist_ok=True)
     secret = passphrase(data_dir, configured_passphrase)
     path = data_dir / KEYSTORE
     if path.exists():
