@@ -8,6 +8,7 @@ require registration (it runs with ``AnySigner`` whatever ``ROBOCLOUD_AUTH`` say
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -18,6 +19,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 import services.ledger
+from robocloud.ledger import ContractAddresses
 from robocloud.signing import chain_deployment_id
 from services.common.app import create_app
 from services.common.auth import SignedAddress
@@ -26,8 +28,11 @@ from services.common.errors import Forbidden, Unavailable
 from services.ledger import views
 from services.ledger.backend import open_ledger
 from services.ledger.errors import ERRORS
+from services.ledger.grants import RoleGrant, open_granter
 from services.ledger.node import Ledger
 from services.ledger.settings import LedgerSettings
+
+log = logging.getLogger("robocloud.ledger")
 
 READY_TIMEOUT_S = 2.0
 
@@ -116,7 +121,33 @@ def _router() -> APIRouter:
     return router
 
 
+async def _grant_roles(ledger: Ledger, settings: LedgerSettings, grants: list[RoleGrant]) -> None:
+    """Apply the configured role grants, retrying until each is done (see ``grants``)."""
+    granter = await anyio.to_thread.run_sync(
+        open_granter,
+        ledger.dispatcher.handle,
+        ContractAddresses(ledger.deployment.registry, ledger.deployment.anchor_log),
+        settings.resolved_data_dir(),
+        settings.admin_passphrase(),
+        grants,
+    )
+    if granter is None:
+        return
+    try:
+        while True:
+            try:
+                if await anyio.to_thread.run_sync(granter.attempt):
+                    return
+            except Exception as exc:
+                log.warning("granting roles failed; retrying", extra={"error": str(exc)})
+            await anyio.sleep(settings.ledger_poll_interval_s)
+    finally:
+        granter.close()
+
+
 def build_app(settings: LedgerSettings) -> FastAPI:
+    grants = settings.role_grants()
+
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         ledger = await anyio.to_thread.run_sync(open_ledger, settings)
@@ -127,6 +158,8 @@ def build_app(settings: LedgerSettings) -> FastAPI:
                 follow = getattr(ledger, "follow", None)
                 if follow is not None:
                     tasks.start_soon(follow)
+                if grants:
+                    tasks.start_soon(_grant_roles, ledger, settings, grants)
                 yield
                 tasks.cancel_scope.cancel()
         finally:

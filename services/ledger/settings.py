@@ -7,8 +7,9 @@ from typing import Literal
 from pydantic import Field, SecretStr
 
 from robocloud.ledger.models import RegistrationMode
-from services.common.settings import ServiceSettings
+from services.common.settings import CommaList, ServiceSettings
 from services.ledger.calls import CallLimits
+from services.ledger.grants import RoleGrant, parse_grants
 
 
 class LedgerSettings(ServiceSettings):
@@ -35,6 +36,17 @@ class LedgerSettings(ServiceSettings):
         default="open",
         description="open: robots register themselves; approved: a registrar approves each",
     )
+    ledger_grant_roles: CommaList | None = Field(
+        default=None,
+        description="ROLE:ADDRESS or ROLE:URL (a storage node's /v1/node) granted at start; "
+        "unset: storage_node:<ROBOCLOUD_STORAGE_URL>; empty: none",
+    )
+
+    def role_grants(self) -> list[RoleGrant]:
+        entries = self.ledger_grant_roles
+        if entries is None:
+            entries = [f"storage_node:{self.storage_url}"]
+        return parse_grants(entries)
 
     def admin_passphrase(self) -> str | None:
         secret = self.ledger_admin_passphrase

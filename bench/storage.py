@@ -1,0 +1,173 @@
+"""Storage benchmarks. Each part is one function; ``main`` runs them all.
+
+Proofs (engineer anchor), against a ledger and a cas started here:
+
+1. Acknowledgement to proof: records appended (and fsynced) through the node's ``RecordLogs``
+   in batches of 1,000, each batch followed by ``notify``; the time from ``append`` returning
+   to the first moment its last record's proof is served (its epoch cut and anchored), p50 and
+   p99, beside the epoch length (the wait the design accepts).
+2. Proof fetch plus verification: ``GET /v1/records/{id}/proof`` from the storage service over
+   HTTP, then ``verify_record_proof`` (hashlib and one ``eth_call`` to the ledger's ``/rpc``),
+   p50 over random records of a log of ``--records``; the issue asks for at most 5 ms. Printed
+   beside the bare ``eth_call`` of ``AnchorLog.rootAt`` in the same run (the floor).
+
+    python bench/storage.py [--records 200000] [--batches 30] [--proofs 300]
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(REPO), str(REPO / "clients")]
+
+from robocloud import jcs  # noqa: E402
+from robocloud.ledger import JsonRpcClient, LedgerService  # noqa: E402
+from robocloud.proofs import RecordId, anchored_root, verify_record_proof  # noqa: E402
+from services.storage.anchoring import NotAnchored  # noqa: E402
+from services.storage.app import _open_node  # noqa: E402
+from services.storage.identity import load_or_create  # noqa: E402
+from services.storage.recordlog import LogEntry  # noqa: E402
+from services.storage.settings import StorageSettings  # noqa: E402
+from tests.procs import ServiceProcess, free_port  # noqa: E402
+
+QUIET = {"ROBOCLOUD_LOG_LEVEL": "WARNING"}
+
+
+def entries(start: int, stop: int) -> list[LogEntry]:
+    return [
+        LogEntry(
+            jcs.canonical(
+                {
+                    "template": "imu@1",
+                    "topic": "/imu",
+                    "robot": "0x" + "ab" * 20,
+                    "t": i,
+                    "data": {"x": i * 0.5, "y": -i},
+                }
+            ),
+            b'{"signer":"bench"}',
+        )
+        for i in range(start, stop)
+    ]
+
+
+def percentile(values: list[float], fraction: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(fraction * len(ordered)))]
+
+
+def bench_proofs(work: Path, records: int, batches: int, proofs: int) -> None:
+    storage_port = free_port()
+    address = load_or_create(work / "storage", None).address
+    ledger = ServiceProcess(
+        "ledger",
+        work / "ledger",
+        {
+            **QUIET,
+            "ROBOCLOUD_LEDGER_GRANT_ROLES": f"storage_node:{address}",
+            "ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.2",
+        },
+    ).start()
+    cas = ServiceProcess("cas", work / "cas", QUIET).start()
+    storage_env = {
+        **QUIET,
+        "ROBOCLOUD_AUTH": "signed",
+        "ROBOCLOUD_LEDGER_URL": ledger.url,
+        "ROBOCLOUD_CAS_URL": cas.url,
+        "ROBOCLOUD_STORAGE_ANCHOR_RETRY_S": "0.2",
+    }
+    storage = ServiceProcess("storage", work / "storage", storage_env, port=storage_port)
+    try:
+        settings = StorageSettings(
+            service="storage",
+            data_dir=work / "storage",
+            ledger_url=ledger.url,
+            cas_url=cas.url,
+            storage_anchor_retry_s=0.2,
+            storage_epoch_records=1000,
+        )
+        node = _open_node(settings)
+        node.start()
+        node.logs.append("imu@1", entries(0, records))
+        node.notify(records)
+        last = RecordId("imu", 1, records - 1)
+        while True:
+            try:
+                node.proofs.record_proof(last)
+                break
+            except NotAnchored:
+                time.sleep(0.01)
+        latencies: list[float] = []
+        for batch in range(batches):
+            start = records + batch * 1000
+            node.logs.append("imu@1", entries(start, start + 1000))
+            acknowledged = time.perf_counter()
+            node.notify(1000)
+            newest = RecordId("imu", 1, start + 999)
+            while True:
+                try:
+                    node.proofs.record_proof(newest)
+                    break
+                except NotAnchored:
+                    time.sleep(0.002)
+            latencies.append(time.perf_counter() - acknowledged)
+        node.close()
+        total = records + batches * 1000
+
+        storage.start()
+        with LedgerService(ledger.url) as service:
+            anchor_log = service.contracts().anchor_log
+        node_address = httpx.get(f"{storage.url}/v1/node").json()["address"]
+        rng = random.Random(7)
+        fetch_verify: list[float] = []
+        bare_call: list[float] = []
+        with httpx.Client(base_url=storage.url) as http, JsonRpcClient(f"{ledger.url}/rpc") as rpc:
+            for _ in range(proofs):
+                record_id = f"imu-1-{rng.randrange(total)}"
+                began = time.perf_counter()
+                body = http.get(f"/v1/records/{record_id}/proof").json()
+                verify_record_proof(body, rpc.request, anchor_log=anchor_log, record_id=record_id)
+                fetch_verify.append(time.perf_counter() - began)
+                began = time.perf_counter()
+                anchored_root(rpc.request, anchor_log, node_address, 1)
+                bare_call.append(time.perf_counter() - began)
+        p50, floor = statistics.median(fetch_verify), statistics.median(bare_call)
+        print(f"log of {total:,} records, epochs of at most 2 s or 1,000 records")
+        print(
+            f"ack to proof: p50 {statistics.median(latencies) * 1000:.0f} ms, "
+            f"p99 {percentile(latencies, 0.99) * 1000:.0f} ms over {batches} batches of 1,000 "
+            f"(epoch length 2,000 ms)"
+        )
+        print(
+            f"proof fetch + verification: p50 {p50 * 1000:.2f} ms "
+            f"(target <= 5 ms: {'met' if p50 <= 0.005 else 'MISSED'}), "
+            f"p99 {percentile(fetch_verify, 0.99) * 1000:.2f} ms; bare rootAt eth_call p50 "
+            f"{floor * 1000:.2f} ms; ratio {p50 / floor:.2f}x"
+        )
+    finally:
+        storage.stop()
+        cas.stop()
+        ledger.stop()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--records", type=int, default=200_000)
+    parser.add_argument("--batches", type=int, default=30)
+    parser.add_argument("--proofs", type=int, default=300)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as work:
+        bench_proofs(Path(work), args.records, args.batches, args.proofs)
+
+
+if __name__ == "__main__":
+    main()

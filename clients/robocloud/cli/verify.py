@@ -1,0 +1,88 @@
+"""``robocloud verify RECORD_ID``: check a record's proof against the chain, trusting no service.
+
+The proof comes from the storage node, the AnchorLog address from the ledger's
+``/v1/contracts`` (or ``--anchor-log``), and the anchored root from one ``eth_call`` to the
+chain's JSON-RPC (the ledger's ``/rpc``, or ``--rpc`` for any node the robot trusts).
+"""
+
+from __future__ import annotations
+
+import typer
+
+from robocloud.cli.context import JsonOption, fail
+from robocloud.cli.exits import ExitCode
+from robocloud.cli.ledger import LedgerOption
+from robocloud.cli.output import rows, show, show_json
+from robocloud.client import ServiceClient
+from robocloud.ledger import JsonRpcClient, LedgerService
+from robocloud.ledger.client import checksum
+from robocloud.ledger.transactions import quantity
+from robocloud.proofs import RecordId, RecordIdError, verify_record_proof
+
+StorageOption = typer.Option(
+    None,
+    "--storage",
+    help="URL of the storage service.",
+    show_default="$ROBOCLOUD_STORAGE_URL, else http://127.0.0.1:8082",
+)
+
+
+def verify(
+    record_id: str = typer.Argument(..., help="The record's id, <name>-<version>-<index>."),
+    storage: str | None = StorageOption,
+    ledger_url: str | None = LedgerOption,
+    rpc_url: str | None = typer.Option(
+        None,
+        "--rpc",
+        help="An Ethereum JSON-RPC URL to read the anchor from.",
+        show_default="the ledger's /rpc",
+    ),
+    anchor_log: str | None = typer.Option(
+        None,
+        "--anchor-log",
+        help="The AnchorLog address to trust.",
+        show_default="the ledger's /v1/contracts",
+    ),
+    node: str | None = typer.Option(
+        None, "--node", help="Accept only anchors of this storage node's address."
+    ),
+    as_json: bool = JsonOption,
+) -> None:
+    """Verify a record: its inclusion proofs with SHA-256, its anchor with one eth_call."""
+    try:
+        parsed = RecordId.parse(record_id)
+    except RecordIdError as exc:
+        fail(str(exc), ExitCode.USAGE, "a record id is <name>-<version>-<index>, like imu-1-0")
+    if anchor_log is None or rpc_url is None:
+        with LedgerService(ledger_url) as service:
+            anchor_log = anchor_log or service.contracts().anchor_log
+            rpc_url = rpc_url or f"{service.base_url}/rpc"
+    with ServiceClient(storage, service="storage") as client:
+        body = client.get_json(f"/v1/records/{parsed}/proof")
+    with JsonRpcClient(rpc_url) as rpc:
+        chain_id = quantity(rpc.request("eth_chainId", []))
+        proof = verify_record_proof(
+            body,
+            rpc.request,
+            anchor_log=checksum(anchor_log),
+            record_id=str(parsed),
+            chain_id=chain_id,
+            node=checksum(node) if node else None,
+        )
+    if as_json:
+        show_json({"id": str(parsed), "verified": True, **body})
+        return
+    show(
+        *rows(
+            [
+                ("record", f"{parsed} verified"),
+                ("template", f"{proof.template}: leaf {proof.leaf_index} of {proof.tree_size}"),
+                ("epoch", f"{proof.epoch}: TMT root {proof.tmt_root.hex()}"),
+                ("anchor", f"{proof.anchor.node} on chain {chain_id}, tx {proof.anchor.tx}"),
+            ]
+        )
+    )
+
+
+def register(app: typer.Typer) -> None:
+    app.command("verify")(verify)

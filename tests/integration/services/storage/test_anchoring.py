@@ -1,0 +1,169 @@
+"""The storage node anchors its epochs on the ledger, in order, through an outage of the ledger.
+
+Until ``POST /v1/records`` exists, records are appended with the service's own ``RecordLogs``
+while the service is stopped (the logs belong to one process at a time), then the service is
+started again to cut and anchor them.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from robocloud import jcs, merkle
+from robocloud.cas import Cas
+from robocloud.ledger import JsonRpcClient, Ledger, LedgerService, Role
+from robocloud.proofs import ProofVerificationError, verify_record_proof
+from services.storage.recordlog import LogEntry, RecordLogs
+from tests.conftest import ServiceFactory
+from tests.procs import ServiceProcess, free_port
+
+ROBOT = "0x" + "ab" * 20
+
+
+def record(template: str, i: int) -> LogEntry:
+    body = {"template": template, "topic": "/t", "robot": ROBOT, "t": i, "data": {"i": i}}
+    return LogEntry(jcs.canonical(body), b'{"signer":"test"}')
+
+
+def append_stopped(storage: ServiceProcess, template: str, start: int, stop: int) -> None:
+    storage.stop()
+    logs = RecordLogs(storage.data_dir / "logs")
+    logs.append(template, [record(template, i) for i in range(start, stop)])
+    logs.close()
+    storage.start()
+
+
+def wait_for(check: Callable[[], Any], what: str, timeout_s: float = 90.0) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def node_state(storage: ServiceProcess) -> dict[str, Any]:
+    return dict(httpx.get(f"{storage.url}/v1/node", timeout=10).json())
+
+
+class Deployment:
+    def __init__(self, factory: ServiceFactory, tmp: Path) -> None:
+        storage_port = free_port()
+        self.ledger = factory(
+            "ledger",
+            {
+                "ROBOCLOUD_STORAGE_URL": f"http://127.0.0.1:{storage_port}",
+                "ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.2",
+            },
+        )
+        self.cas = factory("cas")
+        self.storage = factory(
+            "storage",
+            {
+                "ROBOCLOUD_LEDGER_URL": self.ledger.url,
+                "ROBOCLOUD_CAS_URL": self.cas.url,
+                "ROBOCLOUD_STORAGE_EPOCH_S": "0.2",
+                "ROBOCLOUD_STORAGE_ANCHOR_RETRY_S": "0.2",
+            },
+            port=storage_port,
+        )
+        with LedgerService(self.ledger.url) as service:
+            self.anchor_log = service.contracts().anchor_log
+
+    def proof(self, record_id: str) -> httpx.Response:
+        return httpx.get(f"{self.storage.url}/v1/records/{record_id}/proof", timeout=10)
+
+    def verify(self, record_id: str, body: Any | None = None) -> Any:
+        with JsonRpcClient(f"{self.ledger.url}/rpc") as rpc:
+            return verify_record_proof(
+                self.proof(record_id).json() if body is None else body,
+                rpc.request,
+                anchor_log=self.anchor_log,
+                record_id=record_id,
+                chain_id=1337,
+                node=node_state(self.storage)["address"],
+            )
+
+
+@pytest.fixture
+def deployment(service_factory: ServiceFactory, tmp_path: Path) -> Deployment:
+    return Deployment(service_factory, tmp_path)
+
+
+def test_epochs_are_anchored_and_proofs_verify_on_chain(deployment: Deployment) -> None:
+    storage = deployment.storage
+    append_stopped(storage, "imu@1", 0, 300)
+    state = wait_for(
+        lambda: (s := node_state(storage))["last_anchored_epoch"] >= 1 and s, "epoch 1 anchored"
+    )
+    assert state["standing"] == "anchoring"
+    with Ledger.connect(deployment.ledger.url) as ledger:
+        assert ledger.has_role(state["address"], Role.STORAGE_NODE)
+    proof = deployment.verify("imu-1-123")
+    assert proof.record == json.loads(record("imu@1", 123).record)
+    assert proof.tree_size == 300
+
+    epoch = httpx.get(f"{storage.url}/v1/epochs/1", timeout=10).json()
+    assert epoch["status"] == "anchored"
+    assert epoch["heads"][0]["size"] == 300
+    with Cas(deployment.cas.url) as cas:
+        stored = json.loads(cas.get(epoch["manifest_cid"]))
+    manifest_keys = ("epoch", "node", "heads", "record_count", "tmt_root")
+    assert stored == {key: epoch[key] for key in manifest_keys}
+
+    body = deployment.proof("imu-1-123").json()
+    tampered = {**body, "record": {**body["record"], "data": {"i": 124}}}
+    with pytest.raises(ProofVerificationError, match="not in its template log"):
+        deployment.verify("imu-1-123", tampered)
+    with pytest.raises(ProofVerificationError, match="asked for imu-1-5"):
+        deployment.verify("imu-1-5", body)
+    with (
+        JsonRpcClient(f"{deployment.ledger.url}/rpc") as rpc,
+        pytest.raises(ProofVerificationError, match="trusted one"),
+    ):
+        verify_record_proof(body, rpc.request, anchor_log="0x" + "11" * 20)
+
+
+def test_epochs_cut_while_the_ledger_is_down_are_anchored_in_order_when_it_returns(
+    deployment: Deployment,
+) -> None:
+    storage, ledger = deployment.storage, deployment.ledger
+    append_stopped(storage, "imu@1", 0, 10)
+    wait_for(lambda: node_state(storage)["last_anchored_epoch"] == 1, "epoch 1 anchored")
+    ledger.stop()
+    append_stopped(storage, "imu@1", 10, 20)
+    wait_for(lambda: node_state(storage)["last_epoch"] == 2, "epoch 2 cut")
+    append_stopped(storage, "gps@1", 0, 5)
+    state = wait_for(
+        lambda: (s := node_state(storage))["last_epoch"] == 3 and s["anchor_error"] and s,
+        "epoch 3 cut, anchoring failing",
+    )
+    assert state["last_anchored_epoch"] == 1
+    waiting = deployment.proof("imu-1-15")
+    assert waiting.status_code == 409
+    assert waiting.json()["error"]["code"] == "not_anchored"
+    assert waiting.json()["error"]["details"] == {"id": "imu-1-15", "epoch": 2}
+    assert deployment.proof("gps-1-4").json()["error"]["details"]["epoch"] == 3
+
+    ledger.start()
+    wait_for(lambda: node_state(storage)["last_anchored_epoch"] == 3, "epochs 2 and 3 anchored")
+    node = node_state(storage)["address"]
+    with Ledger.connect(ledger.url) as client:
+        anchored = client.anchors(node=node)
+        assert [anchor.epoch for anchor in anchored] == [1, 2, 3]
+        assert [anchor.record_count for anchor in anchored] == [10, 20, 25]
+    assert deployment.verify("imu-1-15").epoch == 2
+    assert deployment.verify("gps-1-4").epoch == 3
+    assert deployment.verify("imu-1-3").epoch == 1
+    epoch_2 = httpx.get(f"{storage.url}/v1/epochs/2", timeout=10).json()
+    root = bytes.fromhex(epoch_2["heads"][0]["root"])
+    leaves = [merkle.leaf_hash(record("imu@1", i).record) for i in range(20)]
+    assert root == merkle.root(leaves)
