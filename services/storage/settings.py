@@ -54,7 +54,7 @@ class StorageSettings(ServiceSettings):
         default=4 * 1024**3, ge=0, description="address space of a SPARQL worker (0: unbounded)"
     )
     knowledge_store: Literal["memory", "oxigraph"] = Field(
-        default="memory", description="the rdflib store behind SPARQL (docs/semantics.md)"
+        default="oxigraph", description="the rdflib store behind SPARQL (docs/semantics.md)"
     )
     knowledge_follow_ledger: bool = Field(
         default=True, description="index descriptions advertised on the ledger"

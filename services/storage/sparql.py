@@ -234,7 +234,9 @@ class _Worker:
         from rdflib.plugins.sparql import prepareQuery
 
         self.directory = directory
-        self.graph = Graph(store="Oxigraph") if store == "oxigraph" else Graph()
+        # Oxigraph parses and evaluates a query itself, from its text.
+        self.native = store == "oxigraph"
+        self.graph = Graph(store="Oxigraph") if self.native else Graph()
         self.loaded: set[str] = set()
         self.applications = prepareQuery(APPLICATIONS_QUERY)
         for text in WARM_QUERIES[1:]:
@@ -245,6 +247,7 @@ class _Worker:
         from robocloud.semantic import SemanticError, parse_canonical
         from robocloud.unixfs import import_bytes
 
+        quads: list[Any] = []
         for cid in cids:
             if cid in self.loaded:
                 continue
@@ -257,11 +260,12 @@ class _Worker:
             except (OSError, SemanticError) as exc:
                 print(f"sparql worker: skipping {path}: {exc}", file=sys.stderr)
                 continue
-            for triple in description.graph:
-                self.graph.add(triple)
+            quads.extend((s, p, o, self.graph) for s, p, o in description.graph)
             self.loaded.add(cid)
+        self.graph.addN(quads)
 
     def query(self, text: str, accept: str | None, format_parameter: str | None) -> Any:
+        from rdflib import Graph
         from rdflib.plugins.sparql.parser import parseQuery, parseUpdate
 
         try:
@@ -283,19 +287,30 @@ class _Worker:
             return ("not_acceptable", exc.accept, exc.available)
         from rdflib.plugins.sparql.algebra import translateQuery
 
-        result = self.graph.query(translateQuery(parsed))
+        result = self.graph.query(text if self.native else translateQuery(parsed))
         body: bytes | None
         if kind in ("CONSTRUCT", "DESCRIBE"):
             assert result.graph is not None
-            body = result.graph.serialize(format=GRAPH_TYPES[media_type], encoding="utf-8")
+            graph = Graph()
+            graph.addN((s, p, _simple(o), graph) for s, p, o in result.graph)
+            body = graph.serialize(format=GRAPH_TYPES[media_type], encoding="utf-8")
         else:
+            if kind == "SELECT":
+                result.bindings = [
+                    {name: _simple(value) for name, value in row.items()} for row in result.bindings
+                ]
             body = result.serialize(format=RESULT_SET_TYPES[media_type], encoding="utf-8")
         return ("ok", media_type, body or b"")
 
     def application_rows(self, consumes: str) -> Any:
         from rdflib import URIRef
 
-        rows = self.graph.query(self.applications, initBindings={"consumes": URIRef(consumes)})
+        if self.native:
+            # ``consumes`` is an IRI the service built from a checked media type or CID.
+            bound = f"WHERE {{ VALUES ?consumes {{ <{consumes}> }}"
+            rows = self.graph.query(APPLICATIONS_QUERY.replace("WHERE {", bound, 1))
+        else:
+            rows = self.graph.query(self.applications, initBindings={"consumes": URIRef(consumes)})
         fields = ("app", "name", "version", "direction", "port", "portName")
         optional = ("mediaType", "template", "attribute")
         answer = []
@@ -306,6 +321,16 @@ class _Worker:
                 + tuple(str(values[name]) if name in values else None for name in optional)
             )
         return ("ok", answer)
+
+
+def _simple(term: Any) -> Any:
+    """An ``xsd:string`` literal as the simple literal it is (RDF 1.1): Oxigraph gives every
+    string its datatype, which rdflib would write out and compare as another term."""
+    from rdflib import XSD, Literal
+
+    if isinstance(term, Literal) and term.datatype == XSD.string:
+        return Literal(str(term))
+    return term
 
 
 def _limit_memory(limit: int) -> None:
