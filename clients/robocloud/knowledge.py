@@ -8,6 +8,7 @@ checks them again.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from robocloud import bounded_json
@@ -18,6 +19,14 @@ from robocloud.errors import InvalidAnswerError
 from robocloud.semantic import Description, validate
 
 SPARQL_JSON = "application/sparql-results+json"
+
+
+@dataclass(frozen=True)
+class SparqlAnswer:
+    """A SPARQL answer: its media type (without parameters) and its bytes."""
+
+    media_type: str
+    body: bytes
 
 
 class Knowledge(ServiceClient):
@@ -32,8 +41,8 @@ class Knowledge(ServiceClient):
             raise InvalidAnswerError(f"the knowledge base answered {str(answer)[:200]} for {cid}")
         return answer
 
-    def sparql(self, query: str, *, accept: str = SPARQL_JSON) -> bytes:
-        """A SPARQL 1.1 Protocol query (POST form), answered in the ``accept`` format."""
+    def sparql(self, query: str, *, accept: str = SPARQL_JSON) -> SparqlAnswer:
+        """A SPARQL 1.1 Protocol query (POST form), answered in a format ``accept`` allows."""
         response = self.request(
             "POST",
             "/v1/knowledge/sparql",
@@ -42,11 +51,12 @@ class Knowledge(ServiceClient):
             signed=False,
             idempotent=True,
         )
-        return response.content
+        media = response.headers.get("content-type", "").split(";")[0].strip().lower()
+        return SparqlAnswer(media, response.content)
 
     def select(self, query: str) -> list[dict[str, str]]:
         """The rows of a SELECT query, each variable's value as text (unbound ones left out)."""
-        document = bounded_json.loads(self.sparql(query))
+        document = bounded_json.loads(self.sparql(query).body)
         try:
             bindings = document["results"]["bindings"]
             return [{name: str(value["value"]) for name, value in row.items()} for row in bindings]

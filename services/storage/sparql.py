@@ -291,7 +291,11 @@ class _Worker:
         body: bytes | None
         if kind in ("CONSTRUCT", "DESCRIBE"):
             assert result.graph is not None
+            from robocloud.semantic import PREFIXES
+
             graph = Graph()
+            for prefix, namespace in PREFIXES.items():
+                graph.bind(prefix, namespace)
             graph.addN((s, p, _simple(o), graph) for s, p, o in result.graph)
             body = graph.serialize(format=GRAPH_TYPES[media_type], encoding="utf-8")
         else:
