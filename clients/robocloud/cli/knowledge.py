@@ -107,7 +107,13 @@ def _time(text: str | None, option: str) -> datetime | None:
 
 def describe(
     files: list[Path] = typer.Argument(
-        ..., exists=True, dir_okay=False, readable=True, metavar="FILE...", show_default=False
+        ...,
+        exists=True,
+        dir_okay=False,
+        readable=True,
+        metavar="FILE...",
+        show_default=False,
+        help="The files to describe.",
     ),
     media_type: str | None = typer.Option(
         None, "--media-type", help="IANA media type of every FILE.", show_default="from the name"
@@ -265,8 +271,13 @@ def sparql(
         "ntriples or rdfxml.",
     ),
     storage: str | None = StorageOption,
+    as_json: bool = typer.Option(
+        False, "--json", help="Print the answer as SPARQL JSON results (--format json)."
+    ),
 ) -> None:
     """Ask the knowledge base a SPARQL query and print the answer."""
+    if as_json:
+        output = "json"
     if output != "table" and output not in FORMATS:
         raise typer.BadParameter(f"table or one of {', '.join(FORMATS)}", param_hint="--format")
     if query == "-":

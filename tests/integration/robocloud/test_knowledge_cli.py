@@ -131,7 +131,7 @@ def test_sparql_prints_each_format_and_a_refusal(robot: Robot, tmp_path: Path) -
     code, output = robot.sparql(query, "--format", "csv")
     assert code == 0, output
     assert list(csv.reader(io.StringIO(output))) == [["w"], ["100"]]
-    code, output = robot.sparql(query, "--format", "json")
+    code, output = robot.sparql(query, "--json")
     assert json.loads(output)["results"]["bindings"] == [
         {
             "w": {
