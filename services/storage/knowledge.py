@@ -172,6 +172,8 @@ class FollowState:
 
     @classmethod
     def load(cls, path: Path) -> FollowState:
+        """The saved state; a missing or unreadable file starts over from block 0 (the
+        descriptions already on disk are not fetched again, only re-checked as seen)."""
         try:
             document = json.loads(path.read_text())
             return cls(
@@ -181,6 +183,9 @@ class FollowState:
                 {str(cid): str(why) for cid, why in document["refused"].items()},
             )
         except FileNotFoundError:
+            return cls(0, -1, [], {})
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            log.warning("%s is unreadable (%s): following the ledger from block 0", path, exc)
             return cls(0, -1, [], {})
 
     def save(self, path: Path) -> None:
