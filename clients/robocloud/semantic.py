@@ -58,6 +58,12 @@ PREFIXES: Final = {
 MAX_DESCRIPTION_BYTES: Final = 1 << 20
 """A description is metadata: a megabyte is hundreds of times what the largest example needs."""
 MAX_DESCRIPTION_TRIPLES: Final = 10_000
+MAX_DESCRIBED_THINGS: Final = 100
+"""Typed subjects in one description. SHACL validation costs about 5 ms per described thing
+(its SPARQL constraints run once each), so this bounds what validating a stranger's
+description can cost; a dataset with 99 templates still fits."""
+MAX_PROPERTY_VALUES: Final = 256
+"""Values of one property of one node: ``sh:lessThanOrEquals`` compares every pair."""
 
 KINDS: Final = {
     RC.Robot: "robot",
@@ -339,7 +345,25 @@ def _check_size(data: bytes, max_bytes: int, max_triples: int | None) -> None:
             raise DescriptionTooLargeError("triples", lines, max_triples)
 
 
+def check_bounds(description: Description) -> None:
+    """Refuse a description whose validation could cost more than a small one's."""
+    things = len(description.subjects())
+    if things > MAX_DESCRIBED_THINGS:
+        raise DescriptionTooLargeError("described things", things, MAX_DESCRIBED_THINGS)
+    counts: dict[tuple[Node, Node], int] = {}
+    for subject, predicate, _ in description.graph:
+        key = (subject, predicate)
+        counts[key] = counts.get(key, 0) + 1
+        if counts[key] > MAX_PROPERTY_VALUES:
+            raise DescriptionTooLargeError(
+                f"values of {_curie(predicate)} on {str(subject)[:200]}",
+                len(list(description.graph.objects(subject, predicate))),
+                MAX_PROPERTY_VALUES,
+            )
+
+
 def _require_subjects(description: Description) -> None:
+    check_bounds(description)
     if not description.subjects():
         kinds = ", ".join(f"rc:{cls.removeprefix(str(RC))}" for cls in KINDS)
         raise NotADescriptionError(f"the document describes nothing of a known kind ({kinds})")
@@ -376,6 +400,7 @@ def violations(description: Description) -> list[Violation]:
     """
     from pyshacl import validate
 
+    check_bounds(description)
     _, report, _ = validate(description.graph, shacl_graph=shapes(), allow_warnings=True)
     assert isinstance(report, Graph)
     found: set[Violation] = set()

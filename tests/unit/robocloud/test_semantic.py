@@ -11,7 +11,7 @@ import pytest
 from rdflib import RDF, Graph, Literal, URIRef
 
 from robocloud import semantic
-from robocloud.cid import DAG_PB, RAW
+from robocloud.cid import CID, DAG_PB, RAW
 from robocloud.semantic import (
     RC,
     Description,
@@ -186,7 +186,8 @@ def test_canonical_bytes_read_back_unchanged_with_the_same_cid(kind: str) -> Non
 def test_a_description_larger_than_one_chunk_has_a_dag_pb_cid() -> None:
     graph = BUILT["file"]().graph
     for index in range(400):
-        graph.add((URIRef(f"ipfs://{JPEG}"), RC.encoding, Literal(f"{index:04}" + "x" * 1000)))
+        predicate = URIRef(f"https://example.org/note{index}")
+        graph.add((URIRef(f"ipfs://{JPEG}"), predicate, Literal("x" * 1000)))
     description = Description(graph)
     assert len(description.canonical()) > 262144
     assert description.cid().codec == DAG_PB
@@ -323,6 +324,27 @@ def test_a_document_over_the_byte_or_triple_bound_is_refused_before_parsing() ->
     turtle = "\n".join(f"<ipfs://{JPEG}> <http://x/{i}> {i} ." for i in range(20))
     with pytest.raises(DescriptionTooLargeError, match="20 triples, more than the limit of 10"):
         semantic.parse_description(turtle, max_triples=10)
+
+
+def test_too_many_described_things_or_values_of_one_property_are_refused() -> None:
+    files = Graph()
+    for index in range(semantic.MAX_DESCRIBED_THINGS + 1):
+        files += semantic.file_description(
+            CID.from_block(str(index).encode()), "image/png", 1
+        ).graph
+    crowded = Description(files)
+    message = "101 described things, more than the limit of 100"
+    with pytest.raises(DescriptionTooLargeError, match=message):
+        semantic.violations(crowded)
+    with pytest.raises(DescriptionTooLargeError, match=message):
+        semantic.parse_canonical(crowded.canonical())
+    graph = BUILT["file"]().graph
+    for index in range(semantic.MAX_PROPERTY_VALUES + 1):
+        graph.add((URIRef(f"ipfs://{JPEG}"), RC.sensor, URIRef(f"{CAMERA}{index}")))
+    with pytest.raises(DescriptionTooLargeError, match="258 values of rc:sensor on ipfs://"):
+        semantic.parse_canonical(Description(graph).canonical())
+    with pytest.raises(DescriptionTooLargeError, match="limit of 256"):
+        semantic.validate(Description(graph))
 
 
 def test_a_document_that_is_not_rdf_is_a_syntax_error() -> None:
