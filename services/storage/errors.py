@@ -27,6 +27,7 @@ from services.storage.recordlog import InvalidTemplateId
 from services.storage.sparql import (
     NotAcceptableError,
     QueryFailedError,
+    QueryRefusedError,
     QuerySyntaxError,
     QueryTimeoutError,
     QueryTooLargeError,
@@ -83,6 +84,7 @@ ERRORS = ErrorMap(
         QuerySyntaxError: ErrorRule(400, "sparql_syntax"),
         UpdateRejectedError: ErrorRule(400, "sparql_update_rejected"),
         QueryFailedError: ErrorRule(400, "sparql_query_failed"),
+        QueryRefusedError: ErrorRule(400, "sparql_query_refused"),
         QueryTooLargeError: ErrorRule(
             413, "query_too_large", lambda exc: {"size": exc.size, "limit": exc.limit}
         ),

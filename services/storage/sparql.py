@@ -134,6 +134,10 @@ class QueryTimeoutError(SparqlError):
         self.timeout_s = timeout_s
 
 
+class QueryRefusedError(SparqlError):
+    """A query that would reach outside the knowledge base (SERVICE, FROM)."""
+
+
 class NotAcceptableError(SparqlError):
     def __init__(self, accept: str, available: Sequence[str]) -> None:
         super().__init__(f"no result format matches Accept: {accept[:200]}")
@@ -280,6 +284,9 @@ class _Worker:
                 "UpdateRejectedError",
                 "this endpoint answers queries only: SPARQL updates are rejected",
             )
+        refused = _outside_reach(parsed)
+        if refused is not None:
+            return ("error", "QueryRefusedError", refused)
         kind = parsed[1].name.removesuffix("Query").upper()
         try:
             media_type = choose_format(kind, accept, format_parameter)
@@ -327,6 +334,25 @@ class _Worker:
         return ("ok", answer)
 
 
+def _outside_reach(parsed: Any) -> str | None:
+    """Why the query is refused, if it asks the worker to fetch anything: ``SERVICE`` makes
+    rdflib send HTTP requests wherever the query says, and ``FROM`` loads graphs from URLs."""
+    from rdflib.plugins.sparql.parserutils import CompValue
+
+    stack = [parsed]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, CompValue):
+            if node.name == "ServiceGraphPattern":
+                return "SERVICE is refused: the knowledge base answers from its own graph only"
+            if node.name == "DatasetClause":
+                return "FROM and FROM NAMED are refused: the knowledge base is one graph"
+            stack.extend(node.values())
+        elif isinstance(node, list | tuple) or hasattr(node, "asList"):
+            stack.extend(list(node))
+    return None
+
+
 def _simple(term: Any) -> Any:
     """An ``xsd:string`` literal as the simple literal it is (RDF 1.1): Oxigraph gives every
     string its datatype, which rdflib would write out and compare as another term."""
@@ -357,6 +383,9 @@ def worker_main(argv: Sequence[str]) -> None:
     sys.setrecursionlimit(10_000)
     inbox, outbox = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # nothing but framed answers may reach the parent's pipe
+    import rdflib.plugins.sparql
+
+    rdflib.plugins.sparql.SPARQL_LOAD_GRAPHS = False  # never fetch a graph a query names
     worker = _Worker(directory, store)
     _framed_write(outbox, ("ready", len(worker.loaded)))
     while True:
@@ -395,6 +424,7 @@ _ERRORS: dict[str, Callable[[str], SparqlError]] = {
     "QuerySyntaxError": QuerySyntaxError,
     "UpdateRejectedError": UpdateRejectedError,
     "QueryFailedError": QueryFailedError,
+    "QueryRefusedError": QueryRefusedError,
     "WorkerFailedError": WorkerFailedError,
 }
 

@@ -14,6 +14,7 @@ from robocloud import semantic
 from services.common.durable import atomic_write
 from services.storage.sparql import (
     NotAcceptableError,
+    QueryRefusedError,
     QuerySyntaxError,
     QueryTimeoutError,
     SparqlWorkers,
@@ -118,6 +119,25 @@ def test_syntax_errors_and_updates_are_told_apart(pool: SparqlWorkers) -> None:
     with pytest.raises(UpdateRejectedError):
         pool.query(PREFIX + "DELETE WHERE { ?s ?p ?o }", None)
     assert pool.describe()["replaced"] == 0
+
+
+@pytest.mark.parametrize(
+    ("query", "message"),
+    [
+        ("SELECT * WHERE { SERVICE <http://127.0.0.1:1/> { ?s ?p ?o } }", "SERVICE is refused"),
+        (
+            "SELECT * WHERE { ?s ?p ?o OPTIONAL { { SERVICE SILENT <http://x/> { ?s ?p ?o } } } }",
+            "SERVICE is refused",
+        ),
+        ("SELECT * FROM <http://127.0.0.1:1/g> WHERE { ?s ?p ?o }", "FROM and FROM NAMED"),
+        ("ASK FROM NAMED <file:///etc/passwd> { ?s ?p ?o }", "FROM and FROM NAMED"),
+    ],
+)
+def test_a_query_that_would_fetch_from_elsewhere_is_refused(
+    pool: SparqlWorkers, query: str, message: str
+) -> None:
+    with pytest.raises(QueryRefusedError, match=message):
+        pool.query(query, None)
 
 
 def test_a_query_past_its_deadline_is_killed_and_its_worker_replaced(
