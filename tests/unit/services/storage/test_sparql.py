@@ -113,6 +113,32 @@ def test_workers_load_the_files_skip_what_is_not_a_description_and_see_additions
         assert len(select(pool, "SELECT ?a WHERE { ?a a rc:Application }")) == 1
 
 
+def test_applications_are_found_by_media_type_or_by_record_template(pool: SparqlWorkers) -> None:
+    template = "bafkreigyfykq6j7zji5odgbwfjasn6pbbpx5a4irvf74j62376sqyl3kbm"
+    records = semantic.application_description(
+        "bafkreicyps4ybl3w7xd6ki3j7ufz3etn74tgs5vw7cwgghrvr7wmjh7yz4",
+        "imu_filter",
+        "2",
+        inputs=[semantic.Port("imu", template=template)],
+        outputs=[semantic.Port("report", media_type="application/json")],
+    )
+    pool.add([write(pool.directory, records), write(pool.directory, example("application"))])
+    rows = pool.application_rows(f"ipfs://{template}")
+    assert sorted({(row[1], row[3], row[5], row[6], row[7]) for row in rows}) == [
+        ("imu_filter", "input", "imu", None, f"ipfs://{template}"),
+        (
+            "imu_filter",
+            "output",
+            "report",
+            "https://www.iana.org/assignments/media-types/application/json",
+            None,
+        ),
+    ]
+    jpeg = pool.application_rows("https://www.iana.org/assignments/media-types/image/jpeg")
+    assert {row[1] for row in jpeg} == {"blur_faces"}
+    assert pool.application_rows("https://www.iana.org/assignments/media-types/image/gif") == []
+
+
 def test_syntax_errors_and_updates_are_told_apart(pool: SparqlWorkers) -> None:
     with pytest.raises(QuerySyntaxError, match=r"not a SPARQL 1\.1 query"):
         pool.query("SELECT WHERE", None)
