@@ -14,7 +14,28 @@ from services.storage.anchoring import (
     RecordNotFound,
     TemplateNotFound,
 )
+from services.storage.knowledge import (
+    CasUnavailable,
+    DescriptionInvalid,
+    DescriptionNotFound,
+    DescriptionTooLarge,
+    DescriptionUnparsable,
+    InvalidTypeParameter,
+    NotADescription,
+)
 from services.storage.recordlog import InvalidTemplateId
+from services.storage.sparql import (
+    NotAcceptableError,
+    QueryFailedError,
+    QueryRefusedError,
+    QuerySyntaxError,
+    QueryTimeoutError,
+    QueryTooLargeError,
+    ResultTooLargeError,
+    UpdateRejectedError,
+    WorkerFailedError,
+    WorkersUnavailableError,
+)
 
 ERRORS = ErrorMap(
     {
@@ -41,6 +62,51 @@ ERRORS = ErrorMap(
             409,
             "not_anchored",
             lambda exc: {"id": str(exc.record_id), "epoch": exc.epoch},
+        ),
+        # ----- knowledge base (engineer semantic) -----
+        DescriptionInvalid: ErrorRule(
+            400,
+            "description_invalid",
+            lambda exc: {"cid": exc.cid, "violations": exc.violations},
+        ),
+        DescriptionUnparsable: ErrorRule(
+            400, "rdf_unparsable", lambda exc: {"cid": exc.cid, "line": exc.line}
+        ),
+        NotADescription: ErrorRule(400, "not_a_description", lambda exc: {"cid": exc.cid}),
+        DescriptionTooLarge: ErrorRule(
+            400, "description_too_large", lambda exc: {"cid": exc.cid, "limit": exc.limit}
+        ),
+        DescriptionNotFound: ErrorRule(404, "description_not_found", lambda exc: {"cid": exc.cid}),
+        CasUnavailable: ErrorRule(502, "cas_unavailable", lambda exc: {"cid": exc.cid}),
+        InvalidTypeParameter: ErrorRule(
+            400, "invalid_parameter", lambda exc: {"field": exc.field, "value": exc.value[:200]}
+        ),
+        QuerySyntaxError: ErrorRule(400, "sparql_syntax"),
+        UpdateRejectedError: ErrorRule(400, "sparql_update_rejected"),
+        QueryFailedError: ErrorRule(400, "sparql_query_failed"),
+        QueryRefusedError: ErrorRule(400, "sparql_query_refused"),
+        QueryTooLargeError: ErrorRule(
+            413, "query_too_large", lambda exc: {"size": exc.size, "limit": exc.limit}
+        ),
+        ResultTooLargeError: ErrorRule(400, "result_too_large", lambda exc: {"limit": exc.limit}),
+        NotAcceptableError: ErrorRule(
+            406,
+            "not_acceptable",
+            lambda exc: {
+                "header": "Accept",
+                "accept": exc.accept[:200],
+                "available": exc.available,
+            },
+        ),
+        QueryTimeoutError: ErrorRule(
+            503,
+            "query_timeout",
+            lambda exc: {"timeout_s": exc.timeout_s},
+            headers=lambda _: {"Retry-After": "1"},
+        ),
+        WorkerFailedError: ErrorRule(503, "query_worker_failed"),
+        WorkersUnavailableError: ErrorRule(
+            503, "knowledge_loading", headers=lambda _: {"Retry-After": "1"}
         ),
     }
 )

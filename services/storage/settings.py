@@ -5,6 +5,8 @@ Each engineer's settings sit in their own block, so that additions merge without
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, SecretStr
 
 from services.common.settings import ServiceSettings
@@ -30,6 +32,35 @@ class StorageSettings(ServiceSettings):
     storage_register: bool = Field(
         default=True,
         description="register the node's key on the Registry at start (faucet on a dev chain)",
+    )
+
+    # ----- knowledge base (engineer semantic) -----
+    knowledge_workers: int = Field(
+        default=2, ge=1, le=16, description="SPARQL worker processes, each with a copy of the graph"
+    )
+    knowledge_query_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        le=300,
+        description="a query (waiting for a worker included) is stopped after this long",
+    )
+    knowledge_max_query_bytes: int = Field(
+        default=64 * 1024, gt=0, description="the longest SPARQL query accepted"
+    )
+    knowledge_max_result_bytes: int = Field(
+        default=16 * 1024 * 1024, gt=0, description="the largest SPARQL answer sent"
+    )
+    knowledge_worker_memory_bytes: int = Field(
+        default=4 * 1024**3, ge=0, description="address space of a SPARQL worker (0: unbounded)"
+    )
+    knowledge_store: Literal["memory", "oxigraph"] = Field(
+        default="oxigraph", description="the rdflib store behind SPARQL (docs/semantics.md)"
+    )
+    knowledge_follow_ledger: bool = Field(
+        default=True, description="index descriptions advertised on the ledger"
+    )
+    knowledge_poll_s: float = Field(
+        default=2.0, gt=0, description="how often the ledger's advertisements are read"
     )
 
     def node_passphrase(self) -> str | None:

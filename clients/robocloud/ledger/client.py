@@ -16,6 +16,7 @@ import httpx
 from eth_utils.address import is_address, to_checksum_address
 from eth_utils.crypto import keccak
 
+from robocloud.cid import parse_cid
 from robocloud.client import Closeable, ServiceClient
 from robocloud.errors import InvalidAnswerError, MissingIdentityError, NotFoundError
 from robocloud.identity import Identity
@@ -30,6 +31,7 @@ from robocloud.ledger.models import (
     Advertised,
     Advertisement,
     Anchor,
+    IndexedAdvertisement,
     RegisteredRobot,
     RegistrationMode,
     Robot,
@@ -132,6 +134,70 @@ class LedgerService(ServiceClient):
                     f"with status {record.status!r}"
                 )
         return records
+
+    def advertisements(
+        self,
+        *,
+        since: int = 0,
+        limit: int = 100,
+        cid: str | None = None,
+        advertiser: str | None = None,
+    ) -> list[IndexedAdvertisement]:
+        """``GET /v1/advertisements``: Advertised events from block ``since`` on, oldest first.
+
+        An answer with more than ``limit`` events, events out of order or before ``since``,
+        or a malformed event is an ``InvalidAnswerError``: a follower that trusted it could
+        skip advertisements for good.
+        """
+        params: dict[str, str | int] = {"since": since, "limit": limit}
+        if cid is not None:
+            params["cid"] = cid
+        if advertiser is not None:
+            params["advertiser"] = checksum(advertiser)
+        body = self.get_json("/v1/advertisements", params=params)
+        if not isinstance(body, dict) or not isinstance(body.get("advertisements"), list):
+            raise InvalidAnswerError("the ledger's advertisements are not a list")
+        items = body["advertisements"]
+        if len(items) > limit:
+            raise InvalidAnswerError(
+                f"the ledger sent {len(items)} advertisements, more than the {limit} asked for"
+            )
+        events = [_advertisement(item) for item in items]
+        order = [(event.block_number, event.log_index) for event in events]
+        if order != sorted(order) or any(event.block_number < since for event in events):
+            raise InvalidAnswerError("the ledger's advertisements are out of order")
+        return events
+
+
+def _advertisement(item: Any) -> IndexedAdvertisement:
+    try:
+        description = item["description"]
+        event = IndexedAdvertisement(
+            cid=_optional_cid(item["cid"]),
+            advertiser=checksum(item["advertiser"]),
+            description=_optional_cid(description["cid"]) if description is not None else None,
+            first=item["first"],
+            timestamp=item["timestamp"],
+            block_number=item["block_number"],
+            log_index=item["log_index"],
+            tx_hash=item["tx"],
+        )
+        for number in (event.timestamp, event.block_number, event.log_index):
+            if isinstance(number, bool) or not isinstance(number, int) or number < 0:
+                raise ValueError(f"{number!r} is not a block number, log index or time")
+        if not isinstance(event.first, bool) or not isinstance(event.tx_hash, str):
+            raise ValueError("first or tx is malformed")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidAnswerError(f"an advertisement from the ledger is malformed: {exc}") from None
+    return event
+
+
+def _optional_cid(text: object) -> str | None:
+    if text is None:
+        return None
+    if not isinstance(text, str):
+        raise ValueError(f"{text!r} is not CID text")
+    return str(parse_cid(text, "cid"))
 
 
 def _robot_record(body: Any, what: str) -> RegisteredRobot:

@@ -136,6 +136,24 @@ class Advertised:
 
 
 @dataclass(frozen=True)
+class IndexedAdvertisement:
+    """An ``Advertised`` event as the ledger service's index lists it (``GET /v1/advertisements``).
+
+    ``cid`` and ``description`` are CID text, None where the bytes on chain are not a CID (or,
+    for ``description``, empty); ``(block_number, log_index)`` orders events.
+    """
+
+    cid: str | None
+    advertiser: str
+    description: str | None
+    first: bool
+    timestamp: int
+    block_number: int
+    log_index: int
+    tx_hash: str
+
+
+@dataclass(frozen=True)
 class Anchor:
     """A storage node's Template Merkle Tree root for one epoch."""
 

@@ -1,0 +1,455 @@
+"""The knowledge base: validated descriptions, indexed for SPARQL, fed by robots and the ledger.
+
+A description arrives as a CID, by ``POST /v1/knowledge`` or advertised on the ledger
+(``Registry.advertise(cid, descriptionCid)``). It is fetched from cas (verified against its CID
+by the SDK), read in canonical form, checked against the SHACL shapes, and written to
+``knowledge/descriptions/<cid>.nt`` before it is acknowledged: those files are the truth.
+The SPARQL workers (``services.storage.sparql``) build their graphs from them, so a restart or
+a kill -9 re-reads local files and fetches nothing again.
+
+The ledger follower keeps its place in ``knowledge/follow.json`` (the last advertisement
+handled, descriptions whose fetch failed and are retried, and those refused, with why). When
+the directory is lost, it starts again from block 0 and fetches every advertised description
+from cas again: the knowledge base rebuilds itself from cas and the chain.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from robocloud.cas import ContentTooLargeError
+from robocloud.cid import CID, parse_cid
+from robocloud.errors import NotFoundError, RobocloudError
+from robocloud.semantic import (
+    MAX_DESCRIPTION_BYTES,
+    MAX_DESCRIPTION_TRIPLES,
+    MEDIA_TYPES,
+    Description,
+    DescriptionInvalidError,
+    DescriptionSyntaxError,
+    DescriptionTooLargeError,
+    SemanticError,
+    parse_canonical,
+    validate,
+)
+from services.common.durable import atomic_write
+from services.storage.sparql import SparqlWorkers
+
+log = logging.getLogger("robocloud.storage.knowledge")
+
+MAX_PENDING = 10_000
+"""Advertised descriptions whose fetch failed, kept for retry; the oldest go beyond this."""
+MAX_REFUSED = 100_000
+
+
+class KnowledgeError(Exception):
+    """Base of the knowledge base's domain errors; ``cid`` names the description."""
+
+    def __init__(self, message: str, cid: str) -> None:
+        super().__init__(message)
+        self.cid = cid
+
+
+class DescriptionNotFound(KnowledgeError):
+    """cas does not have the description."""
+
+
+class CasUnavailable(KnowledgeError):
+    """cas could not be asked (down, or answered something that is not the content)."""
+
+
+class DescriptionRefused(KnowledgeError):
+    """The bytes at the CID are not a valid description (``reason`` is the SDK's error)."""
+
+    def __init__(self, cid: str, reason: SemanticError) -> None:
+        super().__init__(f"{cid}: {reason}", cid)
+        self.reason = reason
+
+
+class DescriptionInvalid(DescriptionRefused):
+    """It fails its shapes; ``violations`` lists each one."""
+
+    @property
+    def violations(self) -> list[dict[str, str | None]]:
+        assert isinstance(self.reason, DescriptionInvalidError)
+        return [violation.as_dict() for violation in self.reason.violations]
+
+
+class DescriptionUnparsable(DescriptionRefused):
+    """It is not RDF (``line`` where known)."""
+
+    @property
+    def line(self) -> int | None:
+        return getattr(self.reason, "line", None)
+
+
+class NotADescription(DescriptionRefused):
+    """RDF or bytes that are not a robocloud description."""
+
+
+class DescriptionTooLarge(DescriptionRefused):
+    """More bytes or triples than a description may hold."""
+
+    @property
+    def limit(self) -> int:
+        assert isinstance(self.reason, DescriptionTooLargeError)
+        return self.reason.limit
+
+
+def _refused(cid: str, reason: SemanticError) -> DescriptionRefused:
+    kinds: list[tuple[type[SemanticError], type[DescriptionRefused]]] = [
+        (DescriptionInvalidError, DescriptionInvalid),
+        (DescriptionSyntaxError, DescriptionUnparsable),
+        (DescriptionTooLargeError, DescriptionTooLarge),
+    ]
+    for reason_type, refusal in kinds:
+        if isinstance(reason, reason_type):
+            return refusal(cid, reason)
+    return NotADescription(cid, reason)
+
+
+class InvalidTypeParameter(ValueError):
+    def __init__(self, field: str, value: str) -> None:
+        super().__init__(
+            f"{field} must be a media type (image/jpeg), an IANA media type IRI or a "
+            f"template's ipfs://<cid>, not {value[:200]!r}"
+        )
+        self.field = field
+        self.value = value
+
+
+class CasReader(Protocol):
+    def get(self, cid: CID | str, *, max_size: int | None = None) -> bytes: ...
+
+
+class Advertisement(Protocol):
+    block_number: int
+    log_index: int
+    description: str | None
+
+
+class LedgerReader(Protocol):
+    def advertisements(self, *, since: int, limit: int) -> list[Any]: ...
+
+
+Connect = Callable[[], AbstractContextManager[CasReader]]
+ConnectLedger = Callable[[], AbstractContextManager[LedgerReader]]
+
+
+@dataclass(frozen=True)
+class Indexed:
+    """What ``add`` did: the description's CID, what it describes, and whether it was new."""
+
+    cid: str
+    subjects: dict[str, str]
+    triples: int
+    new: bool
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "cid": self.cid,
+            "subjects": self.subjects,
+            "triples": self.triples,
+            "new": self.new,
+        }
+
+
+@dataclass
+class FollowState:
+    """Where the ledger follower is, persisted in ``follow.json``."""
+
+    block: int = 0
+    log_index: int = -1
+    pending: list[str] | None = None
+    refused: dict[str, str] | None = None
+
+    @classmethod
+    def load(cls, path: Path) -> FollowState:
+        """The saved state; a missing or unreadable file starts over from block 0 (the
+        descriptions already on disk are not fetched again, only re-checked as seen)."""
+        try:
+            document = json.loads(path.read_text())
+            return cls(
+                int(document["block"]),
+                int(document["log_index"]),
+                [str(cid) for cid in document["pending"]],
+                {str(cid): str(why) for cid, why in document["refused"].items()},
+            )
+        except FileNotFoundError:
+            return cls(0, -1, [], {})
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            log.warning("%s is unreadable (%s): following the ledger from block 0", path, exc)
+            return cls(0, -1, [], {})
+
+    def save(self, path: Path) -> None:
+        document = {
+            "block": self.block,
+            "log_index": self.log_index,
+            "pending": self.pending or [],
+            "refused": self.refused or {},
+        }
+        atomic_write(path, json.dumps(document, sort_keys=True).encode())
+
+
+class KnowledgeBase:
+    """Descriptions on disk, SPARQL workers over them, and the ledger follower."""
+
+    def __init__(
+        self,
+        root: Path,
+        workers: SparqlWorkers,
+        connect_cas: Connect,
+        *,
+        max_bytes: int = MAX_DESCRIPTION_BYTES,
+        max_triples: int = MAX_DESCRIPTION_TRIPLES,
+    ) -> None:
+        self.root = root
+        self.descriptions = root / "descriptions"
+        self.descriptions.mkdir(parents=True, exist_ok=True)
+        self.workers = workers
+        self.connect_cas = connect_cas
+        self.max_bytes = max_bytes
+        self.max_triples = max_triples
+        self._lock = threading.Lock()
+        self._known = {path.stem for path in self.descriptions.glob("*.nt")}
+        self._follower: LedgerFollower | None = None
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._known)
+
+    def __contains__(self, cid: str) -> bool:
+        with self._lock:
+            return cid in self._known
+
+    def add(self, cid_text: str) -> Indexed:
+        """Fetch, read, validate and store the description at ``cid_text``; idempotent."""
+        cid = str(parse_cid(cid_text, "cid").to_v1())
+        description = self._fetch(cid)
+        new = self._store(cid, description)
+        return Indexed(cid, description.subjects(), len(description), new)
+
+    def _fetch(self, cid: str) -> Description:
+        try:
+            with self.connect_cas() as cas:
+                data = cas.get(cid, max_size=self.max_bytes)
+        except ContentTooLargeError as exc:
+            size = exc.declared or self.max_bytes + 1
+            raise DescriptionTooLarge(
+                cid, DescriptionTooLargeError("bytes", size, self.max_bytes)
+            ) from None
+        except NotFoundError:
+            raise DescriptionNotFound(f"cas does not have {cid}", cid) from None
+        except RobocloudError as exc:
+            raise CasUnavailable(f"cannot fetch {cid} from cas: {exc}", cid) from None
+        try:
+            description = parse_canonical(
+                data, max_bytes=self.max_bytes, max_triples=self.max_triples
+            )
+            return validate(description)
+        except SemanticError as exc:
+            raise _refused(cid, exc) from None
+
+    def _store(self, cid: str, description: Description) -> bool:
+        with self._lock:
+            if cid in self._known:
+                return False
+            atomic_write(self.descriptions / f"{cid}.nt", description.canonical())
+            self._known.add(cid)
+        self.workers.add([cid])
+        return True
+
+    def cids(self) -> Iterator[str]:
+        with self._lock:
+            yield from sorted(self._known)
+
+    def applications(
+        self, consumes: str, produces: str | None = None, limit: int = 100
+    ) -> list[dict[str, Any]]:
+        """Applications taking ``consumes`` (and giving ``produces``), sorted by name and IRI."""
+        wanted = type_iri(consumes, "consumes")
+        produced = type_iri(produces, "produces") if produces is not None else None
+        apps: dict[str, dict[str, Any]] = {}
+        for row in self.workers.application_rows(wanted):
+            app, name, version, direction, port, port_name, media, template, attribute = row
+            if app is None or direction is None or port is None:
+                continue
+            entry = apps.setdefault(
+                app,
+                {
+                    "iri": app,
+                    "cid": app.removeprefix("ipfs://"),
+                    "name": name,
+                    "version": version,
+                    "inputs": {},
+                    "outputs": {},
+                },
+            )
+            ports = entry[f"{direction}s"]
+            described = ports.setdefault(
+                port,
+                {
+                    "name": port_name,
+                    "iri": port,
+                    "media_type": media.removeprefix(MEDIA_TYPES) if media else None,
+                    "template": template,
+                    "attributes": set(),
+                },
+            )
+            if attribute is not None:
+                described["attributes"].add(attribute.rsplit("#", 1)[-1])
+        answer = []
+        for entry in apps.values():
+            for direction in ("inputs", "outputs"):
+                entry[direction] = sorted(
+                    (
+                        {**port, "attributes": sorted(port["attributes"])}
+                        for port in entry[direction].values()
+                    ),
+                    key=lambda port: port["name"],
+                )
+            if produced is not None and not any(
+                MEDIA_TYPES + (port["media_type"] or "") == produced or port["template"] == produced
+                for port in entry["outputs"]
+            ):
+                continue
+            answer.append(entry)
+        answer.sort(key=lambda entry: (entry["name"] or "", entry["iri"]))
+        return answer[:limit]
+
+    # ----- the ledger follower -----
+
+    def follow(self, connect_ledger: ConnectLedger, interval_s: float, batch: int = 1000) -> None:
+        """Start following the ledger's advertisements in a background thread."""
+        self._follower = LedgerFollower(self, connect_ledger, interval_s, batch)
+        self._follower.start()
+
+    def follow_state(self) -> dict[str, Any]:
+        follower = self._follower
+        return follower.describe() if follower is not None else {"following": False}
+
+    def close(self) -> None:
+        if self._follower is not None:
+            self._follower.stop()
+
+
+def type_iri(value: str, field: str) -> str:
+    """A media type (``image/jpeg``), an IANA IRI or a template's ``ipfs://<cid>``, as an IRI."""
+    if value.startswith("ipfs://"):
+        try:
+            return f"ipfs://{parse_cid(value.removeprefix('ipfs://'), field).to_v1()}"
+        except ValueError:
+            raise InvalidTypeParameter(field, value) from None
+    from robocloud.semantic import media_type_iri
+
+    try:
+        return media_type_iri(value)
+    except SemanticError:
+        raise InvalidTypeParameter(field, value) from None
+
+
+class LedgerFollower:
+    """Polls the ledger for advertisements and indexes each advertised description once."""
+
+    def __init__(
+        self, knowledge: KnowledgeBase, connect: ConnectLedger, interval_s: float, batch: int
+    ) -> None:
+        self.knowledge = knowledge
+        self.connect = connect
+        self.interval_s = interval_s
+        self.batch = batch
+        self.path = knowledge.root / "follow.json"
+        self.state = FollowState.load(self.path)
+        self.error: str | None = None
+        self.indexed = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="knowledge-follower", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=30)
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "following": True,
+            "block": self.state.block,
+            "log_index": self.state.log_index,
+            "pending": len(self.state.pending or []),
+            "refused": len(self.state.refused or {}),
+            "indexed_from_ledger": self.indexed,
+            "error": self.error,
+        }
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                more = self.poll()
+                self.error = None
+            except Exception as exc:  # the ledger or cas is down: say so, try again later
+                self.error = f"{type(exc).__name__}: {exc}"[:500]
+                log.warning("following the ledger's advertisements failed: %s", self.error)
+                more = False
+            if not more:
+                self._stop.wait(self.interval_s)
+
+    def poll(self) -> bool:
+        """One round: retry pending descriptions, then read new advertisements.
+
+        True when a full batch brought something new (there may be more to read at once). A
+        block with more advertisements than a batch cannot be read past with ``since``: the
+        batch (1,000) is far above what one block of the development chain holds.
+        """
+        state = self.state
+        pending, refused = state.pending or [], state.refused or {}
+        changed = False
+        for cid in list(pending):
+            if self._index(cid, refused):
+                pending.remove(cid)
+                changed = True
+        with self.connect() as ledger:
+            advertisements = ledger.advertisements(since=state.block, limit=self.batch)
+        progressed = False
+        for ad in advertisements:
+            if (ad.block_number, ad.log_index) <= (state.block, state.log_index):
+                continue
+            state.block, state.log_index = ad.block_number, ad.log_index
+            changed = progressed = True
+            cid = ad.description
+            if cid is None or cid in refused or cid in self.knowledge or cid in pending:
+                continue
+            if not self._index(cid, refused):
+                pending.append(cid)
+                del pending[:-MAX_PENDING]
+        if changed:
+            state.pending, state.refused = pending, refused
+            state.save(self.path)
+        return progressed and len(advertisements) >= self.batch
+
+    def _index(self, cid: str, refused: dict[str, str]) -> bool:
+        """True once the description is indexed or refused for good; False to retry later."""
+        try:
+            indexed = self.knowledge.add(cid)
+        except DescriptionRefused as exc:
+            log.info("advertised description %s refused: %s", cid, exc.reason)
+            if len(refused) < MAX_REFUSED:
+                refused[cid] = str(exc.reason)[:500]
+            return True
+        except (DescriptionNotFound, CasUnavailable) as exc:
+            log.info("advertised description %s not fetched yet: %s", cid, exc)
+            return False
+        except ValueError as exc:  # a CID the chain holds that is not a valid CID
+            refused[cid] = str(exc)[:500]
+            return True
+        if indexed.new:
+            self.indexed += 1
+        return True

@@ -1,0 +1,637 @@
+"""SPARQL over the knowledge base, in worker processes that can be stopped.
+
+rdflib evaluates a query in Python, and nothing inside it checks a clock: a cross product of
+every file with every file, or a regular expression that backtracks for ever, holds its thread
+until it is done. So queries never run in the service's process. Each worker is a child
+process (``python -m services.storage.sparql``) holding its own copy of the graph, read from
+the description files; a query goes to an idle worker with a deadline, and a worker that
+misses it is killed (SIGKILL) and replaced while the others keep answering. A worker's memory
+is bounded too (``RLIMIT_AS``), and it dies with its parent (``PR_SET_PDEATHSIG``).
+
+Parent and worker speak pickled messages framed by a 4-byte length over the worker's stdin and
+stdout; the worker is our own code, started by us, so pickle is safe here. Descriptions added
+after a worker started reach it as ``load`` messages sent before its next query, so a query
+always sees every description acknowledged before it was sent.
+
+Result formats follow the SPARQL 1.1 Protocol: result sets as SPARQL JSON, XML or CSV,
+graphs (CONSTRUCT, DESCRIBE) as Turtle, N-Triples or RDF/XML, chosen from the Accept header.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import os
+import pickle
+import queue
+import resource
+import select
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+log = logging.getLogger("robocloud.storage.sparql")
+
+RESULT_SET_TYPES = {
+    "application/sparql-results+json": "json",
+    "application/json": "json",
+    "application/sparql-results+xml": "xml",
+    "application/xml": "xml",
+    "text/csv": "csv",
+    "text/xml": "xml",
+}
+"""Media types a SELECT or ASK answer can take, with rdflib's result serializer for each."""
+GRAPH_TYPES = {
+    "text/turtle": "turtle",
+    "application/x-turtle": "turtle",
+    "application/n-triples": "nt",
+    "text/plain": "nt",
+    "application/rdf+xml": "xml",
+    "application/xml": "xml",
+    "text/xml": "xml",
+}
+"""Media types a CONSTRUCT or DESCRIBE answer can take, with rdflib's graph serializer."""
+DEFAULT_RESULT_SET = "application/sparql-results+json"
+DEFAULT_GRAPH = "text/turtle"
+FORMAT_PARAMETER = {
+    "json": ("application/sparql-results+json", "text/turtle"),
+    "xml": ("application/sparql-results+xml", "application/rdf+xml"),
+    "csv": ("text/csv", "text/turtle"),
+    "turtle": ("application/sparql-results+json", "text/turtle"),
+    "n3": ("application/sparql-results+json", "text/turtle"),
+    "rdf+xml": ("application/sparql-results+xml", "application/rdf+xml"),
+}
+"""``format``/``output`` parameters some clients (SPARQLWrapper) send beside Accept."""
+
+PREFIXES = """PREFIX rc: <https://w3id.org/robocloud#>
+PREFIX rdf: <http://www.w3.org/1999/02/22-rdf-syntax-ns#>
+"""
+APPLICATIONS_QUERY = (
+    PREFIXES
+    + """SELECT ?app ?name ?version ?direction ?port ?portName ?mediaType ?template ?attribute
+WHERE {
+    ?app rc:input ?wanted .
+    ?wanted rc:mediaType|rc:portTemplate ?consumes .
+    ?app rc:name ?name ; rc:version ?version .
+    { ?app rc:input ?port . BIND ("input" AS ?direction) }
+    UNION
+    { ?app rc:output ?port . BIND ("output" AS ?direction) }
+    ?port rc:name ?portName .
+    OPTIONAL { ?port rc:mediaType ?mediaType }
+    OPTIONAL { ?port rc:portTemplate ?template }
+    OPTIONAL { ?port rc:requiresAttribute ?attribute }
+}"""
+)
+"""Applications with an input of type ``?consumes``, one row per port and attribute."""
+WARM_QUERIES = (
+    APPLICATIONS_QUERY,
+    PREFIXES + "SELECT ?s ?p ?o WHERE { ?s ?p ?o . FILTER (isIRI(?s)) } ORDER BY ?s LIMIT 1",
+    PREFIXES + "ASK { ?s a rc:File }",
+    PREFIXES + "CONSTRUCT { ?s ?p ?o } WHERE { ?s ?p ?o } LIMIT 1",
+)
+"""Parsed when a worker starts: rdflib's first parse builds its grammar (seconds)."""
+
+
+class SparqlError(Exception):
+    """Base of the knowledge base's query errors."""
+
+
+class QuerySyntaxError(SparqlError):
+    """The query is not SPARQL 1.1."""
+
+
+class UpdateRejectedError(SparqlError):
+    """A SPARQL update sent to the query endpoint, which is read-only."""
+
+
+class QueryTooLargeError(SparqlError):
+    def __init__(self, size: int, limit: int) -> None:
+        super().__init__(f"the query has {size} bytes, more than the limit of {limit}")
+        self.size = size
+        self.limit = limit
+
+
+class ResultTooLargeError(SparqlError):
+    def __init__(self, limit: int) -> None:
+        super().__init__(f"the result is larger than {limit} bytes: add a LIMIT")
+        self.limit = limit
+
+
+class QueryTimeoutError(SparqlError):
+    """The query did not finish within the budget; its worker was stopped."""
+
+    def __init__(self, timeout_s: float, *, waiting: bool = False) -> None:
+        what = "no query worker was free" if waiting else "the query did not finish"
+        super().__init__(f"{what} within {timeout_s:g} s; it was stopped")
+        self.timeout_s = timeout_s
+
+
+class QueryRefusedError(SparqlError):
+    """A query that would reach outside the knowledge base (SERVICE, FROM)."""
+
+
+class NotAcceptableError(SparqlError):
+    def __init__(self, accept: str, available: Sequence[str]) -> None:
+        super().__init__(f"no result format matches Accept: {accept[:200]}")
+        self.accept = accept
+        self.available = list(available)
+
+
+class WorkerFailedError(SparqlError):
+    """A worker died or answered nonsense (out of memory, a crash); it was replaced."""
+
+
+class WorkersUnavailableError(SparqlError):
+    """No worker has started yet (the service is still loading its descriptions)."""
+
+
+# ----- content negotiation (pure) -----
+
+
+def negotiate(accept: str | None, available: Sequence[str], default: str) -> str:
+    """The media type in ``available`` the Accept header prefers (RFC 9110 q-values).
+
+    No header, or ``*/*`` alone, gives ``default``; nothing acceptable raises
+    ``NotAcceptableError``.
+    """
+    if not accept or not accept.strip():
+        return default
+    ranges: list[tuple[float, int, str]] = []
+    for position, item in enumerate(accept.split(",")[:64]):
+        parts = [part.strip() for part in item.split(";")]
+        media = parts[0].lower()
+        quality = 1.0
+        for parameter in parts[1:]:
+            name, _, value = parameter.partition("=")
+            if name.strip().lower() == "q":
+                try:
+                    quality = float(value)
+                except ValueError:
+                    quality = 0.0
+        if media and quality > 0:
+            ranges.append((-quality, position, media))
+    for _, _, media in sorted(ranges):
+        if media == "*/*":
+            return default
+        if media.endswith("/*"):
+            prefix = media[:-1]
+            if default.startswith(prefix):
+                return default
+            for candidate in available:
+                if candidate.startswith(prefix):
+                    return candidate
+        elif media in available:
+            return media
+    raise NotAcceptableError(accept, available)
+
+
+def choose_format(query_kind: str, accept: str | None, format_parameter: str | None) -> str:
+    """The media type of the answer to a query of ``query_kind`` (SELECT, ASK, CONSTRUCT...)."""
+    graph = query_kind in ("CONSTRUCT", "DESCRIBE")
+    if format_parameter:
+        hinted = FORMAT_PARAMETER.get(format_parameter.lower())
+        if hinted is not None:
+            return hinted[1] if graph else hinted[0]
+        if format_parameter in (GRAPH_TYPES if graph else RESULT_SET_TYPES):
+            return format_parameter
+    if graph:
+        return negotiate(accept, list(GRAPH_TYPES), DEFAULT_GRAPH)
+    available = list(RESULT_SET_TYPES)
+    if query_kind == "ASK":
+        available = [media for media in available if RESULT_SET_TYPES[media] in ("json", "xml")]
+    return negotiate(accept, available, DEFAULT_RESULT_SET)
+
+
+# ----- the worker process -----
+
+
+def _framed_write(stream: IO[bytes], message: object) -> None:
+    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(struct.pack(">I", len(data)) + data)
+    stream.flush()
+
+
+def _framed_read(stream: IO[bytes]) -> Any:
+    head = stream.read(4)
+    if len(head) < 4:
+        raise EOFError
+    (size,) = struct.unpack(">I", head)
+    data = stream.read(size)
+    if len(data) < size:
+        raise EOFError
+    return pickle.loads(data)
+
+
+class _Worker:
+    """Inside the child: the graph, the prepared queries, and the message loop."""
+
+    def __init__(self, directory: Path, store: str) -> None:
+        from rdflib import Graph
+        from rdflib.plugins.sparql import prepareQuery
+
+        self.directory = directory
+        # Oxigraph parses and evaluates a query itself, from its text.
+        self.native = store == "oxigraph"
+        self.graph = Graph(store="Oxigraph") if self.native else Graph()
+        self.loaded: set[str] = set()
+        self.applications = prepareQuery(APPLICATIONS_QUERY)
+        for text in WARM_QUERIES[1:]:
+            prepareQuery(text)
+        self.load(sorted(path.stem for path in directory.glob("*.nt")))
+
+    def load(self, cids: Sequence[str]) -> None:
+        from robocloud.semantic import SemanticError, parse_canonical
+        from robocloud.unixfs import import_bytes
+
+        quads: list[Any] = []
+        for cid in cids:
+            if cid in self.loaded:
+                continue
+            path = self.directory / f"{cid}.nt"
+            try:
+                data = path.read_bytes()
+                if str(import_bytes(data)[1]) != cid:
+                    raise SemanticError(f"the file's bytes have another CID than {cid}")
+                description = parse_canonical(data)
+            except (OSError, SemanticError) as exc:
+                print(f"sparql worker: skipping {path}: {exc}", file=sys.stderr)
+                continue
+            quads.extend((s, p, o, self.graph) for s, p, o in description.graph)
+            self.loaded.add(cid)
+        self.graph.addN(quads)
+
+    def query(self, text: str, accept: str | None, format_parameter: str | None) -> Any:
+        from rdflib import Graph
+        from rdflib.plugins.sparql.parser import parseQuery, parseUpdate
+
+        try:
+            parsed = parseQuery(text)
+        except Exception as exc:  # pyparsing's errors and RecursionError for hostile nesting
+            try:
+                parseUpdate(text)
+            except Exception:
+                return ("error", "QuerySyntaxError", f"not a SPARQL 1.1 query: {exc}"[:1000])
+            return (
+                "error",
+                "UpdateRejectedError",
+                "this endpoint answers queries only: SPARQL updates are rejected",
+            )
+        refused = _outside_reach(parsed)
+        if refused is not None:
+            return ("error", "QueryRefusedError", refused)
+        kind = parsed[1].name.removesuffix("Query").upper()
+        try:
+            media_type = choose_format(kind, accept, format_parameter)
+        except NotAcceptableError as exc:
+            return ("not_acceptable", exc.accept, exc.available)
+        from rdflib.plugins.sparql.algebra import translateQuery
+
+        result = self.graph.query(text if self.native else translateQuery(parsed))
+        body: bytes | None
+        if kind in ("CONSTRUCT", "DESCRIBE"):
+            assert result.graph is not None
+            from robocloud.semantic import PREFIXES
+
+            graph = Graph()
+            for prefix, namespace in PREFIXES.items():
+                graph.bind(prefix, namespace)
+            graph.addN((s, p, _simple(o), graph) for s, p, o in result.graph)
+            body = graph.serialize(format=GRAPH_TYPES[media_type], encoding="utf-8")
+        else:
+            if kind == "SELECT":
+                result.bindings = [
+                    {name: _simple(value) for name, value in row.items()} for row in result.bindings
+                ]
+            body = result.serialize(format=RESULT_SET_TYPES[media_type], encoding="utf-8")
+        return ("ok", media_type, body or b"")
+
+    def application_rows(self, consumes: str) -> Any:
+        from rdflib import URIRef
+
+        if self.native:
+            # ``consumes`` is an IRI the service built from a checked media type or CID.
+            bound = f"WHERE {{ VALUES ?consumes {{ <{consumes}> }}"
+            rows = self.graph.query(APPLICATIONS_QUERY.replace("WHERE {", bound, 1))
+        else:
+            rows = self.graph.query(self.applications, initBindings={"consumes": URIRef(consumes)})
+        fields = ("app", "name", "version", "direction", "port", "portName")
+        optional = ("mediaType", "template", "attribute")
+        answer = []
+        for row in rows:
+            values = row.asdict()  # type: ignore[union-attr]
+            answer.append(
+                tuple(str(values[name]) for name in fields)
+                + tuple(str(values[name]) if name in values else None for name in optional)
+            )
+        return ("ok", answer)
+
+
+def _outside_reach(parsed: Any) -> str | None:
+    """Why the query is refused, if it asks the worker to fetch anything: ``SERVICE`` makes
+    rdflib send HTTP requests wherever the query says, and ``FROM`` loads graphs from URLs."""
+    from rdflib.plugins.sparql.parserutils import CompValue
+
+    stack = [parsed]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, CompValue):
+            if node.name == "ServiceGraphPattern":
+                return "SERVICE is refused: the knowledge base answers from its own graph only"
+            if node.name == "DatasetClause":
+                return "FROM and FROM NAMED are refused: the knowledge base is one graph"
+            stack.extend(node.values())
+        elif isinstance(node, list | tuple) or hasattr(node, "asList"):
+            stack.extend(list(node))
+    return None
+
+
+def _simple(term: Any) -> Any:
+    """An ``xsd:string`` literal as the simple literal it is (RDF 1.1): Oxigraph gives every
+    string its datatype, which rdflib would write out and compare as another term."""
+    from rdflib import XSD, Literal
+
+    if isinstance(term, Literal) and term.datatype == XSD.string:
+        return Literal(str(term))
+    return term
+
+
+def _limit_memory(limit: int) -> None:
+    if limit > 0:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+
+def _die_with_parent() -> None:
+    """Linux's PR_SET_PDEATHSIG: the kernel kills the worker when the service dies (kill -9)."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)
+
+
+def worker_main(argv: Sequence[str]) -> None:
+    """``python -m services.storage.sparql DIRECTORY STORE MEMORY_BYTES``."""
+    _die_with_parent()
+    directory, store, memory = Path(argv[0]), argv[1], int(argv[2])
+    _limit_memory(memory)
+    sys.setrecursionlimit(10_000)
+    inbox, outbox = sys.stdin.buffer, sys.stdout.buffer
+    sys.stdout = sys.stderr  # nothing but framed answers may reach the parent's pipe
+    import rdflib.plugins.sparql
+
+    rdflib.plugins.sparql.SPARQL_LOAD_GRAPHS = False  # never fetch a graph a query names
+    worker = _Worker(directory, store)
+    _framed_write(outbox, ("ready", len(worker.loaded)))
+    while True:
+        try:
+            message = _framed_read(inbox)
+        except EOFError:
+            return
+        verb = message[0]
+        if verb == "load":
+            worker.load(message[1])
+            continue
+        try:
+            if verb == "query":
+                answer = worker.query(message[1], message[2], message[3])
+            elif verb == "applications":
+                answer = worker.application_rows(message[1])
+            else:
+                answer = ("error", "WorkerFailedError", f"unknown message {verb!r}")
+        except MemoryError:
+            answer = ("error", "WorkerFailedError", "the query ran out of memory")
+        except RecursionError:
+            answer = ("error", "QuerySyntaxError", "the query nests too deeply")
+        except Exception as exc:  # a query that rdflib cannot evaluate (type errors, ...)
+            answer = ("error", "QueryFailedError", f"{type(exc).__name__}: {exc}"[:1000])
+        _framed_write(outbox, answer)
+
+
+# ----- the pool, in the service's process -----
+
+
+class QueryFailedError(SparqlError):
+    """rdflib could not evaluate the query (an error in the query, not in the service)."""
+
+
+_ERRORS: dict[str, Callable[[str], SparqlError]] = {
+    "QuerySyntaxError": QuerySyntaxError,
+    "UpdateRejectedError": UpdateRejectedError,
+    "QueryFailedError": QueryFailedError,
+    "QueryRefusedError": QueryRefusedError,
+    "WorkerFailedError": WorkerFailedError,
+}
+
+
+@dataclass
+class _Child:
+    process: subprocess.Popen[bytes]
+    pending: list[str]
+    ready: bool = False
+
+
+class SparqlWorkers:
+    """A pool of worker processes answering queries over the description files in ``directory``.
+
+    ``add`` makes new descriptions visible to every later query; ``query`` and
+    ``applications`` block the calling thread (run them off the event loop) for at most
+    ``timeout_s``, waiting for a free worker included.
+    """
+
+    def __init__(
+        self,
+        directory: Path,
+        *,
+        workers: int,
+        timeout_s: float,
+        max_result_bytes: int,
+        memory_bytes: int,
+        store: str = "memory",
+        start_timeout_s: float = 300.0,
+    ) -> None:
+        self.directory = directory
+        self.count = workers
+        self.timeout_s = timeout_s
+        self.max_result_bytes = max_result_bytes
+        self.memory_bytes = memory_bytes
+        self.store = store
+        self.start_timeout_s = start_timeout_s
+        self._lock = threading.Lock()
+        self._children: list[_Child] = []
+        self._idle: queue.Queue[_Child] = queue.Queue()
+        self._closed = False
+        self.replaced = 0
+
+    def start(self) -> None:
+        """Start every worker in the background; each becomes idle once it has loaded."""
+        for _ in range(self.count):
+            self._spawn()
+
+    def ready(self) -> bool:
+        with self._lock:
+            return any(child.ready for child in self._children)
+
+    def describe(self) -> dict[str, int]:
+        with self._lock:
+            ready = sum(child.ready for child in self._children)
+        idle = self._idle.qsize()
+        return {"ready": ready, "busy": max(ready - idle, 0), "replaced": self.replaced}
+
+    def add(self, cids: Sequence[str]) -> None:
+        with self._lock:
+            for child in self._children:
+                child.pending.extend(cids)
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            children = list(self._children)
+            self._children.clear()
+        for child in children:
+            self._stop(child)
+
+    def query(
+        self, text: str, accept: str | None, format_parameter: str | None = None
+    ) -> tuple[str, bytes]:
+        """The answer's media type and bytes."""
+        answer = self._ask(("query", text, accept, format_parameter))
+        if answer[0] == "not_acceptable":
+            raise NotAcceptableError(answer[1], answer[2])
+        return answer[1], answer[2]
+
+    def application_rows(self, consumes: str) -> list[tuple[str | None, ...]]:
+        rows: list[tuple[str | None, ...]] = self._ask(("applications", consumes))[1]
+        return rows
+
+    def _ask(self, message: tuple[Any, ...]) -> Any:
+        deadline = time.monotonic() + self.timeout_s
+        with self._lock:
+            if not any(child.ready for child in self._children):
+                raise WorkersUnavailableError("the query workers are still loading the graph")
+        try:
+            child = self._idle.get(timeout=self.timeout_s)
+        except queue.Empty:
+            raise QueryTimeoutError(self.timeout_s, waiting=True) from None
+        try:
+            with self._lock:
+                pending, child.pending = child.pending, []
+            stdin = child.process.stdin
+            assert stdin is not None
+            if pending:
+                _framed_write(stdin, ("load", pending))
+            _framed_write(stdin, message)
+            answer = self._read_answer(child, deadline)
+        except QueryTimeoutError:
+            self._replace(child, "timed out")
+            raise
+        except (OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:
+            self._replace(child, f"failed: {exc}")
+            raise WorkerFailedError(f"the query worker failed ({exc}); it was replaced") from None
+        except ResultTooLargeError:
+            self._replace(child, "answered too much")
+            raise
+        self._idle.put(child)
+        if answer[0] == "error":
+            raise _ERRORS.get(answer[1], WorkerFailedError)(answer[2])
+        return answer
+
+    def _read_answer(self, child: _Child, deadline: float) -> Any:
+        stdout = child.process.stdout
+        assert stdout is not None
+        fd = stdout.fileno()
+        head = self._read_exact(fd, 4, deadline)
+        (size,) = struct.unpack(">I", head)
+        if size > self.max_result_bytes + 4096:
+            raise ResultTooLargeError(self.max_result_bytes)
+        return pickle.loads(self._read_exact(fd, size, deadline))
+
+    def _read_exact(self, fd: int, size: int, deadline: float) -> bytes:
+        chunks: list[bytes] = []
+        while size:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
+                raise QueryTimeoutError(self.timeout_s)
+            chunk = os.read(fd, min(size, 1 << 20))
+            if not chunk:
+                raise EOFError("the worker closed its pipe")
+            chunks.append(chunk)
+            size -= len(chunk)
+        return b"".join(chunks)
+
+    def _spawn(self) -> None:
+        """Start one worker; registered before it lists the files, so no addition is missed."""
+        process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "services.storage.sparql",
+                str(self.directory),
+                self.store,
+                str(self.memory_bytes),
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            cwd=Path(__file__).resolve().parents[2],
+        )
+        child = _Child(process, [])
+        with self._lock:
+            if self._closed:
+                self._stop(child)
+                return
+            self._children.append(child)
+        threading.Thread(target=self._await_ready, args=(child,), daemon=True).start()
+
+    def _await_ready(self, child: _Child) -> None:
+        stdout = child.process.stdout
+        assert stdout is not None
+        try:
+            deadline = time.monotonic() + self.start_timeout_s
+            answer = pickle.loads(
+                self._read_exact(
+                    stdout.fileno(),
+                    struct.unpack(">I", self._read_exact(stdout.fileno(), 4, deadline))[0],
+                    deadline,
+                )
+            )
+            if answer[0] != "ready":
+                raise EOFError(f"the worker said {answer!r}")
+        except (SparqlError, OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:
+            log.error("a SPARQL worker did not start: %s", exc)
+            time.sleep(1.0)
+            self._replace(child, "did not start")
+            return
+        with self._lock:
+            child.ready = True
+        log.info("SPARQL worker %d ready with %d descriptions", child.process.pid, answer[1])
+        self._idle.put(child)
+
+    def _replace(self, child: _Child, why: str) -> None:
+        log.warning("SPARQL worker %d %s: replacing it", child.process.pid, why)
+        self._stop(child)
+        with self._lock:
+            if child in self._children:
+                self._children.remove(child)
+            closed = self._closed
+            self.replaced += 1
+        if not closed:
+            self._spawn()
+
+    @staticmethod
+    def _stop(child: _Child) -> None:
+        if child.process.poll() is None:
+            child.process.kill()
+        child.process.wait()
+        for stream in (child.process.stdin, child.process.stdout):
+            if stream is not None:
+                with contextlib.suppress(OSError):
+                    stream.close()
+
+
+if __name__ == "__main__":
+    worker_main(sys.argv[1:])

@@ -1,0 +1,451 @@
+"""The knowledge base as robots use it: descriptions added by CID, SPARQL through real SPARQL
+clients (SPARQLWrapper, rdflib's SPARQLStore) unchanged, application discovery, and every bad
+input answered with what is wrong while nothing is stored.
+
+One cas and one storage service (anchoring and the ledger follower off) serve the module.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import pytest
+from rdflib import Graph, Literal, URIRef
+from rdflib.plugins.stores.sparqlstore import SPARQLStore
+from SPARQLWrapper import CSV, JSON, POST, TURTLE, XML, SPARQLWrapper
+
+from robocloud import semantic
+from robocloud.cas import Cas
+from robocloud.errors import ApiError
+from robocloud.identity import Identity
+from robocloud.knowledge import Knowledge
+from robocloud.semantic import Description
+from tests.procs import REPO, ServiceProcess
+from tests.waiting import wait_for
+
+EXAMPLES = REPO / "ontology" / "examples"
+RC = "https://w3id.org/robocloud#"
+JPEG_FILE = "ipfs://bafkreifhyd2reqnaxb6vmuv3gwnyum4osowzkclmxa2qdsj3fhkderxyem"
+APP = "ipfs://bafkreia357kjlhicbaks5xy6g5ridjm6wevmf6ccufgzsdrlpfyi6ydb34"
+PREFIX = f"PREFIX rc: <{RC}>\n"
+TIMEOUT_S = 4
+
+
+class Services:
+    def __init__(self, cas: ServiceProcess, storage: ServiceProcess, identity: Identity) -> None:
+        self.cas_process = cas
+        self.storage = storage
+        self.identity = identity
+        self.sparql = f"{storage.url}/v1/knowledge/sparql"
+
+    def cas(self) -> Cas:
+        return Cas(self.cas_process.url, self.identity)
+
+    def knowledge(self) -> Knowledge:
+        return Knowledge(self.storage.url, self.identity)
+
+    def put(self, data: bytes) -> str:
+        with self.cas() as cas:
+            return str(cas.add_bytes(data))
+
+    def post(self, cid: str) -> httpx.Response:
+        with self.knowledge() as knowledge:
+            return knowledge.send("POST", "/v1/knowledge", json={"cid": cid})
+
+    def state(self) -> dict[str, Any]:
+        return dict(httpx.get(f"{self.storage.url}/v1/knowledge", timeout=10).json())
+
+    def stored(self) -> set[str]:
+        directory = self.storage.data_dir / "knowledge" / "descriptions"
+        return {path.stem for path in directory.glob("*.nt")}
+
+
+@pytest.fixture(scope="module")
+def services(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Services]:
+    root = tmp_path_factory.mktemp("knowledge")
+    with (
+        ServiceProcess("cas", root / "cas") as cas,
+        ServiceProcess(
+            "storage",
+            root / "storage",
+            {
+                "ROBOCLOUD_CAS_URL": cas.url,
+                "ROBOCLOUD_STORAGE_ANCHOR": "false",
+                "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+                "ROBOCLOUD_KNOWLEDGE_QUERY_TIMEOUT_S": str(TIMEOUT_S),
+                "ROBOCLOUD_KNOWLEDGE_MAX_QUERY_BYTES": "4096",
+            },
+        ) as storage,
+    ):
+        services = Services(cas, storage, Identity.generate())
+        with services.cas() as cas_client, services.knowledge() as knowledge:
+            for path in sorted(EXAMPLES.glob("*.ttl")):
+                knowledge.store(semantic.parse_description(path.read_bytes()), cas_client)
+        yield services
+
+
+def example(kind: str) -> Description:
+    return semantic.parse_description((EXAMPLES / f"{kind}.ttl").read_bytes())
+
+
+def error(response: httpx.Response, status: int, code: str) -> dict[str, Any]:
+    assert response.status_code == status, response.text
+    body = response.json()["error"]
+    assert body["code"] == code, body
+    return dict(body["details"])
+
+
+# ----- adding descriptions -----
+
+
+def test_every_example_is_indexed_once_and_adding_again_changes_nothing(
+    services: Services,
+) -> None:
+    cids = {str(example(path.stem).cid()) for path in EXAMPLES.glob("*.ttl")}
+    assert services.stored() == cids
+    assert services.state()["descriptions"] == len(cids)
+    again = services.post(str(example("file").cid()))
+    assert again.status_code == 200
+    assert again.json() == {
+        "cid": str(example("file").cid()),
+        "subjects": {JPEG_FILE: "file"},
+        "triples": 12,
+        "new": False,
+    }
+    assert services.state()["descriptions"] == len(cids)
+
+
+def unchanged(services: Services, before: set[str]) -> None:
+    assert services.stored() == before
+    assert services.state()["descriptions"] == len(before)
+
+
+def test_a_description_failing_its_shapes_is_refused_listing_each_violation(
+    services: Services,
+) -> None:
+    before = services.stored()
+    broken = example("file").canonical().replace(b'"640"', b'"-1"').replace(b'"3"^^', b'"0"^^')
+    cid = services.put(semantic.parse_canonical(broken).canonical())
+    details = error(services.post(cid), 400, "description_invalid")
+    assert details == {
+        "cid": cid,
+        "violations": [
+            {
+                "focus": JPEG_FILE,
+                "path": "rc:channels",
+                "message": "rc:channels is at most one positive integer",
+                "value": "0",
+            },
+            {
+                "focus": JPEG_FILE,
+                "path": "rc:width",
+                "message": "rc:width is at most one positive integer",
+                "value": "-1",
+            },
+        ],
+    }
+    unchanged(services, before)
+
+
+@pytest.mark.parametrize(
+    ("document", "code", "details"),
+    [
+        pytest.param(b"<a> <b> .\n", "rdf_unparsable", {"line": 1}, id="unparsable"),
+        pytest.param(b"\xff\xd8\xff\xe0JFIF\x00", "not_a_description", {}, id="jpeg-bytes"),
+        pytest.param(
+            b'<http://xmlns.com/foaf/0.1/me> <http://xmlns.com/foaf/0.1/name> "robot" .\n',
+            "not_a_description",
+            {},
+            id="rdf-of-no-known-kind",
+        ),
+        pytest.param(
+            f"{example('file').turtle()}".encode(), "rdf_unparsable", {"line": 1}, id="turtle"
+        ),
+        pytest.param(
+            b"x" * (semantic.MAX_DESCRIPTION_BYTES + 1),
+            "description_too_large",
+            {"limit": semantic.MAX_DESCRIPTION_BYTES},
+            id="too-large",
+        ),
+    ],
+)
+def test_bytes_that_are_not_a_canonical_description_are_refused(
+    services: Services, document: bytes, code: str, details: dict[str, Any]
+) -> None:
+    before = services.stored()
+    cid = services.put(document)
+    assert error(services.post(cid), 400, code) == {"cid": cid, **details}
+    unchanged(services, before)
+
+
+def test_a_cid_cas_does_not_have_or_that_is_malformed_is_named(services: Services) -> None:
+    before = services.stored()
+    missing = str(semantic.Description(Graph()).cid())
+    assert error(services.post(missing), 404, "description_not_found") == {"cid": missing}
+    assert error(services.post("bafy-not-a-cid"), 400, "invalid_cid")["cid"] == "bafy-not-a-cid"
+    unsigned = httpx.post(
+        f"{services.storage.url}/v1/knowledge", json={"cid": str(example("file").cid())}
+    )
+    assert unsigned.status_code == 401
+    unchanged(services, before)
+
+
+# ----- SPARQL through real clients -----
+
+FILES_QUERY = PREFIX + "SELECT ?file ?width WHERE { ?file a rc:File ; rc:width ?width }"
+
+
+def test_sparqlwrapper_reads_json_xml_and_csv_by_get_and_post(services: Services) -> None:
+    for method in ("GET", POST):
+        client = SPARQLWrapper(services.sparql)
+        client.setMethod(method)
+        client.setQuery(FILES_QUERY)
+        client.setReturnFormat(JSON)
+        rows = client.queryAndConvert()["results"]["bindings"]
+        assert [(row["file"]["value"], row["width"]["value"]) for row in rows] == [
+            (JPEG_FILE, "640")
+        ]
+        client.setReturnFormat(XML)
+        document = client.queryAndConvert()
+        results = document.getElementsByTagName("uri")
+        assert [node.firstChild.data for node in results] == [JPEG_FILE]
+        client.setReturnFormat(CSV)
+        table = list(csv.reader(io.StringIO(client.queryAndConvert().decode())))
+        assert table == [["file", "width"], [JPEG_FILE, "640"]]
+
+
+def test_sparqlwrapper_reads_a_construct_as_turtle(services: Services) -> None:
+    client = SPARQLWrapper(services.sparql)
+    client.setQuery(
+        PREFIX + "CONSTRUCT { ?app rc:name ?name } WHERE { ?app rc:name ?name ; a rc:Application }"
+    )
+    client.setReturnFormat(TURTLE)
+    graph = Graph().parse(data=client.queryAndConvert(), format="turtle")
+    assert set(graph) == {(URIRef(APP), URIRef(RC + "name"), Literal("blur_faces"))}
+
+
+def test_rdflib_sparqlstore_queries_the_knowledge_base_unchanged(services: Services) -> None:
+    store = SPARQLStore(query_endpoint=services.sparql)
+    graph = Graph(store=store)
+    rows = list(graph.query(FILES_QUERY))
+    assert [(str(row[0]), int(row[1])) for row in rows] == [(JPEG_FILE, 640)]
+    assert graph.query(PREFIX + f"ASK {{ <{APP}> a rc:Application }}").askAnswer is True
+    triples = set(graph.triples((URIRef(APP), URIRef(RC + "name"), None)))
+    assert triples == {(URIRef(APP), URIRef(RC + "name"), Literal("blur_faces"))}
+
+
+@pytest.mark.parametrize(
+    ("accept", "media"),
+    [
+        (None, "application/sparql-results+json"),
+        ("*/*", "application/sparql-results+json"),
+        ("text/csv", "text/csv"),
+        ("application/sparql-results+xml;q=0.9, text/csv;q=0.1", "application/sparql-results+xml"),
+        ("text/*", "text/csv"),
+    ],
+)
+def test_select_answers_by_content_negotiation(
+    services: Services, accept: str | None, media: str
+) -> None:
+    headers = {"Accept": accept} if accept else {}
+    answer = httpx.get(services.sparql, params={"query": FILES_QUERY}, headers=headers)
+    assert answer.status_code == 200, answer.text
+    assert answer.headers["content-type"].split(";")[0] == media
+    assert JPEG_FILE in answer.text
+
+
+def test_construct_answers_turtle_n_triples_or_rdf_xml(services: Services) -> None:
+    query = PREFIX + f"CONSTRUCT {{ <{APP}> ?p ?o }} WHERE {{ <{APP}> ?p ?o }}"
+    expected = {t for t in example("application").graph if str(t[0]) == APP}
+    for accept, rdf_format in [
+        ("text/turtle", "turtle"),
+        ("application/n-triples", "nt"),
+        ("application/rdf+xml", "xml"),
+    ]:
+        answer = httpx.get(services.sparql, params={"query": query}, headers={"Accept": accept})
+        assert answer.headers["content-type"].startswith(accept)
+        assert set(Graph().parse(data=answer.content, format=rdf_format)) == expected
+
+
+def test_an_unacceptable_format_is_406_naming_what_is_available(services: Services) -> None:
+    answer = httpx.get(
+        services.sparql, params={"query": FILES_QUERY}, headers={"Accept": "image/png"}
+    )
+    details = error(answer, 406, "not_acceptable")
+    assert details["accept"] == "image/png"
+    assert "text/csv" in details["available"]
+    ask = httpx.get(
+        services.sparql,
+        params={"query": PREFIX + "ASK { ?s a rc:File }"},
+        headers={"Accept": "text/csv"},
+    )
+    assert "text/csv" not in error(ask, 406, "not_acceptable")["available"]
+
+
+UPDATE = PREFIX + f"INSERT DATA {{ <{JPEG_FILE}> rc:width 1 }}"
+
+
+def test_sparql_updates_are_rejected_however_they_are_sent(services: Services) -> None:
+    before = services.stored()
+    for response in (
+        httpx.get(services.sparql, params={"query": UPDATE}),
+        httpx.post(services.sparql, data={"update": UPDATE}),
+        httpx.post(services.sparql, data={"query": UPDATE}),
+        httpx.post(
+            services.sparql, content=UPDATE, headers={"Content-Type": "application/sparql-update"}
+        ),
+    ):
+        error(response, 400, "sparql_update_rejected")
+    rows = httpx.get(services.sparql, params={"query": FILES_QUERY}).json()["results"]["bindings"]
+    assert [row["width"]["value"] for row in rows] == ["640"]
+    unchanged(services, before)
+
+
+@pytest.mark.parametrize(
+    ("params", "status", "code", "details"),
+    [
+        ({"query": "SELEKT * WHERE { ?s ?p ?o }"}, 400, "sparql_syntax", {}),
+        ({}, 400, "missing_parameter", {"field": "query"}),
+        (
+            {"query": "SELECT * { ?s ?p ?o } #" + "x" * 5000},
+            413,
+            "query_too_large",
+            {"size": 5023, "limit": 4096},
+        ),
+        (
+            {"query": "SELECT * WHERE { ?s ?p ?o }", "default-graph-uri": "http://x"},
+            400,
+            "unsupported_parameter",
+            {"field": "default-graph-uri"},
+        ),
+    ],
+)
+def test_bad_queries_are_named(
+    services: Services, params: dict[str, str], status: int, code: str, details: dict[str, Any]
+) -> None:
+    assert error(httpx.get(services.sparql, params=params), status, code) == details
+
+
+def test_a_deeply_nested_query_is_a_syntax_error_and_the_workers_survive(
+    services: Services,
+) -> None:
+    deep = "SELECT * WHERE " + "{" * 2000 + "}" * 2000
+    answer = httpx.post(
+        services.sparql, content=deep, headers={"Content-Type": "application/sparql-query"}
+    )
+    error(answer, 400, "sparql_syntax")
+    rows = httpx.get(services.sparql, params={"query": FILES_QUERY}).json()["results"]["bindings"]
+    assert [row["file"]["value"] for row in rows] == [JPEG_FILE]
+
+
+def test_a_post_that_is_neither_a_form_nor_a_query_is_415(services: Services) -> None:
+    answer = httpx.post(
+        services.sparql, content=b"{}", headers={"Content-Type": "application/json"}
+    )
+    assert error(answer, 415, "unsupported_media_type")["received"] == "application/json"
+
+
+SLOW = "SELECT (COUNT(*) AS ?n) WHERE { ?a ?b ?c . ?d ?e ?f . ?g ?h ?i . ?j ?k ?l . ?m ?n2 ?o }"
+
+
+def test_a_query_past_its_time_is_stopped_while_other_queries_are_answered(
+    services: Services,
+) -> None:
+    outcome: dict[str, httpx.Response] = {}
+    slow = threading.Thread(
+        target=lambda: outcome.setdefault(
+            "slow", httpx.get(services.sparql, params={"query": SLOW}, timeout=60)
+        )
+    )
+    replaced = services.state()["workers"]["replaced"]
+    slow.start()
+    wait_for(lambda: services.state()["workers"]["busy"] == 1, "the slow query to start")
+    quick = httpx.get(services.sparql, params={"query": FILES_QUERY}, timeout=60)
+    assert quick.json()["results"]["bindings"][0]["file"]["value"] == JPEG_FILE
+    slow.join()
+    details = error(outcome["slow"], 503, "query_timeout")
+    assert details == {"timeout_s": TIMEOUT_S}
+    assert outcome["slow"].headers["retry-after"] == "1"
+    wait_for(lambda: services.state()["workers"]["ready"] == 2, "the worker to be replaced")
+    assert services.state()["workers"]["replaced"] == replaced + 1
+    again = httpx.get(services.sparql, params={"query": FILES_QUERY}, timeout=60)
+    assert again.json()["results"]["bindings"][0]["width"]["value"] == "640"
+
+
+# ----- application discovery -----
+
+
+def test_applications_consuming_jpeg_are_found_with_their_ports(services: Services) -> None:
+    with services.knowledge() as knowledge:
+        found = knowledge.applications("image/jpeg")
+        assert found == [
+            {
+                "iri": APP,
+                "cid": APP.removeprefix("ipfs://"),
+                "name": "blur_faces",
+                "version": "1.2.0",
+                "inputs": [
+                    {
+                        "name": "image",
+                        "iri": f"{APP}#input-image",
+                        "media_type": "image/jpeg",
+                        "template": None,
+                        "attributes": ["height", "width"],
+                    }
+                ],
+                "outputs": [
+                    {
+                        "name": "image",
+                        "iri": f"{APP}#output-image",
+                        "media_type": "image/jpeg",
+                        "template": None,
+                        "attributes": ["height", "width"],
+                    }
+                ],
+            }
+        ]
+        iri = "https://www.iana.org/assignments/media-types/image/jpeg"
+        assert knowledge.applications(iri) == found
+        assert knowledge.applications("image/jpeg", produces="image/jpeg") == found
+        assert knowledge.applications("image/jpeg", produces="text/plain") == []
+        assert knowledge.applications("image/png") == []
+
+
+@pytest.mark.parametrize(
+    ("query", "field"),
+    [
+        ("consumes=jpeg", "consumes"),
+        ("consumes=image/jpeg&produces=ipfs://nope", "produces"),
+        ("consumes=%3E%20.%20%7D", "consumes"),
+    ],
+)
+def test_a_bad_type_is_named(services: Services, query: str, field: str) -> None:
+    answer = httpx.get(f"{services.storage.url}/v1/knowledge/applications?{query}")
+    assert error(answer, 400, "invalid_parameter")["field"] == field
+
+
+def test_a_limit_out_of_range_or_no_type_is_refused(services: Services) -> None:
+    url = f"{services.storage.url}/v1/knowledge/applications"
+    for query in ("consumes=image/jpeg&limit=0", "consumes=image/jpeg&limit=1001", ""):
+        answer = httpx.get(f"{url}?{query}")
+        assert answer.status_code in (400, 422), answer.text
+        assert answer.json()["error"]["details"]
+
+
+def test_the_sdk_refuses_an_invalid_description_before_sending_anything(
+    services: Services,
+) -> None:
+    before = services.stored()
+    broken = semantic.parse_canonical(example("task").canonical().replace(b'"3"^^', b'"0"^^'))
+    with services.cas() as cas, services.knowledge() as knowledge:
+        with pytest.raises(semantic.DescriptionInvalidError, match="rc:replication"):
+            knowledge.store(broken, cas)
+        with pytest.raises(ApiError) as caught:
+            knowledge.add(str(broken.cid()))
+    assert caught.value.code == "description_not_found"
+    unchanged(services, before)

@@ -1,0 +1,134 @@
+"""The knowledge base keeps what it indexed through a restart and a kill -9 without fetching it
+again (cas is down when it comes back), follows descriptions advertised on the ledger, and
+rebuilds itself from cas and the ledger's advertisements when its files are lost."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import httpx
+
+from robocloud import semantic
+from robocloud.cas import Cas
+from robocloud.cid import parse_cid
+from robocloud.identity import Identity
+from robocloud.knowledge import Knowledge
+from robocloud.ledger import Ledger
+from robocloud.semantic import Description
+from tests.conftest import ServiceFactory
+from tests.procs import REPO, ServiceProcess
+from tests.waiting import wait_for
+
+EXAMPLES = REPO / "ontology" / "examples"
+METADATA = bytes.fromhex("01551220") + bytes(range(32))
+ASK = "PREFIX rc: <https://w3id.org/robocloud#> ASK {{ <{iri}> a rc:{kind} }}"
+
+
+def example(kind: str) -> Description:
+    return semantic.parse_description((EXAMPLES / f"{kind}.ttl").read_bytes())
+
+
+def holds(storage: ServiceProcess, iri: str, kind: str) -> bool:
+    answer = httpx.get(
+        f"{storage.url}/v1/knowledge/sparql",
+        params={"query": ASK.format(iri=iri, kind=kind)},
+        timeout=30,
+    )
+    assert answer.status_code == 200, answer.text
+    return bool(answer.json()["boolean"])
+
+
+def descriptions_of(storage: ServiceProcess) -> set[str]:
+    return {path.stem for path in (storage.data_dir / "knowledge" / "descriptions").glob("*.nt")}
+
+
+FILE = ("ipfs://bafkreifhyd2reqnaxb6vmuv3gwnyum4osowzkclmxa2qdsj3fhkderxyem", "File")
+APP = ("ipfs://bafkreia357kjlhicbaks5xy6g5ridjm6wevmf6ccufgzsdrlpfyi6ydb34", "Application")
+TASK = ("ipfs://bafkreida5gq3v6rabjib2uiqzefbdra2cxrzx2sctf56h2igs73ndf2ouu", "Task")
+
+
+def test_restart_and_kill_9_keep_every_description_without_cas(
+    service_factory: ServiceFactory,
+) -> None:
+    cas = service_factory("cas")
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_CAS_URL": cas.url,
+            "ROBOCLOUD_STORAGE_ANCHOR": "false",
+            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+        },
+    )
+    identity = Identity.generate()
+    with Cas(cas.url, identity) as cas_client, Knowledge(storage.url, identity) as knowledge:
+        knowledge.store(example("file"), cas_client)
+        knowledge.store(example("application"), cas_client)
+    cas.stop()
+    storage.restart()
+    assert holds(storage, *FILE)
+    assert holds(storage, *APP)
+    with Knowledge(storage.url) as knowledge:
+        assert [app["name"] for app in knowledge.applications("image/jpeg")] == ["blur_faces"]
+
+    cas.start()
+    with Cas(cas.url, identity) as cas_client, Knowledge(storage.url, identity) as knowledge:
+        knowledge.store(example("task"), cas_client)
+    storage.stop(kill=True)
+    cas.stop()
+    storage.start()
+    for iri, kind in (FILE, APP, TASK):
+        assert holds(storage, iri, kind)
+    assert httpx.get(f"{storage.url}/v1/knowledge").json()["descriptions"] == 3
+
+
+def test_advertised_descriptions_are_indexed_and_rebuilt_when_the_files_are_lost(
+    service_factory: ServiceFactory, tmp_path: Path
+) -> None:
+    ledger = service_factory("ledger", {"ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.2"})
+    cas = service_factory("cas")
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_CAS_URL": cas.url,
+            "ROBOCLOUD_LEDGER_URL": ledger.url,
+            "ROBOCLOUD_STORAGE_ANCHOR": "false",
+            "ROBOCLOUD_STORAGE_REGISTER": "false",
+            "ROBOCLOUD_KNOWLEDGE_POLL_S": "0.2",
+        },
+    )
+    identity = Identity.generate()
+    broken = semantic.parse_canonical(example("task").canonical().replace(b'"3"^^', b'"0"^^'))
+    with (
+        Cas(cas.url, identity) as cas_client,
+        Ledger.connect(ledger.url, identity, receipt_timeout_s=30) as robot,
+    ):
+        robot.faucet()
+        robot.register(METADATA)
+        for description in (example("file"), example("application"), broken):
+            stored = cas_client.add_bytes(description.canonical())
+            assert stored == description.cid()
+        robot.advertise(parse_cid(FILE[0][7:], "cid").binary, example("file").cid().binary)
+        robot.advertise(parse_cid(APP[0][7:], "cid").binary, example("application").cid().binary)
+        robot.advertise(parse_cid(TASK[0][7:], "cid").binary, broken.cid().binary)
+        robot.advertise(parse_cid(TASK[0][7:], "cid").binary)
+
+    def follow() -> dict[str, object]:
+        return dict(httpx.get(f"{storage.url}/v1/knowledge", timeout=10).json()["ledger"])
+
+    wait_for(lambda: follow()["refused"] == 1 and follow()["indexed_from_ledger"] == 2, "indexing")
+    assert holds(storage, *FILE)
+    assert holds(storage, *APP)
+    assert not holds(storage, *TASK)
+    expected = {str(example("file").cid()), str(example("application").cid())}
+    assert descriptions_of(storage) == expected
+    assert follow()["error"] is None
+
+    storage.stop()
+    shutil.rmtree(storage.data_dir / "knowledge")
+    storage.start()
+    wait_for(lambda: descriptions_of(storage) == expected, "the knowledge base to rebuild")
+    wait_for(lambda: follow()["refused"] == 1, "the broken description to be refused again")
+    assert holds(storage, *FILE)
+    assert holds(storage, *APP)
+    assert not holds(storage, *TASK)

@@ -1,0 +1,190 @@
+"""SPARQL workers: content negotiation, and the pool of real worker processes over description
+files (additions seen by the next query, a query past its deadline killed and replaced)."""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from robocloud import semantic
+from services.common.durable import atomic_write
+from services.storage.sparql import (
+    NotAcceptableError,
+    QueryRefusedError,
+    QuerySyntaxError,
+    QueryTimeoutError,
+    SparqlWorkers,
+    UpdateRejectedError,
+    choose_format,
+    negotiate,
+)
+from tests.procs import REPO
+from tests.waiting import wait_for
+
+EXAMPLES = REPO / "ontology" / "examples"
+FILE = "ipfs://bafkreifhyd2reqnaxb6vmuv3gwnyum4osowzkclmxa2qdsj3fhkderxyem"
+PREFIX = "PREFIX rc: <https://w3id.org/robocloud#>\n"
+
+
+@pytest.mark.parametrize(
+    ("accept", "expected"),
+    [
+        (None, "application/sparql-results+json"),
+        ("", "application/sparql-results+json"),
+        ("*/*", "application/sparql-results+json"),
+        ("text/csv", "text/csv"),
+        ("TEXT/CSV", "text/csv"),
+        ("text/csv;q=0.2, application/sparql-results+xml;q=0.8", "application/sparql-results+xml"),
+        ("text/csv;q=0, */*;q=0.1", "application/sparql-results+json"),
+        ("image/png, text/*;q=0.5", "text/csv"),
+        ("application/*", "application/sparql-results+json"),
+        ("text/csv;q=abc, application/json", "application/json"),
+    ],
+)
+def test_select_formats_follow_the_accept_header(accept: str | None, expected: str) -> None:
+    assert choose_format("SELECT", accept, None) == expected
+
+
+def test_a_refused_or_unknown_type_is_not_acceptable() -> None:
+    with pytest.raises(NotAcceptableError) as caught:
+        negotiate("image/png, text/csv;q=0", ["text/csv"], "text/csv")
+    assert caught.value.available == ["text/csv"]
+    with pytest.raises(NotAcceptableError):
+        choose_format("ASK", "text/csv", None)
+    with pytest.raises(NotAcceptableError):
+        choose_format("CONSTRUCT", "application/sparql-results+json", None)
+
+
+def test_graphs_default_to_turtle_and_format_parameters_win() -> None:
+    assert choose_format("CONSTRUCT", None, None) == "text/turtle"
+    assert choose_format("DESCRIBE", "application/rdf+xml", None) == "application/rdf+xml"
+    assert choose_format("SELECT", "text/csv", "json") == "application/sparql-results+json"
+    assert choose_format("CONSTRUCT", None, "xml") == "application/rdf+xml"
+    assert choose_format("SELECT", None, "text/csv") == "text/csv"
+
+
+def write(directory: Path, description: semantic.Description) -> str:
+    cid = str(description.cid())
+    atomic_write(directory / f"{cid}.nt", description.canonical())
+    return cid
+
+
+def example(kind: str) -> semantic.Description:
+    return semantic.parse_description((EXAMPLES / f"{kind}.ttl").read_bytes())
+
+
+@pytest.fixture(params=["memory", "oxigraph"])
+def pool(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[SparqlWorkers]:
+    write(tmp_path, example("file"))
+    (tmp_path / "bafkreigarbage.nt").write_bytes(b"not a description\n")
+    workers = SparqlWorkers(
+        tmp_path,
+        workers=2,
+        timeout_s=3,
+        max_result_bytes=1 << 20,
+        memory_bytes=1 << 31,
+        store=request.param,
+    )
+    workers.start()
+    wait_for(lambda: workers.describe()["ready"] == 2, "both workers")
+    yield workers
+    workers.close()
+
+
+def select(pool: SparqlWorkers, query: str) -> list[dict[str, str]]:
+    media, body = pool.query(PREFIX + query, None)
+    assert media == "application/sparql-results+json"
+    rows = json.loads(body)["results"]["bindings"]
+    return [{name: value["value"] for name, value in row.items()} for row in rows]
+
+
+def test_workers_load_the_files_skip_what_is_not_a_description_and_see_additions(
+    pool: SparqlWorkers,
+) -> None:
+    kinds = "SELECT ?s WHERE { ?s a ?kind } ORDER BY ?s"
+    assert select(pool, kinds) == [{"s": FILE}]
+    cid = write(pool.directory, example("application"))
+    pool.add([cid])
+    for _ in range(4):  # every worker sees it, whichever answers
+        assert len(select(pool, "SELECT ?a WHERE { ?a a rc:Application }")) == 1
+
+
+def test_applications_are_found_by_media_type_or_by_record_template(pool: SparqlWorkers) -> None:
+    template = "bafkreigyfykq6j7zji5odgbwfjasn6pbbpx5a4irvf74j62376sqyl3kbm"
+    records = semantic.application_description(
+        "bafkreicyps4ybl3w7xd6ki3j7ufz3etn74tgs5vw7cwgghrvr7wmjh7yz4",
+        "imu_filter",
+        "2",
+        inputs=[semantic.Port("imu", template=template)],
+        outputs=[semantic.Port("report", media_type="application/json")],
+    )
+    pool.add([write(pool.directory, records), write(pool.directory, example("application"))])
+    rows = pool.application_rows(f"ipfs://{template}")
+    assert sorted({(row[1], row[3], row[5], row[6], row[7]) for row in rows}) == [
+        ("imu_filter", "input", "imu", None, f"ipfs://{template}"),
+        (
+            "imu_filter",
+            "output",
+            "report",
+            "https://www.iana.org/assignments/media-types/application/json",
+            None,
+        ),
+    ]
+    jpeg = pool.application_rows("https://www.iana.org/assignments/media-types/image/jpeg")
+    assert {row[1] for row in jpeg} == {"blur_faces"}
+    assert pool.application_rows("https://www.iana.org/assignments/media-types/image/gif") == []
+
+
+def test_syntax_errors_and_updates_are_told_apart(pool: SparqlWorkers) -> None:
+    with pytest.raises(QuerySyntaxError, match=r"not a SPARQL 1\.1 query"):
+        pool.query("SELECT WHERE", None)
+    with pytest.raises(UpdateRejectedError):
+        pool.query(PREFIX + "DELETE WHERE { ?s ?p ?o }", None)
+    assert pool.describe()["replaced"] == 0
+
+
+@pytest.mark.parametrize(
+    ("query", "message"),
+    [
+        ("SELECT * WHERE { SERVICE <http://127.0.0.1:1/> { ?s ?p ?o } }", "SERVICE is refused"),
+        (
+            "SELECT * WHERE { ?s ?p ?o OPTIONAL { { SERVICE SILENT <http://x/> { ?s ?p ?o } } } }",
+            "SERVICE is refused",
+        ),
+        ("SELECT * FROM <http://127.0.0.1:1/g> WHERE { ?s ?p ?o }", "FROM and FROM NAMED"),
+        ("ASK FROM NAMED <file:///etc/passwd> { ?s ?p ?o }", "FROM and FROM NAMED"),
+    ],
+)
+def test_a_query_that_would_fetch_from_elsewhere_is_refused(
+    pool: SparqlWorkers, query: str, message: str
+) -> None:
+    with pytest.raises(QueryRefusedError, match=message):
+        pool.query(query, None)
+
+
+def test_a_query_past_its_deadline_is_killed_and_its_worker_replaced(
+    pool: SparqlWorkers,
+) -> None:
+    patterns = " . ".join(f"?s{i} ?p{i} ?o{i}" for i in range(10))
+    slow = f"SELECT (COUNT(*) AS ?n) WHERE {{ {patterns} }}"
+    failures: list[Exception] = []
+
+    def run() -> None:
+        try:
+            pool.query(slow, None)
+        except QueryTimeoutError as exc:
+            failures.append(exc)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    wait_for(lambda: pool.describe()["busy"] == 1, "the slow query to start")
+    _, body = pool.query(PREFIX + "ASK { ?s a rc:File }", None)
+    assert json.loads(body)["boolean"] is True
+    thread.join()
+    assert [str(exc) for exc in failures] == ["the query did not finish within 3 s; it was stopped"]
+    wait_for(lambda: pool.describe()["ready"] == 2, "a replacement worker")
+    assert pool.describe()["replaced"] == 1
