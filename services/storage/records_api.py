@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal
 
 import anyio
 from eth_utils.address import is_address, to_checksum_address
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
@@ -106,7 +106,7 @@ async def submit_template(
 async def review_template(
     request: Request,
     template_id: str,
-    review: Review = json_body(Review),  # type: ignore[assignment]
+    review: Review = Depends(json_body(Review)),
     reviewer: str = require_role("reviewer"),  # type: ignore[assignment]
 ) -> JSONResponse:
     """Approve or reject a submitted version; the signer must hold the ``reviewer`` role."""
