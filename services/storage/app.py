@@ -24,10 +24,13 @@ from services.common.app import create_app
 from services.common.auth import SignedAddress
 from services.common.bodies import media_type, read_json
 from services.common.errors import BadRequest, UnsupportedMediaType
-from services.storage import identity
+from services.storage import identity, records_api
 from services.storage.anchoring import LedgerAndCas, StorageNode
+from services.storage.catalog import Catalog
 from services.storage.errors import ERRORS
 from services.storage.knowledge import KnowledgeBase
+from services.storage.queries import QueryEngine
+from services.storage.recordstore import Offload, RecordStore
 from services.storage.settings import StorageSettings
 from services.storage.sparql import QueryTooLargeError, SparqlWorkers, UpdateRejectedError
 
@@ -285,6 +288,41 @@ def _open_node(settings: StorageSettings) -> StorageNode:
     )
 
 
+# ----- templates, records and queries (engineer records) -----
+def _cas_offload(node: StorageNode, settings: StorageSettings) -> Offload:
+    """Large arrays go to cas signed by the node's own key, the one the ledger registered."""
+    clients: dict[str, Cas] = {}
+
+    def offload(data: bytes) -> str:
+        if "cas" not in clients:
+            clients["cas"] = Cas(settings.cas_url, node.identity.identity, retries=1)
+        return str(clients["cas"].add_bytes(data))
+
+    return offload
+
+
+def _open_records(app: FastAPI, settings: StorageSettings, node: StorageNode) -> None:
+    data_dir = settings.resolved_data_dir()
+    app.state.catalog = Catalog(data_dir / "catalog", max_versions=settings.storage_max_templates)
+    app.state.record_logs = node.logs
+    app.state.records = RecordStore(
+        data_dir,
+        node.logs,
+        app.state.catalog,
+        segment_records=settings.storage_segment_records,
+        segment_cache=settings.storage_segment_cache,
+        array_inline_bytes=settings.storage_array_inline_bytes,
+        offload=_cas_offload(node, settings),
+        notify=node.notify,
+    )
+    app.state.queries = QueryEngine(app.state.records)
+
+
+def _close_records(app: FastAPI) -> None:
+    app.state.records.close()
+    app.state.catalog.close()
+
+
 def build_app(settings: StorageSettings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -294,6 +332,7 @@ def build_app(settings: StorageSettings) -> FastAPI:
             async with _knowledge_running(app, settings):
                 yield
         finally:
+            await anyio.to_thread.run_sync(_close_records, app)
             await anyio.to_thread.run_sync(node.close)
 
     async def knowledge_loaded() -> None:
@@ -304,13 +343,18 @@ def build_app(settings: StorageSettings) -> FastAPI:
     app = create_app(
         "storage",
         settings,
-        routers=[_proof_router(), _knowledge_router(settings)],
+        routers=[_proof_router(), records_api.router, _knowledge_router(settings)],
         readiness_checks=[knowledge_loaded],
         unsigned_paths=[SPARQL_PATH],
         lifespan=lifespan,
+        body_limits={
+            "/v1/templates": records_api.TEMPLATE_BODY_LIMIT,
+            "/v1/records": settings.storage_max_batch_bytes,
+        },
         errors=ERRORS,
         description=services.storage.__doc__ or "",
     )
     app.state.node = _open_node(settings)
+    _open_records(app, settings, app.state.node)
     app.state.knowledge = _open_knowledge(settings)
     return app

@@ -1,9 +1,4 @@
-"""The storage node anchors its epochs on the ledger, in order, through an outage of the ledger.
-
-Until ``POST /v1/records`` exists, records are appended with the service's own ``RecordLogs``
-while the service is stopped (the logs belong to one process at a time), then the service is
-started again to cut and anchor them.
-"""
+"""The storage node anchors its epochs on the ledger, in order, through an outage of the ledger."""
 
 from __future__ import annotations
 
@@ -18,26 +13,12 @@ import pytest
 
 from robocloud import jcs, merkle
 from robocloud.cas import Cas
+from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService, Role
 from robocloud.proofs import ProofVerificationError, verify_record_proof
-from services.storage.recordlog import LogEntry, RecordLogs
 from tests.conftest import ServiceFactory
+from tests.integration.services.storage.conftest import counter_record, write_counter_records
 from tests.procs import ServiceProcess, free_port
-
-ROBOT = "0x" + "ab" * 20
-
-
-def record(template: str, i: int) -> LogEntry:
-    body = {"template": template, "topic": "/t", "robot": ROBOT, "t": i, "data": {"i": i}}
-    return LogEntry(jcs.canonical(body), b'{"signer":"test"}')
-
-
-def append_stopped(storage: ServiceProcess, template: str, start: int, stop: int) -> None:
-    storage.stop()
-    logs = RecordLogs(storage.data_dir / "logs")
-    logs.append(template, [record(template, i) for i in range(start, stop)])
-    logs.close()
-    storage.start()
 
 
 def wait_for(check: Callable[[], Any], what: str, timeout_s: float = 90.0) -> Any:
@@ -98,9 +79,11 @@ def deployment(service_factory: ServiceFactory, tmp_path: Path) -> Deployment:
     return Deployment(service_factory, tmp_path)
 
 
-def test_epochs_are_anchored_and_proofs_verify_on_chain(deployment: Deployment) -> None:
+def test_epochs_are_anchored_and_proofs_verify_on_chain(
+    deployment: Deployment, identity: Identity
+) -> None:
     storage = deployment.storage
-    append_stopped(storage, "imu@1", 0, 300)
+    write_counter_records(storage, identity, 0, 300)
     state = wait_for(
         lambda: (s := node_state(storage))["last_anchored_epoch"] >= 1 and s, "epoch 1 anchored"
     )
@@ -108,7 +91,7 @@ def test_epochs_are_anchored_and_proofs_verify_on_chain(deployment: Deployment) 
     with Ledger.connect(deployment.ledger.url) as ledger:
         assert ledger.has_role(state["address"], Role.STORAGE_NODE)
     proof = deployment.verify("imu-1-123")
-    assert proof.record == json.loads(record("imu@1", 123).record)
+    assert proof.record == counter_record(identity.address, 123)
     assert proof.tree_size == 300
 
     epoch = httpx.get(f"{storage.url}/v1/epochs/1", timeout=10).json()
@@ -133,15 +116,15 @@ def test_epochs_are_anchored_and_proofs_verify_on_chain(deployment: Deployment) 
 
 
 def test_epochs_cut_while_the_ledger_is_down_are_anchored_in_order_when_it_returns(
-    deployment: Deployment,
+    deployment: Deployment, identity: Identity
 ) -> None:
     storage, ledger = deployment.storage, deployment.ledger
-    append_stopped(storage, "imu@1", 0, 10)
+    write_counter_records(storage, identity, 0, 10)
     wait_for(lambda: node_state(storage)["last_anchored_epoch"] == 1, "epoch 1 anchored")
     ledger.stop()
-    append_stopped(storage, "imu@1", 10, 20)
+    write_counter_records(storage, identity, 10, 20)
     wait_for(lambda: node_state(storage)["last_epoch"] == 2, "epoch 2 cut")
-    append_stopped(storage, "gps@1", 0, 5)
+    write_counter_records(storage, identity, 0, 5, "gps")
     state = wait_for(
         lambda: (s := node_state(storage))["last_epoch"] == 3 and s["anchor_error"] and s,
         "epoch 3 cut, anchoring failing",
@@ -165,5 +148,7 @@ def test_epochs_cut_while_the_ledger_is_down_are_anchored_in_order_when_it_retur
     assert deployment.verify("imu-1-3").epoch == 1
     epoch_2 = httpx.get(f"{storage.url}/v1/epochs/2", timeout=10).json()
     root = bytes.fromhex(epoch_2["heads"][0]["root"])
-    leaves = [merkle.leaf_hash(record("imu@1", i).record) for i in range(20)]
+    leaves = [
+        merkle.leaf_hash(jcs.canonical(counter_record(identity.address, i))) for i in range(20)
+    ]
     assert root == merkle.root(leaves)

@@ -17,7 +17,8 @@ from robocloud.proofs import verify_record_proof
 from tests.conftest import ServiceFactory
 from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
 from tests.integration.services.ledger.conftest import LEDGER_ENV, PASSPHRASE
-from tests.integration.services.storage.test_anchoring import append_stopped, node_state, wait_for
+from tests.integration.services.storage.conftest import write_counter_records
+from tests.integration.services.storage.test_anchoring import node_state, wait_for
 from tests.procs import free_port
 
 
@@ -50,7 +51,7 @@ def test_proofs_verify_against_anvil(service_factory: ServiceFactory, tmp_path: 
         )
         node = node_state(storage)["address"]
         chain.request("hardhat_setBalance", [node, hex(10**18)])
-        append_stopped(storage, "imu@1", 0, 40)
+        write_counter_records(storage, Identity.generate(), 0, 40)
         wait_for(lambda: node_state(storage)["last_anchored_epoch"] == 1, "epoch 1 anchored")
 
         body = httpx.get(f"{storage.url}/v1/records/imu-1-17/proof", timeout=10).json()

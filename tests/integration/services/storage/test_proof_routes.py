@@ -11,23 +11,24 @@ import httpx
 import pytest
 
 from robocloud import jcs, merkle
-from services.storage.recordlog import LogEntry, RecordLogs
+from robocloud.identity import Identity
+from tests.integration.services.storage.conftest import counter_record, write_counter_records
 from tests.procs import ServiceProcess
 
+WRITER = Identity.generate()
 
-def entry(i: int) -> LogEntry:
-    return LogEntry(jcs.canonical({"template": "imu@1", "t": i, "data": {"i": i}}), b"{}")
+
+def leaf(i: int) -> bytes:
+    return merkle.leaf_hash(jcs.canonical(counter_record(WRITER.address, i)))
 
 
 @pytest.fixture(scope="module")
 def storage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
     data_dir = tmp_path_factory.mktemp("storage")
-    logs = RecordLogs(data_dir / "logs")
-    logs.append("imu@1", [entry(i) for i in range(3)])
-    logs.close()
     with ServiceProcess(
         data_dir=data_dir, name="storage", env={"ROBOCLOUD_STORAGE_ANCHOR": "false"}
     ) as process:
+        write_counter_records(process, WRITER, 0, 3)
         yield process
 
 
@@ -40,7 +41,7 @@ def error(response: httpx.Response, status: int, code: str) -> dict[str, object]
 
 def test_consistency_proof_verifies(storage: ServiceProcess) -> None:
     answer = httpx.get(f"{storage.url}/v1/templates/imu@1/consistency?first=1&second=3").json()
-    leaves = [merkle.leaf_hash(entry(i).record) for i in range(3)]
+    leaves = [leaf(i) for i in range(3)]
     assert answer["first_root"] == merkle.root(leaves[:1]).hex()
     assert answer["second_root"] == merkle.root(leaves).hex()
     merkle.verify_consistency(

@@ -1,0 +1,219 @@
+"""``robocloud templates ...`` and ``robocloud query``: typed records in the storage service."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from robocloud.cli.context import JsonOption, KeystoreOption, fail, load_identity
+from robocloud.cli.exits import ExitCode
+from robocloud.cli.output import rows, show, show_json, untrusted
+from robocloud.storage import Storage, TemplateVersion
+from robocloud.templates import load_template_document, type_to_json
+
+StorageOption = typer.Option(
+    None,
+    "--storage",
+    help="URL of the storage service.",
+    show_default="$ROBOCLOUD_STORAGE_URL, else http://127.0.0.1:8082",
+)
+MAX_TEMPLATE_FILE = 256 * 1024
+
+templates_app = typer.Typer(
+    name="templates", help="Design, version and review record templates.", no_args_is_help=True
+)
+
+
+def _document(file: Path) -> Any:
+    if file.stat().st_size > MAX_TEMPLATE_FILE:
+        fail(f"{file} is larger than {MAX_TEMPLATE_FILE} bytes", ExitCode.USAGE)
+    return load_template_document(file.read_bytes())
+
+
+def _show_version(version: TemplateVersion, as_json: bool) -> None:
+    document = {
+        "id": version.id,
+        "status": version.status,
+        "author": version.author,
+        "reviewer": version.reviewer,
+        "reason": version.reason,
+        **version.template.to_json(),
+    }
+    if as_json:
+        show_json(document)
+        return
+    fields = ", ".join(
+        f"{name}: {json.dumps(type_to_json(kind))}"
+        for name, kind in version.template.fields.items()
+    )
+    show(
+        *rows(
+            [
+                ("id", version.id),
+                ("status", version.status),
+                ("author", version.author),
+                ("reviewer", version.reviewer or "-"),
+                ("reason", untrusted(version.reason or "-")),
+                ("fields", untrusted(fields, 2000)),
+                ("description", untrusted(version.template.description or "-")),
+            ]
+        )
+    )
+
+
+TemplateFile = typer.Argument(
+    ..., exists=True, dir_okay=False, readable=True, metavar="FILE", help="Template JSON."
+)
+
+
+@templates_app.command("create")
+def create(
+    file: Path = TemplateFile,
+    storage: str | None = StorageOption,
+    keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Create a template (version 1, a draft) from a JSON file."""
+    document = _document(file)
+    with Storage(storage, load_identity(keystore)) as client:
+        _show_version(client.create_template(document), as_json)
+
+
+@templates_app.command("version")
+def new_version(
+    name: str = typer.Argument(..., help="Template name."),
+    file: Path = TemplateFile,
+    storage: str | None = StorageOption,
+    keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Make the next version of a template (a draft) from a JSON file of its fields."""
+    document = _document(file)
+    with Storage(storage, load_identity(keystore)) as client:
+        _show_version(client.new_version(name, document), as_json)
+
+
+@templates_app.command("edit")
+def edit(
+    template_id: str = typer.Argument(..., metavar="ID", help="name@version"),
+    file: Path = TemplateFile,
+    storage: str | None = StorageOption,
+    keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Replace a draft's fields (approved versions never change: make a new version)."""
+    document = _document(file)
+    with Storage(storage, load_identity(keystore)) as client:
+        _show_version(client.edit_template(template_id, document), as_json)
+
+
+@templates_app.command("submit")
+def submit(
+    template_id: str = typer.Argument(..., metavar="ID", help="name@version"),
+    storage: str | None = StorageOption,
+    keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Submit a draft for review."""
+    with Storage(storage, load_identity(keystore)) as client:
+        _show_version(client.submit_template(template_id), as_json)
+
+
+@templates_app.command("review")
+def review(
+    template_id: str = typer.Argument(..., metavar="ID", help="name@version"),
+    decision: str = typer.Argument(..., help="approve or reject"),
+    reason: str | None = typer.Option(None, help="Why (shown to the author)."),
+    storage: str | None = StorageOption,
+    keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Approve or reject a submitted version (needs the reviewer role)."""
+    if decision not in ("approve", "reject"):
+        raise typer.BadParameter("approve or reject", param_hint="DECISION")
+    with Storage(storage, load_identity(keystore)) as client:
+        _show_version(client.review_template(template_id, decision, reason), as_json)
+
+
+@templates_app.command("show")
+def show_template(
+    template_id: str = typer.Argument(..., metavar="ID", help="name@version"),
+    storage: str | None = StorageOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Show one template version."""
+    with Storage(storage) as client:
+        _show_version(client.template(template_id), as_json)
+
+
+@templates_app.command("list")
+def list_templates(
+    name: str | None = typer.Option(None, help="Only this template's versions."),
+    status: str | None = typer.Option(None, help="draft, submitted, approved or rejected."),
+    storage: str | None = StorageOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """List template versions."""
+    with Storage(storage) as client:
+        versions = list(client.templates(name=name, status=status))
+    if as_json:
+        show_json([{"id": v.id, "status": v.status, "author": v.author} for v in versions])
+        return
+    show(*(f"{v.id:<40} {v.status:<10} {v.author}" for v in versions))
+
+
+def query(
+    template: str | None = typer.Option(None, help="Template id name@version."),
+    topic: str | None = typer.Option(None, help="ROS topic."),
+    robot: str | None = typer.Option(None, help="Robot address."),
+    start: int | None = typer.Option(None, help="t >= START (ns)."),
+    end: int | None = typer.Option(None, help="t < END (ns)."),
+    where: list[str] = typer.Option([], help="field op value (= != < <= > >=); repeatable."),
+    keywords: str | None = typer.Option(None, help="Words every record must hold."),
+    limit: int = typer.Option(100, min=1, max=1000, help="Records per page."),
+    cursor: str | None = typer.Option(None, help="Continue after a previous page."),
+    storage: str | None = StorageOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Query records: a table, or one JSON document with --json (its next continues it)."""
+    with Storage(storage) as client:
+        page = client.query(
+            template=template,
+            topic=topic,
+            robot=robot,
+            start=start,
+            end=end,
+            where=where,
+            keywords=keywords,
+            limit=limit,
+            cursor=cursor,
+        )
+    if as_json:
+        show_json(
+            {
+                "records": [
+                    {"id": item.id, "record": item.record, "signer": item.signer}
+                    for item in page.records
+                ],
+                "next": page.next,
+            }
+        )
+        return
+    lines = [f"{'id':<28} {'t':>20} {'topic':<20} data"]
+    for item in page.records:
+        data = json.dumps(item.record.get("data"), separators=(",", ":"))
+        topic_text = untrusted(item.record.get("topic"), 20)
+        lines.append(
+            f"{item.id:<28} {item.record.get('t')!s:>20} {topic_text:<20} {untrusted(data, 200)}"
+        )
+    if page.next is not None:
+        lines.append(f"more: --cursor {page.next}")
+    show(*lines)
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(templates_app)
+    app.command("query")(query)

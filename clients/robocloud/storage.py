@@ -1,0 +1,252 @@
+"""``Storage``: templates, records and queries of the storage service, as a robot uses them.
+
+Records are checked against their template here before they are sent (the same
+``robocloud.templates`` code the service runs), so a robot learns of a malformed record
+without a round trip, and batches go as NDJSON. Answers are parsed with the SDK's nesting
+bound and checked for the shape this client relies on.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import quote
+
+from robocloud import jcs
+from robocloud.client import ServiceClient
+from robocloud.errors import InvalidAnswerError
+from robocloud.templates import Template, parse_template, parse_template_id, validate_record
+
+NDJSON = "application/x-ndjson"
+
+
+@dataclass(frozen=True)
+class TemplateVersion:
+    """A template version as the catalog holds it."""
+
+    template: Template
+    status: str
+    author: str
+    reviewer: str | None
+    reason: str | None
+
+    @property
+    def id(self) -> str:
+        return self.template.id
+
+
+@dataclass(frozen=True)
+class StoredRecord:
+    id: str
+    record: dict[str, Any]
+    signer: str | None
+    meta: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class RecordPage:
+    records: list[StoredRecord]
+    next: str | None
+    keywords_pending: int
+
+
+@dataclass(frozen=True)
+class Interval:
+    robot: str
+    enter: int
+    exit: int | None
+
+
+class Storage(ServiceClient):
+    """The storage service: templates, records, queries and intervals."""
+
+    default_service = "storage"
+
+    def _version(self, answer: Any) -> TemplateVersion:
+        try:
+            template = parse_template(
+                {key: answer[key] for key in ("name", "version", "fields", "description")}
+            )
+            return TemplateVersion(
+                template,
+                str(answer["status"]),
+                str(answer["author"]),
+                answer.get("reviewer"),
+                answer.get("reason"),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvalidAnswerError(
+                f"the storage service sent an invalid template: {exc}"
+            ) from exc
+
+    def create_template(self, document: Mapping[str, Any]) -> TemplateVersion:
+        return self._version(self.post_json("/v1/templates", dict(document)))
+
+    def new_version(self, name: str, document: Mapping[str, Any]) -> TemplateVersion:
+        path = f"/v1/templates/{quote(name, safe='')}/versions"
+        return self._version(self.post_json(path, dict(document)))
+
+    def edit_template(self, template_id: str, document: Mapping[str, Any]) -> TemplateVersion:
+        parse_template_id(template_id)
+        answer = self.request("PUT", f"/v1/templates/{template_id}", json=dict(document))
+        return self._version(self.json_of(answer))
+
+    def submit_template(self, template_id: str) -> TemplateVersion:
+        parse_template_id(template_id)
+        return self._version(self.post_json(f"/v1/templates/{template_id}/submit"))
+
+    def review_template(
+        self, template_id: str, decision: str, reason: str | None = None
+    ) -> TemplateVersion:
+        parse_template_id(template_id)
+        body: dict[str, Any] = {"decision": decision}
+        if reason is not None:
+            body["reason"] = reason
+        return self._version(self.post_json(f"/v1/templates/{template_id}/review", body))
+
+    def template(self, template_id: str) -> TemplateVersion:
+        parse_template_id(template_id)
+        return self._version(self.get_json(f"/v1/templates/{template_id}"))
+
+    def templates(
+        self, *, name: str | None = None, status: str | None = None, limit: int = 100
+    ) -> Iterator[TemplateVersion]:
+        """Every version (filtered), following the service's pages."""
+        after: str | None = None
+        while True:
+            params = {"name": name, "status": status, "after": after, "limit": limit}
+            answer = self.get_json(
+                "/v1/templates", params={k: v for k, v in params.items() if v is not None}
+            )
+            if not isinstance(answer, dict) or not isinstance(answer.get("templates"), list):
+                raise InvalidAnswerError("the storage service sent an invalid template list")
+            for item in answer["templates"]:
+                yield self._version(item)
+            after = answer.get("next")
+            if not isinstance(after, str):
+                return
+
+    def append(
+        self,
+        records: Sequence[Mapping[str, Any]],
+        *,
+        templates: Mapping[str, Template] | None = None,
+    ) -> list[str]:
+        """Store records (all or none) and return their ids.
+
+        Records whose template is in ``templates`` are validated here first, raising
+        ``RecordInvalid`` with the field path before anything is sent.
+        """
+        lines = []
+        for record in records:
+            template = (templates or {}).get(str(record.get("template")))
+            if template is not None:
+                validate_record(template, record)
+            lines.append(jcs.canonical(dict(record)))
+        body = b"\n".join(lines) + b"\n"
+        answer = self.json_of(
+            self.request("POST", "/v1/records", content=body, headers={"Content-Type": NDJSON})
+        )
+        ids = answer.get("ids") if isinstance(answer, dict) else None
+        if not isinstance(ids, list) or len(ids) != len(records):
+            raise InvalidAnswerError("the storage service sent no id for each record")
+        return [str(item) for item in ids]
+
+    def record(self, record_id: str) -> StoredRecord:
+        answer = self.get_json(f"/v1/records/{quote(record_id, safe='')}")
+        return _stored(answer)
+
+    def query(
+        self,
+        *,
+        template: str | None = None,
+        topic: str | None = None,
+        robot: str | None = None,
+        start: int | None = None,
+        end: int | None = None,
+        where: Sequence[str] = (),
+        keywords: str | None = None,
+        limit: int = 100,
+        cursor: str | None = None,
+    ) -> RecordPage:
+        """One page of records matching every filter; ``next`` continues it."""
+        params: dict[str, Any] = {
+            "template": template,
+            "topic": topic,
+            "robot": robot,
+            "start": start,
+            "end": end,
+            "keywords": keywords,
+            "limit": limit,
+            "cursor": cursor,
+        }
+        query = [(k, v) for k, v in params.items() if v is not None]
+        query += [("where", clause) for clause in where]
+        answer = self.get_json("/v1/records", params=_Params(query))
+        if not isinstance(answer, dict) or not isinstance(answer.get("records"), list):
+            raise InvalidAnswerError("the storage service sent an invalid page of records")
+        following = answer.get("next")
+        return RecordPage(
+            [_stored(item) for item in answer["records"]],
+            following if isinstance(following, str) else None,
+            int(answer.get("keywords_pending") or 0),
+        )
+
+    def intervals(
+        self,
+        template: str,
+        field: str,
+        value: str,
+        *,
+        robot: str | None = None,
+        start: int | None = None,
+        end: int | None = None,
+    ) -> list[Interval]:
+        params = {
+            "template": template,
+            "field": field,
+            "value": value,
+            "robot": robot,
+            "start": start,
+            "end": end,
+        }
+        answer = self.get_json(
+            "/v1/intervals", params={k: v for k, v in params.items() if v is not None}
+        )
+        try:
+            return [
+                Interval(str(item["robot"]), int(item["enter"]), _optional_int(item["exit"]))
+                for item in answer["intervals"]
+            ]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvalidAnswerError(f"the storage service sent invalid intervals: {exc}") from exc
+
+
+class _Params(dict[str, Any]):
+    """Repeated query keys (``where``) for httpx, which takes a list of pairs as params."""
+
+    def __init__(self, pairs: list[tuple[str, Any]]) -> None:
+        super().__init__()
+        for key, value in pairs:
+            self.setdefault(key, []).append(value)
+
+
+def _optional_int(value: Any) -> int | None:
+    return None if value is None else int(value)
+
+
+def _stored(item: Any) -> StoredRecord:
+    if (
+        not isinstance(item, dict)
+        or not isinstance(item.get("id"), str)
+        or not isinstance(item.get("record"), dict)
+    ):
+        raise InvalidAnswerError(
+            f"the storage service sent an invalid record: {json.dumps(item)[:200]}"
+        )
+    meta = item.get("meta")
+    return StoredRecord(
+        item["id"], item["record"], item.get("signer"), meta if isinstance(meta, dict) else None
+    )

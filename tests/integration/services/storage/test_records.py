@@ -1,0 +1,249 @@
+"""The storage service's templates, records and queries through real processes and the SDK."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from robocloud.cas import Cas
+from robocloud.errors import ApiError, BadRequestError, ConflictError
+from robocloud.identity import Identity
+from robocloud.storage import Storage
+from robocloud.templates import RecordInvalid
+from tests.conftest import ServiceFactory
+from tests.procs import REPO, ServiceProcess
+
+STATE = {
+    "name": "state",
+    "fields": {
+        "mode": "string",
+        "speed": "float",
+        "pose": {"container": {"x": "float", "y": "float"}},
+        "ranges": {"array": "float"},
+    },
+}
+
+
+def _record(robot: str, t: int, mode: str = "idle", **data: Any) -> dict[str, Any]:
+    values: dict[str, Any] = {
+        "mode": mode,
+        "speed": t / 10,
+        "pose": {"x": float(t), "y": 0.5},
+        "ranges": [1.0, 2.0],
+    }
+    values.update(data)
+    return {"template": "state@1", "topic": "/state", "robot": robot, "t": t, "data": values}
+
+
+def _approved(client: Storage) -> None:
+    client.create_template(STATE)
+    client.submit_template("state@1")
+    client.review_template("state@1", "approve", "ok")
+
+
+@pytest.fixture
+def storage(service_factory: ServiceFactory) -> ServiceProcess:
+    return service_factory("storage", {"ROBOCLOUD_STORAGE_SEGMENT_RECORDS": "32"})
+
+
+def test_template_lifecycle_over_http(storage: ServiceProcess, identity: Identity) -> None:
+    with Storage(storage.url, identity) as client:
+        draft = client.create_template(STATE)
+        assert (draft.id, draft.status, draft.author) == ("state@1", "draft", identity.address)
+        with pytest.raises(BadRequestError) as invalid:
+            client.create_template({"name": "bad", "fields": {"x": "vec3", "Y": "int"}})
+        assert invalid.value.code == "invalid_template"
+        assert [p["path"] for p in invalid.value.details["problems"]] == ["fields.x", "fields.Y"]
+        with pytest.raises(BadRequestError) as not_approved:
+            client.append([_record(identity.address, 1)])
+        assert not_approved.value.details == {
+            "index": 0,
+            "field": "template",
+            "reason": "template_not_approved",
+        }
+        client.submit_template("state@1")
+        approved = client.review_template("state@1", "approve", "ok")
+        assert (approved.status, approved.reviewer) == ("approved", identity.address)
+        with pytest.raises(ConflictError) as immutable:
+            client.edit_template("state@1", {"fields": {"mode": "int"}})
+        assert immutable.value.code == "template_immutable"
+        assert immutable.value.details == {"template": "state@1", "status": "approved"}
+        assert client.template("state@1").template.fields.keys() == STATE["fields"].keys()
+        second = client.new_version("state", {"fields": {"mode": "int"}})
+        assert (second.id, second.status) == ("state@2", "draft")
+        assert [v.id for v in client.templates()] == ["state@1", "state@2"]
+    duplicate = httpx.post(
+        f"{storage.url}/v1/templates",
+        content=b'{"name": "x", "fields": {"a": "int", "a": "int"}}',
+        headers={"Content-Type": "application/json"},
+    )
+    assert duplicate.status_code == 401
+    assert duplicate.json()["error"]["code"] == "missing_signature_header"
+
+
+def test_records_round_trip_and_bad_batches_store_nothing(
+    storage: ServiceProcess, identity: Identity
+) -> None:
+    robot = identity.address
+    with Storage(storage.url, identity) as client:
+        _approved(client)
+        ids = client.append([_record(robot, t) for t in range(50)])
+        assert ids == [f"state-1-{t}" for t in range(50)]
+        stored = client.record("state-1-7")
+        assert stored.record == json.loads(json.dumps(_record(robot, 7)))
+        assert stored.meta is not None
+        assert stored.meta["signer"] == robot
+        assert len(stored.meta["request_sha256"]) == 64
+        assert stored.meta["signature"].startswith("0x")
+        bad = [_record(robot, 60), _record(robot, 61, pose={"x": "north", "y": 0})]
+        with pytest.raises(BadRequestError) as rejected:
+            client.append(bad)
+        assert rejected.value.details == {
+            "index": 1,
+            "field": "data.pose.x",
+            "reason": "invalid_record",
+        }
+        with pytest.raises(RecordInvalid) as local:
+            client.append(bad, templates={"state@1": client.template("state@1").template})
+        assert local.value.path == "data.pose.x"
+        body = json.dumps([_record(robot, 70), {"template": "state@1"}]).encode()
+        answer = client.send(
+            "POST", "/v1/records", content=body, headers={"Content-Type": "application/json"}
+        )
+        assert answer.status_code == 400
+        assert answer.json()["error"]["details"]["index"] == 1
+        lines = json.dumps(_record(robot, 80)).encode() + b"\n{not json\n"
+        answer = client.send(
+            "POST", "/v1/records", content=lines, headers={"Content-Type": "application/x-ndjson"}
+        )
+        assert answer.status_code == 400
+        assert answer.json()["error"]["details"]["reason"] == "invalid_json"
+        long_line = b'{"x": "' + b"a" * (2 * 1024 * 1024) + b'"}\n'
+        answer = client.send(
+            "POST",
+            "/v1/records",
+            content=long_line,
+            headers={"Content-Type": "application/x-ndjson"},
+        )
+        assert answer.status_code == 413
+        assert answer.json()["error"]["details"] == {"index": 0, "limit": 1024 * 1024}
+        page = client.query(template="state@1", limit=1000)
+        assert [item.record["t"] for item in page.records] == list(range(50))
+    unsigned = httpx.post(f"{storage.url}/v1/records", json=[_record(robot, 90)])
+    assert unsigned.status_code == 401
+
+
+def test_queries_and_intervals_over_http(storage: ServiceProcess, identity: Identity) -> None:
+    robot = identity.address
+    other = Identity.generate().address
+    modes = ["idle", "docked", "docked", "idle"] * 20
+    with Storage(storage.url, identity) as client:
+        _approved(client)
+        client.append([_record(robot, t, modes[t]) for t in range(80)])
+        client.append([_record(other, 1000 + t, "docked") for t in range(3)])
+        page = client.query(template="state@1", start=10, end=20, where=["mode=docked"])
+        assert [item.record["t"] for item in page.records] == [10, 13, 14, 17, 18]
+        page = client.query(template="state@1", where=["speed>7.5", "pose.x<=78"], limit=2)
+        assert [item.id for item in page.records] == ["state-1-76", "state-1-77"]
+        following = client.query(
+            template="state@1", where=["speed>7.5", "pose.x<=78"], limit=2, cursor=page.next
+        )
+        assert [item.id for item in following.records] == ["state-1-78"]
+        assert following.next is None
+        assert [i.record["t"] for i in client.query(robot=other).records] == [1000, 1001, 1002]
+        intervals = client.intervals("state@1", "mode", "docked", start=0, end=9)
+        assert [(i.robot, i.enter, i.exit) for i in intervals] == [(robot, 1, 3), (robot, 5, 7)]
+        for where, reason in [("gear=1", "unknown_field"), ("speed=>1", "invalid_operator")]:
+            with pytest.raises(BadRequestError) as invalid:
+                client.query(template="state@1", where=["speed>0", where])
+            assert invalid.value.details == {"parameter": "where[1]", "reason": reason}
+        with pytest.raises(ApiError) as missing:
+            client.record("state-1-9999")
+        assert missing.value.status == 404
+
+
+def test_large_arrays_go_to_cas(service_factory: ServiceFactory, identity: Identity) -> None:
+    cas = service_factory("cas")
+    storage = service_factory(
+        "storage", {"ROBOCLOUD_CAS_URL": cas.url, "ROBOCLOUD_STORAGE_ARRAY_INLINE_BYTES": "256"}
+    )
+    ranges = [n / 4 for n in range(500)]
+    with Storage(storage.url, identity) as client:
+        _approved(client)
+        (record_id,) = client.append([_record(identity.address, 1, ranges=ranges)])
+        stored = client.record(record_id).record["data"]["ranges"]
+    assert isinstance(stored, str)
+    with Cas(cas.url) as gateway:
+        assert json.loads(gateway.get(stored)) == ranges
+
+
+WRITER = """
+import json, sys
+from robocloud.identity import Identity
+from robocloud.storage import Storage
+url, key = sys.argv[1], sys.argv[2]
+identity = Identity.from_key(key)
+with Storage(url, identity, retries=0) as client:
+    for batch in range(10_000):
+        records = [{"template": "state@1", "topic": "/state", "robot": identity.address,
+                    "t": batch * 100 + n, "data": {"mode": "m%d" % batch, "speed": 1.0,
+                    "pose": {"x": 1.0, "y": 2.0}, "ranges": []}} for n in range(100)]
+        ids = client.append(records)
+        print(json.dumps(ids), flush=True)
+"""
+
+
+def test_kill_9_keeps_every_acknowledged_record_once(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    with Storage(storage.url, identity) as client:
+        _approved(client)
+    key = identity.account.key.hex()
+    writer = subprocess.Popen(
+        [sys.executable, "-c", WRITER, storage.url, key],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
+    )
+    assert writer.stdout is not None
+    acknowledged: list[str] = []
+    for line in writer.stdout:
+        acknowledged.extend(json.loads(line))
+        if len(acknowledged) >= 1500:
+            break
+    assert storage.process is not None
+    os.kill(storage.process.pid, signal.SIGKILL)
+    storage.process.wait()
+    for line in writer.stdout:
+        acknowledged.extend(json.loads(line))
+    writer.wait()
+    storage.start()
+    with Storage(storage.url, identity) as client:
+        seen: list[str] = []
+        cursor = None
+        while True:
+            page = client.query(template="state@1", limit=1000, cursor=cursor)
+            seen.extend(item.id for item in page.records)
+            if page.next is None:
+                break
+            cursor = page.next
+        assert len(seen) == len(set(seen))
+        assert set(acknowledged) <= set(seen)
+        ts = [client.record(record_id).record["t"] for record_id in acknowledged[-3:]]
+        assert ts == sorted(ts)
+        assert client.append([_record(identity.address, 10**9)]) == [f"state-1-{len(seen)}"]
+        keyword = client.query(template="state@1", keywords="m3")
+        while keyword.keywords_pending:
+            time.sleep(0.05)
+            keyword = client.query(template="state@1", keywords="m3")
+        assert [item.record["t"] for item in keyword.records] == list(range(300, 400))

@@ -1,0 +1,122 @@
+"""The template catalog: lifecycle, immutability of approved versions, persistence."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from robocloud.templates import TemplateIdInvalid, TemplateInvalid
+from services.storage.catalog import (
+    Catalog,
+    CatalogFull,
+    LifecycleConflict,
+    NotAuthor,
+    TemplateExists,
+    TemplateImmutable,
+    TemplateNotApproved,
+    TemplateNotFound,
+)
+
+AUTHOR = "0x90F8bf6A479f320ead074411a4B0e7944Ea8c9C1"
+OTHER = "0xFFcf8FDEE72ac11b5c542428B35EEF5769C409f0"
+REVIEWER = "0x22d491Bde2303f2f43325b2108D26f1eAbA1e32b"
+
+
+def _imu(**changes: Any) -> dict[str, Any]:
+    document: dict[str, Any] = {"name": "imu", "fields": {"ax": "float"}, "description": "x"}
+    document.update(changes)
+    return document
+
+
+def test_lifecycle_to_approval_and_new_versions(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path)
+    draft = catalog.create(_imu(), author=AUTHOR)
+    assert (draft.id, draft.status, draft.author) == ("imu@1", "draft", AUTHOR)
+    with pytest.raises(TemplateNotApproved):
+        catalog.approved("imu@1")
+    edited = catalog.edit("imu@1", {"fields": {"ax": "float", "ay": "float"}}, author=AUTHOR)
+    assert list(edited.template.fields) == ["ax", "ay"]
+    with pytest.raises(LifecycleConflict):
+        catalog.review("imu@1", "approve", reviewer=REVIEWER)
+    catalog.submit("imu@1", author=AUTHOR)
+    with pytest.raises(TemplateImmutable) as under_review:
+        catalog.edit("imu@1", _imu(), author=AUTHOR)
+    assert under_review.value.status == "submitted"
+    approved = catalog.review("imu@1", "approve", reviewer=REVIEWER, reason="fine")
+    assert (approved.status, approved.reviewer, approved.reason) == ("approved", REVIEWER, "fine")
+    assert catalog.approved("imu@1").fields.keys() == {"ax", "ay"}
+    with pytest.raises(TemplateImmutable) as immutable:
+        catalog.edit("imu@1", _imu(fields={"bx": "int"}), author=AUTHOR)
+    assert immutable.value.status == "approved"
+    assert catalog.approved("imu@1").fields.keys() == {"ax", "ay"}
+    second = catalog.new_version("imu", {"fields": {"bx": "int"}}, author=OTHER)
+    assert (second.id, second.status) == ("imu@2", "draft")
+    with pytest.raises(TemplateExists):
+        catalog.create(_imu(), author=AUTHOR)
+
+
+def test_rejected_versions_may_be_edited_back_to_drafts(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path)
+    catalog.create(_imu(), author=AUTHOR)
+    catalog.submit("imu@1", author=AUTHOR)
+    rejected = catalog.review("imu@1", "reject", reviewer=REVIEWER, reason="units?")
+    assert (rejected.status, rejected.reason) == ("rejected", "units?")
+    with pytest.raises(NotAuthor):
+        catalog.edit("imu@1", _imu(), author=OTHER)
+    again = catalog.edit("imu@1", _imu(description="m/s^2"), author=AUTHOR)
+    assert (again.status, again.reviewer, again.reason) == ("draft", None, None)
+
+
+def test_bad_documents_change_nothing(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path)
+    with pytest.raises(TemplateInvalid) as invalid:
+        catalog.create(_imu(fields={"Bad": "vector"}), author=AUTHOR)
+    assert {p.path for p in invalid.value.problems} == {"fields.Bad"}
+    with pytest.raises(TemplateInvalid):
+        catalog.create([], author=AUTHOR)
+    with pytest.raises(TemplateInvalid) as wrong_version:
+        catalog.create(_imu(version=2), author=AUTHOR)
+    assert wrong_version.value.problems[0].path == "version"
+    assert catalog.list() == []
+    catalog.create(_imu(), author=AUTHOR)
+    with pytest.raises(TemplateInvalid) as renamed:
+        catalog.new_version("imu", _imu(name="gps"), author=AUTHOR)
+    assert renamed.value.problems[0].path == "name"
+    with pytest.raises(TemplateNotFound):
+        catalog.new_version("gps", _imu(), author=AUTHOR)
+    with pytest.raises(TemplateIdInvalid):
+        catalog.get("imu")
+    assert [v.id for v in catalog.list()] == ["imu@1"]
+
+
+def test_submission_is_the_authors(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path)
+    catalog.create(_imu(), author=AUTHOR)
+    with pytest.raises(NotAuthor):
+        catalog.submit("imu@1", author=OTHER)
+    assert catalog.get("imu@1").status == "draft"
+
+
+def test_the_catalog_survives_a_restart_and_is_bounded(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path, max_versions=2)
+    catalog.create(_imu(), author=AUTHOR)
+    catalog.submit("imu@1", author=AUTHOR)
+    catalog.review("imu@1", "approve", reviewer=REVIEWER)
+    catalog.create(_imu(name="gps"), author=AUTHOR)
+    with pytest.raises(CatalogFull):
+        catalog.new_version("imu", {"fields": {"x": "int"}}, author=AUTHOR)
+    catalog.close()
+    with (tmp_path / "catalog.log").open("ab") as journal:
+        journal.write(b'{"id": "torn')
+    reopened = Catalog(tmp_path)
+    assert [(v.id, v.status) for v in reopened.list()] == [
+        ("gps@1", "draft"),
+        ("imu@1", "approved"),
+    ]
+    assert reopened.list(status="approved", limit=5)[0].reviewer == REVIEWER
+    assert [v.id for v in reopened.list(after="gps@1")] == ["imu@1"]
+    reopened.new_version("gps", {"fields": {"lat": "float"}}, author=AUTHOR)
+    reopened.close()
+    assert [v.id for v in Catalog(tmp_path).list(name="gps")] == ["gps@1", "gps@2"]

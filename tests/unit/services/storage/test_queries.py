@@ -1,0 +1,147 @@
+"""Queries: filters through the sealed segments' indexes and the tail, pages, intervals."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from services.storage.catalog import TemplateNotFound
+from services.storage.queries import QueryEngine, QueryInvalid, RecordQuery
+from services.storage.recordstore import RecordStore
+from tests.unit.services.storage.conftest import (
+    AUTHOR,
+    ROBOT_A,
+    ROBOT_B,
+    StoreFactory,
+    state_record,
+)
+
+
+def _filled(open_store: StoreFactory) -> RecordStore:
+    """100 records (t = 0..99, two robots alternating): 6 sealed segments and a tail of 4."""
+    store = open_store()
+    modes = ["idle"] * 10 + ["docked"] * 5 + ["moving"] * 85
+    records = [
+        state_record(t, robot=ROBOT_A if t % 2 == 0 else ROBOT_B, mode=modes[t]) for t in range(100)
+    ]
+    store.append(records[:50], author=AUTHOR)
+    store.append(records[50:], author=AUTHOR)
+    return store
+
+
+def _ts(store: RecordStore, **filters: Any) -> list[int]:
+    page = QueryEngine(store).records(RecordQuery(template="state@1", limit=1000, **filters))
+    return [stored.record["t"] for stored in page.records]
+
+
+def test_filters_combine_with_and(open_store: StoreFactory) -> None:
+    store = _filled(open_store)
+    assert _ts(store, start=20, end=25) == [20, 21, 22, 23, 24]
+    assert _ts(store, start=95) == [95, 96, 97, 98, 99]
+    assert _ts(store, start=30, end=40, robot=ROBOT_B) == [31, 33, 35, 37, 39]
+    assert _ts(store, where=("speed>=9.5",)) == [95, 96, 97, 98, 99]
+    assert _ts(store, where=("speed>9.5", "count!=0")) == [96, 97, 99]
+    assert _ts(store, where=("pose.x<3",)) == [0, 1, 2]
+    assert _ts(store, where=("pose.x<=3", "pose.x>1")) == [2, 3]
+    assert _ts(store, where=("mode=docked",)) == [10, 11, 12, 13, 14]
+    assert _ts(store, where=("docked==true", "count = 5")) == [12]
+    assert _ts(store, where=("mode!=moving", "count>=5")) == [5, 6, 12, 13]
+    assert _ts(store, topic="/other") == []
+    assert _ts(store, start=10, end=10) == []
+
+
+def test_pages_follow_the_cursor(open_store: StoreFactory) -> None:
+    store = _filled(open_store)
+    engine = QueryEngine(store)
+    seen: list[int] = []
+    cursor = None
+    while True:
+        page = engine.records(
+            RecordQuery(template="state@1", where=("count<3",), limit=7, cursor=cursor)
+        )
+        seen.extend(stored.record["t"] for stored in page.records)
+        if page.next is None:
+            break
+        cursor = page.next
+    assert seen == [t for t in range(100) if t % 7 < 3]
+    everything = engine.records(RecordQuery(limit=1000))
+    assert len(everything.records) == 100
+    assert everything.next is None
+
+
+def test_keywords_find_records_once_indexed(open_store: StoreFactory) -> None:
+    store = _filled(open_store)
+    store.index_keywords()
+    engine = QueryEngine(store)
+    page = engine.records(RecordQuery(keywords="DOCKED", limit=100))
+    assert [stored.id for stored in page.records] == [f"state-1-{t}" for t in range(10, 15)]
+    assert page.keywords_pending == 0
+    page = engine.records(RecordQuery(template="state@1", keywords="docked", robot=ROBOT_A))
+    assert [stored.record["t"] for stored in page.records] == [10, 12, 14]
+    with pytest.raises(QueryInvalid) as empty:
+        engine.records(RecordQuery(keywords="  ,; "))
+    assert empty.value.parameter == "keywords"
+
+
+@pytest.mark.parametrize(
+    ("where", "code"),
+    [
+        ("nowhere=1", "unknown_field"),
+        ("pose=1", "unknown_field"),
+        ("ranges=1", "unknown_field"),
+        ("speed~1", "invalid_operator"),
+        ("speed=>1", "invalid_operator"),
+        ("speed<<1", "invalid_operator"),
+        ("speed", "invalid_operator"),
+        ("mode<x", "invalid_operator"),
+        ("speed>fast", "invalid_query"),
+        ("speed>nan", "invalid_query"),
+        ("count>1.5", "invalid_query"),
+        ("docked=1", "invalid_query"),
+        ("Speed>1", "invalid_operator"),
+    ],
+)
+def test_bad_comparisons_are_named(open_store: StoreFactory, where: str, code: str) -> None:
+    store = _filled(open_store)
+    with pytest.raises(QueryInvalid) as invalid:
+        QueryEngine(store).records(RecordQuery(template="state@1", where=("count>0", where)))
+    assert (invalid.value.parameter, invalid.value.code) == ("where[1]", code)
+
+
+def test_bad_query_parameters(open_store: StoreFactory) -> None:
+    engine = QueryEngine(_filled(open_store))
+    for query, parameter in [
+        (RecordQuery(where=("count>1",)), "where"),
+        (RecordQuery(limit=0), "limit"),
+        (RecordQuery(limit=1001), "limit"),
+        (RecordQuery(cursor="state@1"), "cursor"),
+        (RecordQuery(template="State"), "template"),
+        (RecordQuery(start=5, end=4), "start"),
+        (RecordQuery(template="state@1", where=("count>1",) * 17), "where"),
+    ]:
+        with pytest.raises(QueryInvalid) as invalid:
+            engine.records(query)
+        assert invalid.value.parameter == parameter
+    with pytest.raises(TemplateNotFound):
+        engine.records(RecordQuery(template="gps@1"))
+
+
+def test_intervals_per_robot(open_store: StoreFactory) -> None:
+    store = open_store()
+    modes = ["idle", "docked", "docked", "idle", "docked"]
+    records = [state_record(t * 10, mode=mode) for t, mode in enumerate(modes)]
+    records += [state_record(t * 10 + 5, robot=ROBOT_B, mode="docked") for t in range(3)]
+    store.append(records, author=AUTHOR)
+    engine = QueryEngine(store)
+    found = engine.intervals("state@1", "mode", "docked")
+    assert [(i.robot, i.enter, i.exit) for i in found] == [
+        (ROBOT_A, 10, 30),
+        (ROBOT_A, 40, None),
+        (ROBOT_B, 5, None),
+    ]
+    within = engine.intervals("state@1", "docked", "true", robot=ROBOT_A, start=0, end=35)
+    assert [(i.enter, i.exit) for i in within] == [(10, 30)]
+    with pytest.raises(QueryInvalid) as invalid:
+        engine.intervals("state@1", "gear", "1")
+    assert invalid.value.code == "unknown_field"

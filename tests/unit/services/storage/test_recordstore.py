@@ -1,0 +1,92 @@
+"""The record store: all-or-nothing batches, authorship, views rebuilt from the log."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from services.storage.recordstore import (
+    OffloadFailed,
+    RecordIdInvalid,
+    RecordNotFound,
+    RecordRejected,
+    parse_record_id,
+)
+from services.storage.segments import MANIFEST
+from tests.unit.services.storage.conftest import AUTHOR, ROBOT_A, StoreFactory, state_record
+
+
+def test_a_batch_is_logged_indexed_and_read_back(open_store: StoreFactory) -> None:
+    store = open_store()
+    ids = store.append([state_record(t) for t in range(40)], author=AUTHOR)
+    assert ids == [f"state-1-{n}" for n in range(40)]
+    views = store.views("state@1")
+    assert views is not None
+    assert (views.durable, len(views.tail)) == (32, 8)
+    stored = store.get("state-1-17")
+    assert stored.record == json.loads(json.dumps(state_record(17)))
+    assert stored.meta["signer"] == ROBOT_A
+    assert stored.meta["request_sha256"] == AUTHOR.request_sha256
+    assert [doc["_i"] for doc in views.docs(views.sealed[1])] == list(range(16, 32))
+    assert views.docs(views.sealed[0])[3]["pose.x"] == 3
+
+
+def test_a_bad_record_refuses_the_whole_batch(open_store: StoreFactory) -> None:
+    store = open_store()
+    store.append([state_record(0)], author=AUTHOR)
+    batch = [state_record(1), state_record(2), state_record(3, pose={"x": "far", "y": 0})]
+    with pytest.raises(RecordRejected) as rejected:
+        store.append(batch, author=AUTHOR)
+    assert (rejected.value.index, rejected.value.path) == (2, "data.pose.x")
+    unknown = {**state_record(4), "template": "gps@1"}
+    with pytest.raises(RecordRejected) as missing:
+        store.append([state_record(5), unknown], author=AUTHOR)
+    assert (missing.value.index, missing.value.code) == (1, "template_not_found")
+    store.catalog.create({"name": "gps", "fields": {"lat": "float"}}, author=ROBOT_A)
+    draft = {**state_record(4), "template": "gps@1", "data": {"lat": 1.0}}
+    with pytest.raises(RecordRejected) as unapproved:
+        store.append([draft], author=AUTHOR)
+    assert unapproved.value.code == "template_not_approved"
+    assert store.logs.size("state@1") == 1
+    assert store.logs.template_ids() == ["state@1"]
+
+
+def test_a_large_array_without_cas_stores_nothing(open_store: StoreFactory) -> None:
+    store = open_store()
+    large = state_record(1, ranges=[float(n) for n in range(200)])
+    with pytest.raises(OffloadFailed) as failed:
+        store.append([state_record(0), large], author=AUTHOR)
+    assert (failed.value.index, failed.value.path) == (1, "data.ranges")
+    assert store.logs.size("state@1") == 0
+
+
+def test_views_are_rebuilt_past_their_mark(open_store: StoreFactory) -> None:
+    store = open_store()
+    store.append([state_record(t) for t in range(40)], author=AUTHOR)
+    views = store.views("state@1")
+    assert views is not None
+    directory = views.directory
+    (directory / "seg-000000000048.json").write_text("{half a segment")
+    manifest = json.loads((directory / MANIFEST).read_bytes())
+    manifest["sealed"] = manifest["sealed"][:1]
+    (directory / MANIFEST).write_text(json.dumps(manifest))
+    store = open_store()
+    views = store.views("state@1")
+    assert views is not None
+    assert not (directory / "seg-000000000048.json").exists()
+    assert (views.durable, len(views.tail)) == (32, 8)
+    assert [doc["_i"] for doc in views.all_docs()] == list(range(40))
+    assert store.append([state_record(40)], author=AUTHOR) == ["state-1-40"]
+
+
+def test_record_ids(open_store: StoreFactory) -> None:
+    store = open_store()
+    assert parse_record_id("state-1-0") == ("state@1", 0)
+    for bad in ("state-1", "state-01-2", "State-1-2", "state-1-02", "state-1--1"):
+        with pytest.raises(RecordIdInvalid):
+            store.get(bad)
+    with pytest.raises(RecordNotFound):
+        store.get("state-1-0")
+    with pytest.raises(RecordNotFound):
+        store.get("gps-1-0")
