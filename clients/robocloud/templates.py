@@ -1,0 +1,471 @@
+"""Templates and records: the typed wire format of robocloud's storage, shared by robots and nodes.
+
+A template ``{"name", "version", "fields", "description"}`` types a record's ``data``; its id
+is ``name@version``. :func:`evaluate` returns *every* problem of a template document with its
+path, so that a designer fixes them in one round; :func:`parse_template` turns a clean one
+into a :class:`Template`. :func:`validate_record` checks a record against its template and
+raises :class:`RecordInvalid` naming the first offending field path (``data.pose.position.x``,
+``data.ranges[3]``). Both walk only as deep as a template may nest (8), so a hostile document
+costs at most its size, never a stack overflow.
+
+The module is pure: no I/O, no HTTP. The storage service and the SDK use the same code, so a
+robot can check its records before it sends them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from eth_utils.address import is_checksum_address
+
+from robocloud import bounded_json
+from robocloud.cid import CIDError, parse_cid
+from robocloud.errors import FormatError
+from robocloud.jcs import MAX_SAFE_INTEGER
+
+NAME = re.compile(r"[a-z][a-z0-9_]{0,62}")
+"""Template and field names."""
+TEMPLATE_ID = re.compile(r"([a-z][a-z0-9_]{0,62})@([1-9][0-9]{0,8})")
+MAX_NESTING = 8
+"""Arrays and containers inside one another, at most."""
+MAX_FIELDS = 1024
+"""Fields of one template, counted through every container."""
+MAX_VERSION = 10**9 - 1
+MAX_DESCRIPTION = 4096
+MAX_TOPIC = 256
+MAX_STRING = 65536
+"""Characters of one string value."""
+MAX_T = 2**63 - 1
+MAX_PROBLEMS = 200
+"""Problems listed for one template; a document with more is hopeless anyway."""
+TOPIC = re.compile(r"/[A-Za-z0-9_/~.-]{0,255}")
+RECORD_KEYS = ("template", "topic", "robot", "t", "data")
+
+ScalarKind = Literal[
+    "string", "int", "float", "bool", "image", "file", "range<int>", "range<float>"
+]
+SCALAR_KINDS: frozenset[str] = frozenset(
+    ("string", "int", "float", "bool", "image", "file", "range<int>", "range<float>")
+)
+TEMPLATE_KEYS = frozenset(("name", "version", "fields", "description"))
+
+
+class TemplateInvalid(FormatError):
+    """A template document with problems; ``problems`` lists each with its path."""
+
+    def __init__(self, problems: list[Problem]) -> None:
+        first = problems[0]
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        super().__init__(f"invalid template: {first.path}: {first.message}{more}")
+        self.problems = problems
+
+
+class TemplateIdInvalid(FormatError):
+    """Text that is not a template id ``name@version``."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__(f"{text[:80]!r} is not a template id (name@version)")
+        self.text = text
+
+
+class RecordInvalid(FormatError):
+    """A record that breaks its template or the record format; ``path`` names the field."""
+
+    def __init__(self, path: str, message: str) -> None:
+        super().__init__(f"{path}: {message}")
+        self.path = path
+        self.reason = message
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong with a template document, at ``path`` (``fields.pose.container.x``)."""
+
+    path: str
+    message: str
+
+    def to_json(self) -> dict[str, str]:
+        return {"path": self.path, "message": self.message}
+
+
+@dataclass(frozen=True)
+class Scalar:
+    kind: ScalarKind
+
+
+@dataclass(frozen=True)
+class ArrayOf:
+    item: FieldType
+
+
+@dataclass(frozen=True)
+class Container:
+    fields: Mapping[str, FieldType]
+
+
+FieldType = Scalar | ArrayOf | Container
+
+
+@dataclass(frozen=True)
+class Template:
+    """An evaluated template: its fields typed, its id ``name@version``."""
+
+    name: str
+    version: int
+    fields: Mapping[str, FieldType]
+    description: str = ""
+
+    @property
+    def id(self) -> str:
+        return f"{self.name}@{self.version}"
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "version": self.version,
+            "fields": {name: type_to_json(kind) for name, kind in self.fields.items()},
+            "description": self.description,
+        }
+
+    def leaves(self) -> Iterator[tuple[str, FieldType]]:
+        """Every field reachable through containers only, by dotted path (``pose.position.x``).
+
+        Arrays are leaves (their items have no path of their own); containers are not.
+        """
+        stack: list[tuple[str, Mapping[str, FieldType]]] = [("", self.fields)]
+        while stack:
+            prefix, fields = stack.pop()
+            for name, kind in fields.items():
+                path = f"{prefix}{name}"
+                if isinstance(kind, Container):
+                    stack.append((f"{path}.", kind.fields))
+                else:
+                    yield path, kind
+
+    def leaf(self, path: str) -> FieldType | None:
+        """The type of the leaf at dotted ``path``, None when there is none."""
+        fields: Mapping[str, FieldType] = self.fields
+        parts = path.split(".")
+        for depth, part in enumerate(parts):
+            kind = fields.get(part)
+            if kind is None:
+                return None
+            if depth == len(parts) - 1:
+                return None if isinstance(kind, Container) else kind
+            if not isinstance(kind, Container):
+                return None
+            fields = kind.fields
+        return None
+
+
+def type_to_json(kind: FieldType) -> Any:
+    if isinstance(kind, Scalar):
+        return kind.kind
+    if isinstance(kind, ArrayOf):
+        return {"array": type_to_json(kind.item)}
+    return {"container": {name: type_to_json(inner) for name, inner in kind.fields.items()}}
+
+
+def parse_template_id(text: str) -> tuple[str, int]:
+    """``imu@1`` as ``("imu", 1)``; :class:`TemplateIdInvalid` otherwise."""
+    match = TEMPLATE_ID.fullmatch(text) if isinstance(text, str) else None
+    if match is None:
+        raise TemplateIdInvalid(str(text))
+    return match.group(1), int(match.group(2))
+
+
+class _Pairs(dict[str, Any]):
+    """A JSON object that remembers the keys it held more than once."""
+
+    duplicates: tuple[str, ...] = ()
+
+
+def _object_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    result = _Pairs(pairs)
+    if len(result) != len(pairs):
+        seen: set[str] = set()
+        duplicates: list[str] = []
+        for key, _ in pairs:
+            if key in seen:
+                duplicates.append(key)
+            seen.add(key)
+        result.duplicates = tuple(duplicates)
+    return result
+
+
+def load_template_document(document: bytes | str) -> Any:
+    """Parse a template's JSON keeping track of duplicate names, which ``json`` would drop.
+
+    The nesting bound is checked first (without recursion), so the parse itself is safe.
+    """
+    raw = document.encode() if isinstance(document, str) else document
+    depth = 2 * (MAX_NESTING + 2) + 2
+    if bounded_json.exceeds_depth(raw, depth):
+        raise bounded_json.JsonDepthError(depth)
+    try:
+        return json.loads(raw, object_pairs_hook=_object_pairs, parse_constant=_no_constant)
+    except ValueError as exc:
+        raise bounded_json.JsonError(f"not valid JSON: {exc}") from exc
+
+
+def _no_constant(constant: str) -> Any:
+    raise bounded_json.JsonError(f"{constant} is not a JSON number")
+
+
+class _Evaluator:
+    def __init__(self) -> None:
+        self.problems: list[Problem] = []
+        self.field_count = 0
+
+    def problem(self, path: str, message: str) -> None:
+        if len(self.problems) < MAX_PROBLEMS:
+            self.problems.append(Problem(path, message))
+
+    def type_of(self, value: Any, path: str, depth: int) -> FieldType | None:
+        if isinstance(value, str):
+            if value in SCALAR_KINDS:
+                return Scalar(value)  # type: ignore[arg-type]
+            self.problem(path, f"unknown type {_shown(value)}")
+            return None
+        if not isinstance(value, dict):
+            self.problem(path, f"a type is a name or an object, not {_kind_of(value)}")
+            return None
+        if len(value) != 1 or next(iter(value)) not in ("array", "container"):
+            keys = ", ".join(_shown(key) for key in list(value)[:5])
+            self.problem(
+                path,
+                f'a composite type is {{"array": T}} or {{"container": ...}}, '
+                f"not an object with {keys or 'no keys'}",
+            )
+            return None
+        if depth > MAX_NESTING:
+            self.problem(path, f"nesting deeper than {MAX_NESTING}")
+            return None
+        composite, inner = next(iter(value.items()))
+        if composite == "array":
+            item = self.type_of(inner, f"{path}.array", depth + 1)
+            return ArrayOf(item) if item is not None else None
+        fields = self.fields_of(inner, f"{path}.container", depth)
+        return Container(fields) if fields is not None else None
+
+    def fields_of(self, value: Any, path: str, depth: int) -> dict[str, FieldType] | None:
+        """The ``NAME: TYPE`` object at ``path``, inside ``depth`` composite types."""
+        if not isinstance(value, dict):
+            self.problem(path, f"must be an object of name: type, not {_kind_of(value)}")
+            return None
+        for duplicate in getattr(value, "duplicates", ()):
+            self.problem(f"{path}.{_shown(duplicate)}", "duplicate name")
+        if not value:
+            self.problem(path, "must hold at least one field")
+            return None
+        fields: dict[str, FieldType] = {}
+        for name, kind in value.items():
+            self.field_count += 1
+            if self.field_count > MAX_FIELDS:
+                self.problem(path, f"more than {MAX_FIELDS} fields in the template")
+                return None
+            field_path = f"{path}.{_shown(name)}"
+            if not NAME.fullmatch(name):
+                self.problem(field_path, "invalid name: must match [a-z][a-z0-9_]{0,62}")
+            parsed = self.type_of(kind, field_path, depth + 1)
+            if parsed is not None:
+                fields[name] = parsed
+        return fields
+
+
+def _shown(value: str) -> str:
+    return value if len(value) <= 80 else f"{value[:77]}..."
+
+
+def _kind_of(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, int | float):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, dict):
+        return "an object"
+    return type(value).__name__
+
+
+def evaluate(document: Any) -> tuple[Template | None, list[Problem]]:
+    """Every problem of a template document with its path, and the template when there are none."""
+    evaluator = _Evaluator()
+    if not isinstance(document, dict):
+        return None, [Problem("", f"a template is an object, not {_kind_of(document)}")]
+    for duplicate in getattr(document, "duplicates", ()):
+        evaluator.problem(duplicate, "duplicate key")
+    for key in document:
+        if key not in TEMPLATE_KEYS:
+            evaluator.problem(_shown(key), "unknown key (name, version, fields, description)")
+    name = document.get("name")
+    if not isinstance(name, str) or not NAME.fullmatch(name):
+        evaluator.problem("name", "required, must match [a-z][a-z0-9_]{0,62}")
+    version = document.get("version")
+    if isinstance(version, bool) or not isinstance(version, int):
+        evaluator.problem("version", "required, an integer from 1")
+    elif not 1 <= version <= MAX_VERSION:
+        evaluator.problem("version", f"must be from 1 to {MAX_VERSION}")
+    description = document.get("description", "")
+    if not isinstance(description, str):
+        evaluator.problem("description", "must be a string")
+    elif len(description) > MAX_DESCRIPTION:
+        evaluator.problem("description", f"longer than {MAX_DESCRIPTION} characters")
+    if "fields" not in document:
+        evaluator.problem("fields", "required")
+        fields = None
+    else:
+        fields = evaluator.fields_of(document["fields"], "fields", 0)
+    if evaluator.problems or fields is None:
+        return None, evaluator.problems
+    assert isinstance(name, str)
+    assert isinstance(version, int)
+    assert isinstance(description, str)
+    return Template(name, version, fields, description), []
+
+
+def parse_template(document: Any) -> Template:
+    """The template of a clean document; :class:`TemplateInvalid` listing every problem."""
+    template, problems = evaluate(document)
+    if template is None:
+        raise TemplateInvalid(problems)
+    return template
+
+
+def _join(path: str, name: str) -> str:
+    return f"{path}.{name}"
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _check(kind: FieldType, value: Any, path: str) -> None:
+    """Raise :class:`RecordInvalid` at the first place ``value`` breaks ``kind``.
+
+    Recursion follows the template, at most ``MAX_NESTING`` deep, never the value.
+    """
+    if isinstance(kind, Scalar):
+        _check_scalar(kind.kind, value, path)
+    elif isinstance(kind, ArrayOf):
+        if isinstance(value, str):
+            _cid(value, path, "an array, or the CID of one stored in cas")
+            return
+        if not isinstance(value, list):
+            raise RecordInvalid(path, f"must be an array, not {_kind_of(value)}")
+        for index, item in enumerate(value):
+            _check(kind.item, item, f"{path}[{index}]")
+    else:
+        check_container(kind.fields, value, path)
+
+
+def check_container(fields: Mapping[str, FieldType], value: Any, path: str) -> None:
+    if not isinstance(value, dict):
+        raise RecordInvalid(path, f"must be an object, not {_kind_of(value)}")
+    for name in value:
+        if name not in fields:
+            shown = _shown(name) if isinstance(name, str) else repr(name)
+            raise RecordInvalid(_join(path, shown), "not a field of the template")
+    for name, kind in fields.items():
+        if name not in value:
+            raise RecordInvalid(_join(path, name), "missing")
+        _check(kind, value[name], _join(path, name))
+
+
+def _cid(value: str, path: str, expected: str) -> None:
+    try:
+        parse_cid(value, path)
+    except CIDError as exc:
+        raise RecordInvalid(path, f"must be {expected}: {exc}") from exc
+
+
+def _check_scalar(kind: str, value: Any, path: str) -> None:
+    if kind == "string":
+        if not isinstance(value, str):
+            raise RecordInvalid(path, f"must be a string, not {_kind_of(value)}")
+        if len(value) > MAX_STRING:
+            raise RecordInvalid(path, f"longer than {MAX_STRING} characters")
+    elif kind == "int":
+        _check_int(value, path)
+    elif kind == "float":
+        _check_float(value, path)
+    elif kind == "bool":
+        if not isinstance(value, bool):
+            raise RecordInvalid(path, f"must be true or false, not {_kind_of(value)}")
+    elif kind in ("image", "file"):
+        if not isinstance(value, str):
+            raise RecordInvalid(path, f"must be a CID string, not {_kind_of(value)}")
+        _cid(value, path, "a CID")
+    else:
+        if not isinstance(value, list) or len(value) != 2:
+            raise RecordInvalid(path, "must be a range [low, high]")
+        check = _check_int if kind == "range<int>" else _check_float
+        check(value[0], f"{path}[0]")
+        check(value[1], f"{path}[1]")
+        if value[0] > value[1]:
+            raise RecordInvalid(path, "low is above high")
+
+
+def _check_int(value: Any, path: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise RecordInvalid(path, f"must be an integer, not {_kind_of(value)}")
+    if abs(value) > MAX_SAFE_INTEGER:
+        raise RecordInvalid(path, "an integer beyond +-(2**53 - 1) (I-JSON)")
+
+
+def _check_float(value: Any, path: str) -> None:
+    if not _number(value):
+        raise RecordInvalid(path, f"must be a number, not {_kind_of(value)}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise RecordInvalid(path, "must be finite (no NaN or infinity)")
+    if isinstance(value, int) and abs(value) > MAX_SAFE_INTEGER:
+        raise RecordInvalid(path, "an integer beyond +-(2**53 - 1) (I-JSON)")
+
+
+def validate_data(template: Template, data: Any, path: str = "data") -> None:
+    """Check ``data`` against ``template``'s fields; :class:`RecordInvalid` names the path."""
+    check_container(template.fields, data, path)
+
+
+def check_envelope(record: Any) -> str:
+    """Check a record's keys other than ``data``; return its template id."""
+    if not isinstance(record, dict):
+        raise RecordInvalid("", f"a record is an object, not {_kind_of(record)}")
+    for key in record:
+        if key not in RECORD_KEYS:
+            shown = _shown(key) if isinstance(key, str) else repr(key)
+            raise RecordInvalid(shown, "unknown key (template, topic, robot, t, data)")
+    for key in RECORD_KEYS:
+        if key not in record:
+            raise RecordInvalid(key, "missing")
+    template_id = record["template"]
+    if not isinstance(template_id, str) or not TEMPLATE_ID.fullmatch(template_id):
+        raise RecordInvalid("template", "must be a template id name@version")
+    topic = record["topic"]
+    if not isinstance(topic, str) or not TOPIC.fullmatch(topic):
+        raise RecordInvalid("topic", "must be a ROS topic name starting with / (at most 256)")
+    robot = record["robot"]
+    if not isinstance(robot, str) or not is_checksum_address(robot):
+        raise RecordInvalid("robot", "must be a checksummed address 0x...")
+    t = record["t"]
+    if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= MAX_T:
+        raise RecordInvalid("t", "must be an integer of nanoseconds from 0 to 2**63 - 1")
+    return template_id
+
+
+def validate_record(template: Template, record: Any) -> None:
+    """Check a whole record against ``template``; :class:`RecordInvalid` names the path."""
+    template_id = check_envelope(record)
+    if template_id != template.id:
+        raise RecordInvalid("template", f"is {template_id}, expected {template.id}")
+    validate_data(template, record["data"])

@@ -1,0 +1,414 @@
+"""The record logs: one append-only RFC 6962 log per template version, the storage node's truth.
+
+Every view of the records (segments, time and numeric indexes, keywords) is derived from these
+logs and rebuilt past its last durable mark at start, so the logs alone decide what was
+acknowledged. A write is acknowledged when :meth:`RecordLogs.append` returns: by then its
+records and their leaf hashes are on disk (one group commit per call, never one per record).
+
+Each template version ``name@version`` has a directory under the root with three files:
+
+``records.log``
+    the frames, back to back: ``>II`` (record length, meta length), the record, the meta.
+``index.bin``
+    40 bytes per entry: ``>Q`` offset of its frame in ``records.log`` and its leaf hash. The
+    index is the commit point: it is written and fsynced after ``records.log``, so an entry
+    in the index always has its frame on disk, and a frame past the index is a torn tail.
+``subtrees.bin``
+    the hash of every complete, aligned subtree of :data:`CHUNK` leaves, in order: derived
+    from the index, fsynced with it when it grows, checked and completed at open.
+
+Proofs need ``subtree(start, end)`` hashes. Subtrees of at least :data:`CHUNK` leaves are
+folded from the chunk hashes, kept in memory level by level (``n / CHUNK`` hashes, 4 KiB per
+million records per level); smaller ones are hashed from at most ``CHUNK`` leaf hashes read in
+one ``pread``. A proof in a log of a million records reads a few kilobytes and computes a few
+hundred hashes.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import struct
+import threading
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from robocloud import merkle
+from services.common.durable import fsync_dir
+
+CHUNK_BITS = 8
+CHUNK = 1 << CHUNK_BITS
+"""Leaves per cached subtree: the unit below which hashes are computed from leaf hashes."""
+
+FRAME_HEADER = struct.Struct(">II")
+INDEX_ENTRY = struct.Struct(">Q32s")
+READ_BATCH = 4096
+"""Entries read per ``pread`` when iterating a log."""
+
+TEMPLATE_ID = re.compile(r"[a-z][a-z0-9_]{0,62}@[1-9][0-9]{0,8}")
+
+
+class RecordLogError(Exception):
+    """Base of the record logs' own errors."""
+
+
+class InvalidTemplateId(RecordLogError, ValueError):
+    def __init__(self, template_id: str) -> None:
+        super().__init__(f"{template_id!r} is not a template id (name@version)")
+        self.template_id = template_id
+
+
+class EntryNotFound(RecordLogError, LookupError):
+    def __init__(self, template_id: str, index: int, size: int) -> None:
+        super().__init__(f"{template_id} has no entry {index} (it holds {size})")
+        self.template_id = template_id
+        self.index = index
+        self.size = size
+
+
+class InvalidTreeSize(RecordLogError, ValueError):
+    """A tree size or index range that the log cannot answer for (beyond its head, reversed)."""
+
+    def __init__(self, template_id: str, message: str) -> None:
+        super().__init__(f"{template_id}: {message}")
+        self.template_id = template_id
+
+
+class LogCorrupt(RecordLogError):
+    """What the disk holds contradicts the log's own hashes: never answered as if valid."""
+
+
+@dataclass(frozen=True)
+class LogEntry:
+    record: bytes
+    """The canonical (JCS) record: the Merkle leaf's data."""
+    meta: bytes
+    """JSON, not hashed: signer address, signed request digest, signature, received time."""
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view) :]
+
+
+def _pread_exact(fd: int, size: int, offset: int) -> bytes:
+    parts: list[bytes] = []
+    while size:
+        part = os.pread(fd, size, offset)
+        if not part:
+            raise LogCorrupt(f"a read of {size} bytes at {offset} ends early")
+        parts.append(part)
+        size -= len(part)
+        offset += len(part)
+    return b"".join(parts)
+
+
+class _TemplateLog:
+    """One template version's log; every method is called with ``lock`` held."""
+
+    def __init__(self, template_id: str, directory: Path) -> None:
+        self.template_id = template_id
+        self.lock = threading.Lock()
+        directory.mkdir(exist_ok=True)
+        self._records = os.open(directory / "records.log", os.O_RDWR | os.O_CREAT, 0o600)
+        self._index = os.open(directory / "index.bin", os.O_RDWR | os.O_CREAT, 0o600)
+        self._subtrees = os.open(directory / "subtrees.bin", os.O_RDWR | os.O_CREAT, 0o600)
+        self.size = 0
+        self._records_end = 0
+        self._levels: list[list[bytes]] = [[]]
+        """``_levels[k][i]``: the hash of leaves ``[i * CHUNK * 2**k, (i + 1) * CHUNK * 2**k)``."""
+        self._recover()
+
+    def close(self) -> None:
+        for fd in (self._records, self._index, self._subtrees):
+            os.close(fd)
+
+    def _recover(self) -> None:
+        """Drop a torn tail left by a crash: nothing past the last complete index entry counts."""
+        index_bytes = os.fstat(self._index).st_size
+        records_bytes = os.fstat(self._records).st_size
+        size = index_bytes // INDEX_ENTRY.size
+        while size:
+            offset, leaf = self._index_entry(size - 1)
+            end = self._frame_end(offset, records_bytes)
+            if end is not None and merkle.leaf_hash(self._read_record(offset)) == leaf:
+                break
+            size -= 1
+        self.size = size
+        self._records_end = 0 if size == 0 else self._frame_end_of(size - 1)
+        os.ftruncate(self._index, size * INDEX_ENTRY.size)
+        os.ftruncate(self._records, self._records_end)
+        self._recover_subtrees()
+
+    def _frame_end(self, offset: int, records_bytes: int) -> int | None:
+        if offset + FRAME_HEADER.size > records_bytes:
+            return None
+        record_len, meta_len = FRAME_HEADER.unpack(
+            _pread_exact(self._records, FRAME_HEADER.size, offset)
+        )
+        end = offset + FRAME_HEADER.size + record_len + meta_len
+        return end if end <= records_bytes else None
+
+    def _frame_end_of(self, index: int) -> int:
+        offset, _ = self._index_entry(index)
+        end = self._frame_end(offset, os.fstat(self._records).st_size)
+        if end is None:
+            raise LogCorrupt(f"{self.template_id}: the frame of entry {index} is cut short")
+        return end
+
+    def _read_record(self, offset: int) -> bytes:
+        record_len, _ = FRAME_HEADER.unpack(_pread_exact(self._records, FRAME_HEADER.size, offset))
+        return _pread_exact(self._records, record_len, offset + FRAME_HEADER.size)
+
+    def _recover_subtrees(self) -> None:
+        """Keep the chunk hashes that the index backs, recompute the rest, check the last kept."""
+        complete = self.size // CHUNK
+        stored = min(os.fstat(self._subtrees).st_size // merkle.HASH_SIZE, complete)
+        data = _pread_exact(self._subtrees, stored * merkle.HASH_SIZE, 0)
+        chunks = [data[i : i + merkle.HASH_SIZE] for i in range(0, len(data), merkle.HASH_SIZE)]
+        if chunks and chunks[-1] != self._chunk_from_leaves(len(chunks) - 1):
+            chunks = []
+        os.ftruncate(self._subtrees, len(chunks) * merkle.HASH_SIZE)
+        missing = [self._chunk_from_leaves(i) for i in range(len(chunks), complete)]
+        if missing:
+            os.pwrite(self._subtrees, b"".join(missing), len(chunks) * merkle.HASH_SIZE)
+            os.fdatasync(self._subtrees)
+        self._levels = [[]]
+        for chunk in chunks + missing:
+            self._add_chunk(chunk)
+
+    def _chunk_from_leaves(self, chunk: int) -> bytes:
+        return merkle.root(self.leaf_hashes(chunk * CHUNK, (chunk + 1) * CHUNK))
+
+    def _add_chunk(self, value: bytes) -> None:
+        level = 0
+        self._levels[0].append(value)
+        while len(self._levels[level]) % 2 == 0:
+            pair = self._levels[level][-2:]
+            level += 1
+            if len(self._levels) == level:
+                self._levels.append([])
+            self._levels[level].append(merkle.node_hash(pair[0], pair[1]))
+
+    def _index_entry(self, index: int) -> tuple[int, bytes]:
+        offset, leaf = INDEX_ENTRY.unpack(
+            _pread_exact(self._index, INDEX_ENTRY.size, index * INDEX_ENTRY.size)
+        )
+        return offset, leaf
+
+    def _index_range(self, start: int, stop: int) -> list[tuple[int, bytes]]:
+        data = _pread_exact(
+            self._index, (stop - start) * INDEX_ENTRY.size, start * INDEX_ENTRY.size
+        )
+        return list(INDEX_ENTRY.iter_unpack(data))
+
+    def leaf_hashes(self, start: int, stop: int) -> list[bytes]:
+        return [leaf for _, leaf in self._index_range(start, stop)]
+
+    def append(self, entries: Sequence[LogEntry]) -> int:
+        first = self.size
+        frames: list[bytes] = []
+        index: list[bytes] = []
+        offset = self._records_end
+        for entry in entries:
+            frames.append(FRAME_HEADER.pack(len(entry.record), len(entry.meta)))
+            frames.append(entry.record)
+            frames.append(entry.meta)
+            index.append(INDEX_ENTRY.pack(offset, merkle.leaf_hash(entry.record)))
+            offset += FRAME_HEADER.size + len(entry.record) + len(entry.meta)
+        records = b"".join(frames)
+        try:
+            os.lseek(self._records, self._records_end, os.SEEK_SET)
+            _write_all(self._records, records)
+            os.fdatasync(self._records)
+            os.lseek(self._index, first * INDEX_ENTRY.size, os.SEEK_SET)
+            _write_all(self._index, b"".join(index))
+            os.fdatasync(self._index)
+        except BaseException:
+            os.ftruncate(self._index, first * INDEX_ENTRY.size)
+            os.ftruncate(self._records, self._records_end)
+            raise
+        self._records_end = offset
+        self.size = first + len(entries)
+        self._extend_chunks()
+        return first
+
+    def _extend_chunks(self) -> None:
+        known = len(self._levels[0])
+        new = [self._chunk_from_leaves(i) for i in range(known, self.size // CHUNK)]
+        if not new:
+            return
+        os.pwrite(self._subtrees, b"".join(new), known * merkle.HASH_SIZE)
+        os.fdatasync(self._subtrees)
+        for chunk in new:
+            self._add_chunk(chunk)
+
+    def entry(self, index: int) -> LogEntry:
+        if not 0 <= index < self.size:
+            raise EntryNotFound(self.template_id, index, self.size)
+        offset, leaf = self._index_entry(index)
+        return self._check(index, leaf, self._read_frame(offset))
+
+    def _read_frame(self, offset: int) -> bytes:
+        record_len, meta_len = FRAME_HEADER.unpack(
+            _pread_exact(self._records, FRAME_HEADER.size, offset)
+        )
+        return _pread_exact(self._records, FRAME_HEADER.size + record_len + meta_len, offset)
+
+    def _check(self, index: int, leaf: bytes, frame: bytes) -> LogEntry:
+        record_len, _ = FRAME_HEADER.unpack_from(frame)
+        record = frame[FRAME_HEADER.size : FRAME_HEADER.size + record_len]
+        if merkle.leaf_hash(record) != leaf:
+            raise LogCorrupt(f"{self.template_id}: entry {index} does not match its leaf hash")
+        return LogEntry(record=record, meta=frame[FRAME_HEADER.size + record_len :])
+
+    def entries_batch(self, start: int, stop: int) -> list[LogEntry]:
+        """Entries ``[start, stop)`` from one read of the index and one of the records."""
+        rows = self._index_range(start, stop)
+        if not rows:
+            return []
+        base = rows[0][0]
+        end = self._records_end if stop == self.size else self._index_entry(stop)[0]
+        data = _pread_exact(self._records, end - base, base)
+        bounds = [offset - base for offset, _ in rows] + [end - base]
+        return [
+            self._check(start + i, leaf, data[bounds[i] : bounds[i + 1]])
+            for i, (_, leaf) in enumerate(rows)
+        ]
+
+    def subtree(self, start: int, end: int) -> bytes:
+        """MTH of leaves ``[start, end)``: cached chunks where aligned, leaf hashes below."""
+        width = end - start
+        if width & (width - 1) == 0 and start % width == 0 and width >= CHUNK:
+            level = width.bit_length() - 1 - CHUNK_BITS
+            return self._levels[level][start >> (CHUNK_BITS + level)]
+        if width <= CHUNK:
+            return merkle.root(self.leaf_hashes(start, end))
+        split = 1 << ((width - 1).bit_length() - 1)
+        return merkle.node_hash(
+            self.subtree(start, start + split), self.subtree(start + split, end)
+        )
+
+
+class RecordLogs:
+    """The logs of every template version under ``root``; safe to share between threads.
+
+    Appends to one template are serialised by its lock; appends to different templates and
+    reads of other templates proceed in parallel.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.directory = root
+        root.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        self._logs: dict[str, _TemplateLog] = {}
+        for directory in sorted(root.iterdir()):
+            if directory.is_dir() and TEMPLATE_ID.fullmatch(directory.name):
+                self._logs[directory.name] = _TemplateLog(directory.name, directory)
+
+    def close(self) -> None:
+        with self._lock:
+            for log in self._logs.values():
+                with log.lock:
+                    log.close()
+            self._logs.clear()
+
+    def _log(self, template_id: str, *, create: bool = False) -> _TemplateLog | None:
+        if not TEMPLATE_ID.fullmatch(template_id):
+            raise InvalidTemplateId(template_id)
+        with self._lock:
+            log = self._logs.get(template_id)
+            if log is None and create:
+                log = _TemplateLog(template_id, self.directory / template_id)
+                fsync_dir(self.directory)
+                self._logs[template_id] = log
+            return log
+
+    def append(self, template_id: str, entries: Sequence[LogEntry]) -> int:
+        """Append ``entries`` in order; the index of the first. Durable when this returns."""
+        log = self._log(template_id, create=True)
+        assert log is not None
+        with log.lock:
+            if not entries:
+                return log.size
+            return log.append(entries)
+
+    def size(self, template_id: str) -> int:
+        log = self._log(template_id)
+        if log is None:
+            return 0
+        with log.lock:
+            return log.size
+
+    def sizes(self) -> dict[str, int]:
+        """Every log's size, read together: the heads an epoch is built from."""
+        with self._lock:
+            logs = list(self._logs.items())
+        heads: dict[str, int] = {}
+        for template_id, log in sorted(logs):
+            with log.lock:
+                heads[template_id] = log.size
+        return heads
+
+    def template_ids(self) -> list[str]:
+        with self._lock:
+            return sorted(self._logs)
+
+    def entry(self, template_id: str, index: int) -> LogEntry:
+        log = self._log(template_id)
+        if log is None:
+            raise EntryNotFound(template_id, index, 0)
+        with log.lock:
+            return log.entry(index)
+
+    def entries(self, template_id: str, start: int, stop: int) -> Iterator[LogEntry]:
+        """Entries ``[start, stop)`` (``stop`` clamped to the size), read in batches."""
+        log = self._log(template_id)
+        if log is None:
+            return
+        if start < 0 or stop < start:
+            raise InvalidTreeSize(template_id, f"no entries from {start} to {stop}")
+        position = start
+        while True:
+            with log.lock:
+                end = min(stop, log.size, position + READ_BATCH)
+                if position >= end:
+                    return
+                batch = log.entries_batch(position, end)
+            yield from batch
+            position = end
+
+    def _sized_log(self, template_id: str, size: int) -> _TemplateLog | None:
+        log = self._log(template_id)
+        current = 0 if log is None else log.size
+        if not 0 <= size <= current:
+            raise InvalidTreeSize(
+                template_id, f"no tree of {size} leaves (the log holds {current})"
+            )
+        return log
+
+    def root(self, template_id: str, size: int) -> bytes:
+        """The root of the first ``size`` entries (RFC 6962 MTH; SHA-256 of nothing for 0)."""
+        log = self._sized_log(template_id, size)
+        if log is None or size == 0:
+            return merkle.EMPTY_ROOT
+        with log.lock:
+            return log.subtree(0, size)
+
+    def inclusion_proof(self, template_id: str, index: int, size: int) -> list[bytes]:
+        log = self._sized_log(template_id, size)
+        if log is None or not 0 <= index < size:
+            raise EntryNotFound(template_id, index, size)
+        with log.lock:
+            return merkle.inclusion_proof(index, size, log.subtree)
+
+    def consistency_proof(self, template_id: str, first: int, second: int) -> list[bytes]:
+        log = self._sized_log(template_id, second)
+        if not 0 <= first <= second:
+            raise InvalidTreeSize(template_id, f"no consistency proof from {first} to {second}")
+        if log is None:
+            return []
+        with log.lock:
+            return merkle.consistency_proof(first, second, log.subtree)

@@ -1,0 +1,307 @@
+"""The template and record wire format: every problem with its path, hostile inputs bounded."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+from robocloud.bounded_json import JsonDepthError, JsonError
+from robocloud.templates import (
+    MAX_FIELDS,
+    MAX_NESTING,
+    ArrayOf,
+    Container,
+    RecordInvalid,
+    Scalar,
+    TemplateIdInvalid,
+    TemplateInvalid,
+    evaluate,
+    load_template_document,
+    parse_template,
+    parse_template_id,
+    validate_record,
+)
+
+ROBOT = "0x90F8bf6A479f320ead074411a4B0e7944Ea8c9C1"
+CID_TEXT = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
+
+POSE: dict[str, Any] = {
+    "name": "pose",
+    "version": 1,
+    "description": "where the robot is",
+    "fields": {
+        "frame": "string",
+        "seq": "int",
+        "ok": "bool",
+        "pose": {
+            "container": {
+                "position": {"container": {"x": "float", "y": "float", "z": "float"}},
+            }
+        },
+        "ranges": {"array": "float"},
+        "camera": "image",
+        "log": "file",
+        "window": "range<int>",
+        "band": "range<float>",
+    },
+}
+
+
+def _data(**changes: Any) -> dict[str, Any]:
+    data: dict[str, Any] = {
+        "frame": "map",
+        "seq": 3,
+        "ok": True,
+        "pose": {"position": {"x": 1.5, "y": -2, "z": 0.0}},
+        "ranges": [0.5, 1.0],
+        "camera": CID_TEXT,
+        "log": CID_TEXT,
+        "window": [1, 2],
+        "band": [0.5, 0.5],
+    }
+    data.update(changes)
+    return data
+
+
+def _record(data: Any, **changes: Any) -> dict[str, Any]:
+    record = {"template": "pose@1", "topic": "/pose", "robot": ROBOT, "t": 10, "data": data}
+    record.update(changes)
+    return record
+
+
+def _problems(document: Any) -> dict[str, str]:
+    template, problems = evaluate(document)
+    assert template is None
+    return {problem.path: problem.message for problem in problems}
+
+
+def _nest(depth: int) -> Any:
+    kind: Any = "int"
+    for _ in range(depth):
+        kind = {"array": kind}
+    return kind
+
+
+def test_a_clean_template_evaluates_to_its_types() -> None:
+    template = parse_template(POSE)
+    assert template.id == "pose@1"
+    assert template.fields["pose"] == Container(
+        {"position": Container({"x": Scalar("float"), "y": Scalar("float"), "z": Scalar("float")})}
+    )
+    assert template.fields["ranges"] == ArrayOf(Scalar("float"))
+    assert template.to_json() == POSE
+    assert dict(template.leaves())["pose.position.x"] == Scalar("float")
+    assert "pose" not in dict(template.leaves())
+    assert template.leaf("pose.position.y") == Scalar("float")
+    assert template.leaf("pose.position") is None
+    assert template.leaf("pose.nowhere") is None
+    assert template.leaf("frame.x") is None
+
+
+def test_every_problem_is_listed_with_its_path() -> None:
+    document = {
+        "name": "Bad-Name",
+        "version": 0,
+        "fields": {
+            "ok": "int",
+            "when": "datetime",
+            "9lives": "int",
+            "empty": {"container": {}},
+            "pair": {"array": "int", "container": {"x": "int"}},
+            "inner": {"container": {"Upper": "string", "deep": {"array": "vector"}}},
+            "listed": ["int"],
+        },
+        "colour": "red",
+    }
+    assert _problems(document) == {
+        "name": "required, must match [a-z][a-z0-9_]{0,62}",
+        "version": "must be from 1 to 999999999",
+        "fields.when": "unknown type datetime",
+        "fields.9lives": "invalid name: must match [a-z][a-z0-9_]{0,62}",
+        "fields.empty.container": "must hold at least one field",
+        "fields.pair": 'a composite type is {"array": T} or {"container": ...}, not an object '
+        "with array, container",
+        "fields.inner.container.Upper": "invalid name: must match [a-z][a-z0-9_]{0,62}",
+        "fields.inner.container.deep.array": "unknown type vector",
+        "fields.listed": "a type is a name or an object, not a list",
+        "colour": "unknown key (name, version, fields, description)",
+    }
+    with pytest.raises(TemplateInvalid) as caught:
+        parse_template(document)
+    assert len(caught.value.problems) == 10
+    assert "and 9 more" in str(caught.value)
+
+
+def test_duplicate_names_are_found_in_the_json_text() -> None:
+    text = (
+        '{"name": "dup", "version": 1, "fields": {"a": "int", "a": "float",'
+        ' "c": {"container": {"x": "int", "x": "int"}}}}'
+    )
+    assert _problems(load_template_document(text)) == {
+        "fields.a": "duplicate name",
+        "fields.c.container.x": "duplicate name",
+    }
+
+
+def test_nesting_is_bounded_at_eight() -> None:
+    parse_template({"name": "deep", "version": 1, "fields": {"x": _nest(MAX_NESTING)}})
+    path = "fields.x" + ".array" * MAX_NESTING
+    assert _problems({"name": "deep", "version": 1, "fields": {"x": _nest(MAX_NESTING + 1)}}) == {
+        path: f"nesting deeper than {MAX_NESTING}"
+    }
+
+
+def test_a_hostile_deep_template_costs_no_recursion() -> None:
+    problems = _problems({"name": "deep", "version": 1, "fields": {"x": _nest(100_000)}})
+    assert list(problems.values()) == [f"nesting deeper than {MAX_NESTING}"]
+    with pytest.raises(JsonDepthError):
+        load_template_document('{"fields": {"x": ' + '{"array": ' * 100_000)
+
+
+def test_a_huge_template_is_refused_once() -> None:
+    fields = {f"f{index}": "int" for index in range(MAX_FIELDS + 10_000)}
+    assert _problems({"name": "huge", "version": 1, "fields": fields}) == {
+        "fields": f"more than {MAX_FIELDS} fields in the template"
+    }
+
+
+@pytest.mark.parametrize(
+    ("document", "expected"),
+    [
+        ([], {"": "a template is an object, not a list"}),
+        ("imu", {"": "a template is an object, not a string"}),
+        (
+            {"name": "x", "version": True, "fields": {"a": "int"}},
+            {"version": "required, an integer from 1"},
+        ),
+        (
+            {"name": "x", "version": 1.0, "fields": {"a": "int"}},
+            {"version": "required, an integer from 1"},
+        ),
+        ({"name": "x", "version": 1}, {"fields": "required"}),
+        ({"name": "x", "version": 1, "fields": {}}, {"fields": "must hold at least one field"}),
+        (
+            {"name": "x", "version": 1, "fields": [["a", "int"]]},
+            {"fields": "must be an object of name: type, not a list"},
+        ),
+        (
+            {"name": "x", "version": 1, "fields": {"a": None}},
+            {"fields.a": "a type is a name or an object, not null"},
+        ),
+        (
+            {"name": "x", "version": 1, "fields": {"a": "int"}, "description": 5},
+            {"description": "must be a string"},
+        ),
+        (
+            {"name": "x" * 64, "version": 1, "fields": {"a": "int"}},
+            {"name": "required, must match [a-z][a-z0-9_]{0,62}"},
+        ),
+        (
+            {"name": "x", "version": 1, "fields": {"a": "array<int>"}},
+            {"fields.a": "unknown type array<int>"},
+        ),
+    ],
+)
+def test_wrong_types_are_named(document: Any, expected: dict[str, str]) -> None:
+    assert _problems(document) == expected
+
+
+def test_template_ids() -> None:
+    assert parse_template_id("imu@12") == ("imu", 12)
+    for bad in ("imu", "imu@0", "Imu@1", "imu@01", "imu@1@2", "imu@1234567890", ""):
+        with pytest.raises(TemplateIdInvalid):
+            parse_template_id(bad)
+
+
+def test_a_valid_record_passes() -> None:
+    template = parse_template(POSE)
+    validate_record(template, _record(_data()))
+    validate_record(template, _record(_data(ranges=CID_TEXT)))
+    validate_record(template, _record(_data(ranges=[])))
+
+
+@pytest.mark.parametrize(
+    ("data", "path"),
+    [
+        (_data(pose={"position": {"x": "1", "y": 0, "z": 0}}), "data.pose.position.x"),
+        (_data(pose={"position": {"x": True, "y": 0, "z": 0}}), "data.pose.position.x"),
+        (_data(pose={"position": {"x": float("nan"), "y": 0, "z": 0}}), "data.pose.position.x"),
+        (_data(pose={"position": {"x": float("inf"), "y": 0, "z": 0}}), "data.pose.position.x"),
+        (_data(pose={"position": {"x": 1, "y": 0}}), "data.pose.position.z"),
+        (_data(pose={"position": {"x": 1, "y": 0, "z": 0, "w": 1}}), "data.pose.position.w"),
+        (_data(pose=[1, 2, 3]), "data.pose"),
+        (_data(seq=True), "data.seq"),
+        (_data(seq=1.5), "data.seq"),
+        (_data(seq=2**53), "data.seq"),
+        (_data(ok=1), "data.ok"),
+        (_data(frame=7), "data.frame"),
+        (_data(frame="x" * 65537), "data.frame"),
+        (_data(ranges=[0.1, "far"]), "data.ranges[1]"),
+        (_data(ranges=[0.1, float("-inf")]), "data.ranges[1]"),
+        (_data(ranges="not-a-cid"), "data.ranges"),
+        (_data(ranges={"0": 1.0}), "data.ranges"),
+        (_data(camera="Qm-nope"), "data.camera"),
+        (_data(camera=5), "data.camera"),
+        (_data(window=[3, 2]), "data.window"),
+        (_data(window=[1, 2.5]), "data.window[1]"),
+        (_data(window=[1]), "data.window"),
+        (_data(band=[0.0, float("nan")]), "data.band[1]"),
+        ([], "data"),
+        (None, "data"),
+    ],
+)
+def test_a_record_breaking_its_template_names_the_field(data: Any, path: str) -> None:
+    with pytest.raises(RecordInvalid) as caught:
+        validate_record(parse_template(POSE), _record(data))
+    assert caught.value.path == path
+    assert str(caught.value).startswith(f"{path}: ")
+
+
+@pytest.mark.parametrize(
+    ("changes", "path"),
+    [
+        ({"template": "pose@2"}, "template"),
+        ({"template": "pose"}, "template"),
+        ({"topic": "pose"}, "topic"),
+        ({"topic": "/" + "x" * 300}, "topic"),
+        ({"robot": ROBOT.lower()}, "robot"),
+        ({"robot": 5}, "robot"),
+        ({"t": -1}, "t"),
+        ({"t": 2**63}, "t"),
+        ({"t": True}, "t"),
+        ({"t": 1.0}, "t"),
+        ({"extra": 1}, "extra"),
+    ],
+)
+def test_a_bad_envelope_names_its_key(changes: dict[str, Any], path: str) -> None:
+    with pytest.raises(RecordInvalid) as caught:
+        validate_record(parse_template(POSE), _record(_data(), **changes))
+    assert caught.value.path == path
+
+
+def test_a_missing_envelope_key_is_named() -> None:
+    record = _record(_data())
+    del record["robot"]
+    with pytest.raises(RecordInvalid) as caught:
+        validate_record(parse_template(POSE), record)
+    assert caught.value.path == "robot"
+    with pytest.raises(RecordInvalid) as caught:
+        validate_record(parse_template(POSE), [record])
+    assert caught.value.path == ""
+
+
+def test_a_deep_value_is_checked_only_as_deep_as_the_template() -> None:
+    template = parse_template({"name": "flat", "version": 1, "fields": {"x": {"array": "int"}}})
+    deep: Any = 1
+    for _ in range(100_000):
+        deep = [deep]
+    with pytest.raises(RecordInvalid) as caught:
+        validate_record(template, _record({"x": deep}, template="flat@1"))
+    assert caught.value.path == "data.x[0]"
+
+
+def test_template_documents_refuse_nan() -> None:
+    with pytest.raises(JsonError):
+        load_template_document(json.dumps({"name": "x", "version": float("nan")}))
