@@ -1,0 +1,428 @@
+"""Queries over the record views: filters, comparisons, keywords, pages; and state intervals.
+
+A query names at most one template (comparisons need one: a field path means something only
+in its template), a topic, a robot, a time window ``[start, end)`` in nanoseconds, any number
+of comparisons ``field op value`` (``= != < <= > >=``, combined with AND) and keywords. Per
+sealed segment the time window and the comparisons on indexed fields (int, float, bool) are
+binary searches in the segment's sorted indexes, and a segment whose value ranges cannot
+match is skipped without being opened; only what the indexes cannot decide (topic, robot,
+strings, ``!=``) reads the segment's documents. The records themselves are read from the log,
+exactly as they were acknowledged.
+
+Results come in log order (template id, then index); a page ends after ``limit`` records or
+after ``MAX_SCANNED`` documents examined, and ``next`` is the cursor to continue from, so
+that no query costs more than a bounded amount of work however unselective it is.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from array import array
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+from robocloud.cid import CIDError, parse_cid
+from robocloud.templates import TEMPLATE_ID, Scalar, Template
+from services.storage.keywords import KeywordIndex
+from services.storage.recordstore import RecordStore, StoredRecord
+from services.storage.segments import INDEXED_KINDS, Doc, SealedSegment, TemplateSegments
+
+MAX_LIMIT = 1000
+MAX_WHERE = 16
+MAX_SCANNED = 1_000_000
+"""Documents one page may examine before it answers with a cursor."""
+MAX_INTERVAL_SCAN = 2_000_000
+WHERE = re.compile(r"([a-z][a-z0-9_.]{0,639})\s*(==|!=|<=|>=|=|<|>)(.*)", re.DOTALL)
+ORDERING = frozenset(("<", "<=", ">", ">="))
+CURSOR = re.compile(r"([a-z][a-z0-9_]{0,62}@[1-9][0-9]{0,8})/(0|[1-9][0-9]{0,18})")
+
+
+class QueryInvalid(Exception):
+    """A query parameter that cannot be used; ``parameter`` names it (``where[1]``)."""
+
+    def __init__(self, parameter: str, message: str, code: str = "invalid_query") -> None:
+        super().__init__(f"{parameter}: {message}")
+        self.parameter = parameter
+        self.code = code
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """``field op value`` with the value parsed for the field's type."""
+
+    field: str
+    op: str
+    value: Any
+    indexed: bool
+
+    def matches(self, actual: Any) -> bool:
+        if self.op == "=":
+            return bool(actual == self.value)
+        if self.op == "!=":
+            return bool(actual != self.value)
+        if self.op == "<":
+            return bool(actual < self.value)
+        if self.op == "<=":
+            return bool(actual <= self.value)
+        if self.op == ">":
+            return bool(actual > self.value)
+        return bool(actual >= self.value)
+
+
+@dataclass(frozen=True)
+class RecordQuery:
+    template: str | None = None
+    topic: str | None = None
+    robot: str | None = None
+    start: int | None = None
+    end: int | None = None
+    where: tuple[str, ...] = ()
+    keywords: str | None = None
+    limit: int = 100
+    cursor: str | None = None
+
+
+@dataclass
+class Page:
+    records: list[StoredRecord]
+    next: str | None
+    keywords_pending: int
+
+
+@dataclass(frozen=True)
+class Interval:
+    robot: str
+    enter: int
+    exit: int | None
+
+
+def _value(kind: str, text: str, parameter: str) -> Any:
+    """``text`` as a value of ``kind``; QueryInvalid naming the parameter otherwise."""
+    try:
+        if kind == "int":
+            if not re.fullmatch(r"-?[0-9]{1,16}", text):
+                raise ValueError(text)
+            return int(text)
+        if kind == "float":
+            number = float(text)
+            if not math.isfinite(number) or len(text) > 64:
+                raise ValueError(text)
+            return number
+        if kind == "bool":
+            if text not in ("true", "false"):
+                raise ValueError(text)
+            return text == "true"
+        if kind in ("image", "file"):
+            parse_cid(text, parameter)
+        return text
+    except (ValueError, CIDError) as exc:
+        raise QueryInvalid(parameter, f"{text[:80]!r} is not a {kind} value") from exc
+
+
+def parse_comparison(template: Template, text: str, parameter: str) -> Comparison:
+    """One ``field op value`` against ``template``."""
+    match = WHERE.fullmatch(text)
+    if match is None:
+        raise QueryInvalid(
+            parameter,
+            f"{text[:80]!r} is not field op value (op one of = != < <= > >=)",
+            code="invalid_operator",
+        )
+    path, op, raw = match.group(1), match.group(2), match.group(3).strip()
+    op = "=" if op == "==" else op
+    if raw[:1] in ("=", "<", ">", "!"):
+        raise QueryInvalid(parameter, f"malformed operator in {text[:80]!r}", "invalid_operator")
+    kind = template.leaf(path)
+    if kind is None:
+        raise QueryInvalid(parameter, f"{template.id} has no field {path}", code="unknown_field")
+    if not isinstance(kind, Scalar) or kind.kind.startswith("range"):
+        raise QueryInvalid(parameter, f"{path} is not a scalar field", code="unknown_field")
+    if op in ORDERING and kind.kind not in ("int", "float"):
+        raise QueryInvalid(
+            parameter, f"{op} compares numbers; {path} is {kind.kind}", code="invalid_operator"
+        )
+    value = _value(kind.kind, raw, parameter)
+    indexed = kind.kind in INDEXED_KINDS and op != "!="
+    return Comparison(path, op, value, indexed)
+
+
+def parse_cursor(text: str) -> tuple[str, int]:
+    match = CURSOR.fullmatch(text)
+    if match is None:
+        raise QueryInvalid("cursor", f"{text[:80]!r} is not a cursor from a previous page")
+    return match.group(1), int(match.group(2))
+
+
+@dataclass
+class _Scan:
+    """What one page collected so far and how much it examined."""
+
+    limit: int
+    found: list[tuple[str, int]] = field(default_factory=list)
+    scanned: int = 0
+    stopped_at: tuple[str, int] | None = None
+
+    @property
+    def full(self) -> bool:
+        return len(self.found) > self.limit or self.stopped_at is not None
+
+
+def _bounds(comparison: Comparison) -> tuple[float | None, float | None, bool, bool]:
+    value = float(comparison.value)
+    return {
+        "=": (value, value, False, False),
+        "<": (None, value, False, True),
+        "<=": (None, value, False, False),
+        ">": (value, None, True, False),
+        ">=": (value, None, False, False),
+    }[comparison.op]
+
+
+def _range_excludes(comparison: Comparison, low: float, high: float) -> bool:
+    """Whether no value in ``[low, high]`` can satisfy an indexed comparison."""
+    floor, ceiling, floor_open, ceiling_open = _bounds(comparison)
+    if floor is not None and (high < floor or (floor_open and high <= floor)):
+        return True
+    return ceiling is not None and (low > ceiling or (ceiling_open and low >= ceiling))
+
+
+class QueryEngine:
+    """Answers queries from a :class:`RecordStore`'s views."""
+
+    def __init__(self, store: RecordStore) -> None:
+        self.store = store
+
+    @property
+    def keywords(self) -> KeywordIndex:
+        return self.store.keywords
+
+    def _template(self, template_id: str) -> TemplateSegments | None:
+        if not TEMPLATE_ID.fullmatch(template_id):
+            raise QueryInvalid("template", f"{template_id[:80]!r} is not a template id")
+        return self.store.views(template_id)
+
+    def records(self, query: RecordQuery) -> Page:
+        if not 1 <= query.limit <= MAX_LIMIT:
+            raise QueryInvalid("limit", f"must be from 1 to {MAX_LIMIT}")
+        if len(query.where) > MAX_WHERE:
+            raise QueryInvalid("where", f"at most {MAX_WHERE} comparisons")
+        if query.where and query.template is None:
+            raise QueryInvalid("where", "comparisons need a template")
+        if query.start is not None and query.end is not None and query.start > query.end:
+            raise QueryInvalid("start", "is after end")
+        after = parse_cursor(query.cursor) if query.cursor is not None else None
+        if query.template is not None:
+            views = self._template(query.template)
+            if views is None:
+                self._check_known(query.template)
+            chosen = [views] if views is not None else []
+        else:
+            chosen = [v for t in self.store.template_ids() if (v := self.store.views(t))]
+        comparisons: dict[str, list[Comparison]] = {}
+        for views in chosen:
+            comparisons[views.template.id] = [
+                parse_comparison(views.template, text, f"where[{n}]")
+                for n, text in enumerate(query.where)
+            ]
+        hits: dict[str, set[int]] | None = None
+        if query.keywords is not None:
+            words = self.keywords.terms(query.keywords)
+            if not words:
+                raise QueryInvalid("keywords", "holds no word")
+            hits = self.keywords.search(words, query.template)
+        scan = _Scan(query.limit)
+        for views in chosen:
+            template_id = views.template.id
+            if after is not None and template_id < after[0]:
+                continue
+            skip = after[1] if after is not None and template_id == after[0] else -1
+            keyword_hits = hits.get(template_id, set()) if hits is not None else None
+            if keyword_hits is not None and not keyword_hits:
+                continue
+            self._scan(views, query, comparisons[template_id], keyword_hits, skip, scan)
+            if scan.full:
+                break
+        found = scan.found[: query.limit]
+        next_cursor = None
+        if len(scan.found) > query.limit:
+            next_cursor = "{}/{}".format(*found[-1])
+        elif scan.stopped_at is not None:
+            next_cursor = "{}/{}".format(*scan.stopped_at)
+        records: list[StoredRecord] = []
+        for template_id, index in found:
+            records.extend(self.store.read(template_id, [index]))
+        return Page(records, next_cursor, self.store.keywords_pending())
+
+    def _check_known(self, template_id: str) -> None:
+        """A template with no records yet answers an empty page; an unknown one is 404."""
+        self.store.catalog.get(template_id)
+
+    def _doc_filter(
+        self, query: RecordQuery, comparisons: list[Comparison], *, indexed_done: bool
+    ) -> Callable[[Doc], bool] | None:
+        checks: list[Callable[[Doc], bool]] = []
+        if query.topic is not None:
+            topic = query.topic
+            checks.append(lambda doc: doc["_topic"] == topic)
+        if query.robot is not None:
+            robot = query.robot
+            checks.append(lambda doc: doc["_robot"] == robot)
+        if not indexed_done:
+            start, end = query.start, query.end
+            if start is not None:
+                checks.append(lambda doc: doc["_t"] >= start)
+            if end is not None:
+                checks.append(lambda doc: doc["_t"] < end)
+        for comparison in comparisons:
+            if indexed_done and comparison.indexed:
+                continue
+            checks.append(
+                lambda doc, c=comparison: c.matches(doc[c.field])  # type: ignore[misc]
+            )
+        if not checks:
+            return None
+        return lambda doc: all(check(doc) for check in checks)
+
+    def _scan(
+        self,
+        views: TemplateSegments,
+        query: RecordQuery,
+        comparisons: list[Comparison],
+        keyword_hits: set[int] | None,
+        skip: int,
+        scan: _Scan,
+    ) -> None:
+        template_id = views.template.id
+        sealed, tail = views.snapshot()
+        indexed = [c for c in comparisons if c.indexed]
+        segment_filter = self._doc_filter(query, comparisons, indexed_done=True)
+        for segment in sealed:
+            if segment.first + segment.count - 1 <= skip or self._pruned(segment, query, indexed):
+                continue
+            positions = self._candidates(views, segment, query, indexed, keyword_hits)
+            docs = views.docs(segment) if segment_filter is not None else None
+            for position in positions:
+                index = segment.first + position
+                if index <= skip:
+                    continue
+                scan.scanned += 1
+                if docs is None or segment_filter is None or segment_filter(docs[position]):
+                    scan.found.append((template_id, index))
+                    if scan.full:
+                        return
+                if scan.scanned >= MAX_SCANNED:
+                    scan.stopped_at = (template_id, index)
+                    return
+        tail_filter = self._doc_filter(query, comparisons, indexed_done=False)
+        for doc in tail:
+            index = doc["_i"]
+            if index <= skip or (keyword_hits is not None and index not in keyword_hits):
+                continue
+            scan.scanned += 1
+            if tail_filter is None or tail_filter(doc):
+                scan.found.append((template_id, index))
+                if scan.full:
+                    return
+
+    def _pruned(
+        self, segment: SealedSegment, query: RecordQuery, indexed: list[Comparison]
+    ) -> bool:
+        low, high = segment.ranges["_t"]
+        if query.start is not None and high < query.start:
+            return True
+        if query.end is not None and low >= query.end:
+            return True
+        for comparison in indexed:
+            field_low, field_high = segment.ranges[comparison.field]
+            if _range_excludes(comparison, field_low, field_high):
+                return True
+        return False
+
+    def _candidates(
+        self,
+        views: TemplateSegments,
+        segment: SealedSegment,
+        query: RecordQuery,
+        indexed: list[Comparison],
+        keyword_hits: set[int] | None,
+    ) -> Iterable[int]:
+        """Positions in the segment the indexes allow, in order."""
+        sets: list[array[int]] = []
+        if query.start is not None or query.end is not None:
+            sets.append(views.index(segment, "_t").between(query.start, query.end, high_open=True))
+        for comparison in indexed:
+            low, high, low_open, high_open = _bounds(comparison)
+            index = views.index(segment, comparison.field)
+            sets.append(index.between(low, high, low_open=low_open, high_open=high_open))
+        if keyword_hits is not None:
+            stop = segment.first + segment.count
+            sets.append(
+                array("I", (i - segment.first for i in keyword_hits if segment.first <= i < stop))
+            )
+        if not sets:
+            return range(segment.count)
+        sets.sort(key=len)
+        chosen = set(sets[0])
+        for other in sets[1:]:
+            chosen.intersection_update(other)
+            if not chosen:
+                break
+        return sorted(chosen)
+
+    def intervals(
+        self,
+        template_id: str,
+        field_path: str,
+        value_text: str,
+        *,
+        robot: str | None = None,
+        start: int | None = None,
+        end: int | None = None,
+    ) -> list[Interval]:
+        """Per robot, when ``field == value`` began (enter) and stopped (exit, None: still)."""
+        views = self._template(template_id)
+        if views is None:
+            self._check_known(template_id)
+            return []
+        comparison = parse_comparison(views.template, f"{field_path}={value_text}", "field")
+        query = RecordQuery(template=template_id, robot=robot, start=start, end=end)
+        by_robot: dict[str, list[tuple[int, int, bool]]] = {}
+        for scanned, doc in enumerate(self._window_docs(views, query), start=1):
+            if scanned > MAX_INTERVAL_SCAN:
+                raise QueryInvalid(
+                    "start",
+                    f"more than {MAX_INTERVAL_SCAN} records; narrow the time window",
+                    code="query_too_broad",
+                )
+            by_robot.setdefault(doc["_robot"], []).append(
+                (doc["_t"], doc["_i"], comparison.matches(doc[comparison.field]))
+            )
+        intervals = []
+        for name in sorted(by_robot):
+            entered: int | None = None
+            for t, _, inside in sorted(by_robot[name]):
+                if inside and entered is None:
+                    entered = t
+                elif not inside and entered is not None:
+                    intervals.append(Interval(name, entered, t))
+                    entered = None
+            if entered is not None:
+                intervals.append(Interval(name, entered, None))
+        return intervals
+
+    def _window_docs(self, views: TemplateSegments, query: RecordQuery) -> Iterator[Doc]:
+        sealed, tail = views.snapshot()
+        keep = self._doc_filter(query, [], indexed_done=False)
+        for segment in sealed:
+            if self._pruned(segment, query, []):
+                continue
+            docs = views.docs(segment)
+            for position in self._candidates(views, segment, query, [], None):
+                doc = docs[position]
+                if keep is None or keep(doc):
+                    yield doc
+        for doc in tail:
+            if keep is None or keep(doc):
+                yield doc

@@ -1,0 +1,327 @@
+"""Routes of templates, records, queries and intervals: parse, call the domain, render."""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import AsyncIterator
+from typing import Annotated, Any, Literal
+
+import anyio
+from eth_utils.address import is_address, to_checksum_address
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+
+from robocloud import bounded_json
+from robocloud.errors import FormatError
+from robocloud.signing import HEADER_SIGNATURE, canonical_request
+from robocloud.templates import load_template_document
+from services.common.auth import SignedAddress, require_role, verified_request
+from services.common.bodies import json_body, media_type
+from services.common.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
+from services.storage.catalog import Catalog, Status, TemplateVersion
+from services.storage.queries import QueryEngine, QueryInvalid, RecordQuery
+from services.storage.recordstore import Authorship, RecordRejected, RecordStore, StoredRecord
+from services.storage.settings import StorageSettings
+
+router = APIRouter(tags=["records"])
+
+TEMPLATE_BODY_LIMIT = 256 * 1024
+RECORD_DEPTH = 24
+"""JSON nesting of one record: envelope, data, 8 composites with their objects, and slack."""
+JSON_TYPES = ("application/json",)
+NDJSON_TYPES = ("application/x-ndjson", "application/jsonl", "application/json-seq")
+
+
+class Review(BaseModel):
+    decision: Literal["approve", "reject"]
+    reason: str | None = Field(default=None, max_length=1024)
+
+
+def _catalog(request: Request) -> Catalog:
+    catalog: Catalog = request.app.state.catalog
+    return catalog
+
+
+def _store(request: Request) -> RecordStore:
+    store: RecordStore = request.app.state.records
+    return store
+
+
+def _version(version: TemplateVersion, status_code: int = 200) -> JSONResponse:
+    return JSONResponse(version.to_json(), status_code=status_code)
+
+
+async def _template_document(request: Request) -> Any:
+    if media_type(request) != "application/json":
+        raise UnsupportedMediaType(
+            "the body must be application/json",
+            details={"header": "Content-Type", "received": request.headers.get("content-type")},
+        )
+    return load_template_document(await request.body())
+
+
+@router.post("/v1/templates", status_code=201)
+async def create_template(request: Request, author: SignedAddress) -> JSONResponse:
+    """A new template, version 1, as a draft of the signer."""
+    document = await _template_document(request)
+    version = await anyio.to_thread.run_sync(
+        lambda: _catalog(request).create(document, author=author)
+    )
+    return _version(version, 201)
+
+
+@router.post("/v1/templates/{name}/versions", status_code=201)
+async def new_template_version(request: Request, name: str, author: SignedAddress) -> JSONResponse:
+    """The next version of a template, as a draft of the signer."""
+    document = await _template_document(request)
+    version = await anyio.to_thread.run_sync(
+        lambda: _catalog(request).new_version(name, document, author=author)
+    )
+    return _version(version, 201)
+
+
+@router.put("/v1/templates/{template_id}")
+async def edit_template(request: Request, template_id: str, author: SignedAddress) -> JSONResponse:
+    """Replace a draft's fields (409 once submitted or approved: make a new version)."""
+    document = await _template_document(request)
+    version = await anyio.to_thread.run_sync(
+        lambda: _catalog(request).edit(template_id, document, author=author)
+    )
+    return _version(version)
+
+
+@router.post("/v1/templates/{template_id}/submit")
+async def submit_template(
+    request: Request, template_id: str, author: SignedAddress
+) -> JSONResponse:
+    version = await anyio.to_thread.run_sync(
+        lambda: _catalog(request).submit(template_id, author=author)
+    )
+    return _version(version)
+
+
+@router.post("/v1/templates/{template_id}/review")
+async def review_template(
+    request: Request,
+    template_id: str,
+    review: Review = json_body(Review),  # type: ignore[assignment]
+    reviewer: str = require_role("reviewer"),  # type: ignore[assignment]
+) -> JSONResponse:
+    """Approve or reject a submitted version; the signer must hold the ``reviewer`` role."""
+    version = await anyio.to_thread.run_sync(
+        lambda: _catalog(request).review(
+            template_id, review.decision, reviewer=reviewer, reason=review.reason
+        )
+    )
+    return _version(version)
+
+
+@router.get("/v1/templates")
+async def list_templates(
+    request: Request,
+    name: str | None = None,
+    status: Status | None = None,
+    after: str | None = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> dict[str, Any]:
+    """Template versions by name and version; ``next`` continues the list."""
+    versions = _catalog(request).list(name=name, status=status, after=after, limit=limit + 1)
+    page = versions[:limit]
+    return {
+        "templates": [version.to_json() for version in page],
+        "next": page[-1].id if len(versions) > limit else None,
+    }
+
+
+@router.get("/v1/templates/{template_id}")
+async def get_template(request: Request, template_id: str) -> JSONResponse:
+    return _version(_catalog(request).get(template_id))
+
+
+def _authorship(request: Request) -> Authorship:
+    verified = verified_request(request)
+    path = (request.scope.get("raw_path") or request.url.path.encode()).split(b"?", 1)[0]
+    query = request.scope.get("query_string", b"").decode("latin-1")
+    canonical = canonical_request(
+        verified.audience,
+        request.method,
+        path.decode("latin-1"),
+        query,
+        verified.timestamp,
+        verified.nonce,
+        verified.content_sha256,
+    )
+    return Authorship(
+        signer=verified.address,
+        audience=verified.audience,
+        method=request.method,
+        path=path.decode("latin-1"),
+        query=query,
+        timestamp=verified.timestamp,
+        nonce=verified.nonce,
+        content_sha256=verified.content_sha256,
+        signature=request.headers.get(HEADER_SIGNATURE, ""),
+        request_sha256=hashlib.sha256(canonical.encode()).hexdigest(),
+        received_at_ns=time.time_ns(),
+    )
+
+
+async def _lines(request: Request, limit: int) -> AsyncIterator[tuple[int, bytes]]:
+    """Non-blank NDJSON lines with their record index; 413 for a line over ``limit`` bytes."""
+    pending = bytearray()
+    index = 0
+    async for chunk in request.stream():
+        pending += chunk
+        while (end := pending.find(b"\n")) >= 0:
+            line = bytes(pending[:end]).strip()
+            del pending[: end + 1]
+            if len(line) > limit:
+                raise _line_too_long(index, limit)
+            if line:
+                yield index, line
+                index += 1
+        if len(pending) > limit:
+            raise _line_too_long(index, limit)
+    if pending.strip():
+        yield index, bytes(pending).strip()
+
+
+def _line_too_long(index: int, limit: int) -> PayloadTooLarge:
+    return PayloadTooLarge(
+        f"record {index} is longer than {limit} bytes",
+        details={"index": index, "limit": limit},
+    )
+
+
+def _too_many(limit: int) -> PayloadTooLarge:
+    return PayloadTooLarge(
+        f"a batch holds at most {limit} records", details={"field": "records", "limit": limit}
+    )
+
+
+def _parsed(index: int, line: bytes) -> Any:
+    try:
+        return bounded_json.loads(line, max_depth=RECORD_DEPTH)
+    except FormatError as exc:
+        raise RecordRejected(index, "", str(exc), code="invalid_json") from exc
+
+
+async def _records_of(request: Request, settings: StorageSettings) -> list[Any]:
+    kind = media_type(request)
+    limit = settings.storage_max_batch_records
+    if kind in NDJSON_TYPES:
+        records = []
+        async for index, line in _lines(request, settings.storage_max_line_bytes):
+            if index >= limit:
+                raise _too_many(limit)
+            records.append(_parsed(index, line))
+        return records
+    if kind not in JSON_TYPES:
+        raise UnsupportedMediaType(
+            "records are application/json (an array) or application/x-ndjson",
+            details={"header": "Content-Type", "received": request.headers.get("content-type")},
+        )
+    document = bounded_json.loads(await request.body(), max_depth=RECORD_DEPTH + 1)
+    if not isinstance(document, list):
+        raise BadRequest(
+            "the body must be a JSON array of records", code="invalid_body", details={"field": ""}
+        )
+    if len(document) > limit:
+        raise _too_many(limit)
+    return document
+
+
+@router.post("/v1/records", status_code=201)
+async def append_records(request: Request) -> dict[str, Any]:
+    """Store a batch of records (all or none); their ids in the order sent."""
+    author = _authorship(request)
+    records = await _records_of(request, request.app.state.settings)
+    ids = await anyio.to_thread.run_sync(lambda: _store(request).append(records, author=author))
+    return {"ids": ids, "count": len(ids)}
+
+
+def _rendered(stored: StoredRecord, meta: bool = False) -> dict[str, Any]:
+    rendered: dict[str, Any] = {
+        "id": stored.id,
+        "record": stored.record,
+        "signer": stored.meta.get("signer"),
+    }
+    if meta:
+        rendered["meta"] = stored.meta
+    return rendered
+
+
+def _robot(robot: str | None) -> str | None:
+    if robot is None:
+        return None
+    if not is_address(robot):
+        raise QueryInvalid("robot", f"{robot[:80]!r} is not an address")
+    return to_checksum_address(robot)
+
+
+@router.get("/v1/records")
+async def query_records(
+    request: Request,
+    template: str | None = None,
+    topic: Annotated[str | None, Query(max_length=256)] = None,
+    robot: str | None = None,
+    start: Annotated[int | None, Query(ge=0, description="t >= start (ns)")] = None,
+    end: Annotated[int | None, Query(ge=0, description="t < end (ns)")] = None,
+    where: Annotated[list[str] | None, Query(description="field op value, AND")] = None,
+    keywords: Annotated[str | None, Query(max_length=1024)] = None,
+    limit: int = 100,
+    cursor: str | None = None,
+) -> dict[str, Any]:
+    """Records matching every filter, in log order; ``next`` is the cursor of the next page."""
+    query = RecordQuery(
+        template=template,
+        topic=topic,
+        robot=_robot(robot),
+        start=start,
+        end=end,
+        where=tuple(where or ()),
+        keywords=keywords,
+        limit=limit,
+        cursor=cursor,
+    )
+    engine: QueryEngine = request.app.state.queries
+    page = await anyio.to_thread.run_sync(engine.records, query)
+    return {
+        "records": [_rendered(stored) for stored in page.records],
+        "next": page.next,
+        "keywords_pending": page.keywords_pending,
+    }
+
+
+@router.get("/v1/records/{record_id}")
+async def get_record(request: Request, record_id: str) -> dict[str, Any]:
+    """One record exactly as logged, with who signed the request that stored it."""
+    stored = await anyio.to_thread.run_sync(_store(request).get, record_id)
+    return _rendered(stored, meta=True)
+
+
+@router.get("/v1/intervals")
+async def state_intervals(
+    request: Request,
+    template: str,
+    field: str,
+    value: str,
+    robot: str | None = None,
+    start: Annotated[int | None, Query(ge=0)] = None,
+    end: Annotated[int | None, Query(ge=0)] = None,
+) -> dict[str, Any]:
+    """When each robot entered and left the state ``field == value`` (exit null: still in)."""
+    engine: QueryEngine = request.app.state.queries
+    intervals = await anyio.to_thread.run_sync(
+        lambda: engine.intervals(template, field, value, robot=_robot(robot), start=start, end=end)
+    )
+    return {
+        "template": template,
+        "field": field,
+        "value": value,
+        "intervals": [
+            {"robot": item.robot, "enter": item.enter, "exit": item.exit} for item in intervals
+        ],
+    }

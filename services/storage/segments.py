@@ -1,0 +1,310 @@
+"""TinyDB segments of one template's records, with our own time and numeric indexes.
+
+TinyDB rewrites its whole file on every insert, so it is never written one record at a time:
+records gather in an in-memory tail (rebuilt from the record log at start) and, once
+``segment_records`` of them are there, the tail is written with one ``insert_multiple`` into
+a new segment file that is sealed: never written again. Beside each sealed segment lie its
+indexes, sorted arrays of (value, position) for ``t`` and for every int, float and bool leaf
+outside arrays, so that a time window or a comparison is two binary searches per segment
+instead of a scan. ``segments.json`` lists the sealed segments with their value ranges; it is
+replaced atomically after a segment's files are on disk, so it is the views' durable mark: a
+file it does not list is a leftover of a crash and is removed at open.
+
+A TinyDB document is a record flattened: envelope keys prefixed with ``_`` (``_i`` its index
+in the template's log, ``_t``, ``_topic``, ``_robot``) and each leaf under its dotted path
+(``pose.position.x``); field names cannot start with ``_``, so the two never collide.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import os
+import threading
+from array import array
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tinydb import TinyDB
+from tinydb.storages import JSONStorage
+
+from robocloud.templates import Container, Scalar, Template
+from services.common.durable import atomic_write, fsync_dir
+
+Doc = dict[str, Any]
+TABLE = "records"
+MANIFEST = "segments.json"
+INDEXED_KINDS = frozenset(("int", "float", "bool"))
+ENVELOPE = {"t": "_t", "topic": "_topic", "robot": "_robot"}
+
+
+def flatten(record: dict[str, Any], index: int) -> Doc:
+    """The TinyDB document of ``record`` (parsed from its canonical bytes)."""
+    doc: Doc = {
+        "_i": index,
+        "_t": record["t"],
+        "_topic": record["topic"],
+        "_robot": record["robot"],
+    }
+    stack: list[tuple[str, dict[str, Any]]] = [("", record["data"])]
+    while stack:
+        prefix, values = stack.pop()
+        for name, value in values.items():
+            if isinstance(value, dict):
+                stack.append((f"{prefix}{name}.", value))
+            else:
+                doc[f"{prefix}{name}"] = value
+    return doc
+
+
+def reassemble(template: Template, doc: Doc) -> dict[str, Any]:
+    """The record of a flattened document, its data nested as the template says."""
+
+    def build(fields: Any, prefix: str) -> dict[str, Any]:
+        data: dict[str, Any] = {}
+        for name, kind in fields.items():
+            path = f"{prefix}{name}"
+            data[name] = (
+                build(kind.fields, f"{path}.") if isinstance(kind, Container) else doc[path]
+            )
+        return data
+
+    return {
+        "template": template.id,
+        "topic": doc["_topic"],
+        "robot": doc["_robot"],
+        "t": doc["_t"],
+        "data": build(template.fields, ""),
+    }
+
+
+def indexed_fields(template: Template) -> list[str]:
+    """Leaves with a sorted index: int, float and bool outside arrays."""
+    return sorted(
+        path
+        for path, kind in template.leaves()
+        if isinstance(kind, Scalar) and kind.kind in INDEXED_KINDS
+    )
+
+
+@dataclass(frozen=True)
+class SealedSegment:
+    """One sealed segment: records ``first .. first + count - 1`` and each field's range."""
+
+    first: int
+    count: int
+    ranges: dict[str, tuple[float, float]]
+    """``_t`` and every indexed field: (lowest, highest) value in the segment."""
+
+    @property
+    def name(self) -> str:
+        return f"seg-{self.first:012d}"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"first": self.first, "count": self.count, "ranges": self.ranges}
+
+    @classmethod
+    def from_json(cls, document: dict[str, Any]) -> SealedSegment:
+        ranges = {key: (value[0], value[1]) for key, value in document["ranges"].items()}
+        return cls(int(document["first"]), int(document["count"]), ranges)
+
+
+@dataclass(frozen=True)
+class SortedIndex:
+    """A field's values in one segment, sorted, with the position of each."""
+
+    values: array[float] | array[int]
+    positions: array[int]
+
+    def between(
+        self,
+        low: float | None,
+        high: float | None,
+        *,
+        low_open: bool = False,
+        high_open: bool = False,
+    ) -> array[int]:
+        """Positions whose value lies in the range (None: unbounded on that side)."""
+        if low is None:
+            start = 0
+        elif low_open:
+            start = bisect.bisect_right(self.values, low)
+        else:
+            start = bisect.bisect_left(self.values, low)
+        if high is None:
+            stop = len(self.values)
+        elif high_open:
+            stop = bisect.bisect_left(self.values, high)
+        else:
+            stop = bisect.bisect_right(self.values, high)
+        return self.positions[start:stop] if start < stop else array("I")
+
+
+def _index_file(directory: Path, segment: SealedSegment, field: str) -> Path:
+    return directory / f"{segment.name}.{field}.idx"
+
+
+def _write_index(path: Path, values: Sequence[float], typecode: str) -> None:
+    order = sorted(range(len(values)), key=values.__getitem__)
+    sorted_values = array(typecode, (values[i] for i in order))
+    positions = array("I", order)
+    atomic_write(path, sorted_values.tobytes() + positions.tobytes())
+
+
+def _read_index(path: Path, count: int, typecode: str) -> SortedIndex:
+    data = path.read_bytes()
+    values = array(typecode)
+    split = count * values.itemsize
+    values.frombytes(data[:split])
+    positions = array("I")
+    positions.frombytes(data[split:])
+    if len(values) != count or len(positions) != count:
+        raise ValueError(f"{path} does not hold {count} entries")
+    return SortedIndex(values, positions)
+
+
+class SegmentCache:
+    """Decoded segment documents and indexes, least recently used dropped first (shared)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._items: OrderedDict[tuple[str, ...], Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple[str, ...], load: Callable[[], Any]) -> Any:
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        value = load()
+        with self._lock:
+            self._items[key] = value
+            while len(self._items) > self.capacity:
+                self._items.popitem(last=False)
+        return value
+
+
+class TemplateSegments:
+    """The segments and the tail of one template version, under ``directory``."""
+
+    def __init__(
+        self, directory: Path, template: Template, segment_records: int, cache: SegmentCache
+    ) -> None:
+        self.directory = directory
+        self.template = template
+        self.segment_records = segment_records
+        self.cache = cache
+        self.fields = indexed_fields(template)
+        self._kinds = {path: kind for path, kind in template.leaves()}
+        self._lock = threading.Lock()
+        directory.mkdir(parents=True, exist_ok=True)
+        self.sealed: list[SealedSegment] = self._open_manifest()
+        self.tail: list[Doc] = []
+
+    def _open_manifest(self) -> list[SealedSegment]:
+        manifest = self.directory / MANIFEST
+        sealed = []
+        if manifest.exists():
+            document = json.loads(manifest.read_bytes())
+            sealed = [SealedSegment.from_json(item) for item in document["sealed"]]
+        listed = {f"{segment.name}.json" for segment in sealed} | {MANIFEST}
+        listed |= {
+            _index_file(self.directory, segment, field).name
+            for segment in sealed
+            for field in ("_t", *self.fields)
+        }
+        for path in self.directory.iterdir():
+            if path.name not in listed:
+                path.unlink()
+        return sealed
+
+    @property
+    def durable(self) -> int:
+        """Records in sealed segments: the views hold these without the log's help."""
+        return self.sealed[-1].first + self.sealed[-1].count if self.sealed else 0
+
+    @property
+    def size(self) -> int:
+        return self.durable + len(self.tail)
+
+    def add(self, docs: Iterable[Doc]) -> None:
+        """Add documents in index order; seal full segments with one batch write each."""
+        with self._lock:
+            for doc in docs:
+                if doc["_i"] != self.size:
+                    raise ValueError(f"document {doc['_i']} arrives at {self.size}")
+                self.tail.append(doc)
+            while len(self.tail) >= self.segment_records:
+                self._seal(self.tail[: self.segment_records])
+                self.tail = self.tail[self.segment_records :]
+
+    def _seal(self, docs: list[Doc]) -> None:
+        first = docs[0]["_i"]
+        ranges: dict[str, tuple[float, float]] = {}
+        segment = SealedSegment(first, len(docs), ranges)
+        path = self.directory / f"{segment.name}.json"
+        tmp = path.with_name(f".{path.name}.tmp")
+        database = TinyDB(tmp, storage=JSONStorage)
+        database.table(TABLE).insert_multiple(docs)
+        database.close()
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+        for field in ("_t", *self.fields):
+            values = [_sortable(doc.get(field)) for doc in docs]
+            typecode = "q" if field == "_t" else "d"
+            _write_index(_index_file(self.directory, segment, field), values, typecode)
+            ranges[field] = (min(values), max(values))
+        fsync_dir(self.directory)
+        sealed = [*self.sealed, segment]
+        manifest = {"sealed": [item.to_json() for item in sealed]}
+        atomic_write(self.directory / MANIFEST, json.dumps(manifest).encode())
+        self.sealed = sealed
+
+    def snapshot(self) -> tuple[list[SealedSegment], list[Doc]]:
+        """The sealed segments and the tail as of now, for a query to read without locks."""
+        with self._lock:
+            return list(self.sealed), list(self.tail)
+
+    def docs(self, segment: SealedSegment) -> list[Doc]:
+        """A sealed segment's documents in index order (cached)."""
+
+        def load() -> list[Doc]:
+            path = self.directory / f"{segment.name}.json"
+            database = TinyDB(path, storage=JSONStorage, access_mode="r")
+            try:
+                found = database.table(TABLE).all()
+            finally:
+                database.close()
+            return sorted((dict(doc) for doc in found), key=lambda doc: int(doc["_i"]))
+
+        docs: list[Doc] = self.cache.get((str(self.directory), segment.name), load)
+        return docs
+
+    def index(self, segment: SealedSegment, field: str) -> SortedIndex:
+        def load() -> SortedIndex:
+            typecode = "q" if field == "_t" else "d"
+            return _read_index(_index_file(self.directory, segment, field), segment.count, typecode)
+
+        index: SortedIndex = self.cache.get((str(self.directory), segment.name, field), load)
+        return index
+
+    def all_docs(self) -> Iterator[Doc]:
+        """Every document, sealed then tail, in index order (full scans: the baseline)."""
+        sealed, tail = self.snapshot()
+        for segment in sealed:
+            yield from self.docs(segment)
+        yield from tail
+
+
+def _sortable(value: Any) -> float:
+    """A value as a sorted index holds it (bools as 0 and 1)."""
+    if isinstance(value, bool):
+        return 1.0 if value else 0.0
+    return value  # type: ignore[no-any-return]

@@ -1,0 +1,35 @@
+"""Settings of the storage service (``ROBOCLOUD_STORAGE_*``), beside those every service has.
+
+Each engineer's settings sit in their own block, so that additions merge without conflicts.
+"""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from services.common.settings import ServiceSettings
+
+
+class StorageSettings(ServiceSettings):
+    # ----- templates, records, segments and queries (engineer records) -----
+    storage_segment_records: int = Field(
+        default=4096, ge=16, le=1_000_000, description="records per sealed TinyDB segment"
+    )
+    storage_segment_cache: int = Field(
+        default=64, ge=1, description="sealed segments kept decoded in memory for queries"
+    )
+    storage_array_inline_bytes: int = Field(
+        default=4096, ge=64, description="arrays larger than this (canonical JSON) go to cas"
+    )
+    storage_max_batch_records: int = Field(
+        default=10_000, gt=0, description="records one POST /v1/records may hold"
+    )
+    storage_max_batch_bytes: int = Field(
+        default=64 * 1024 * 1024, gt=0, description="bytes one POST /v1/records may hold"
+    )
+    storage_max_line_bytes: int = Field(
+        default=1024 * 1024, gt=0, description="bytes of one record (NDJSON line or array item)"
+    )
+    storage_max_templates: int = Field(
+        default=100_000, gt=0, description="template versions the catalog holds at most"
+    )
