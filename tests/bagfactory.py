@@ -78,10 +78,12 @@ def image(store: Any, index: int, t_ns: int, width: int = 8, height: int = 6) ->
     )
 
 
-def messages(store: Any, count: int, image_every: int = 10) -> Iterator[tuple[str, int, Any]]:
+def messages(
+    store: Any, count: int, image_every: int = 10, start_ns: int = START_NS
+) -> Iterator[tuple[str, int, Any]]:
     """``count`` messages: IMU mostly, a NavSatFix every 5th and an image every ``image_every``."""
     for index in range(count):
-        t_ns = START_NS + index * PERIOD_NS
+        t_ns = start_ns + index * PERIOD_NS
         if index % image_every == image_every - 1:
             yield "/camera/image_raw", t_ns, image(store, index, t_ns)
         elif index % 5 == 4:
@@ -97,6 +99,7 @@ def write_bag(
     *,
     image_every: int = 10,
     ros1_chunk_bytes: int = 1 << 20,
+    start_ns: int = START_NS,
 ) -> Path:
     """Write ``count`` messages to a new bag at ``path`` (a ``.bag`` file or a ROS 2 directory)."""
     store = typestore_for(kind)
@@ -109,7 +112,7 @@ def write_bag(
                 topic: writer.add_connection(topic, msgtype, typestore=store)
                 for topic, msgtype in TOPICS.items()
             }
-            for topic, t_ns, message in messages(store, count, image_every):
+            for topic, t_ns, message in messages(store, count, image_every, start_ns):
                 raw = store.serialize_ros1(message, TOPICS[topic])
                 writer.write(connections[topic], t_ns, raw)
         return path
@@ -119,6 +122,6 @@ def write_bag(
             topic: writer2.add_connection(topic, msgtype, typestore=store)
             for topic, msgtype in TOPICS.items()
         }
-        for topic, t_ns, message in messages(store, count, image_every):
+        for topic, t_ns, message in messages(store, count, image_every, start_ns):
             writer2.write(connections[topic], t_ns, store.serialize_cdr(message, TOPICS[topic]))
     return path

@@ -376,7 +376,7 @@ class BindingRefused(Exception):
         self.reason = reason
 
 
-MSGTYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/(msg/)?[A-Za-z][A-Za-z0-9_]*")
+MSGTYPE = re.compile(r"[A-Za-z][A-Za-z0-9_]*/([a-z]+/)?[A-Za-z][A-Za-z0-9_]*")
 
 
 class Bindings:
