@@ -11,9 +11,11 @@ import services.storage
 from robocloud.cas import Cas
 from robocloud.identity import Identity
 from services.common.app import create_app
-from services.storage import records_api
+from services.storage import bags_api, records_api
 from services.storage.catalog import Catalog
 from services.storage.errors import ERRORS
+from services.storage.ingest import CasBlobs, IngestJobs
+from services.storage.matcher import Bindings
 from services.storage.queries import QueryEngine
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Offload, RecordStore
@@ -61,25 +63,53 @@ def _close_records(app: FastAPI) -> None:
     app.state.catalog.close()
 
 
+# ----- bag ingestion and export (engineer bags) -----
+def _open_ingest(app: FastAPI, settings: StorageSettings) -> None:
+    data_dir = settings.resolved_data_dir()
+    offload = _cas_offload(app, settings)
+    clients: dict[str, Cas] = {}
+
+    def cas() -> Cas:
+        if "cas" not in clients:
+            identity = getattr(app.state, "node_identity", None) or Identity.generate()
+            clients["cas"] = Cas(settings.cas_url, identity, retries=1)
+        return clients["cas"]
+
+    app.state.ingest_cas = cas
+    app.state.bindings = Bindings(data_dir / "bindings.json")
+    app.state.ingest_jobs = IngestJobs(
+        data_dir / "ingest",
+        app.state.records,
+        app.state.record_logs,
+        app.state.bindings,
+        lambda: CasBlobs(offload),
+        batch_records=settings.storage_ingest_batch_records,
+        max_pending=settings.storage_max_ingest_jobs,
+    )
+
+
 def build_app(settings: StorageSettings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         try:
             yield
         finally:
+            app.state.ingest_jobs.close()
             _close_records(app)
 
     app = create_app(
         "storage",
         settings,
-        routers=[records_api.router],
+        routers=[records_api.router, bags_api.router],
         lifespan=lifespan,
         body_limits={
             "/v1/templates": records_api.TEMPLATE_BODY_LIMIT,
             "/v1/records": settings.storage_max_batch_bytes,
+            "/v1/ingest": settings.storage_max_bag_bytes,
         },
         errors=ERRORS,
         description=services.storage.__doc__ or "",
     )
     _open_records(app, settings)
+    _open_ingest(app, settings)
     return app

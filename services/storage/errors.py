@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from robocloud.templates import RecordInvalid, TemplateIdInvalid, TemplateInvalid
 from services.common.errors import ErrorMap, ErrorRule
+from services.storage.bags import BagError
 from services.storage.catalog import (
     CatalogFull,
     LifecycleConflict,
@@ -13,7 +14,9 @@ from services.storage.catalog import (
     TemplateNotApproved,
     TemplateNotFound,
 )
+from services.storage.ingest import BagNotFetchable, JobNotFound, JobNotResumable, TooManyJobs
 from services.storage.keywords import TooManyKeywordHits
+from services.storage.matcher import BindingRefused
 from services.storage.queries import QueryInvalid
 from services.storage.recordstore import (
     OffloadFailed,
@@ -78,4 +81,25 @@ RECORD_ERRORS = ErrorMap(
     }
 )
 
-ERRORS = RECORD_ERRORS
+# ----- bag ingestion and export (engineer bags) -----
+INGEST_ERRORS = ErrorMap(
+    {
+        BagError: ErrorRule(
+            400, "invalid_bag", lambda exc: {"file": exc.path.name, "offset": exc.offset}
+        ),
+        BagNotFetchable: ErrorRule(400, "invalid_bag", lambda exc: {"cid": exc.cid}),
+        JobNotFound: ErrorRule(404, "job_not_found", lambda exc: {"job": exc.job_id[:64]}),
+        JobNotResumable: ErrorRule(
+            409, "job_not_resumable", lambda exc: {"job": exc.job_id, "status": exc.status}
+        ),
+        TooManyJobs: ErrorRule(
+            429,
+            "too_many_jobs",
+            lambda exc: {"limit": exc.limit, "retry_after": 5},
+            lambda _: {"Retry-After": "5"},
+        ),
+        BindingRefused: ErrorRule(400, "invalid_binding", lambda exc: {"field": exc.field}),
+    }
+)
+
+ERRORS = RECORD_ERRORS | INGEST_ERRORS

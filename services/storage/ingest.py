@@ -26,6 +26,7 @@ import logging
 import queue
 import secrets
 import shutil
+import tempfile
 import threading
 import time
 from collections import OrderedDict
@@ -34,14 +35,20 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from robocloud.cas import Cas
+from robocloud.cid import CID, DAG_PB
+from robocloud.directory import check_name
 from robocloud.templates import RecordInvalid, Template, validate_data
+from robocloud.unixfs import DIRECTORY, HAMT_SHARD, decode_node
 from services.common.durable import atomic_write
 from services.storage.bags import (
+    SUFFIXES,
     Bag,
     BagCorrupt,
     BagError,
     MessageUndecodable,
     MissingDefinition,
+    detect_format,
 )
 from services.storage.catalog import CatalogError
 from services.storage.matcher import (
@@ -484,3 +491,41 @@ class CasBlobs:
             if len(self._known) > self._remembered:
                 self._known.popitem(last=False)
         return cid
+
+
+class BagNotFetchable(Exception):
+    """A cas CID that does not hold a bag this service can fetch."""
+
+    def __init__(self, cid: str, reason: str) -> None:
+        super().__init__(f"{cid}: {reason}")
+        self.cid = cid
+        self.reason = reason
+
+
+def fetch_from_cas(cas: Cas, cid: CID, into: Path, max_bytes: int) -> Path:
+    """Fetch a bag file, or a flat directory (a ROS 2 bag), from cas into a new directory.
+
+    Every block is verified against its CID by the SDK; ``max_bytes`` bounds the whole bag.
+    """
+    target = Path(tempfile.mkdtemp(dir=into, prefix=".bag-"))
+    try:
+        node, data = decode_node(cid, cas.block(cid)) if cid.codec == DAG_PB else (None, None)
+        if data is not None and data.type in (DIRECTORY, HAMT_SHARD):
+            if data.type == HAMT_SHARD:
+                raise BagNotFetchable(str(cid), "a sharded directory is not a bag")
+            assert node is not None
+            bag = target / "bag"
+            bag.mkdir()
+            remaining = max_bytes
+            for link in node.links:
+                name = check_name(link.name or "")
+                remaining -= cas.get_to_file(link.cid, bag / name, max_size=remaining)
+            return bag
+        path = target / "bag.download"
+        cas.get_to_file(cid, path, max_size=max_bytes)
+        named = path.with_name(f"bag{SUFFIXES.get(detect_format(path), '')}")
+        path.rename(named)
+        return named
+    except BaseException:
+        shutil.rmtree(target, ignore_errors=True)
+        raise
