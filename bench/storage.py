@@ -17,18 +17,36 @@ Proofs (engineer anchor), against a ledger and a cas started here:
 (sealed segments' time indexes, records read from the log), against a TinyDB full scan of the
 same segments for the same window. The issue asks for p50 <= 10 ms.
 
+
+Ingest throughput (engineer bags) against rosbags reading and deserialising the same bag.
+
+A bag of IMU, NavSatFix and small camera images is written with rosbags' own writer; then
+each measurement runs in its own process (so its peak RSS is its own):
+
+- ``rosbags``: AnyReader over every message, deserialize each: the baseline;
+- ``ingest``: an ingest job (stage: decode, convert, validate, spool; commit: RecordStore.append
+  with fsync per batch) into a fresh node; ratio = rosbags time / ingest time (target >= 0.25x),
+  records per second printed beside the 120 transactions per second that chain-only storage
+  reaches.
+
+
     python bench/storage.py [--records 1000000] [--queries 200] [--proof-records 200000]
-        [--batches 30] [--proofs 300]
+        [--batches 30] [--proofs 300] [--messages 200000] [--kind ros1|sqlite3|mcap]
+        [--only queries|proofs|ingest]
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import random
+import resource
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
@@ -36,13 +54,21 @@ import httpx
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO), str(REPO / "clients")]
 
+from tinydb import Query, TinyDB  # noqa: E402
+from tinydb.storages import JSONStorage  # noqa: E402
+
 from robocloud import jcs  # noqa: E402
+from robocloud.identity import Identity  # noqa: E402
 from robocloud.ledger import JsonRpcClient, LedgerService  # noqa: E402
 from robocloud.proofs import RecordId, anchored_root, verify_record_proof  # noqa: E402
 from services.storage.anchoring import NotAnchored  # noqa: E402
 from services.storage.app import _open_node  # noqa: E402
+from services.storage.catalog import Catalog  # noqa: E402
 from services.storage.identity import load_or_create  # noqa: E402
-from services.storage.recordlog import LogEntry  # noqa: E402
+from services.storage.queries import QueryEngine, RecordQuery  # noqa: E402
+from services.storage.recordlog import LogEntry, RecordLogs  # noqa: E402
+from services.storage.recordstore import Authorship, RecordStore  # noqa: E402
+from services.storage.segments import TABLE  # noqa: E402
 from services.storage.settings import StorageSettings  # noqa: E402
 from tests.procs import ServiceProcess, free_port  # noqa: E402
 
@@ -166,18 +192,6 @@ def bench_proofs(work: Path, records: int, batches: int, proofs: int) -> None:
         ledger.stop()
 
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / "clients")]
-
-from tinydb import Query, TinyDB  # noqa: E402
-from tinydb.storages import JSONStorage  # noqa: E402
-
-from services.storage.catalog import Catalog  # noqa: E402
-from services.storage.queries import QueryEngine, RecordQuery  # noqa: E402
-from services.storage.recordlog import RecordLogs  # noqa: E402
-from services.storage.recordstore import Authorship, RecordStore  # noqa: E402
-from services.storage.segments import TABLE  # noqa: E402
-
 ROBOT = "0x90F8bf6A479f320ead074411a4B0e7944Ea8c9C1"
 PERIOD_NS = 10_000_000
 SECOND_NS = 1_000_000_000
@@ -283,17 +297,147 @@ def bench_queries(records: int = 1_000_000, queries: int = 200) -> None:
         store.catalog.close()
 
 
+CHAIN_TPS = 120
+START_NS = 1_000_000_000_000
+"""Inside 2**53: the records' JCS form cannot hold epoch nanoseconds in ``t`` yet."""
+
+
+@dataclass(frozen=True)
+class Result:
+    name: str
+    seconds: float
+    messages: int
+    peak_rss_mib: float
+
+
+def _peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def bench_rosbags(bag: Path, work: Path) -> Result:
+    from rosbags.highlevel import AnyReader
+
+    started = time.perf_counter()
+    count = 0
+    with AnyReader([bag]) as reader:
+        for connection, _, raw in reader.messages():
+            reader.deserialize(raw, connection.msgtype)
+            count += 1
+    return Result("rosbags read+deserialize", time.perf_counter() - started, count, _peak_rss_mib())
+
+
+def bench_ingest(bag: Path, work: Path) -> Result:
+    from robocloud.unixfs import import_bytes
+    from services.storage.catalog import Catalog
+    from services.storage.ingest import CasBlobs, IngestJobs
+    from services.storage.matcher import Bindings, draft_template
+    from services.storage.recordlog import RecordLogs
+    from services.storage.recordstore import Authorship, RecordStore
+    from tests.bagfactory import TOPICS, typestore_for
+
+    root = work / "node"
+    catalog = Catalog(root / "catalog")
+    logs = RecordLogs(root / "logs")
+    store = RecordStore(root, logs, catalog)
+    bindings = Bindings(root / "bindings.json")
+    author = Identity.generate().address
+    for msgtype in TOPICS.values():
+        version = catalog.create(draft_template(typestore_for("ros1"), msgtype), author=author)
+        catalog.submit(version.id, author=author)
+        catalog.review(version.id, "approve", reviewer=author)
+        bindings.bind(template_id=version.id, msgtype=msgtype)
+    blobs = CasBlobs(lambda data: str(import_bytes(data)[1]))
+    jobs = IngestJobs(root / "jobs", store, logs, bindings, lambda: blobs)
+    signer = Authorship(
+        signer=author,
+        audience="storage@local",
+        method="POST",
+        path="/v1/ingest",
+        query="",
+        timestamp=int(time.time()),
+        nonce="bench-nonce-000000",
+        content_sha256="0" * 64,
+        signature="0x" + "0" * 130,
+        request_sha256="0" * 64,
+        received_at_ns=time.time_ns(),
+    )
+    copy = work / bag.name
+    copy.write_bytes(bag.read_bytes())
+    started = time.perf_counter()
+    job = jobs.wait(jobs.submit(copy, "upload:bench", signer).id, timeout_s=3600)
+    seconds = time.perf_counter() - started
+    if job.status != "succeeded":
+        raise SystemExit(f"ingest failed: {job.error}")
+    jobs.close()
+    store.close()
+    return Result("ingest (stage + commit)", seconds, job.records_committed, _peak_rss_mib())
+
+
+MEASUREMENTS: list[Callable[[Path, Path], Result]] = [bench_rosbags, bench_ingest]
+
+
+def _run(measure: Callable[[Path, Path], Result], bag: Path, out: multiprocessing.Queue) -> None:
+    with tempfile.TemporaryDirectory() as work:
+        out.put(measure(bag, Path(work)))
+
+
+def isolated(measure: Callable[[Path, Path], Result], bag: Path) -> Result:
+    context = multiprocessing.get_context("spawn")
+    results: multiprocessing.Queue = context.Queue()
+    process = context.Process(target=_run, args=(measure, bag, results))
+    process.start()
+    result: Result = results.get()
+    process.join()
+    return result
+
+
+def bench_ingestion(options: argparse.Namespace) -> None:
+    from tests.bagfactory import write_bag
+
+    with tempfile.TemporaryDirectory() as scratch:
+        name = "bench.bag" if options.kind == "ros1" else "bench"
+        started = time.perf_counter()
+        bag = write_bag(Path(scratch) / name, options.kind, options.messages, start_ns=START_NS)
+        size = sum(p.stat().st_size for p in ([bag] if bag.is_file() else bag.iterdir()))
+        print(
+            f"bag: {options.messages} messages ({options.kind}, {size / 2**20:.1f} MiB), "
+            f"written in {time.perf_counter() - started:.1f} s"
+        )
+        results = [isolated(measure, bag) for measure in MEASUREMENTS]
+    baseline = results[0]
+    for result in results:
+        rate = result.messages / result.seconds
+        print(
+            f"{result.name:28} {result.seconds:8.2f} s  {rate:10.0f} msg/s  "
+            f"{baseline.seconds / result.seconds:5.2f}x rosbags  "
+            f"peak RSS {result.peak_rss_mib:6.0f} MiB"
+        )
+    ingest = results[1]
+    print(
+        f"ingest: {ingest.messages / ingest.seconds:.0f} records/s = "
+        f"{ingest.messages / ingest.seconds / CHAIN_TPS:.0f}x the {CHAIN_TPS} tx/s of chain-only "
+        f"storage; ratio to rosbags {baseline.seconds / ingest.seconds:.2f}x (target >= 0.25x)"
+    )
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--records", type=int, default=1_000_000)
     parser.add_argument("--queries", type=int, default=200)
     parser.add_argument("--proof-records", type=int, default=200_000)
     parser.add_argument("--batches", type=int, default=30)
     parser.add_argument("--proofs", type=int, default=300)
+    parser.add_argument("--messages", type=int, default=200_000)
+    parser.add_argument("--kind", choices=["ros1", "sqlite3", "mcap"], default="ros1")
+    parser.add_argument("--only", choices=["queries", "proofs", "ingest"])
     args = parser.parse_args()
-    bench_queries(args.records, args.queries)
-    with tempfile.TemporaryDirectory() as work:
-        bench_proofs(Path(work), args.proof_records, args.batches, args.proofs)
+    if args.only in (None, "ingest"):
+        bench_ingestion(args)
+    if args.only in (None, "queries"):
+        bench_queries(args.records, args.queries)
+    if args.only in (None, "proofs"):
+        with tempfile.TemporaryDirectory() as work:
+            bench_proofs(Path(work), args.proof_records, args.batches, args.proofs)
 
 
 if __name__ == "__main__":

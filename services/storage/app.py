@@ -24,11 +24,13 @@ from services.common.app import create_app
 from services.common.auth import SignedAddress
 from services.common.bodies import media_type, read_json
 from services.common.errors import BadRequest, UnsupportedMediaType
-from services.storage import identity, records_api
+from services.storage import bags_api, identity, records_api
 from services.storage.anchoring import LedgerAndCas, StorageNode
 from services.storage.catalog import Catalog
 from services.storage.errors import ERRORS
+from services.storage.ingest import CasBlobs, IngestJobs
 from services.storage.knowledge import KnowledgeBase
+from services.storage.matcher import Bindings
 from services.storage.queries import QueryEngine
 from services.storage.recordstore import Offload, RecordStore
 from services.storage.settings import StorageSettings
@@ -323,6 +325,30 @@ def _close_records(app: FastAPI) -> None:
     app.state.catalog.close()
 
 
+# ----- bag ingestion and export (engineer bags) -----
+def _open_ingest(app: FastAPI, settings: StorageSettings, node: StorageNode) -> None:
+    data_dir = settings.resolved_data_dir()
+    offload = _cas_offload(node, settings)
+    clients: dict[str, Cas] = {}
+
+    def cas() -> Cas:
+        if "cas" not in clients:
+            clients["cas"] = Cas(settings.cas_url, node.identity.identity, retries=1)
+        return clients["cas"]
+
+    app.state.ingest_cas = cas
+    app.state.bindings = Bindings(data_dir / "bindings.json")
+    app.state.ingest_jobs = IngestJobs(
+        data_dir / "ingest",
+        app.state.records,
+        app.state.record_logs,
+        app.state.bindings,
+        lambda: CasBlobs(offload),
+        batch_records=settings.storage_ingest_batch_records,
+        max_pending=settings.storage_max_ingest_jobs,
+    )
+
+
 def build_app(settings: StorageSettings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -332,6 +358,7 @@ def build_app(settings: StorageSettings) -> FastAPI:
             async with _knowledge_running(app, settings):
                 yield
         finally:
+            await anyio.to_thread.run_sync(app.state.ingest_jobs.close)
             await anyio.to_thread.run_sync(_close_records, app)
             await anyio.to_thread.run_sync(node.close)
 
@@ -343,18 +370,20 @@ def build_app(settings: StorageSettings) -> FastAPI:
     app = create_app(
         "storage",
         settings,
-        routers=[_proof_router(), records_api.router, _knowledge_router(settings)],
+        routers=[_proof_router(), records_api.router, bags_api.router, _knowledge_router(settings)],
         readiness_checks=[knowledge_loaded],
         unsigned_paths=[SPARQL_PATH],
         lifespan=lifespan,
         body_limits={
             "/v1/templates": records_api.TEMPLATE_BODY_LIMIT,
             "/v1/records": settings.storage_max_batch_bytes,
+            "/v1/ingest": settings.storage_max_bag_bytes,
         },
         errors=ERRORS,
         description=services.storage.__doc__ or "",
     )
     app.state.node = _open_node(settings)
     _open_records(app, settings, app.state.node)
+    _open_ingest(app, settings, app.state.node)
     app.state.knowledge = _open_knowledge(settings)
     return app

@@ -15,6 +15,7 @@ from services.storage.anchoring import (
     RecordNotFound,
     TemplateNotFound,
 )
+from services.storage.bags import BagError
 from services.storage.catalog import (
     CatalogFull,
     LifecycleConflict,
@@ -24,6 +25,7 @@ from services.storage.catalog import (
     TemplateNotApproved,
 )
 from services.storage.catalog import TemplateNotFound as CatalogTemplateNotFound
+from services.storage.ingest import BagNotFetchable, JobNotFound, JobNotResumable, TooManyJobs
 from services.storage.keywords import TooManyKeywordHits
 from services.storage.knowledge import (
     CasUnavailable,
@@ -34,6 +36,7 @@ from services.storage.knowledge import (
     InvalidTypeParameter,
     NotADescription,
 )
+from services.storage.matcher import BindingRefused
 from services.storage.queries import QueryInvalid
 from services.storage.recordlog import InvalidTemplateId
 from services.storage.recordstore import (
@@ -132,6 +135,22 @@ ERRORS = ErrorMap(
         TooManyKeywordHits: ErrorRule(
             400, "query_too_broad", lambda exc: {"parameter": "keywords", "limit": exc.limit}
         ),
+        # ----- bag ingestion and export (engineer bags) -----
+        BagError: ErrorRule(
+            400, "invalid_bag", lambda exc: {"file": exc.path.name, "offset": exc.offset}
+        ),
+        BagNotFetchable: ErrorRule(400, "invalid_bag", lambda exc: {"cid": exc.cid}),
+        JobNotFound: ErrorRule(404, "job_not_found", lambda exc: {"job": exc.job_id[:64]}),
+        JobNotResumable: ErrorRule(
+            409, "job_not_resumable", lambda exc: {"job": exc.job_id, "status": exc.status}
+        ),
+        TooManyJobs: ErrorRule(
+            429,
+            "too_many_jobs",
+            lambda exc: {"limit": exc.limit, "retry_after": 5},
+            lambda _: {"Retry-After": "5"},
+        ),
+        BindingRefused: ErrorRule(400, "invalid_binding", lambda exc: {"field": exc.field}),
         # ----- knowledge base (engineer semantic) -----
         DescriptionInvalid: ErrorRule(
             400,

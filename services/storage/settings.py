@@ -89,3 +89,14 @@ class StorageSettings(ServiceSettings):
     storage_max_templates: int = Field(
         default=100_000, gt=0, description="template versions the catalog holds at most"
     )
+
+    # ----- bag ingestion and export (engineer bags) -----
+    storage_max_bag_bytes: int = Field(
+        default=16 * 1024**3, gt=0, description="bytes of one bag, uploaded or fetched from cas"
+    )
+    storage_ingest_batch_records: int = Field(
+        default=5000, ge=1, le=100_000, description="records per append while committing a bag"
+    )
+    storage_max_ingest_jobs: int = Field(
+        default=16, ge=1, description="ingest jobs queued or running at once"
+    )

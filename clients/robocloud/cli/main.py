@@ -19,7 +19,7 @@ import typer
 from typer.core import TyperGroup
 
 import robocloud
-from robocloud.cli import admin, cas, keys, knowledge, ledger, storage, system, verify
+from robocloud.cli import admin, cas, ingest, keys, knowledge, ledger, storage, system, verify
 from robocloud.cli.exits import ExitCode, exit_codes_help, failure_of, report
 from robocloud.errors import RobocloudError
 
@@ -87,5 +87,5 @@ def root(
     """robocloud: share data, knowledge and computation between robots that need not trust."""
 
 
-for area in (keys, system, cas, ledger, admin, storage, verify, knowledge):
+for area in (keys, system, cas, ledger, admin, storage, ingest, verify, knowledge):
     area.register(app)

@@ -17,7 +17,7 @@ from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService, Role
 from robocloud.proofs import ProofVerificationError, verify_record_proof
 from tests.conftest import ServiceFactory
-from tests.integration.services.storage.conftest import counter_record, write_counter_records
+from tests.integration.services.storage.counter import counter_record, write_counter_records
 from tests.procs import ServiceProcess, free_port
 
 

@@ -17,7 +17,7 @@ from robocloud.proofs import verify_record_proof
 from tests.conftest import ServiceFactory
 from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
 from tests.integration.services.ledger.conftest import LEDGER_ENV, PASSPHRASE
-from tests.integration.services.storage.conftest import write_counter_records
+from tests.integration.services.storage.counter import write_counter_records
 from tests.integration.services.storage.test_anchoring import node_state, wait_for
 from tests.procs import free_port
 

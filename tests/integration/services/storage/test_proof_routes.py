@@ -12,7 +12,7 @@ import pytest
 
 from robocloud import jcs, merkle
 from robocloud.identity import Identity
-from tests.integration.services.storage.conftest import counter_record, write_counter_records
+from tests.integration.services.storage.counter import counter_record, write_counter_records
 from tests.procs import ServiceProcess
 
 WRITER = Identity.generate()

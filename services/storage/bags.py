@@ -1,0 +1,567 @@
+"""Reading ROS bags: ROS 1 ``.bag``, ROS 2 directories (sqlite3 or MCAP, split or not) and bare
+``.mcap`` / ``.db3`` files, through rosbags.
+
+Why not rosbags' ``AnyReader`` as it is: it parses every connection's definition into one
+typestore while opening, so a single unparsable definition (the service-event schemas of
+ROS 2 Iron bags) makes the whole file unreadable; it matches a ROS 2 directory's metadata to
+its storage files by QoS, so bags whose ``metadata.yaml`` spells QoS differently yield nothing;
+and it does not check MCAP CRCs, so a corrupt compressed chunk silently loses messages. Here
+each distinct definition gets its own typestore (a bad one disables only its topics), storage
+connections are matched on topic and type, chunk CRCs are checked, and every failure names the
+file and, where the format has one, the byte offset.
+
+Types come from the definitions the bag carries (ROS 1 always, ROS 2 since Iron or when written
+by rosbags). A connection without one falls back to rosbags' bundled typestore of the bag's ROS
+generation; a type found in neither cannot be decoded and is reported as such.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import Counter
+from collections.abc import Callable, Collection, Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any, Literal, Self
+
+from mcap.records import Chunk, Message, MessageIndex, Statistics
+from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
+from rosbags.interfaces import Connection, MessageDefinitionFormat, Nodetype
+from rosbags.rosbag1 import Reader as Rosbag1Reader
+from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
+from rosbags.rosbag2 import Reader as Rosbag2Reader
+from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError
+from rosbags.typesys import Stores, TypesysError, get_types_from_idl, get_types_from_msg
+from rosbags.typesys import get_typestore as bundled_typestore
+from rosbags.typesys.store import Typestore
+
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+IDL_SEPARATOR = "=" * 80 + "\n"
+BYTE_TYPES = frozenset({"uint8", "byte", "char"})
+
+
+class BagFormat(Enum):
+    ROS1 = "ros1"
+    ROS2_DIRECTORY = "ros2"
+    MCAP = "mcap"
+    SQLITE3 = "db3"
+
+
+class BagError(Exception):
+    """A bag cannot be read; ``path`` names the file, ``offset`` the byte where known."""
+
+    def __init__(self, message: str, *, path: Path, offset: int | None = None) -> None:
+        where = f"{path}" if offset is None else f"{path} at byte {offset}"
+        super().__init__(f"{where}: {message}")
+        self.reason = message
+        self.path = path
+        self.offset = offset
+
+
+class BagUnreadable(BagError):
+    """Not a bag this reader knows: unknown magic, missing metadata, unsupported storage."""
+
+
+class BagCorrupt(BagError):
+    """A bag that is truncated or whose bytes are damaged."""
+
+
+class MissingDefinition(Exception):
+    """A message type neither the bag nor rosbags' bundled typestore defines (or the bag's
+    definition does not parse)."""
+
+    def __init__(self, topic: str, msgtype: str, reason: str) -> None:
+        super().__init__(f"topic {topic!r}: no usable definition of {msgtype!r}: {reason}")
+        self.topic = topic
+        self.msgtype = msgtype
+        self.reason = reason
+
+
+class MessageUndecodable(Exception):
+    """One message's bytes do not decode with its type's definition."""
+
+    def __init__(self, topic: str, msgtype: str, t_ns: int, reason: str) -> None:
+        super().__init__(f"topic {topic!r} ({msgtype}) at t={t_ns}: cannot decode: {reason}")
+        self.topic = topic
+        self.msgtype = msgtype
+        self.t_ns = t_ns
+        self.reason = reason
+
+
+PlainConverter = Callable[[Any], Any]
+
+
+@dataclass
+class BagConnection:
+    """One (topic, message type) pair of a bag, over all its storage files and publishers."""
+
+    topic: str
+    msgtype: str
+    definition: str
+    definition_format: Literal["msg", "idl", "none"]
+    count: int
+    definition_source: str | None = None
+    """``bag``, or the bundled typestore used (``ros1_noetic``, ``ros2_humble``); None if none."""
+    problem: str | None = None
+    """Why this connection's messages cannot be decoded; None when they can."""
+    typestore: Typestore | None = field(default=None, repr=False, compare=False)
+    to_plain: PlainConverter | None = field(default=None, repr=False, compare=False)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "topic": self.topic,
+            "msgtype": self.msgtype,
+            "count": self.count,
+            "definition": self.definition,
+            "definition_format": self.definition_format,
+            "definition_source": self.definition_source,
+            "problem": self.problem,
+        }
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    topic: str
+    msgtype: str
+    t_ns: int
+    data: dict[str, Any]
+
+
+RawMessage = tuple[BagConnection, int, bytes]
+
+
+def detect_format(path: Path) -> BagFormat:
+    """The bag format at ``path``, from its magic bytes (a directory is a ROS 2 bag)."""
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            raise BagUnreadable("a ROS 2 bag directory needs a metadata.yaml", path=path)
+        return BagFormat.ROS2_DIRECTORY
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(16)
+    except OSError as exc:
+        raise BagUnreadable(f"cannot read: {exc.strerror}", path=path) from None
+    if head.startswith(ROS1_MAGIC):
+        return BagFormat.ROS1
+    if head.startswith(MCAP_MAGIC):
+        return BagFormat.MCAP
+    if head.startswith(SQLITE_MAGIC):
+        return BagFormat.SQLITE3
+    if not head:
+        raise BagCorrupt("the file is empty", path=path, offset=0)
+    raise BagUnreadable("not a ROS 1 bag, an MCAP file or a rosbag2 sqlite3 file", path=path)
+
+
+SUFFIXES = {BagFormat.ROS1: ".bag", BagFormat.MCAP: ".mcap", BagFormat.SQLITE3: ".db3"}
+
+
+def check_mcap(path: Path) -> None:
+    """Walk an MCAP file's records, checking CRCs and that each chunk holds as many messages as
+    its message indexes list.
+
+    rosbags skips over damaged bytes inside a chunk, losing its messages without a word (and
+    rosbags' own writer stores neither CRCs nor message indexes, so the summary's message count
+    is the last check left); this pass turns any damage it can see into :class:`BagCorrupt`
+    with the offset of the chunk or record where it was found, when there is one. It costs one
+    decompression of every chunk.
+    """
+    with path.open("rb") as stream:
+        reader = StreamReader(stream, validate_crcs=True, emit_chunks=True)
+        offset = 0
+        chunk: tuple[int, int] | None = None
+        indexed = in_chunks = 0
+        try:
+            for record in reader.records:
+                if isinstance(record, Statistics) and record.message_count != in_chunks:
+                    raise BagCorrupt(
+                        f"the chunks hold {in_chunks} messages but the summary counts "
+                        f"{record.message_count}",
+                        path=path,
+                    )
+                if isinstance(record, MessageIndex):
+                    indexed += len(record.records)
+                else:
+                    _check_chunk_count(chunk, indexed, path)
+                    chunk, indexed = None, 0
+                if isinstance(record, Chunk):
+                    found = breakup_chunk(record, validate_crc=True)
+                    chunk = (offset, sum(isinstance(each, Message) for each in found))
+                    in_chunks += chunk[1]
+                offset = stream.tell()
+            _check_chunk_count(chunk, indexed, path)
+        except BagCorrupt:
+            raise
+        except CRCValidationError as exc:
+            raise BagCorrupt(str(exc), path=path, offset=offset) from None
+        except Exception as exc:  # the mcap library and zstd raise anything on damaged bytes
+            raise BagCorrupt(
+                f"damaged MCAP record: {_reason(exc)}", path=path, offset=offset
+            ) from None
+
+
+def _check_chunk_count(chunk: tuple[int, int] | None, indexed: int, path: Path) -> None:
+    if chunk is not None and indexed and chunk[1] != indexed:
+        raise BagCorrupt(
+            f"chunk holds {chunk[1]} messages but its index lists {indexed}",
+            path=path,
+            offset=chunk[0],
+        )
+
+
+class Bag:
+    """An open bag: its connections and a time-ordered stream of its messages.
+
+    Memory stays bounded by what the storage formats index (one small tuple per ROS 1 message,
+    one chunk at a time), never by the messages themselves.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.format = detect_format(path)
+        self._stack = ExitStack()
+        self._is_ros1 = self.format is BagFormat.ROS1
+        self._sources: list[tuple[Any, dict[int, BagConnection]]] = []
+        self._decompress: Callable[[bytes], bytes] | None = None
+        self.connections: list[BagConnection] = []
+        self._by_key: dict[tuple[str, str], BagConnection] = {}
+        self._digests: dict[tuple[str, str], str] = {}
+
+    @classmethod
+    def open(cls, path: Path) -> Self:
+        bag = cls(path)
+        try:
+            bag._open()
+        except BaseException:
+            bag.close()
+            raise
+        return bag
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._stack.close()
+
+    @property
+    def message_count(self) -> int:
+        return sum(connection.count for connection in self.connections)
+
+    def _open(self) -> None:
+        if self.format is BagFormat.ROS1:
+            self._open_ros1()
+        else:
+            self._open_ros2()
+        fallback = self._fallback_store()
+        for connection in self.connections:
+            digest = self._digests[(connection.topic, connection.msgtype)]
+            _prepare(connection, digest, ros1=self._is_ros1, fallback=fallback)
+
+    def _fallback_store(self) -> tuple[str, Typestore]:
+        store = Stores.ROS1_NOETIC if self._is_ros1 else Stores.ROS2_HUMBLE
+        return store.value, bundled_typestore(store)
+
+    def _open_ros1(self) -> None:
+        reader = Rosbag1Reader(self.path)
+        try:
+            reader.open()
+        except Rosbag1ReaderError as exc:
+            raise BagCorrupt(_reason(exc), path=self.path) from None
+        self._stack.callback(reader.close)
+        self._sources = [(reader, self._group(reader.connections))]
+
+    def _open_ros2(self) -> None:
+        if self.format is BagFormat.MCAP:
+            check_mcap(self.path)
+        elif self.format is BagFormat.ROS2_DIRECTORY:
+            for storage_file in sorted(self.path.glob("*.mcap")):
+                check_mcap(storage_file)
+        reader = Rosbag2Reader(self._rosbags_path())
+        try:
+            reader.open()
+        except Rosbag2ReaderError as exc:
+            raise _classify_ros2(exc, self.path) from None
+        except (TypesysError, KeyError, ValueError, OSError) as exc:
+            raise BagCorrupt(_reason(exc), path=self.path) from None
+        self._stack.callback(reader.close)
+        storage = reader.storage
+        storages = getattr(storage, "storages", None)
+        if storages is None:
+            storages = [storage]
+        elif storage.metadata.compression_mode == "message":
+            from backports import zstd
+
+            self._decompress = zstd.decompress
+        self._sources = [(each, self._group(each.connections)) for each in storages]
+
+    def _rosbags_path(self) -> Path:
+        """rosbags picks its storage plugin by suffix; a bare file must carry the right one."""
+        suffix = SUFFIXES.get(self.format)
+        if suffix is not None and self.path.suffix != suffix:
+            raise BagUnreadable(
+                f"a {self.format.value} file must be named *{suffix} to be read", path=self.path
+            )
+        return self.path
+
+    def _group(self, storage_connections: list[Connection]) -> dict[int, BagConnection]:
+        """Map a storage's connection ids onto one :class:`BagConnection` per topic and type."""
+        by_id: dict[int, BagConnection] = {}
+        for raw in storage_connections:
+            key = (raw.topic, raw.msgtype)
+            connection = self._by_key.get(key)
+            if connection is None:
+                connection = BagConnection(
+                    topic=raw.topic,
+                    msgtype=raw.msgtype,
+                    definition=raw.msgdef.data,
+                    definition_format=_FORMATS[raw.msgdef.format],
+                    count=0,
+                )
+                self._by_key[key] = connection
+                self._digests[key] = raw.digest
+                self.connections.append(connection)
+            elif connection.definition_format == "none" and raw.msgdef.data:
+                connection.definition = raw.msgdef.data
+                connection.definition_format = _FORMATS[raw.msgdef.format]
+            connection.count += raw.msgcount
+            by_id[raw.id] = connection
+        return by_id
+
+    def raw_messages(self, topics: Collection[str] | None = None) -> Iterator[RawMessage]:
+        """Messages as stored, in time order over every storage file."""
+        streams = []
+        for source, by_id in self._sources:
+            wanted = [
+                raw
+                for raw in source.connections
+                if raw.id in by_id and (topics is None or raw.topic in topics)
+            ]
+            if wanted:
+                streams.append(self._stream(source, wanted, by_id))
+        yield from heapq.merge(*streams, key=lambda message: message[1])
+
+    def _stream(
+        self, source: Any, wanted: list[Connection], by_id: dict[int, BagConnection]
+    ) -> Iterator[RawMessage]:
+        decompress = self._decompress
+        path = Path(getattr(source, "path", self.path))
+        read: Counter[int] = Counter()
+        try:
+            for raw, t_ns, data in source.messages(wanted):
+                read[raw.id] += 1
+                payload = decompress(data) if decompress is not None else data
+                yield by_id[raw.id], t_ns, payload
+        except (Rosbag1ReaderError, Rosbag2ReaderError, OSError, RuntimeError, ValueError) as exc:
+            offset = _bad_ros1_chunk(source) if self._is_ros1 else None
+            raise BagCorrupt(_reason(exc), path=path, offset=offset) from None
+        except (AssertionError, KeyError, EOFError) as exc:
+            raise BagCorrupt(f"damaged record ({_reason(exc)})", path=path) from None
+        for raw in wanted:
+            if read[raw.id] != raw.msgcount:
+                raise BagCorrupt(
+                    f"topic {raw.topic!r}: read {read[raw.id]} messages where the bag's index "
+                    f"counts {raw.msgcount}",
+                    path=path,
+                )
+
+    def decode(self, connection: BagConnection, t_ns: int, raw: bytes) -> dict[str, Any]:
+        """One message as plain Python: dicts, lists, str, int, float; ``bytes`` for uint8[]."""
+        store, to_plain = connection.typestore, connection.to_plain
+        if store is None or to_plain is None:
+            raise MissingDefinition(connection.topic, connection.msgtype, connection.problem or "")
+        try:
+            if self._is_ros1:
+                message = store.deserialize_ros1(raw, connection.msgtype)
+            else:
+                message = store.deserialize_cdr(raw, connection.msgtype)
+        except Exception as exc:  # rosbags' serde raises anything, from struct to numpy
+            raise MessageUndecodable(
+                connection.topic, connection.msgtype, t_ns, _reason(exc)
+            ) from None
+        plain: dict[str, Any] = to_plain(message)
+        return plain
+
+    def messages(self, topics: Collection[str] | None = None) -> Iterator[BagMessage]:
+        """Decoded messages in time order; raises on the first one that cannot be decoded."""
+        for connection in self.connections:
+            wanted = topics is None or connection.topic in topics
+            if connection.problem is not None and wanted and connection.count:
+                raise MissingDefinition(connection.topic, connection.msgtype, connection.problem)
+        for connection, t_ns, raw in self.raw_messages(topics):
+            yield BagMessage(
+                connection.topic, connection.msgtype, t_ns, self.decode(connection, t_ns, raw)
+            )
+
+
+_FORMATS: dict[MessageDefinitionFormat, Literal["msg", "idl", "none"]] = {
+    MessageDefinitionFormat.MSG: "msg",
+    MessageDefinitionFormat.IDL: "idl",
+    MessageDefinitionFormat.NONE: "none",
+}
+
+
+def _reason(exc: BaseException, limit: int = 300) -> str:
+    """An exception's text on one line and bounded: rosbags quotes whole definitions."""
+    text = " ".join(str(exc).split())
+    if len(text) > limit:
+        text = text[: limit - 3] + "..."
+    return text or type(exc).__name__
+
+
+def _classify_ros2(exc: Rosbag2ReaderError, path: Path) -> BagError:
+    text = _reason(exc)
+    unsupported = ("not supported", "Unrecognized storage", "Profile is not")
+    if any(marker in text for marker in unsupported):
+        return BagUnreadable(text, path=path)
+    return BagCorrupt(text, path=path)
+
+
+def _bad_ros1_chunk(reader: Any) -> int | None:
+    """The offset of the first ROS 1 chunk that does not decompress (the error path only)."""
+    chunks = getattr(reader, "chunks", {})
+    bio = getattr(reader, "bio", None)
+    if bio is None:
+        return None
+    for position in sorted(chunks):
+        chunk = chunks[position]
+        try:
+            bio.seek(chunk.datapos)
+            chunk.decompressor(bio.read(chunk.datasize))
+        except Exception:  # any failure marks this chunk as the damaged one
+            return int(position)
+    return None
+
+
+def parse_definition(msgtype: str, definition: str, fmt: str) -> dict[str, Any]:
+    """rosbags' field definitions for ``msgtype`` and its dependencies, from bag text."""
+    if fmt == "msg":
+        return dict(get_types_from_msg(definition, msgtype))
+    types: dict[str, Any] = {}
+    if definition.startswith(f"{IDL_SEPARATOR}IDL: "):
+        for part in definition.split(IDL_SEPARATOR)[1:]:
+            _, idl = part.split("\n", 1)
+            types.update(get_types_from_idl(idl))
+    else:
+        types.update(get_types_from_idl(definition))
+    return types
+
+
+_STORES: dict[tuple[str, str, str], Typestore | str] = {}
+
+
+def _typestore_from_bag(connection: BagConnection, digest: str, *, ros1: bool) -> Typestore | str:
+    """A typestore holding only this definition (cached per text); an error text if it fails."""
+    key = (connection.msgtype, connection.definition_format, connection.definition)
+    cached = _STORES.get(key)
+    if cached is not None:
+        return cached
+    result: Typestore | str
+    try:
+        types = parse_definition(
+            connection.msgtype, connection.definition, connection.definition_format
+        )
+        store = bundled_typestore(Stores.EMPTY)
+        store.register(types)
+        store.get_msgdef(connection.msgtype)
+        if ros1 and digest and store.generate_msgdef(connection.msgtype)[1] != digest:
+            result = f"the definition does not match its md5sum {digest}"
+        else:
+            result = store
+    except (TypesysError, KeyError, ValueError, IndexError) as exc:
+        result = f"the bag's definition does not parse: {_reason(exc)}"
+    if len(_STORES) > 256:
+        _STORES.clear()
+    _STORES[key] = result
+    return result
+
+
+def _prepare(
+    connection: BagConnection, digest: str, *, ros1: bool, fallback: tuple[str, Typestore]
+) -> None:
+    if connection.definition_format != "none" and connection.definition.strip():
+        found = _typestore_from_bag(connection, digest, ros1=ros1)
+        if isinstance(found, str):
+            connection.problem = found
+            return
+        connection.typestore, connection.definition_source = found, "bag"
+    else:
+        name, store = fallback
+        connection.definition_format = "none"
+        if connection.msgtype not in store.fielddefs:
+            connection.problem = (
+                f"the bag carries no definition of {connection.msgtype} and rosbags' "
+                f"{name} typestore has none either"
+            )
+            return
+        connection.typestore, connection.definition_source = store, name
+        connection.definition = store.generate_msgdef(
+            connection.msgtype, ros_version=1 if ros1 else 2
+        )[0]
+        connection.definition_format = "msg"
+    connection.to_plain = plain_converter(connection.typestore, connection.msgtype)
+
+
+def plain_converter(store: Typestore, msgtype: str) -> PlainConverter:
+    """A function turning a rosbags message of ``msgtype`` into plain Python values.
+
+    Compiled once per type from the typestore's field definitions, so the per-message work is
+    attribute reads and list building, no introspection.
+    """
+    compiled: dict[str, PlainConverter] = {}
+
+    def for_type(name: str) -> PlainConverter:
+        if name in compiled:
+            return compiled[name]
+        _, fields = store.fielddefs[name]
+        readers = [(field_name, for_field(desc)) for field_name, desc in fields]
+
+        def convert(message: Any) -> dict[str, Any]:
+            return {key: read(getattr(message, key)) for key, read in readers}
+
+        compiled[name] = convert
+        return convert
+
+    def for_field(desc: Any) -> PlainConverter:
+        nodetype, detail = desc
+        if nodetype == Nodetype.BASE:
+            return _scalar
+        if nodetype == Nodetype.NAME:
+            inner = for_type(detail)
+            return lambda value: inner(value)
+        (element_type, element_detail), _size = detail
+        if element_type == Nodetype.BASE:
+            base = element_detail[0]
+            if base in BYTE_TYPES:
+                return _bytes
+            if base in ("string", "wstring"):
+                return list
+            return _numbers
+        element = for_type(element_detail)
+        return lambda values: [element(value) for value in values]
+
+    return for_type(msgtype)
+
+
+def _scalar(value: Any) -> Any:
+    if isinstance(value, int | float | str | bool):
+        return value
+    return value.item()
+
+
+def _bytes(value: Any) -> bytes:
+    if isinstance(value, bytes):
+        return value
+    return bytes(value.tobytes() if hasattr(value, "tobytes") else bytearray(value))
+
+
+def _numbers(value: Any) -> list[Any]:
+    if hasattr(value, "tolist"):
+        result: list[Any] = value.tolist()
+        return result
+    return list(value)

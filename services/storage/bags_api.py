@@ -1,0 +1,195 @@
+"""Routes of bag ingestion, jobs, bindings and exports: parse, call the domain, render."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+import tempfile
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import anyio
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import JSONResponse, StreamingResponse
+from pydantic import BaseModel, Field
+
+from robocloud.cid import parse_cid
+from services.common.bodies import json_body, media_type
+from services.common.errors import PayloadTooLarge, UnsupportedMediaType
+from services.storage.bags import SUFFIXES, detect_format
+from services.storage.export import jsonl_stream, mcap_stream
+from services.storage.ingest import IngestJobs, fetch_from_cas
+from services.storage.matcher import Bindings
+from services.storage.queries import QueryEngine, RecordQuery
+from services.storage.records_api import _authorship, _robot
+
+router = APIRouter(tags=["ingest"])
+EXPORT_PAGE = 1000
+
+
+class IngestFromCas(BaseModel):
+    cid: str = Field(max_length=256, description="a bag file or a ROS 2 bag directory in cas")
+
+
+class Binding(BaseModel):
+    template: str = Field(max_length=80)
+    topic: str | None = Field(default=None, max_length=300)
+    msgtype: str | None = Field(default=None, max_length=300)
+
+
+def _jobs(request: Request) -> IngestJobs:
+    jobs: IngestJobs = request.app.state.ingest_jobs
+    return jobs
+
+
+async def _spool_upload(request: Request, directory: Path, limit: int) -> tuple[Path, str]:
+    """The streamed body in a file named by its format (rosbags needs the suffix)."""
+    digest = hashlib.sha256()
+    received = 0
+    target = Path(tempfile.mkdtemp(dir=directory, prefix=".bag-"))
+    path = target / "upload"
+    try:
+        with path.open("wb") as handle:
+            async for chunk in request.stream():
+                received += len(chunk)
+                if received > limit:
+                    raise PayloadTooLarge(
+                        f"a bag upload holds at most {limit} bytes",
+                        details={"limit": limit},
+                    )
+                digest.update(chunk)
+                handle.write(chunk)
+        named = path.with_name(f"bag{SUFFIXES.get(detect_format(path), '')}")
+        path.rename(named)
+        return named, f"upload:{digest.hexdigest()}"
+    except BaseException:
+        shutil.rmtree(target, ignore_errors=True)
+        raise
+
+
+@router.post("/v1/ingest", status_code=202)
+async def ingest(request: Request) -> JSONResponse:
+    """Ingest a bag: a JSON body ``{"cid"}`` names one in cas (a file, or a directory for a
+    split ROS 2 bag); any other body is the bag file itself, streamed. Answers the job."""
+    author = _authorship(request)
+    settings = request.app.state.settings
+    jobs = _jobs(request)
+    incoming = jobs.root / "incoming"
+    incoming.mkdir(exist_ok=True)
+    if media_type(request) == "application/json":
+        body = await json_body(IngestFromCas)(request)
+        cid = parse_cid(body.cid, "cid")
+        cas = request.app.state.ingest_cas()
+        bag = await anyio.to_thread.run_sync(
+            lambda: fetch_from_cas(cas, cid, incoming, settings.storage_max_bag_bytes)
+        )
+        source = f"cid:{cid}"
+    elif media_type(request) in ("application/octet-stream", ""):
+        bag, source = await _spool_upload(request, incoming, settings.storage_max_bag_bytes)
+    else:
+        raise UnsupportedMediaType(
+            "send application/json with a cid, or the bag as application/octet-stream",
+            details={"header": "Content-Type", "received": request.headers.get("content-type")},
+        )
+    job = await anyio.to_thread.run_sync(lambda: jobs.submit(bag, source, author))
+    return JSONResponse(job.to_json(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
+
+
+@router.get("/v1/jobs/{job_id}")
+async def get_job(request: Request, job_id: str) -> dict[str, Any]:
+    """An ingest job: status, messages done of total, topics and what became of them."""
+    return _jobs(request).get(job_id).to_json()
+
+
+@router.post("/v1/jobs/{job_id}/resume", status_code=202)
+async def resume_job(request: Request, job_id: str) -> dict[str, Any]:
+    _authorship(request)
+    job = await anyio.to_thread.run_sync(lambda: _jobs(request).resume(job_id))
+    return job.to_json()
+
+
+@router.get("/v1/bindings")
+async def list_bindings(request: Request) -> dict[str, Any]:
+    bindings: Bindings = request.app.state.bindings
+    return bindings.to_json()
+
+
+@router.post("/v1/bindings")
+async def bind(
+    request: Request,
+    body: Binding = json_body(Binding),  # type: ignore[assignment]
+) -> dict[str, Any]:
+    """Bind a topic or a message type to a template id (a topic binding wins)."""
+    _authorship(request)
+    bindings: Bindings = request.app.state.bindings
+    await anyio.to_thread.run_sync(
+        lambda: bindings.bind(template_id=body.template, topic=body.topic, msgtype=body.msgtype)
+    )
+    return bindings.to_json()
+
+
+def _pages(engine: QueryEngine, query: RecordQuery, first: Any, limit: int) -> Iterator[Any]:
+    page, sent = first, 0
+    while True:
+        for stored in page.records:
+            if sent == limit:
+                return
+            yield stored.record
+            sent += 1
+        if page.next is None:
+            return
+        query = RecordQuery(**{**query.__dict__, "cursor": page.next})
+        page = engine.records(query)
+
+
+async def _in_thread(chunks: Iterator[bytes]) -> AsyncIterator[bytes]:
+    """Pull a blocking generator off the event loop, one chunk at a time."""
+    done = object()
+    while True:
+        chunk = await anyio.to_thread.run_sync(next, chunks, done)
+        if chunk is done:
+            return
+        assert isinstance(chunk, bytes)
+        yield chunk
+
+
+@router.get("/v1/export")
+async def export(
+    request: Request,
+    format: Literal["mcap", "jsonl"] = "jsonl",
+    template: str | None = None,
+    topic: Annotated[str | None, Query(max_length=256)] = None,
+    robot: str | None = None,
+    start: Annotated[int | None, Query(ge=0)] = None,
+    end: Annotated[int | None, Query(ge=0)] = None,
+    where: Annotated[list[str] | None, Query()] = None,
+    keywords: Annotated[str | None, Query(max_length=1024)] = None,
+    limit: Annotated[int, Query(ge=1, le=10_000_000)] = 1_000_000,
+) -> StreamingResponse:
+    """A query's records (filters as ``GET /v1/records``) as MCAP or JSON lines, streamed."""
+    query = RecordQuery(
+        template=template,
+        topic=topic,
+        robot=_robot(robot),
+        start=start,
+        end=end,
+        where=tuple(where or ()),
+        keywords=keywords,
+        limit=EXPORT_PAGE,
+    )
+    engine: QueryEngine = request.app.state.queries
+    first = await anyio.to_thread.run_sync(engine.records, query)
+    records = _pages(engine, query, first, limit)
+    if format == "mcap":
+        catalog = request.app.state.catalog
+        chunks = mcap_stream(records, lambda template_id: catalog.get(template_id).template)
+        media, name = "application/x-mcap", "export.mcap"
+    else:
+        chunks = jsonl_stream(records)
+        media, name = "application/x-ndjson", "export.jsonl"
+    return StreamingResponse(
+        _in_thread(chunks),
+        media_type=media,
+        headers={"Content-Disposition": f'attachment; filename="{name}"'},
+    )

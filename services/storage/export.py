@@ -1,0 +1,176 @@
+"""Records out as files others read: JSON lines, and MCAP that the mcap library (and Foxglove)
+open directly.
+
+Both are streams of byte chunks produced as records arrive, so an export of a million records
+holds one MCAP chunk (``chunk_size``) in memory, never the whole answer.
+
+MCAP layout: one schema per template (encoding ``jsonschema``, name the template id, the JSON
+Schema of a whole record), one channel per (topic, template) with message encoding ``json``,
+each message the record's JSON with ``log_time`` and ``publish_time`` = the record's ``t``.
+The header's profile is empty: these are not ROS 2 CDR messages, so rosbags (which reads only
+the ``ros2`` profile) cannot decode them; the mcap library can, and that is what tests use.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+from mcap.writer import CompressionType, Writer
+
+from robocloud.templates import ArrayOf, Container, FieldType, Scalar, Template
+
+MCAP_LIBRARY = "robocloud"
+JSON_SCHEMA = "https://json-schema.org/draft/2020-12/schema"
+
+
+def record_json(record: dict[str, Any]) -> bytes:
+    """A record's JSON, compact and with sorted keys (not JCS: ``t`` exceeds 2**53)."""
+    return json.dumps(
+        record, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
+    ).encode()
+
+
+def jsonl_stream(
+    records: Iterable[dict[str, Any]], *, batch_bytes: int = 1 << 16
+) -> Iterator[bytes]:
+    """One record per line, yielded in pieces of about ``batch_bytes``."""
+    pending: list[bytes] = []
+    size = 0
+    for record in records:
+        line = record_json(record) + b"\n"
+        pending.append(line)
+        size += len(line)
+        if size >= batch_bytes:
+            yield b"".join(pending)
+            pending, size = [], 0
+    if pending:
+        yield b"".join(pending)
+
+
+def field_schema(kind: FieldType) -> dict[str, Any]:
+    """The JSON Schema of one template type (as ``robocloud.templates`` validates it)."""
+    if isinstance(kind, Scalar):
+        return _SCALARS[kind.kind]
+    if isinstance(kind, ArrayOf):
+        items = {"type": "array", "items": field_schema(kind.item)}
+        offloaded = {"type": "string", "description": "CID of the array stored in cas"}
+        return {"anyOf": [items, offloaded]}
+    return _object(kind)
+
+
+def _object(kind: Container | Template) -> dict[str, Any]:
+    return {
+        "type": "object",
+        "properties": {name: field_schema(inner) for name, inner in kind.fields.items()},
+        "required": list(kind.fields),
+        "additionalProperties": False,
+    }
+
+
+def _range(item: str) -> dict[str, Any]:
+    return {"type": "array", "items": {"type": item}, "minItems": 2, "maxItems": 2}
+
+
+_SCALARS: dict[str, dict[str, Any]] = {
+    "string": {"type": "string"},
+    "int": {"type": "integer"},
+    "float": {"type": "number"},
+    "bool": {"type": "boolean"},
+    "image": {"type": "string", "description": "CID of the image in cas"},
+    "file": {"type": "string", "description": "CID of the file in cas"},
+    "range<int>": _range("integer"),
+    "range<float>": _range("number"),
+}
+
+
+def record_schema(template: Template) -> dict[str, Any]:
+    """The JSON Schema of a whole record of ``template``."""
+    return {
+        "$schema": JSON_SCHEMA,
+        "title": template.id,
+        "description": template.description,
+        "type": "object",
+        "properties": {
+            "template": {"const": template.id},
+            "topic": {"type": "string"},
+            "robot": {"type": "string"},
+            "t": {"type": "integer", "minimum": 0},
+            "data": _object(template),
+        },
+        "required": ["template", "topic", "robot", "t", "data"],
+        "additionalProperties": False,
+    }
+
+
+class _Drain:
+    """A write-only stream whose bytes are taken away as they come (the writer needs tell())."""
+
+    def __init__(self) -> None:
+        self._parts: list[bytes] = []
+        self._position = 0
+
+    def write(self, data: bytes) -> int:
+        self._parts.append(bytes(data))
+        self._position += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._position
+
+    def flush(self) -> None:
+        return None
+
+    def take(self) -> bytes:
+        taken = b"".join(self._parts)
+        self._parts.clear()
+        return taken
+
+
+def mcap_stream(
+    records: Iterable[dict[str, Any]],
+    template_of: Callable[[str], Template],
+    *,
+    chunk_size: int = 1 << 20,
+    compression: CompressionType = CompressionType.ZSTD,
+) -> Iterator[bytes]:
+    """An MCAP file of ``records``, yielded as each chunk closes."""
+    drain = _Drain()
+    writer = Writer(drain, chunk_size=chunk_size, compression=compression)  # type: ignore[arg-type]
+    writer.start(profile="", library=MCAP_LIBRARY)
+    schemas: dict[str, int] = {}
+    channels: dict[tuple[str, str], int] = {}
+    sequence = 0
+    for record in records:
+        template_id, topic = record["template"], record["topic"]
+        channel = channels.get((topic, template_id))
+        if channel is None:
+            schema = schemas.get(template_id)
+            if schema is None:
+                document = record_schema(template_of(template_id))
+                schema = writer.register_schema(
+                    name=template_id,
+                    encoding="jsonschema",
+                    data=json.dumps(document, sort_keys=True).encode(),
+                )
+                schemas[template_id] = schema
+            channel = writer.register_channel(
+                topic=topic,
+                message_encoding="json",
+                schema_id=schema,
+                metadata={"template": template_id},
+            )
+            channels[topic, template_id] = channel
+        writer.add_message(
+            channel_id=channel,
+            log_time=record["t"],
+            publish_time=record["t"],
+            data=record_json(record),
+            sequence=sequence,
+        )
+        sequence = (sequence + 1) & 0xFFFFFFFF
+        if drain.tell() and (taken := drain.take()):
+            yield taken
+    writer.finish()  # type: ignore[no-untyped-call]
+    yield drain.take()

@@ -1,0 +1,531 @@
+"""Bag ingestion jobs: a bag in, records out, nothing half-ingested.
+
+The record logs are append-only and anchored, so an ingest cannot be rolled back once it has
+written; it is therefore built so that it either writes nothing or can always be finished:
+
+1. **stage**: the whole bag is read, every bound message converted and validated against its
+   approved template, image/file bytes stored in cas, and the records spooled to one file per
+   template in the job's directory. Any failure here (a truncated bag, an undecodable message,
+   a value a template refuses) fails the job with nothing appended; cas blobs are
+   content-addressed and harmless.
+2. **commit**: each template's spool is appended through ``RecordStore.append`` in batches.
+   Before a batch the job durably records its intent (template, spool offset, count, log size
+   before); after it, the new offset. A job interrupted anywhere (kill -9 included) resumes at
+   the next start: a pending intent is settled by looking in the template's log, past the
+   recorded size, for entries whose ``meta`` is this job's authorship (each signed request's
+   nonce is unique), so no batch is lost or appended twice.
+
+Topics whose type no approved template binds are reported, not ingested.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import queue
+import secrets
+import shutil
+import tempfile
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from robocloud.cas import Cas
+from robocloud.cid import CID, DAG_PB
+from robocloud.directory import check_name
+from robocloud.templates import RecordInvalid, Template, validate_data
+from robocloud.unixfs import DIRECTORY, HAMT_SHARD, decode_node
+from services.common.durable import atomic_write
+from services.storage.bags import (
+    SUFFIXES,
+    Bag,
+    BagCorrupt,
+    BagError,
+    MessageUndecodable,
+    MissingDefinition,
+    detect_format,
+)
+from services.storage.catalog import CatalogError
+from services.storage.matcher import (
+    BindingInvalid,
+    Bindings,
+    BlobSink,
+    ConversionError,
+    Converter,
+    compile_converter,
+    record_topic,
+)
+from services.storage.recordlog import RecordLogs
+from services.storage.recordstore import Authorship, RecordStore
+
+log = logging.getLogger("robocloud.storage.ingest")
+
+Status = Literal["queued", "staging", "committing", "succeeded", "failed"]
+JOB_ID_BYTES = 12
+PROGRESS_EVERY = 1000
+
+
+class JobNotFound(LookupError):
+    def __init__(self, job_id: str) -> None:
+        super().__init__(f"no ingest job {job_id[:64]!r}")
+        self.job_id = job_id
+
+
+class JobNotResumable(Exception):
+    def __init__(self, job_id: str, status: str) -> None:
+        super().__init__(
+            f"ingest job {job_id} is {status}; only a job failed while committing resumes"
+        )
+        self.job_id = job_id
+        self.status = status
+
+
+class TooManyJobs(Exception):
+    def __init__(self, limit: int) -> None:
+        super().__init__(f"{limit} ingest jobs are queued or running; try again later")
+        self.limit = limit
+
+
+@dataclass
+class TopicReport:
+    topic: str
+    msgtype: str
+    messages: int
+    template: str | None = None
+    skipped: str | None = None
+    """Why this topic is not ingested (no approved template bound, no definition)."""
+
+
+@dataclass
+class Job:
+    id: str
+    bag: str
+    """What was ingested: ``cid:<cid>`` or ``upload:<sha256>``."""
+    author: dict[str, Any]
+    status: Status = "queued"
+    messages_total: int = 0
+    messages_done: int = 0
+    records_staged: int = 0
+    records_committed: int = 0
+    topics: list[TopicReport] = field(default_factory=list)
+    error: dict[str, Any] | None = None
+    record_ids: dict[str, list[str]] = field(default_factory=dict)
+    """Per template, the first and last record id committed."""
+    staged: dict[str, int] = field(default_factory=dict)
+    committed: dict[str, int] = field(default_factory=dict)
+    intent: dict[str, Any] | None = None
+    created_ns: int = field(default_factory=time.time_ns)
+    updated_ns: int = field(default_factory=time.time_ns)
+
+    def to_json(self) -> dict[str, Any]:
+        """The public view (``GET /v1/jobs/{id}``)."""
+        return {
+            "id": self.id,
+            "bag": self.bag,
+            "signer": self.author.get("signer"),
+            "status": self.status,
+            "messages": {"done": self.messages_done, "total": self.messages_total},
+            "records": {"staged": self.records_staged, "committed": self.records_committed},
+            "topics": [asdict(topic) for topic in self.topics],
+            "unbound_topics": [t.topic for t in self.topics if t.template is None],
+            "record_ids": self.record_ids,
+            "error": self.error,
+            "created_ns": self.created_ns,
+            "updated_ns": self.updated_ns,
+        }
+
+    @classmethod
+    def from_json(cls, document: dict[str, Any]) -> Job:
+        topics = [TopicReport(**topic) for topic in document.pop("topics")]
+        return cls(topics=topics, **document)
+
+
+class IngestFailed(Exception):
+    def __init__(self, code: str, message: str, details: dict[str, Any]) -> None:
+        super().__init__(message)
+        self.code = code
+        self.details = details
+
+
+class IngestJobs:
+    """Ingest jobs on one worker thread, persisted under ``root`` and resumed at open."""
+
+    def __init__(
+        self,
+        root: Path,
+        store: RecordStore,
+        logs: RecordLogs,
+        bindings: Bindings,
+        blobs: Callable[[], BlobSink],
+        *,
+        batch_records: int = 5000,
+        max_pending: int = 16,
+        keep_finished: int = 1000,
+    ) -> None:
+        self.root = root
+        self.store = store
+        self.logs = logs
+        self.bindings = bindings
+        self.blobs = blobs
+        self.batch_records = batch_records
+        self.max_pending = max_pending
+        self.keep_finished = keep_finished
+        self._jobs: OrderedDict[str, Job] = OrderedDict()
+        self._lock = threading.Lock()
+        self._queue: queue.Queue[str | None] = queue.Queue()
+        root.mkdir(parents=True, exist_ok=True)
+        for path in sorted(root.glob("*/job.json"), key=lambda p: p.stat().st_mtime):
+            job = Job.from_json(json.loads(path.read_text()))
+            self._jobs[job.id] = job
+            if job.status not in ("succeeded", "failed"):
+                self._queue.put(job.id)
+        self._worker = threading.Thread(target=self._work, name="storage-ingest", daemon=True)
+        self._worker.start()
+
+    def close(self) -> None:
+        self._queue.put(None)
+        self._worker.join()
+
+    def submit(self, bag: Path, source: str, author: Authorship) -> Job:
+        """Take ownership of ``bag`` (moved into the job's directory) and queue its ingest."""
+        with self._lock:
+            pending = sum(j.status not in ("succeeded", "failed") for j in self._jobs.values())
+            if pending >= self.max_pending:
+                raise TooManyJobs(self.max_pending)
+            job = Job(id=secrets.token_hex(JOB_ID_BYTES), bag=source, author=asdict(author))
+            directory = self.root / job.id
+            directory.mkdir()
+            shutil.move(str(bag), directory / "bag")
+            self._save(job)
+            self._jobs[job.id] = job
+            self._forget_old()
+        self._queue.put(job.id)
+        return job
+
+    def resume(self, job_id: str) -> Job:
+        """Queue again a job that failed while committing (cas or disk trouble, say)."""
+        with self._lock:
+            job = self._jobs.get(job_id)
+            if job is None:
+                raise JobNotFound(job_id)
+            if job.status != "failed" or not (job.error or {}).get("resumable"):
+                raise JobNotResumable(job_id, job.status)
+            job.status, job.error = "committing", None
+            self._save(job)
+        self._queue.put(job_id)
+        return self.get(job_id)
+
+    def get(self, job_id: str) -> Job:
+        with self._lock:
+            job = self._jobs.get(job_id)
+            if job is None:
+                raise JobNotFound(job_id)
+            return Job.from_json(json.loads(json.dumps(asdict(job))))
+
+    def wait(self, job_id: str, timeout_s: float) -> Job:
+        """The job once finished (for tests and the SDK's blocking call), or as it is then."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            job = self.get(job_id)
+            if job.status in ("succeeded", "failed") or time.monotonic() > deadline:
+                return job
+            time.sleep(0.05)
+
+    def _forget_old(self) -> None:
+        finished = [j.id for j in self._jobs.values() if j.status in ("succeeded", "failed")]
+        for job_id in finished[: max(0, len(finished) - self.keep_finished)]:
+            del self._jobs[job_id]
+            shutil.rmtree(self.root / job_id, ignore_errors=True)
+
+    def _save(self, job: Job) -> None:
+        job.updated_ns = time.time_ns()
+        atomic_write(self.root / job.id / "job.json", json.dumps(asdict(job)).encode())
+
+    def _update(self, job: Job, **changes: Any) -> None:
+        with self._lock:
+            for key, value in changes.items():
+                setattr(job, key, value)
+            self._save(job)
+
+    def _work(self) -> None:
+        while (job_id := self._queue.get()) is not None:
+            job = self._jobs.get(job_id)
+            if job is None:
+                continue
+            try:
+                self._run(job)
+            except IngestFailed as exc:
+                self._fail(job, exc.code, str(exc), exc.details)
+            except Exception as exc:
+                log.exception("ingest job failed", extra={"job": job.id})
+                self._fail(job, "ingest_failed", f"{type(exc).__name__}: {exc}", {})
+
+    def _fail(self, job: Job, code: str, message: str, details: dict[str, Any]) -> None:
+        resumable = job.status == "committing"
+        error = {"code": code, "message": message, "details": details, "resumable": resumable}
+        if not resumable:
+            shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
+        self._update(job, status="failed", error=error)
+
+    def _run(self, job: Job) -> None:
+        if job.status in ("queued", "staging"):
+            self._stage(job)
+        self._commit(job)
+        shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
+        shutil.rmtree(self.root / job.id / "bag", ignore_errors=True)
+        self._update(job, status="succeeded")
+
+    def _plan(self, bag: Bag) -> tuple[list[TopicReport], dict[tuple[str, str], Any]]:
+        reports: list[TopicReport] = []
+        plans: dict[tuple[str, str], tuple[Template, Converter]] = {}
+        for connection in bag.connections:
+            report = TopicReport(connection.topic, connection.msgtype, connection.count)
+            reports.append(report)
+            template_id = self.bindings.resolve(connection.topic, connection.msgtype)
+            if template_id is None:
+                report.skipped = "no template is bound to this topic or message type"
+                continue
+            try:
+                template = self.store.catalog.approved(template_id)
+            except CatalogError as exc:
+                report.skipped = f"bound to {template_id}, which is not usable: {exc}"
+                continue
+            if connection.typestore is None:
+                raise IngestFailed(
+                    "message_type_undefined",
+                    f"topic {connection.topic!r} is bound to {template_id} but its type "
+                    f"cannot be decoded: {connection.problem}",
+                    {"topic": connection.topic, "msgtype": connection.msgtype},
+                )
+            try:
+                converter = compile_converter(template, connection.typestore, connection.msgtype)
+            except BindingInvalid as exc:
+                raise IngestFailed(
+                    "binding_invalid",
+                    str(exc),
+                    {"topic": connection.topic, "template": template_id, "field": exc.path},
+                ) from exc
+            report.template = template_id
+            plans[connection.topic, connection.msgtype] = (template, converter)
+        return reports, plans
+
+    def _stage(self, job: Job) -> None:
+        directory = self.root / job.id
+        staged_dir = directory / "staged"
+        shutil.rmtree(staged_dir, ignore_errors=True)
+        staged_dir.mkdir()
+        robot = job.author["signer"]
+        blobs = self.blobs()
+        try:
+            with Bag.open(directory / "bag") as bag:
+                reports, plans = self._plan(bag)
+                total = sum(r.messages for r in reports if r.template is not None)
+                self._update(
+                    job, status="staging", topics=reports, messages_total=total, messages_done=0
+                )
+                spools: dict[str, Any] = {}
+                counts: dict[str, int] = {}
+                wanted = {topic for topic, _ in plans}
+                done = 0
+                try:
+                    for connection, t_ns, raw in bag.raw_messages(wanted):
+                        template, converter = plans[connection.topic, connection.msgtype]
+                        message = bag.decode(connection, t_ns, raw)
+                        record = self._record(
+                            job, template, converter, connection.topic, message, t_ns, blobs, robot
+                        )
+                        spool = spools.get(template.id)
+                        if spool is None:
+                            spool = spools[template.id] = (
+                                staged_dir / f"{template.id}.jsonl"
+                            ).open("wb")
+                        spool.write(json.dumps(record, separators=(",", ":")).encode() + b"\n")
+                        counts[template.id] = counts.get(template.id, 0) + 1
+                        done += 1
+                        if done % PROGRESS_EVERY == 0:
+                            self._update(job, messages_done=done)
+                finally:
+                    for spool in spools.values():
+                        spool.flush()
+                        spool.close()
+        except BagError as exc:
+            raise IngestFailed(
+                "bag_corrupt" if isinstance(exc, BagCorrupt) else "bag_unreadable",
+                str(exc),
+                {"file": exc.path.name, "offset": exc.offset},
+            ) from exc
+        except MissingDefinition as exc:
+            raise IngestFailed(
+                "message_type_undefined", str(exc), {"topic": exc.topic, "msgtype": exc.msgtype}
+            ) from exc
+        except MessageUndecodable as exc:
+            raise IngestFailed(
+                "message_undecodable", str(exc), {"topic": exc.topic, "t": exc.t_ns}
+            ) from exc
+        self._update(
+            job,
+            status="committing",
+            messages_done=done,
+            records_staged=sum(counts.values()),
+            staged=counts,
+            committed={template_id: 0 for template_id in counts},
+        )
+
+    def _record(
+        self,
+        job: Job,
+        template: Template,
+        converter: Converter,
+        topic: str,
+        message: dict[str, Any],
+        t_ns: int,
+        blobs: BlobSink,
+        robot: str,
+    ) -> dict[str, Any]:
+        try:
+            data = converter.data(message, blobs)
+            validate_data(template, data)
+        except (ConversionError, RecordInvalid) as exc:
+            raise IngestFailed(
+                "record_invalid",
+                f"topic {topic!r} at t={t_ns}: {exc}",
+                {"topic": topic, "t": t_ns, "field": exc.path, "template": template.id},
+            ) from exc
+        return {
+            "template": template.id,
+            "topic": record_topic(topic),
+            "robot": robot,
+            "t": converter.record_time(message, t_ns),
+            "data": data,
+        }
+
+    def _commit(self, job: Job) -> None:
+        author = Authorship(**job.author)
+        if job.intent is not None:
+            self._settle(job, author.meta())
+        for template_id, staged in job.staged.items():
+            if job.committed[template_id] >= staged:
+                continue
+            path = self.root / job.id / "staged" / f"{template_id}.jsonl"
+            with path.open("rb") as spool:
+                for _ in range(job.committed[template_id]):
+                    spool.readline()
+                while job.committed[template_id] < staged:
+                    start = job.committed[template_id]
+                    count = min(self.batch_records, staged - start)
+                    batch = [json.loads(spool.readline()) for _ in range(count)]
+                    intent = {
+                        "template": template_id,
+                        "start": start,
+                        "count": count,
+                        "log_size": self.logs.size(template_id),
+                    }
+                    self._update(job, intent=intent)
+                    ids = self.store.append(batch, author=author)
+                    self._committed(job, template_id, start + count, ids[0], ids[-1])
+
+    def _committed(self, job: Job, template_id: str, upto: int, first: str, last: str) -> None:
+        committed = {**job.committed, template_id: upto}
+        span = job.record_ids.get(template_id, [first, last])
+        self._update(
+            job,
+            committed=committed,
+            records_committed=sum(committed.values()),
+            record_ids={**job.record_ids, template_id: [span[0], last]},
+            intent=None,
+        )
+
+    def _settle(self, job: Job, meta: bytes) -> None:
+        """Decide whether the batch pending at the crash reached the log."""
+        intent = job.intent
+        assert intent is not None
+        template_id = intent["template"]
+        size = self.logs.size(template_id)
+        found = [
+            index
+            for index in range(intent["log_size"], size)
+            if self.logs.entry(template_id, index).meta == meta
+        ]
+        if found:
+            if len(found) != intent["count"]:
+                raise IngestFailed(
+                    "ingest_inconsistent",
+                    f"{template_id}: {len(found)} of a batch of {intent['count']} in the log",
+                    {"template": template_id},
+                )
+            name, version = template_id.split("@")
+            self._committed(
+                job,
+                template_id,
+                intent["start"] + intent["count"],
+                f"{name}-{version}-{found[0]}",
+                f"{name}-{version}-{found[-1]}",
+            )
+        else:
+            self._update(job, intent=None)
+
+
+class CasBlobs:
+    """Image and file bytes into cas, each distinct content uploaded once per job.
+
+    Camera streams repeat frames (and calibration blobs repeat always); content addressing
+    makes the CID of bytes seen before known without asking cas again.
+    """
+
+    def __init__(self, add: Callable[[bytes], str], remembered: int = 4096) -> None:
+        self._add = add
+        self._remembered = remembered
+        self._known: OrderedDict[bytes, str] = OrderedDict()
+
+    def put(self, data: bytes) -> str:
+        key = hashlib.sha256(data).digest()
+        cid = self._known.get(key)
+        if cid is None:
+            cid = self._add(data)
+            self._known[key] = cid
+            if len(self._known) > self._remembered:
+                self._known.popitem(last=False)
+        return cid
+
+
+class BagNotFetchable(Exception):
+    """A cas CID that does not hold a bag this service can fetch."""
+
+    def __init__(self, cid: str, reason: str) -> None:
+        super().__init__(f"{cid}: {reason}")
+        self.cid = cid
+        self.reason = reason
+
+
+def fetch_from_cas(cas: Cas, cid: CID, into: Path, max_bytes: int) -> Path:
+    """Fetch a bag file, or a flat directory (a ROS 2 bag), from cas into a new directory.
+
+    Every block is verified against its CID by the SDK; ``max_bytes`` bounds the whole bag.
+    """
+    target = Path(tempfile.mkdtemp(dir=into, prefix=".bag-"))
+    try:
+        node, data = decode_node(cid, cas.block(cid)) if cid.codec == DAG_PB else (None, None)
+        if data is not None and data.type in (DIRECTORY, HAMT_SHARD):
+            if data.type == HAMT_SHARD:
+                raise BagNotFetchable(str(cid), "a sharded directory is not a bag")
+            assert node is not None
+            bag = target / "bag"
+            bag.mkdir()
+            remaining = max_bytes
+            for link in node.links:
+                name = check_name(link.name or "")
+                remaining -= cas.get_to_file(link.cid, bag / name, max_size=remaining)
+            return bag
+        path = target / "bag.download"
+        cas.get_to_file(cid, path, max_size=max_bytes)
+        named = path.with_name(f"bag{SUFFIXES.get(detect_format(path), '')}")
+        path.rename(named)
+        return named
+    except BaseException:
+        shutil.rmtree(target, ignore_errors=True)
+        raise

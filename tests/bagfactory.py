@@ -1,0 +1,127 @@
+"""Bags written with rosbags' own writers (ROS 1 and ROS 2, sqlite3 and MCAP) for tests and
+benchmarks: IMU, NavSatFix and small camera images with values derived from the index, so a
+reader's output can be checked against rosbags' deserialisation of the same bytes."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from rosbags.rosbag1 import Writer as Rosbag1Writer
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Rosbag2Writer
+from rosbags.typesys import Stores, get_typestore
+
+BagKind = Literal["ros1", "sqlite3", "mcap"]
+TOPICS = {
+    "/imu": "sensor_msgs/msg/Imu",
+    "/gps": "sensor_msgs/msg/NavSatFix",
+    "/camera/image_raw": "sensor_msgs/msg/Image",
+}
+START_NS = 1_700_000_000_000_000_000
+PERIOD_NS = 10_000_000
+
+
+def typestore_for(kind: BagKind) -> Any:
+    return get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
+
+
+def _header(store: Any, index: int, t_ns: int, frame: str) -> Any:
+    time = store.types["builtin_interfaces/msg/Time"]
+    header = store.types["std_msgs/msg/Header"]
+    stamp = time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+    if "seq" in store.fielddefs["std_msgs/msg/Header"][1][0][0]:
+        return header(seq=index, stamp=stamp, frame_id=frame)
+    return header(stamp=stamp, frame_id=frame)
+
+
+def imu(store: Any, index: int, t_ns: int) -> Any:
+    vector = store.types["geometry_msgs/msg/Vector3"]
+    quaternion = store.types["geometry_msgs/msg/Quaternion"]
+    covariance = np.arange(9, dtype=np.float64) * 0.01
+    return store.types["sensor_msgs/msg/Imu"](
+        header=_header(store, index, t_ns, "imu_link"),
+        orientation=quaternion(x=0.0, y=0.0, z=np.sin(index / 100), w=np.cos(index / 100)),
+        orientation_covariance=covariance,
+        angular_velocity=vector(x=0.01 * index, y=-0.5, z=1.25),
+        angular_velocity_covariance=covariance,
+        linear_acceleration=vector(x=0.1, y=0.2, z=9.81 + index % 7),
+        linear_acceleration_covariance=covariance,
+    )
+
+
+def navsatfix(store: Any, index: int, t_ns: int) -> Any:
+    status = store.types["sensor_msgs/msg/NavSatStatus"](status=index % 3 - 1, service=1)
+    return store.types["sensor_msgs/msg/NavSatFix"](
+        header=_header(store, index, t_ns, "gps"),
+        status=status,
+        latitude=48.137 + index * 1e-6,
+        longitude=11.575 - index * 1e-6,
+        altitude=519.5,
+        position_covariance=np.array([1.5, 0, 0, 0, 1.5, 0, 0, 0, 4.0], dtype=np.float64),
+        position_covariance_type=2,
+    )
+
+
+def image(store: Any, index: int, t_ns: int, width: int = 8, height: int = 6) -> Any:
+    pixels = (np.arange(width * height * 3, dtype=np.uint32) + index) % 256
+    return store.types["sensor_msgs/msg/Image"](
+        header=_header(store, index, t_ns, "camera"),
+        height=height,
+        width=width,
+        encoding="rgb8",
+        is_bigendian=0,
+        step=width * 3,
+        data=pixels.astype(np.uint8),
+    )
+
+
+def messages(
+    store: Any, count: int, image_every: int = 10, start_ns: int = START_NS
+) -> Iterator[tuple[str, int, Any]]:
+    """``count`` messages: IMU mostly, a NavSatFix every 5th and an image every ``image_every``."""
+    for index in range(count):
+        t_ns = start_ns + index * PERIOD_NS
+        if index % image_every == image_every - 1:
+            yield "/camera/image_raw", t_ns, image(store, index, t_ns)
+        elif index % 5 == 4:
+            yield "/gps", t_ns, navsatfix(store, index, t_ns)
+        else:
+            yield "/imu", t_ns, imu(store, index, t_ns)
+
+
+def write_bag(
+    path: Path,
+    kind: BagKind,
+    count: int,
+    *,
+    image_every: int = 10,
+    ros1_chunk_bytes: int = 1 << 20,
+    start_ns: int = START_NS,
+) -> Path:
+    """Write ``count`` messages to a new bag at ``path`` (a ``.bag`` file or a ROS 2 directory)."""
+    store = typestore_for(kind)
+    if kind == "ros1":
+        writer = Rosbag1Writer(path)
+        writer.set_compression(Rosbag1Writer.CompressionFormat.LZ4)
+        writer.chunk_threshold = ros1_chunk_bytes
+        with writer:
+            connections = {
+                topic: writer.add_connection(topic, msgtype, typestore=store)
+                for topic, msgtype in TOPICS.items()
+            }
+            for topic, t_ns, message in messages(store, count, image_every, start_ns):
+                raw = store.serialize_ros1(message, TOPICS[topic])
+                writer.write(connections[topic], t_ns, raw)
+        return path
+    plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+    with Rosbag2Writer(path, version=9, storage_plugin=plugin) as writer2:
+        connections = {
+            topic: writer2.add_connection(topic, msgtype, typestore=store)
+            for topic, msgtype in TOPICS.items()
+        }
+        for topic, t_ns, message in messages(store, count, image_every, start_ns):
+            writer2.write(connections[topic], t_ns, store.serialize_cdr(message, TOPICS[topic]))
+    return path

@@ -1,0 +1,115 @@
+"""Bag ingestion through a real storage process and the SDK: upload, job progress, export read
+back with the mcap library; bad bags, unsigned writes and unknown jobs."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from mcap.reader import make_reader
+
+from robocloud.client import ServiceClient
+from robocloud.errors import ApiError
+from robocloud.identity import Identity
+from robocloud.ingest import Ingest
+from services.storage.matcher import draft_template
+from tests.bagfactory import typestore_for, write_bag
+from tests.conftest import ServiceFactory
+from tests.procs import ServiceProcess
+
+START_NS = 1_000_000_000_000
+"""Inside 2**53: records' JCS cannot yet hold epoch nanoseconds in ``t``."""
+
+
+class Storage(ServiceClient):
+    default_service = "storage"
+
+
+def approve(client: Storage, msgtype: str) -> str:
+    document = draft_template(typestore_for("ros1"), msgtype)
+    created = client.post_json("/v1/templates", document)
+    template_id = f"{created['name']}@{created['version']}"
+    client.post_json(f"/v1/templates/{template_id}/submit")
+    client.post_json(f"/v1/templates/{template_id}/review", {"decision": "approve"})
+    return template_id
+
+
+@pytest.fixture
+def storage(service_factory: ServiceFactory) -> ServiceProcess:
+    return service_factory("storage", {"ROBOCLOUD_STORAGE_INGEST_BATCH_RECORDS": "16"})
+
+
+def test_ingest_a_bag_and_export_it(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        imu = approve(client, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        job = ingest.upload(bag)
+        assert job["status"] in ("queued", "staging", "committing", "succeeded")
+        assert job["signer"] == identity.address
+        seen: list[dict[str, Any]] = []
+        done = ingest.wait(job["id"], seen.append, timeout_s=120)
+        assert done["status"] == "succeeded", done["error"]
+        assert done["messages"] == {"done": 40, "total": 40}
+        assert done["records"] == {"staged": 40, "committed": 40}
+        assert sorted(done["unbound_topics"]) == ["/camera/image_raw", "/gps"]
+        assert done["record_ids"] == {imu: ["imu-1-0", "imu-1-39"]}
+        assert seen[-1] == done
+        mcap_path = tmp_path / "out.mcap"
+        ingest.export({"template": imu, "format": "mcap"}, mcap_path)
+        jsonl_path = tmp_path / "out.jsonl"
+        ingest.export({"template": imu, "format": "jsonl"}, jsonl_path)
+    records = [json.loads(line) for line in jsonl_path.read_text().splitlines()]
+    assert len(records) == 40
+    assert records[0]["t"] == START_NS
+    assert records[0]["robot"] == identity.address
+    assert records[0]["data"]["frame_id"] == "imu_link"
+    reader = make_reader(io.BytesIO(mcap_path.read_bytes()))
+    from_mcap = [json.loads(message.data) for _, _, message in reader.iter_messages()]
+    assert from_mcap == records
+
+
+def test_bad_bags_fail_without_records(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    bag = write_bag(tmp_path / "run.bag", "ros1", 3000, start_ns=START_NS)
+    truncated = tmp_path / "cut.bag"
+    truncated.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    text = tmp_path / "notes.txt"
+    text.write_text("hello\n")
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        imu = approve(client, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        with pytest.raises(ApiError) as not_a_bag:
+            ingest.upload(text)
+        assert not_a_bag.value.status == 400
+        assert not_a_bag.value.code == "invalid_bag"
+        assert not_a_bag.value.details["file"] == "upload"
+        failed = ingest.wait(ingest.upload(truncated)["id"], timeout_s=120)
+        assert failed["status"] == "failed"
+        assert failed["error"]["code"] == "bag_corrupt"
+        assert failed["error"]["resumable"] is False
+        assert failed["records"]["committed"] == 0
+        page = client.get_json("/v1/records", params={"template": imu})
+        assert page["records"] == []
+        with pytest.raises(ApiError) as unknown:
+            ingest.job("f" * 24)
+        assert unknown.value.status == 404
+        assert unknown.value.code == "job_not_found"
+        with pytest.raises(ApiError) as bad_binding:
+            ingest.bind("Not-A-Template", topic="/imu")
+        assert bad_binding.value.code == "invalid_binding"
+        assert bad_binding.value.details == {"field": "template"}
+    unsigned = httpx.post(
+        f"{storage.url}/v1/ingest",
+        content=bag.read_bytes()[:100],
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    assert unsigned.status_code == 401
+    assert unsigned.json()["error"]["code"]

@@ -1,0 +1,310 @@
+"""Reading bags: generated ROS 1 / ROS 2 bags and the real recordings in ../shared/data, against
+rosbags' own reader; truncated, corrupt and undefined input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import Writer as Rosbag2Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from services.storage.bags import (
+    Bag,
+    BagCorrupt,
+    BagFormat,
+    BagUnreadable,
+    MessageUndecodable,
+    MissingDefinition,
+)
+from tests.bagfactory import START_NS, TOPICS, BagKind, write_bag
+from tests.rosbags_compare import assert_matches_rosbags
+
+DATA = Path(__file__).resolve().parents[5] / "shared" / "data"
+MANIFEST = json.loads((DATA / "ros_manifest.json").read_text())
+
+
+def generated(tmp_path: Path, kind: BagKind, count: int = 40) -> Path:
+    name = "generated.bag" if kind == "ros1" else f"generated_{kind}"
+    return write_bag(tmp_path / name, kind, count, ros1_chunk_bytes=16_384)
+
+
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
+def test_generated_bag_matches_rosbags(tmp_path: Path, kind: BagKind) -> None:
+    path = generated(tmp_path, kind)
+    with Bag.open(path) as bag:
+        listed = {(c.topic, c.msgtype): c for c in bag.connections}
+        messages = list(bag.messages())
+    assert set(listed) == set(TOPICS.items())
+    assert {topic: c.count for (topic, _), c in listed.items()} == {
+        "/imu": 32,
+        "/gps": 4,
+        "/camera/image_raw": 4,
+    }
+    imu = listed["/imu", "sensor_msgs/msg/Imu"]
+    assert imu.definition_source == "bag"
+    assert "geometry_msgs/Vector3 angular_velocity" in imu.definition.replace("msg/", "")
+    assert [m.t_ns for m in messages] == [START_NS + i * 10_000_000 for i in range(40)]
+    default = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
+    with AnyReader([path], default_typestore=default) as reader:
+        expected = [
+            (c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()
+        ]
+    assert len(expected) == len(messages)
+    for message, (topic, t_ns, original) in zip(messages, expected, strict=True):
+        assert (message.topic, message.t_ns) == (topic, t_ns)
+        assert_matches_rosbags(message.data, original)
+    image = next(m for m in messages if m.topic == "/camera/image_raw")
+    assert isinstance(image.data["data"], bytes)
+    assert len(image.data["data"]) == 8 * 6 * 3
+
+
+@pytest.mark.parametrize("entry", MANIFEST, ids=[entry["path"] for entry in MANIFEST])
+def test_real_recordings_every_message_in_time_order(entry: dict[str, Any]) -> None:
+    """Counts per topic as the recording's metadata reports them, including the bags rosbags'
+    AnyReader reads as empty (QoS mismatch) or cannot open (service-event schemas)."""
+    path = DATA / entry["path"]
+    topics = entry["rosbags"].get("topics") or []
+    with Bag.open(path) as bag:
+        counts: Counter[str] = Counter()
+        stamps = []
+        for connection, t_ns, _ in bag.raw_messages():
+            counts[connection.topic] += 1
+            stamps.append(t_ns)
+        listed = {c.topic: c for c in bag.connections}
+    assert stamps == sorted(stamps)
+    for topic in topics:
+        assert counts[topic["topic"]] == topic["count_reported"], topic["topic"]
+        assert listed[topic["topic"]].msgtype == topic["msgtype"]
+    if entry["rosbags"].get("first_ts_ns") is not None:
+        assert stamps[0] == entry["rosbags"]["first_ts_ns"]
+        assert stamps[-1] == entry["rosbags"]["last_ts_ns"]
+    if not topics:
+        assert sum(counts.values()) == sum(info["message_count"] for info in entry["mcap"].values())
+
+
+READABLE = [
+    "rosbag1/robot_localization_test2.bag",
+    "rosbag1/evo_tf_example.bag",
+    "rosbag2/evo_tf_example",
+    "rosbag2/robot_localization_ardrone_test3_sqlite3_zstd_file",
+    "rosbag2/rosbag2_cdr_test_sqlite3",
+    "mcap/robot_localization_test2_mcap",
+    "mcap/cartographer_b0_short_mcap_zstd",
+    "mcap/rosbag2_cdr_test_mcap",
+    "mcap/rosbag2_cpp_only_topics.mcap",
+]
+
+
+@pytest.mark.parametrize("relative", READABLE)
+def test_real_recordings_decode_as_rosbags_does(relative: str) -> None:
+    path = DATA / relative
+    with Bag.open(path) as bag:
+        ours = []
+        for connection, t_ns, raw in bag.raw_messages():
+            ours.append((connection.topic, t_ns, bag.decode(connection, t_ns, raw)))
+            if len(ours) == 300:
+                break
+    with AnyReader([path]) as reader:
+        theirs = []
+        for connection, t_ns, raw in reader.messages():
+            theirs.append((connection.topic, t_ns, reader.deserialize(raw, connection.msgtype)))
+            if len(theirs) == 300:
+                break
+    assert [(topic, t) for topic, t, _ in ours] == [(topic, t) for topic, t, _ in theirs]
+    for (_, _, plain), (_, _, message) in zip(ours, theirs, strict=True):
+        assert_matches_rosbags(plain, message)
+
+
+@pytest.mark.parametrize("relative", ["rosbag2/rosbag2_wbag_sqlite3", "mcap/rosbag2_wbag_mcap"])
+def test_split_bag_reads_every_file_in_time_order(relative: str) -> None:
+    with Bag.open(DATA / relative) as bag:
+        assert bag.format is BagFormat.ROS2_DIRECTORY
+        messages = list(bag.messages())
+    assert len(messages) == 6074
+    assert [m.t_ns for m in messages] == sorted(m.t_ns for m in messages)
+    assert (messages[0].t_ns, messages[-1].t_ns) == (1000, 2998)
+    assert Counter(m.topic for m in messages)["AAA"] == 804
+    assert all(isinstance(m.data["data"], str) for m in messages)
+
+
+def test_bag_without_definitions_falls_back_to_the_bundled_typestore() -> None:
+    with Bag.open(DATA / "rosbag2/rosbag2_wbag_sqlite3") as bag:
+        sources = {c.definition_source for c in bag.connections}
+        definition = bag.connections[0].definition
+    assert sources == {"ros2_humble"}
+    assert definition.strip() == "string data"
+
+
+@pytest.mark.parametrize("relative", ["rosbag2/rosbag2_talker_sqlite3", "mcap/rosbag2_talker_mcap"])
+def test_talker_directory_yields_its_messages_despite_qos_mismatch(relative: str) -> None:
+    with Bag.open(DATA / relative) as bag:
+        strings = [m.data["data"] for m in bag.messages(topics=["/topic"])]
+    assert len(strings) == 10
+    assert strings[0] == "Hello, world! 0"
+
+
+def test_undecodable_message_names_topic_type_and_time() -> None:
+    with (
+        Bag.open(DATA / "rosbag2/rosbag2_talker_sqlite3") as bag,
+        pytest.raises(MessageUndecodable) as caught,
+    ):
+        list(bag.messages(topics=["/rosout"]))
+    assert caught.value.topic == "/rosout"
+    assert caught.value.msgtype == "rcl_interfaces/msg/Log"
+    assert caught.value.t_ns > 0
+    assert "size mismatch" in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    "relative",
+    [
+        "mcap/rosbag2_topics_and_service_events_mcap",
+        "rosbag2/rosbag2_topics_and_service_events_sqlite3",
+    ],
+)
+def test_one_unparsable_definition_disables_only_its_topics(relative: str) -> None:
+    with Bag.open(DATA / relative) as bag:
+        problems = {c.topic: c.problem for c in bag.connections}
+        good = list(bag.messages(topics=["/test_topic1", "/test_topic2"]))
+        with pytest.raises(MissingDefinition) as caught:
+            list(bag.messages())
+    assert problems["/test_topic1"] is None
+    assert problems["/test_service1/_service_event"] is not None
+    assert "test_msgs/srv/BasicTypes_Event" in problems["/test_service1/_service_event"]
+    assert len(good) == 2
+    assert caught.value.topic.startswith("/test_service")
+
+
+def test_message_type_without_definition(tmp_path: Path) -> None:
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg("int32 value", "my_msgs/msg/Counter"))
+    counter = store.types["my_msgs/msg/Counter"]
+    with Rosbag2Writer(tmp_path / "custom", version=8) as writer:
+        connection = writer.add_connection(
+            "/counter", "my_msgs/msg/Counter", msgdef="", rihs01="RIHS01_" + "0" * 64
+        )
+        writer.write(connection, 5, store.serialize_cdr(counter(value=3), "my_msgs/msg/Counter"))
+    with Bag.open(tmp_path / "custom") as bag:
+        (listed,) = bag.connections
+        assert listed.definition_format == "none"
+        assert listed.definition_source is None
+        assert "no definition of my_msgs/msg/Counter" in (listed.problem or "")
+        with pytest.raises(MissingDefinition) as caught:
+            list(bag.messages())
+    assert (caught.value.topic, caught.value.msgtype) == ("/counter", "my_msgs/msg/Counter")
+
+
+def test_empty_bag_has_connections_and_no_messages() -> None:
+    with Bag.open(DATA / "rosbag2/rosbag2_empty_bag") as bag:
+        assert {c.topic for c in bag.connections} == {"/rosout", "/parameter_events"}
+        assert bag.message_count == 0
+        assert list(bag.messages()) == []
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.5, 0.99])
+def test_truncated_ros1_bag_names_the_file(tmp_path: Path, fraction: float) -> None:
+    original = generated(tmp_path, "ros1", 200).read_bytes()
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(original[: int(len(original) * fraction)])
+    with pytest.raises(BagCorrupt) as caught:
+        Bag.open(cut)
+    assert caught.value.path == cut
+    assert str(cut) in str(caught.value)
+
+
+def test_corrupt_ros1_chunk_names_its_offset(tmp_path: Path) -> None:
+    path = generated(tmp_path, "ros1", 2000)
+    with Bag.open(path) as bag:
+        chunk_positions = sorted(bag._sources[0][0].chunks)
+    assert len(chunk_positions) > 2
+    target = chunk_positions[1]
+    damaged = bytearray(path.read_bytes())
+    damaged[target + 200 : target + 264] = b"\xff" * 64
+    path.write_bytes(bytes(damaged))
+    with Bag.open(path) as bag, pytest.raises(BagCorrupt) as caught:
+        list(bag.messages())
+    assert caught.value.offset == target
+    assert f"at byte {target}" in str(caught.value)
+
+
+@pytest.mark.parametrize("fraction", [0.5, 0.999])
+def test_truncated_mcap_names_file_and_offset(tmp_path: Path, fraction: float) -> None:
+    source = DATA / "mcap/robot_localization_test2_mcap/robot_localization_test2_mcap.mcap"
+    data = source.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    with pytest.raises(BagCorrupt) as caught:
+        Bag.open(cut)
+    assert caught.value.path == cut
+    assert caught.value.offset is not None
+    assert 0 < caught.value.offset <= len(data)
+
+
+def test_corrupt_compressed_mcap_chunk_is_an_error_not_a_lost_message(tmp_path: Path) -> None:
+    """rosbags alone drops the damaged chunk's messages without a word."""
+    source = DATA / "mcap/cartographer_b0_short_mcap_zstd"
+    copy = tmp_path / "copy"
+    shutil.copytree(source, copy)
+    storage = copy / "cartographer_b0_short_mcap_zstd.mcap"
+    damaged = bytearray(storage.read_bytes())
+    middle = len(damaged) // 2
+    damaged[middle : middle + 64] = b"\xff" * 64
+    storage.write_bytes(bytes(damaged))
+    with Bag.open(copy) as bag, pytest.raises(BagCorrupt) as caught:
+        list(bag.raw_messages())
+    assert caught.value.path == storage
+    assert "index counts" in str(caught.value)
+
+
+def test_corrupt_mcap_chunk_names_its_offset(tmp_path: Path) -> None:
+    source = DATA / "mcap/rosbag2_wbag_mcap"
+    copy = tmp_path / "copy"
+    shutil.copytree(source, copy)
+    storage = copy / "wbag_2.mcap"
+    damaged = bytearray(storage.read_bytes())
+    damaged[4000:4016] = bytes(16)
+    storage.write_bytes(bytes(damaged))
+    with pytest.raises(BagCorrupt) as caught:
+        Bag.open(copy)
+    assert caught.value.path == storage
+    assert caught.value.offset == 45
+    assert "damaged MCAP record" in str(caught.value)
+
+
+def test_corrupt_sqlite_storage(tmp_path: Path) -> None:
+    path = generated(tmp_path, "sqlite3", 500)
+    storage = next(path.glob("*.db3"))
+    storage.write_bytes(storage.read_bytes()[: storage.stat().st_size // 2])
+    with pytest.raises(BagCorrupt) as caught:
+        Bag.open(path)
+    assert "malformed" in str(caught.value)
+
+
+def test_not_a_bag(tmp_path: Path) -> None:
+    text = tmp_path / "notes.bag"
+    text.write_text("not a bag at all\n")
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    bare_directory = tmp_path / "dir"
+    bare_directory.mkdir()
+    with pytest.raises(BagUnreadable, match="not a ROS 1 bag"):
+        Bag.open(text)
+    with pytest.raises(BagCorrupt, match="empty") as caught:
+        Bag.open(empty)
+    assert caught.value.offset == 0
+    with pytest.raises(BagUnreadable, match=r"metadata\.yaml"):
+        Bag.open(bare_directory)
+
+
+def test_bare_file_with_the_wrong_suffix(tmp_path: Path) -> None:
+    source = DATA / "mcap/rosbag2_cpp_only_topics.mcap"
+    renamed = tmp_path / "recording.bin"
+    renamed.write_bytes(source.read_bytes())
+    with pytest.raises(BagUnreadable, match=r"\*\.mcap"):
+        Bag.open(renamed)

@@ -1,0 +1,224 @@
+"""Ingest jobs against the real record store: records as the bag holds them, unbound topics
+reported, failures leaving the logs untouched, and an interrupted commit settled exactly once."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Iterator
+from dataclasses import asdict
+from pathlib import Path
+
+import pytest
+
+from robocloud.identity import Identity
+from services.storage.catalog import Catalog
+from services.storage.ingest import IngestJobs, Job, JobNotFound
+from services.storage.matcher import Bindings, draft_template
+from services.storage.recordlog import RecordLogs
+from services.storage.recordstore import Authorship, RecordStore
+from tests.bagfactory import typestore_for, write_bag
+from tests.blobs import MemoryBlobs
+
+START_NS = 1_000_000_000_000
+"""Inside 2**53: records' JCS cannot yet hold epoch nanoseconds in ``t`` (see the report)."""
+
+
+class Node:
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.author = Identity.generate().address
+        self.catalog = Catalog(root / "catalog")
+        self.logs = RecordLogs(root / "logs")
+        self.store = RecordStore(root, self.logs, self.catalog)
+        self.bindings = Bindings(root / "bindings.json")
+        self.blobs = MemoryBlobs()
+        self.jobs = self.open_jobs()
+
+    def open_jobs(self, batch_records: int = 50) -> IngestJobs:
+        return IngestJobs(
+            self.root / "jobs",
+            self.store,
+            self.logs,
+            self.bindings,
+            lambda: self.blobs,
+            batch_records=batch_records,
+        )
+
+    def approve(self, msgtype: str) -> str:
+        version = self.catalog.create(
+            draft_template(typestore_for("sqlite3"), msgtype), author=self.author
+        )
+        self.catalog.submit(version.id, author=self.author)
+        self.catalog.review(version.id, "approve", reviewer=self.author)
+        return version.id
+
+    def close(self) -> None:
+        self.jobs.close()
+        self.store.close()
+        self.logs.close()
+        self.catalog.close()
+
+
+@pytest.fixture
+def node(tmp_path: Path) -> Iterator[Node]:
+    created = Node(tmp_path / "node")
+    yield created
+    created.close()
+
+
+def authorship(nonce: str = "nonce-000000000000") -> Authorship:
+    return Authorship(
+        signer=Identity.generate().address,
+        audience="storage@local",
+        method="POST",
+        path="/v1/ingest",
+        query="",
+        timestamp=1,
+        nonce=nonce,
+        content_sha256="0" * 64,
+        signature="0x" + "0" * 130,
+        request_sha256="1" * 64,
+        received_at_ns=1,
+    )
+
+
+def bag(tmp_path: Path, name: str, count: int, kind: str = "sqlite3") -> Path:
+    path = tmp_path / name
+    return write_bag(path, kind, count, start_ns=START_NS)  # type: ignore[arg-type]
+
+
+def test_ingest_writes_bound_topics_and_reports_the_rest(node: Node, tmp_path: Path) -> None:
+    imu = node.approve("sensor_msgs/msg/Imu")
+    image = node.approve("sensor_msgs/msg/Image")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=image, topic="/camera/image_raw")
+    author = authorship()
+    job = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b", 200), "upload:x", author).id, 60)
+    assert job.status == "succeeded", job.error
+    assert (job.messages_done, job.messages_total) == (180, 180)
+    assert job.records_committed == 180
+    reports = {t.topic: t for t in job.topics}
+    assert reports["/gps"].template is None
+    assert "no template" in (reports["/gps"].skipped or "")
+    assert job.to_json()["unbound_topics"] == ["/gps"]
+    assert node.logs.size(imu) == 160
+    assert node.logs.size(image) == 20
+    first = node.store.get("imu-1-0")
+    assert first.record["t"] == START_NS
+    assert first.record["robot"] == author.signer
+    assert first.record["data"]["frame_id"] == "imu_link"
+    assert first.meta["nonce"] == author.nonce
+    frame = node.store.get("image-1-0").record["data"]["data"]
+    assert node.blobs.files[frame][:3] == bytes([9, 10, 11])
+    assert job.record_ids == {imu: ["imu-1-0", "imu-1-159"], image: ["image-1-0", "image-1-19"]}
+    assert not (node.root / "jobs" / job.id / "staged").exists()
+
+
+@pytest.mark.parametrize("damage", ["truncate", "undefined"])
+def test_a_failing_bag_appends_nothing(node: Node, tmp_path: Path, damage: str) -> None:
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    path = bag(tmp_path, "broken.bag", 3000, kind="ros1")
+    if damage == "truncate":
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) * 2 // 3])
+        expected = "bag_corrupt"
+    else:
+        path = tmp_path / "broken"
+        shutil.copytree(
+            Path(__file__).resolve().parents[5]
+            / "shared/data/rosbag2/rosbag2_topics_and_service_events_sqlite3",
+            path,
+        )
+        node.bindings.bind(template_id=imu, msgtype="test_msgs/srv/BasicTypes_Event")
+        expected = "message_type_undefined"
+    job = node.jobs.wait(node.jobs.submit(path, "upload:y", authorship()).id, 60)
+    assert job.status == "failed"
+    assert job.error is not None
+    assert job.error["code"] == expected
+    assert job.error["resumable"] is False
+    if damage == "truncate":
+        assert job.error["details"]["file"] == "bag"
+    else:
+        assert job.error["details"]["topic"].startswith("/test_service")
+    assert node.logs.size(imu) == 0
+    assert node.logs.template_ids() == []
+
+
+def test_a_value_the_template_refuses_fails_before_anything_is_written(
+    node: Node, tmp_path: Path
+) -> None:
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    path = write_bag(tmp_path / "far", "sqlite3", 30, start_ns=START_NS)
+    far = tmp_path / "far2"
+    store = typestore_for("sqlite3")
+    from rosbags.rosbag2 import Writer
+
+    from tests.bagfactory import imu as make_imu
+
+    with Writer(far, version=9) as writer:
+        connection = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=store)
+        message = make_imu(store, 1, START_NS)
+        message.angular_velocity.x = float("nan")
+        writer.write(connection, START_NS, store.serialize_cdr(message, "sensor_msgs/msg/Imu"))
+    assert path.exists()
+    job = node.jobs.wait(node.jobs.submit(far, "upload:z", authorship()).id, 60)
+    assert job.status == "failed"
+    assert job.error is not None
+    assert job.error["code"] == "record_invalid"
+    assert job.error["details"]["field"] == "angular_velocity.x"
+    assert node.logs.size(imu) == 0
+
+
+def test_an_interrupted_commit_is_settled_exactly_once(node: Node, tmp_path: Path) -> None:
+    """A crash between a batch's append and its acknowledgement in the job: on reopen the batch
+    is found in the log by its authorship and not appended again."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    author = authorship("nonce-crash-000000")
+    job = node.jobs.wait(node.jobs.submit(bag(tmp_path, "c", 100), "upload:c", author).id, 60)
+    assert job.status == "succeeded"
+    assert node.logs.size(imu) == 80
+    job_file = node.root / "jobs" / job.id / "job.json"
+    node.jobs.close()
+    state = json.loads(job_file.read_text())
+    # the state as it was on disk just after appending the second batch of 50 (30 records)
+    state.update(
+        status="committing",
+        committed={imu: 50},
+        records_committed=50,
+        intent={"template": imu, "start": 50, "count": 30, "log_size": 50},
+    )
+    staged = node.root / "jobs" / job.id / "staged"
+    staged.mkdir()
+    lines = [json.dumps(node.store.get(f"imu-1-{index}").record).encode() for index in range(80)]
+    (staged / f"{imu}.jsonl").write_bytes(b"\n".join(lines) + b"\n")
+    job_file.write_text(json.dumps(state))
+    node.jobs = node.open_jobs()
+    resumed = node.jobs.wait(job.id, 60)
+    assert resumed.status == "succeeded"
+    assert resumed.records_committed == 80
+    assert node.logs.size(imu) == 80
+    assert resumed.record_ids[imu][-1] == "imu-1-79"
+    # and when the crash came before the append, the batch is appended on reopen
+    node.jobs.close()
+    state.update(intent={"template": imu, "start": 50, "count": 30, "log_size": 80})
+    job_file.write_text(json.dumps(state))
+    staged.mkdir(exist_ok=True)
+    (staged / f"{imu}.jsonl").write_bytes(b"\n".join(lines) + b"\n")
+    node.jobs = node.open_jobs()
+    again = node.jobs.wait(job.id, 60)
+    assert again.status == "succeeded"
+    assert node.logs.size(imu) == 110
+
+
+def test_unknown_job(node: Node) -> None:
+    with pytest.raises(JobNotFound):
+        node.jobs.get("0" * 24)
+
+
+def test_job_state_round_trips() -> None:
+    job = Job(id="a", bag="cid:b", author=asdict(authorship()))
+    assert Job.from_json(json.loads(json.dumps(asdict(job)))) == job
