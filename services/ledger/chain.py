@@ -27,9 +27,12 @@ from eth_typing import Address
 from eth_utils.crypto import keccak
 from eth_utils.exceptions import ValidationError
 
-from robocloud.ledger.abi import decode_revert
+from services.ledger import validation
 from services.ledger.calls import CallLimits, CallTimeout, SnapshotCalls, SnapshotChain
 from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
+from services.ledger.refusals import ChainError as ChainError
+from services.ledger.refusals import InvalidParams as InvalidParams
+from services.ledger.refusals import Reverted as Reverted
 
 log = logging.getLogger("robocloud.ledger.chain")
 
@@ -38,33 +41,6 @@ BlockTag = int | str
 
 BLOB_TRANSACTION_TYPE = 3
 RECENT_BLOCKS = 64
-
-
-class ChainError(Exception):
-    """A request the chain refuses; ``code`` is the JSON-RPC error code nodes use for it."""
-
-    code = -32000
-
-    def __init__(self, message: str, data: str | None = None) -> None:
-        super().__init__(message)
-        self.message = message
-        self.data = data
-
-
-class InvalidParams(ChainError):
-    """The request itself is malformed (not decodable, wrong types)."""
-
-    code = -32602
-
-
-class Reverted(ChainError):
-    """The EVM reverted; ``data`` is the revert payload and the message carries its reason."""
-
-    code = 3
-
-    def __init__(self, payload: bytes) -> None:
-        super().__init__(f"execution reverted: {decode_revert(payload)}", "0x" + payload.hex())
-        self.payload = payload
 
 
 @dataclass(frozen=True)
@@ -218,7 +194,11 @@ class EmbeddedChain:
     def base_fee(self) -> int:
         """The base fee the next block will charge."""
         with self._lock:
-            return int(self._chain.header.base_fee_per_gas or 0)
+            return self.base_fee_locked()
+
+    def base_fee_locked(self) -> int:
+        """The next block's base fee, under the chain's lock (it follows from the head alone)."""
+        return int(self._chain.header.base_fee_per_gas or 0)
 
     def _state(self, tag: BlockTag) -> Any:
         return self._chain.get_vm(at_header=self.header_at(tag)).state
@@ -285,6 +265,7 @@ class EmbeddedChain:
         """A signed transaction from its raw bytes, or ``InvalidParams`` saying why not."""
         if not raw:
             raise InvalidParams("invalid raw transaction: empty")
+        validation.check_raw_size(raw)
         if raw[0] == BLOB_TRANSACTION_TYPE:
             raise ChainError("blob transactions (type 3) are not supported by this chain")
         builder = self._chain.get_vm().get_transaction_builder()
@@ -303,31 +284,29 @@ class EmbeddedChain:
             return self._mine(transaction)
 
     def _check(self, transaction: SignedTransactionAPI) -> None:
-        if transaction.chain_id is None:
-            raise ChainError(
-                "only replay-protected (EIP-155) transactions are accepted: sign with chain id "
-                f"{CHAIN_ID}"
-            )
-        if transaction.chain_id != CHAIN_ID:
-            raise ChainError(
-                f"invalid chain id {transaction.chain_id}: this chain's id is {CHAIN_ID}"
-            )
+        """Every validity rule, in geth's order: the transaction's own fields, then its
+        sender's account at the head (code, nonce, balance) and the next block's base fee."""
+        head = self._chain.get_canonical_head()
+        validation.check_fields(transaction, CHAIN_ID, head.gas_limit)
         state = self._chain.get_vm().state
-        expected = state.get_nonce(transaction.sender)
+        sender = transaction.sender
+        validation.check_sender(
+            transaction, bytes(state.get_code_hash(sender)), self.base_fee_locked()
+        )
+        expected = state.get_nonce(sender)
         if transaction.nonce < expected:
             raise ChainError(
-                f"nonce too low: address 0x{transaction.sender.hex()} has nonce {expected}, "
+                f"nonce too low: address 0x{sender.hex()} has nonce {expected}, "
                 f"transaction has {transaction.nonce}"
             )
         if transaction.nonce > expected:
             raise ChainError(
-                f"nonce too high: address 0x{transaction.sender.hex()} has nonce {expected}, "
+                f"nonce too high: address 0x{sender.hex()} has nonce {expected}, "
                 f"transaction has {transaction.nonce} (this chain mines at once and keeps no "
                 "queue of future transactions)"
             )
-        price = getattr(transaction, "max_fee_per_gas", None) or transaction.gas_price
-        cost = transaction.gas * price + transaction.value
-        balance = state.get_balance(transaction.sender)
+        cost = validation.max_cost(transaction)
+        balance = state.get_balance(sender)
         if balance < cost:
             raise ChainError(
                 f"insufficient funds for gas * price + value: balance {balance}, cost {cost}"
