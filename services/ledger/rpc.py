@@ -98,9 +98,16 @@ class Dispatcher:
                 None, RpcFailure(INVALID_REQUEST, "id must be a string, a number or null")
             )
         method, params = request.get("method"), request.get("params", [])
-        if not isinstance(method, str) or not isinstance(params, list | type(None)):
+        if not isinstance(method, str) or not isinstance(params, list | dict | type(None)):
             failure = RpcFailure(INVALID_REQUEST, "method must be a string, params an array")
             return _error(request_id, failure)
+        if isinstance(params, dict):
+            # Ethereum methods take positional parameters only: by-name parameters are a
+            # valid request with invalid parameters (-32602), as geth and anvil answer them.
+            failure = RpcFailure(
+                INVALID_PARAMS, "invalid params: expected an array of positional parameters"
+            )
+            return _error(request_id, failure) if "id" in request else None
         try:
             result = self.call(method, params or [])
         except RpcFailure as failure:

@@ -8,45 +8,15 @@ floor, oversized transactions, unprotected signatures) the ledger follows geth.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import Any
 
-import httpx
 import pytest
 
 from robocloud.identity import Identity
-from robocloud.ledger import JsonRpcClient
-from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
-from tests.integration.services.ledger.conftest import Service, faucet, head
+from tests.integration.services.ledger.conftest import Pair, Service, call, faucet, head
 from tests.rawtx import RawTx
 
 BASE = RawTx(max_fee=10**11, max_priority_fee=10**9, gas_price=10**11)
-
-
-def call(url: str, method: str, params: list[Any]) -> dict[str, Any]:
-    payload = {"jsonrpc": "2.0", "id": 1, "method": method, "params": params}
-    answer: dict[str, Any] = httpx.post(url, json=payload, timeout=30).json()
-    return answer
-
-
-@dataclass
-class Pair:
-    ledger: str
-    anvil: str
-
-    def funded(self) -> Identity:
-        """A fresh key with ether on both chains."""
-        identity = Identity.generate()
-        assert faucet(self.ledger.removesuffix("/rpc"), identity).status_code == 200
-        fund(JsonRpcClient(self.anvil), identity)
-        return identity
-
-
-@pytest.fixture(scope="module")
-def pair(service: Service, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Pair]:
-    with ethereum_node(tmp_path_factory.mktemp("anvil") / "anvil.log") as anvil:
-        yield Pair(f"{service.url}/rpc", anvil)
 
 
 def send_both(pair: Pair, build: Any, **forge: Any) -> tuple[dict[str, Any], dict[str, Any], str]:
