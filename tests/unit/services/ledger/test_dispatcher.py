@@ -89,12 +89,22 @@ def test_a_revert_carries_code_3_and_its_data() -> None:
         {"method": "echo", "id": 1},
         {"jsonrpc": "1.0", "method": "echo", "id": 1},
         {"jsonrpc": "2.0", "method": 7, "id": 1},
-        {"jsonrpc": "2.0", "method": "echo", "params": {"named": 1}, "id": 1},
+        {"jsonrpc": "2.0", "method": "echo", "params": "positional", "id": 1},
         "just a string",
     ],
 )
 def test_malformed_requests_are_invalid(document: Any) -> None:
     assert handle(document)["error"]["code"] == INVALID_REQUEST
+
+
+def test_parameters_by_name_are_invalid_params() -> None:
+    """A well-formed request whose parameters Ethereum methods cannot take (as geth says)."""
+    answer = handle({"jsonrpc": "2.0", "method": "echo", "params": {"named": 1}, "id": 1})
+    assert answer["id"] == 1
+    assert answer["error"] == {
+        "code": -32602,
+        "message": "invalid params: expected an array of positional parameters",
+    }
 
 
 def test_a_batch_answers_each_call_and_skips_notifications() -> None:
