@@ -28,7 +28,15 @@ from eth_utils.crypto import keccak
 from eth_utils.exceptions import ValidationError
 
 from services.ledger import validation
-from services.ledger.calls import CallLimits, CallTimeout, SnapshotCalls, SnapshotChain
+from services.ledger.calls import (
+    CallLimits,
+    CallTimeout,
+    GasAllowanceExceeded,
+    SnapshotCalls,
+    SnapshotChain,
+    estimate_gas,
+    execute,
+)
 from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
 from services.ledger.refusals import ChainError as ChainError
 from services.ledger.refusals import InvalidParams as InvalidParams
@@ -52,7 +60,24 @@ class CallRequest:
     data: bytes = b""
     value: int = 0
     gas: int | None = None
-    gas_price: int = 0
+    gas_price: int | None = None
+    max_fee_per_gas: int | None = None
+    max_priority_fee_per_gas: int | None = None
+
+    @property
+    def fee_cap(self) -> int:
+        """What the sender must afford per gas (0: the call is free and checks no balance)."""
+        if self.gas_price is not None:
+            return self.gas_price
+        return self.max_fee_per_gas or 0
+
+    def effective_gas_price(self, base_fee: int) -> int:
+        """What ``GASPRICE`` reads, as in a mined transaction with these fees."""
+        if self.gas_price is not None:
+            return self.gas_price
+        if self.max_fee_per_gas is None:
+            return 0
+        return min(self.max_fee_per_gas, (self.max_priority_fee_per_gas or 0) + base_fee)
 
 
 @dataclass(frozen=True)
@@ -206,28 +231,56 @@ class EmbeddedChain:
     # ----- execution -----
 
     def call(self, request: CallRequest, tag: BlockTag) -> bytes:
-        """Run a call on the state after block ``tag``; raise ``Reverted`` with its reason."""
-        return bytes(self._execute(request, tag, SnapshotChain.get_transaction_result))
+        """Run a call in block ``tag``'s context; raise ``Reverted`` with its reason."""
+        return bytes(self._execute(request, tag, estimate=False))
 
     def estimate_gas(self, request: CallRequest, tag: BlockTag) -> int:
-        """The least gas with which the call succeeds; ``Reverted`` if it never does."""
-        return int(self._execute(request, tag, SnapshotChain.estimate_gas))
+        """The least gas (within 1 %) with which the call succeeds; ``Reverted`` if it never
+        does."""
+        return int(self._execute(request, tag, estimate=True))
 
-    def _execute(
-        self,
-        request: CallRequest,
-        tag: BlockTag,
-        run: Callable[[SnapshotChain, SignedTransactionAPI, BlockHeaderAPI], Any],
-    ) -> Any:
+    def _execute(self, request: CallRequest, tag: BlockTag, *, estimate: bool) -> Any:
         """Run an unsigned ``request`` on a snapshot, with py-evm's failures as ChainErrors.
 
         Only finding the block takes the chain's lock; the execution itself does not.
         """
         with self._lock:
             header = self.header_at(tag)
+        pending = tag == "pending"
 
         def work(chain: SnapshotChain) -> Any:
-            return run(chain, self._spoof(chain, request, header), header)
+            state = chain.state_for_call(header, pending)
+            allowance = self._allowance(request, state, header.gas_limit, estimate)
+            unsigned = chain.get_vm_class(header).create_unsigned_transaction
+            nonce = state.get_nonce(Address(request.sender))
+
+            def transaction_with_gas(gas: int) -> SignedTransactionAPI:
+                spoofed = SpoofTransaction(
+                    unsigned(
+                        nonce=nonce,
+                        gas_price=0,
+                        gas=gas,
+                        to=request.to,  # type: ignore[arg-type]
+                        value=request.value,
+                        data=request.data,
+                    ),
+                    from_=request.sender,
+                )
+                return cast(SignedTransactionAPI, spoofed)
+
+            intrinsic = int(transaction_with_gas(allowance).intrinsic_gas)
+            if allowance < intrinsic:
+                if estimate:
+                    raise GasAllowanceExceeded(allowance)
+                raise ChainError(
+                    f"intrinsic gas too low: gas {allowance}, minimum needed {intrinsic}"
+                )
+            price = request.effective_gas_price(int(state.execution_context.base_fee_per_gas or 0))
+            if estimate:
+                return estimate_gas(state, transaction_with_gas, price, allowance)
+            computation = execute(state, transaction_with_gas(allowance), price)
+            computation.raise_if_error()
+            return computation.output
 
         try:
             return self._calls.run(header, work)
@@ -235,6 +288,8 @@ class EmbeddedChain:
             raise ChainError(
                 f"execution aborted (timeout = {self.call_limits.timeout_s:g}s)"
             ) from exc
+        except GasAllowanceExceeded as exc:
+            raise ChainError(str(exc)) from exc
         except Revert as exc:
             raise Reverted(bytes(exc.args[0]) if exc.args else b"") from exc
         except ValidationError as exc:
@@ -244,20 +299,23 @@ class EmbeddedChain:
                 raise ChainError(f"execution failed: {type(exc).__name__} {exc}") from exc
             raise
 
-    def _spoof(
-        self, chain: SnapshotChain, request: CallRequest, header: BlockHeaderAPI
-    ) -> SignedTransactionAPI:
-        """The request as a transaction py-evm executes without a signature."""
-        vm = chain.get_vm(at_header=header)
-        unsigned = vm.create_unsigned_transaction(
-            nonce=vm.state.get_nonce(Address(request.sender)),
-            gas_price=request.gas_price,
-            gas=self.call_limits.gas_for(request.gas, header.gas_limit),
-            to=request.to,  # type: ignore[arg-type]
-            value=request.value,
-            data=request.data,
-        )
-        return cast(SignedTransactionAPI, SpoofTransaction(unsigned, from_=request.sender))
+    def _allowance(
+        self, request: CallRequest, state: Any, block_gas_limit: int, estimate: bool
+    ) -> int:
+        """The gas the call runs with, checked against what its sender can pay, as geth does:
+        a priced call must be affordable; an estimate searches no higher than affordable."""
+        allowance = self.call_limits.gas_for(request.gas, block_gas_limit)
+        balance = int(state.get_balance(Address(request.sender)))
+        fee_cap = request.fee_cap
+        if fee_cap and estimate and balance >= request.value:
+            allowance = min(allowance, (balance - request.value) // fee_cap)
+        want = allowance * fee_cap + request.value
+        if balance < want:
+            raise ChainError(
+                f"insufficient funds for gas * price + value: address 0x{request.sender.hex()} "
+                f"have {balance} want {want}"
+            )
+        return allowance
 
     # ----- transactions -----
 

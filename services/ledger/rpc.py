@@ -194,6 +194,10 @@ def as_quantity(value: Any, what: str) -> int:
         raise InvalidParams(f"invalid {what}: {value!r}") from exc
 
 
+def _optional_quantity(value: dict[str, Any], key: str) -> int | None:
+    return as_quantity(value[key], key) if value.get(key) is not None else None
+
+
 class EmbeddedMethods:
     """The ``eth_*`` methods over the embedded chain and its event index."""
 
@@ -310,14 +314,21 @@ class EmbeddedMethods:
         if not isinstance(value, dict):
             raise InvalidParams("invalid call object: expected an object")
         data = value.get("input", value.get("data")) or "0x"
-        price = value.get("gasPrice", value.get("maxFeePerGas"))
+        if value.get("gasPrice") is not None and (
+            value.get("maxFeePerGas") is not None or value.get("maxPriorityFeePerGas") is not None
+        ):
+            raise InvalidParams(
+                "both gasPrice and (maxFeePerGas or maxPriorityFeePerGas) specified"
+            )
         return CallRequest(
             sender=as_address(value["from"]) if value.get("from") else b"\x00" * 20,
             to=as_address(value["to"]) if value.get("to") else b"",
             data=as_bytes(data, "call data"),
-            value=as_quantity(value.get("value", "0x0"), "value"),
+            value=as_quantity(value.get("value") or "0x0", "value"),
             gas=as_quantity(value["gas"], "gas") if value.get("gas") else None,
-            gas_price=as_quantity(price, "gas price") if price else 0,
+            gas_price=_optional_quantity(value, "gasPrice"),
+            max_fee_per_gas=_optional_quantity(value, "maxFeePerGas"),
+            max_priority_fee_per_gas=_optional_quantity(value, "maxPriorityFeePerGas"),
         )
 
     def call(self, params: list[Any]) -> Any:
