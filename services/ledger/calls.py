@@ -29,7 +29,7 @@ from eth.vm.forks.frontier.validation import validate_frontier_transaction
 from eth.vm.forks.prague import PragueVM
 from eth.vm.forks.prague.computation import PragueComputation
 from eth.vm.forks.prague.state import PragueState
-from eth_typing import Hash32
+from eth_typing import Address, Hash32
 
 from services.ledger.chaindb import DevChain, DurableAtomicDB
 
@@ -65,12 +65,55 @@ class BoundedComputation(PragueComputation):
         super().consume_gas(amount, reason)
 
 
+AccessEntries = tuple[tuple[bytes, tuple[int, ...]], ...]
+"""An EIP-2930 access list: addresses, each with its storage slots."""
+
+
+class AccessRecorder:
+    """Every account and storage slot a call warms, in order of first access."""
+
+    def __init__(self) -> None:
+        self.accounts: dict[bytes, dict[int, None]] = {}
+
+    def account(self, address: bytes) -> None:
+        self.accounts.setdefault(bytes(address), {})
+
+    def slot(self, address: bytes, slot: int) -> None:
+        self.accounts.setdefault(bytes(address), {})[slot] = None
+
+    def entries(self, excluded: set[bytes]) -> AccessEntries:
+        """As geth's access-list tracer: ``excluded`` accounts (sender, recipient, coinbase,
+        precompiles: warm anyway) appear only for the slots touched in them."""
+        return tuple(
+            (address, tuple(slots))
+            for address, slots in self.accounts.items()
+            if slots or (address not in excluded and not _is_precompile(address))
+        )
+
+
+def _is_precompile(address: bytes) -> bool:
+    """Prague's precompiles sit at 0x01 to 0x11."""
+    return address[:19] == bytes(19) and 1 <= address[19] <= 0x11
+
+
 class CallState(PragueState):
     """A free call's state: the block's base fee stays visible to ``BASEFEE``, but the call
     pays nothing, so the fee checks of a real transaction do not apply (geth's NoBaseFee);
-    the sender's nonce and its balance for the value still do."""
+    the sender's nonce and its balance for the value still do. ``recorder``, when set,
+    sees every account and slot the call warms (``eth_createAccessList``)."""
 
     computation_class = BoundedComputation
+    recorder: AccessRecorder | None = None
+
+    def mark_address_warm(self, address: Address) -> None:
+        if self.recorder is not None:
+            self.recorder.account(address)
+        super().mark_address_warm(address)
+
+    def mark_storage_warm(self, address: Address, slot: int) -> None:
+        if self.recorder is not None:
+            self.recorder.slot(address, slot)
+        super().mark_storage_warm(address, slot)
 
     def validate_transaction(self, transaction: SignedTransactionAPI) -> None:
         validate_frontier_transaction(self, transaction)
@@ -203,3 +246,50 @@ def estimate_gas(
         else:
             high = middle
     return high
+
+
+@dataclass(frozen=True)
+class AccessList:
+    """``eth_createAccessList``'s answer; ``error`` when the call fails even with it."""
+
+    entries: AccessEntries
+    gas_used: int
+    error: str | None = None
+
+
+ACCESS_LIST_ROUNDS = 4
+"""Listing accounts can change what a call does (it may read its own gas): geth reruns until
+the list is stable; so do we, this many times at most."""
+
+
+def create_access_list(
+    state: StateAPI,
+    transaction_with_gas: Callable[..., SignedTransactionAPI],
+    gas_price: int,
+    allowance: int,
+    excluded: set[bytes],
+) -> AccessList:
+    """The accounts and slots the call touches, and the gas it uses with them listed."""
+    entries: AccessEntries = ()
+    assert isinstance(state, CallState)
+    for _ in range(ACCESS_LIST_ROUNDS):
+        recorder = AccessRecorder()
+        state.recorder = recorder
+        try:
+            computation = execute(state, transaction_with_gas(allowance, entries), gas_price)
+        finally:
+            state.recorder = None
+        found = recorder.entries(excluded)
+        if found == entries:
+            break
+        entries = found
+    used = allowance - computation.get_gas_remaining()
+    gas_used = used - min(computation.get_gas_refund(), used // 5)
+    error = None
+    if computation.is_error:
+        error = (
+            "execution reverted"
+            if isinstance(computation.error, Revert)
+            else str(computation.error)
+        )
+    return AccessList(entries, gas_used, error)

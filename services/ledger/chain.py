@@ -18,7 +18,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, Literal
 
 from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
 from eth.exceptions import BlockNotFound, HeaderNotFound, Revert, TransactionNotFound
@@ -29,11 +29,14 @@ from eth_utils.exceptions import ValidationError
 
 from services.ledger import validation
 from services.ledger.calls import (
+    AccessEntries,
+    AccessList,
     CallLimits,
     CallTimeout,
     GasAllowanceExceeded,
     SnapshotCalls,
     SnapshotChain,
+    create_access_list,
     estimate_gas,
     execute,
 )
@@ -232,14 +235,21 @@ class EmbeddedChain:
 
     def call(self, request: CallRequest, tag: BlockTag) -> bytes:
         """Run a call in block ``tag``'s context; raise ``Reverted`` with its reason."""
-        return bytes(self._execute(request, tag, estimate=False))
+        return bytes(self._execute(request, tag, "call"))
 
     def estimate_gas(self, request: CallRequest, tag: BlockTag) -> int:
         """The least gas (within 1 %) with which the call succeeds; ``Reverted`` if it never
         does."""
-        return int(self._execute(request, tag, estimate=True))
+        return int(self._execute(request, tag, "estimate"))
 
-    def _execute(self, request: CallRequest, tag: BlockTag, *, estimate: bool) -> Any:
+    def create_access_list(self, request: CallRequest, tag: BlockTag) -> AccessList:
+        """The accounts and slots the call touches, and its gas with them listed."""
+        found: AccessList = self._execute(request, tag, "access_list")
+        return found
+
+    def _execute(
+        self, request: CallRequest, tag: BlockTag, mode: Literal["call", "estimate", "access_list"]
+    ) -> Any:
         """Run an unsigned ``request`` on a snapshot, with py-evm's failures as ChainErrors.
 
         Only finding the block takes the chain's lock; the execution itself does not.
@@ -247,26 +257,31 @@ class EmbeddedChain:
         with self._lock:
             header = self.header_at(tag)
         pending = tag == "pending"
+        estimate = mode == "estimate"
 
         def work(chain: SnapshotChain) -> Any:
             state = chain.state_for_call(header, pending)
             allowance = self._allowance(request, state, header.gas_limit, estimate)
-            unsigned = chain.get_vm_class(header).create_unsigned_transaction
+            vm_class = chain.get_vm_class(header)
             nonce = state.get_nonce(Address(request.sender))
 
-            def transaction_with_gas(gas: int) -> SignedTransactionAPI:
-                spoofed = SpoofTransaction(
-                    unsigned(
-                        nonce=nonce,
-                        gas_price=0,
-                        gas=gas,
-                        to=request.to,  # type: ignore[arg-type]
-                        value=request.value,
-                        data=request.data,
-                    ),
-                    from_=request.sender,
-                )
-                return cast(SignedTransactionAPI, spoofed)
+            def transaction_with_gas(gas: int, access_list: AccessEntries = ()) -> Any:
+                fields: dict[str, Any] = {
+                    "nonce": nonce,
+                    "gas_price": 0,
+                    "gas": gas,
+                    "to": request.to,
+                    "value": request.value,
+                    "data": request.data,
+                }
+                if access_list:
+                    builder = vm_class.get_transaction_builder()
+                    unsigned: Any = builder.new_unsigned_access_list_transaction(  # type: ignore[attr-defined]
+                        chain_id=CHAIN_ID, access_list=access_list, **fields
+                    )
+                else:
+                    unsigned = vm_class.create_unsigned_transaction(**fields)
+                return SpoofTransaction(unsigned, from_=request.sender)
 
             intrinsic = int(transaction_with_gas(allowance).intrinsic_gas)
             if allowance < intrinsic:
@@ -278,6 +293,9 @@ class EmbeddedChain:
             price = request.effective_gas_price(int(state.execution_context.base_fee_per_gas or 0))
             if estimate:
                 return estimate_gas(state, transaction_with_gas, price, allowance)
+            if mode == "access_list":
+                excluded = {request.sender, request.to, bytes(header.coinbase)}
+                return create_access_list(state, transaction_with_gas, price, allowance, excluded)
             computation = execute(state, transaction_with_gas(allowance), price)
             computation.raise_if_error()
             return computation.output

@@ -17,6 +17,7 @@ from services.ledger.calls import CallLimits
 from services.ledger.chain import ChainError, EmbeddedChain, MinedBlock
 from services.ledger.contracts import Deployment, apply_registration_mode, deploy, send_as
 from services.ledger.faucet import FaucetLimits
+from services.ledger.filters import Filters
 from services.ledger.index import EventIndex
 from services.ledger.operator import OperatorKeys, load_or_create, passphrase
 from services.ledger.rpc import Dispatcher, EmbeddedMethods
@@ -52,6 +53,7 @@ class EmbeddedLedger:
         faucet_amount_wei: int,
         call_limits: CallLimits,
         registration_mode: RegistrationMode,
+        filters: Filters,
     ) -> None:
         keys: OperatorKeys = load_or_create(data_dir, passphrase(data_dir, configured_passphrase))
         self.faucet_key = keys.faucet
@@ -67,7 +69,7 @@ class EmbeddedLedger:
         )
         self.catch_up()
         self.chain.on_block(self._index_block)
-        self.dispatcher = Dispatcher(EmbeddedMethods(self.chain, self.index).table())
+        self.dispatcher = Dispatcher(EmbeddedMethods(self.chain, self.index, filters).table())
         log.info(
             "embedded chain ready",
             extra={

@@ -12,9 +12,12 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from typing import Any
 
+from eth.abc import BlockAPI
 from eth_utils.address import is_hex_address
+from eth_utils.crypto import keccak
 
 import robocloud
 from robocloud import bounded_json
@@ -26,7 +29,8 @@ from services.ledger.chain import (
     EmbeddedChain,
     InvalidParams,
 )
-from services.ledger.index import EventIndex, IndexLimitError, LogFilter
+from services.ledger.filters import MAX_OPTIONS, MAX_TOPICS, Filters, LogCriteria
+from services.ledger.index import EventIndex, IndexLimitError
 
 log = logging.getLogger("robocloud.ledger.rpc")
 
@@ -41,6 +45,8 @@ MAX_DEPTH = 32
 MAX_ID_LENGTH = 128
 PRIORITY_FEE_WEI = 10**9
 NAMED_TAGS = ("latest", "pending", "earliest", "safe", "finalized")
+PROTOCOL_VERSION = 68
+"""eth/68, the wire protocol geth answered ``eth_protocolVersion`` with."""
 
 Method = Callable[[list[Any]], Any]
 
@@ -194,6 +200,12 @@ def as_quantity(value: Any, what: str) -> int:
         raise InvalidParams(f"invalid {what}: {value!r}") from exc
 
 
+def _transaction_at(block: BlockAPI | None, index: int) -> Any:
+    if block is None or index >= len(block.transactions):
+        return None
+    return encoding.transaction(block, index, block.transactions[index])
+
+
 def _optional_quantity(value: dict[str, Any], key: str) -> int | None:
     return as_quantity(value[key], key) if value.get(key) is not None else None
 
@@ -201,9 +213,10 @@ def _optional_quantity(value: dict[str, Any], key: str) -> int | None:
 class EmbeddedMethods:
     """The ``eth_*`` methods over the embedded chain and its event index."""
 
-    def __init__(self, chain: EmbeddedChain, index: EventIndex) -> None:
+    def __init__(self, chain: EmbeddedChain, index: EventIndex, filters: Filters) -> None:
         self.chain = chain
         self.index = index
+        self.filters = filters
 
     def table(self) -> dict[str, Method]:
         return {
@@ -230,6 +243,20 @@ class EmbeddedMethods:
             "eth_estimateGas": self.estimate_gas,
             "eth_sendRawTransaction": self.send_raw_transaction,
             "eth_getLogs": self.logs,
+            "eth_newFilter": self.new_filter,
+            "eth_newBlockFilter": self.new_block_filter,
+            "eth_getFilterChanges": self.filter_changes,
+            "eth_getFilterLogs": self.filter_logs,
+            "eth_uninstallFilter": self.uninstall_filter,
+            "eth_getBlockReceipts": self.block_receipts,
+            "eth_getBlockTransactionCountByNumber": self.transaction_count_by_number,
+            "eth_getBlockTransactionCountByHash": self.transaction_count_by_hash,
+            "eth_getTransactionByBlockNumberAndIndex": self.transaction_by_number_and_index,
+            "eth_getTransactionByBlockHashAndIndex": self.transaction_by_hash_and_index,
+            "eth_createAccessList": self.create_access_list,
+            "eth_coinbase": lambda _: encoding.address(self.chain.head().coinbase),
+            "web3_sha3": lambda params: encoding.data(keccak(as_bytes(param(params, 0), "data"))),
+            "eth_protocolVersion": lambda _: encoding.quantity(PROTOCOL_VERSION),
         }
 
     # ----- blocks and transactions -----
@@ -269,6 +296,35 @@ class EmbeddedMethods:
             return None
         receipts = self.chain.receipts(located.block)
         return encoding.receipt(located.block, receipts, located.index, located.transaction)
+
+    def block_receipts(self, params: list[Any]) -> Any:
+        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        if block is None:
+            return None
+        receipts = self.chain.receipts(block)
+        return [
+            encoding.receipt(block, receipts, index, transaction)
+            for index, transaction in enumerate(block.transactions)
+        ]
+
+    def _block_by_hash_param(self, value: Any) -> BlockAPI | None:
+        return self.chain.block_by_hash(as_bytes(value, "block hash", 32))
+
+    def transaction_count_by_number(self, params: list[Any]) -> Any:
+        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        return encoding.quantity(len(block.transactions)) if block is not None else None
+
+    def transaction_count_by_hash(self, params: list[Any]) -> Any:
+        block = self._block_by_hash_param(param(params, 0))
+        return encoding.quantity(len(block.transactions)) if block is not None else None
+
+    def transaction_by_number_and_index(self, params: list[Any]) -> Any:
+        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        return _transaction_at(block, as_quantity(param(params, 1), "index"))
+
+    def transaction_by_hash_and_index(self, params: list[Any]) -> Any:
+        block = self._block_by_hash_param(param(params, 0))
+        return _transaction_at(block, as_quantity(param(params, 1), "index"))
 
     def fee_history(self, params: list[Any]) -> Any:
         count = min(max(as_quantity(param(params, 0), "block count"), 1), 1024)
@@ -340,49 +396,109 @@ class EmbeddedMethods:
         gas = self.chain.estimate_gas(request, self.tag(param(params, 1, "latest")))
         return encoding.quantity(gas)
 
+    def create_access_list(self, params: list[Any]) -> Any:
+        request = self.call_request(param(params, 0))
+        found = self.chain.create_access_list(request, self.tag(param(params, 1, "latest")))
+        return {
+            "accessList": [
+                {
+                    "address": encoding.address(address),
+                    "storageKeys": [encoding.data(slot.to_bytes(32, "big")) for slot in slots],
+                }
+                for address, slots in found.entries
+            ],
+            "gasUsed": encoding.quantity(found.gas_used),
+        }
+
     def send_raw_transaction(self, params: list[Any]) -> Any:
         raw = as_bytes(param(params, 0), "raw transaction")
         mined = self.chain.send_raw_transaction(raw)
         return encoding.data(mined.block.transactions[0].hash)
 
-    # ----- logs -----
+    # ----- logs and filters -----
 
-    def logs(self, params: list[Any]) -> Any:
-        query = param(params, 0)
+    def log_criteria(self, query: Any) -> LogCriteria:
+        """``eth_getLogs``/``eth_newFilter`` criteria, validated as nodes validate them."""
         if not isinstance(query, dict):
             raise InvalidParams("invalid filter: expected an object")
-        head = self.chain.head().block_number
-        block_hash = None
-        if query.get("blockHash"):
-            block_hash = as_bytes(query["blockHash"], "block hash", 32)
-            block = self.chain.block_by_hash(block_hash)
-            if block is None:
-                raise ChainError(f"block {query['blockHash']} not found")
-            first = last = int(block.number)
-        else:
-            first = self._bound(query.get("fromBlock", "latest"), head)
-            last = self._bound(query.get("toBlock", "latest"), head)
         addresses = query.get("address") or []
         if isinstance(addresses, str):
             addresses = [addresses]
+        raw_topics = query.get("topics") or []
+        if not isinstance(addresses, list) or not isinstance(raw_topics, list):
+            raise InvalidParams("invalid filter: address and topics must be arrays")
+        if len(raw_topics) > MAX_TOPICS:
+            raise InvalidParams("exceeded maximum topics len")
         topics: list[tuple[bytes, ...] | None] = []
-        for position in query.get("topics") or []:
+        for position in raw_topics:
             if position is None:
                 topics.append(None)
-            else:
-                options = position if isinstance(position, list) else [position]
-                topics.append(tuple(as_bytes(t, "topic", 32) for t in options))
-        log_filter = LogFilter(
-            from_block=first,
-            to_block=last,
+                continue
+            options = position if isinstance(position, list) else [position]
+            if len(options) > MAX_OPTIONS:
+                raise InvalidParams(f"too many topics at one position: at most {MAX_OPTIONS}")
+            topics.append(tuple(as_bytes(t, "topic", 32) for t in options if t is not None))
+        if len(addresses) > MAX_OPTIONS:
+            raise InvalidParams(f"too many addresses: at most {MAX_OPTIONS}")
+        criteria = LogCriteria(
+            from_block=self.tag(query.get("fromBlock") or "latest"),
+            to_block=self.tag(query.get("toBlock") or "latest"),
             addresses=tuple(as_address(a) for a in addresses),
-            topics=tuple(topics),
-            block_hash=block_hash,
+            topics=tuple(t if t else None for t in topics),
         )
-        return [entry.to_rpc() for entry in self.index.logs(log_filter)]
+        if query.get("blockHash") is None:
+            return criteria
+        if query.get("fromBlock") is not None or query.get("toBlock") is not None:
+            raise InvalidParams(
+                "cannot specify both blockHash and fromBlock/toBlock, choose one or the other"
+            )
+        block_hash = as_bytes(query["blockHash"], "block hash", 32)
+        block = self.chain.block_by_hash(block_hash)
+        if block is None:
+            raise ChainError("unknown block")
+        return replace(criteria, block_hash=block_hash, block_number=int(block.number))
 
-    def _bound(self, value: Any, head: int) -> int:
-        tag = self.tag(value)
-        if tag == "earliest":
-            return 0
-        return head if isinstance(tag, str) else tag
+    def logs(self, params: list[Any]) -> Any:
+        criteria = self.log_criteria(param(params, 0))
+        found = self.index.logs(criteria.resolve(self.chain.head().block_number))
+        return [entry.to_rpc() for entry in found]
+
+    def new_filter(self, params: list[Any]) -> Any:
+        criteria = self.log_criteria(param(params, 0))
+        head = self.chain.head().block_number
+        criteria.resolve(head)  # refused now, as eth_getLogs would be, not at the first poll
+        return self.filters.install(criteria, head)
+
+    def new_block_filter(self, params: list[Any]) -> Any:
+        return self.filters.install(None, self.chain.head().block_number)
+
+    def filter_changes(self, params: list[Any]) -> Any:
+        filter_id = _filter_id(param(params, 0))
+        changes = self.filters.changes(filter_id, self.chain.head().block_number)
+        if changes.criteria is None:
+            answer: list[Any] = []
+            for number in range(changes.first, changes.last + 1):
+                block = self.chain.block_by_number(number)
+                if block is not None:
+                    answer.append(encoding.data(block.hash))
+        elif changes.first > changes.last:
+            answer = []
+        else:
+            window = changes.criteria.window(changes.first, changes.last)
+            answer = [entry.to_rpc() for entry in self.index.logs(window)] if window else []
+        self.filters.reported(filter_id, changes.last)
+        return answer
+
+    def filter_logs(self, params: list[Any]) -> Any:
+        criteria = self.filters.criteria(_filter_id(param(params, 0)))
+        found = self.index.logs(criteria.resolve(self.chain.head().block_number))
+        return [entry.to_rpc() for entry in found]
+
+    def uninstall_filter(self, params: list[Any]) -> Any:
+        return self.filters.uninstall(_filter_id(param(params, 0)))
+
+
+def _filter_id(value: Any) -> str:
+    if not isinstance(value, str) or not value.startswith("0x") or len(value) > 66:
+        raise InvalidParams(f"invalid filter id: {value!r}")
+    return value.lower()

@@ -31,6 +31,12 @@ class LedgerSettings(ServiceSettings):
     ledger_rpc_evm_timeout_s: float = Field(
         default=5.0, gt=0, description="wall-clock limit of one eth_call or eth_estimateGas"
     )
+    ledger_max_filters: int = Field(
+        default=1000, gt=0, description="filters (eth_newFilter, eth_newBlockFilter) at once"
+    )
+    ledger_filter_timeout_s: float = Field(
+        default=300.0, gt=0, description="a filter nobody polls for this long is removed"
+    )
     ledger_registration_mode: Literal["open", "approved"] = Field(
         default="open",
         description="open: robots register themselves; approved: a registrar approves each",
