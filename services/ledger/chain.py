@@ -219,6 +219,11 @@ class EmbeddedChain:
         with self._lock:
             return int(self._state(tag).get_storage(address, slot))
 
+    def next_header(self, header: BlockHeaderAPI) -> BlockHeaderAPI:
+        """The header a child of ``header`` would have (its base fee, its blob fields)."""
+        with self._lock:
+            return self._chain.create_header_from_parent(header)
+
     def base_fee(self) -> int:
         """The base fee the next block will charge."""
         with self._lock:

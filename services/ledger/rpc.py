@@ -21,7 +21,7 @@ from eth_utils.crypto import keccak
 
 import robocloud
 from robocloud import bounded_json
-from services.ledger import encoding
+from services.ledger import encoding, fees
 from services.ledger.chain import (
     BlockTag,
     CallRequest,
@@ -45,6 +45,8 @@ MAX_DEPTH = 32
 MAX_ID_LENGTH = 128
 PRIORITY_FEE_WEI = 10**9
 NAMED_TAGS = ("latest", "pending", "earliest", "safe", "finalized")
+MAX_FEE_HISTORY_BLOCKS = 1024
+MAX_PERCENTILES = 100
 PROTOCOL_VERSION = 68
 """eth/68, the wire protocol geth answered ``eth_protocolVersion`` with."""
 
@@ -200,6 +202,22 @@ def as_quantity(value: Any, what: str) -> int:
         raise InvalidParams(f"invalid {what}: {value!r}") from exc
 
 
+def _percentiles(value: Any) -> list[float] | None:
+    """Reward percentiles as geth checks them: numbers from 0 to 100, ascending."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) > MAX_PERCENTILES:
+        raise InvalidParams(f"invalid reward percentiles: at most {MAX_PERCENTILES} numbers")
+    previous = 0.0
+    for item in value:
+        if isinstance(item, bool) or not isinstance(item, int | float):
+            raise InvalidParams(f"invalid reward percentile: {item!r}")
+        if not 0 <= item <= 100 or item < previous:
+            raise InvalidParams(f"invalid reward percentile: {item}")
+        previous = float(item)
+    return [float(item) for item in value]
+
+
 def _transaction_at(block: BlockAPI | None, index: int) -> Any:
     if block is None or index >= len(block.transactions):
         return None
@@ -327,21 +345,33 @@ class EmbeddedMethods:
         return _transaction_at(block, as_quantity(param(params, 1), "index"))
 
     def fee_history(self, params: list[Any]) -> Any:
-        count = min(max(as_quantity(param(params, 0), "block count"), 1), 1024)
+        """geth's ``eth_feeHistory``: base fees (one more, the next block's), gas used
+        ratios, the blob fields, and the tips actually paid at the requested percentiles of
+        each block's gas (weighted by the gas each transaction used)."""
+        count = min(max(as_quantity(param(params, 0), "block count"), 1), MAX_FEE_HISTORY_BLOCKS)
         newest = self.chain.header_at(self.tag(param(params, 1, "latest"))).block_number
-        percentiles = param(params, 2, []) or []
+        percentiles = _percentiles(param(params, 2, None))
         oldest = max(newest - count + 1, 0)
         headers = [self.chain.header_at(n) for n in range(oldest, newest + 1)]
+        next_header = self.chain.next_header(headers[-1])
         body: dict[str, Any] = {
             "oldestBlock": encoding.quantity(oldest),
             "baseFeePerGas": [encoding.quantity(encoding.base_fee(h)) for h in headers]
-            + [encoding.quantity(self.chain.base_fee())],
+            + [encoding.quantity(encoding.base_fee(next_header))],
             "gasUsedRatio": [h.gas_used / h.gas_limit for h in headers],
+            "baseFeePerBlobGas": [
+                encoding.quantity(fees.blob_base_fee(h)) for h in [*headers, next_header]
+            ],
+            "blobGasUsedRatio": [fees.blob_gas_used_ratio(h) for h in headers],
         }
-        if percentiles:
-            body["reward"] = [[encoding.quantity(PRIORITY_FEE_WEI)] * len(percentiles)] * len(
-                headers
-            )
+        if percentiles is not None:
+            rewards = []
+            for header in headers:
+                block = self.chain.block_by_number(header.block_number)
+                assert block is not None
+                paid = fees.tips_paid(block, self.chain.receipts(block))
+                rewards.append([encoding.quantity(tip) for tip in fees.rewards(paid, percentiles)])
+            body["reward"] = rewards
         return body
 
     # ----- accounts -----
