@@ -30,6 +30,7 @@ def open_ledger(settings: LedgerSettings) -> Ledger:
         limits,
         settings.ledger_faucet_amount_wei,
         settings.call_limits(),
+        settings.pool_limits(),
         settings.registration_mode(),
         Filters(settings.ledger_max_filters, settings.ledger_filter_timeout_s),
     )

@@ -41,6 +41,7 @@ from services.ledger.calls import (
     execute,
 )
 from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
+from services.ledger.pool import PendingPool, PoolLimits
 from services.ledger.refusals import ChainError as ChainError
 from services.ledger.refusals import InvalidParams as InvalidParams
 from services.ledger.refusals import Reverted as Reverted
@@ -92,6 +93,15 @@ class MinedBlock:
 
 
 @dataclass(frozen=True)
+class Submitted:
+    """A transaction accepted: the blocks it caused to be mined (itself first, then any of
+    its sender's waiting transactions it made next), or none when it waits in the pool."""
+
+    hash: bytes
+    mined: tuple[MinedBlock, ...]
+
+
+@dataclass(frozen=True)
 class Located:
     """A transaction and where it sits in the canonical chain."""
 
@@ -111,8 +121,10 @@ class EmbeddedChain:
         path: Path,
         genesis_state: Mapping[bytes, Any] | None = None,
         call_limits: CallLimits | None = None,
+        pool_limits: PoolLimits | None = None,
     ) -> None:
         self._lock = threading.RLock()
+        self._pool = PendingPool(pool_limits or PoolLimits())
         self._chain, self._db = open_chain(path, genesis_state)
         self._path = path
         self.call_limits = call_limits or CallLimits()
@@ -357,16 +369,43 @@ class EmbeddedChain:
             raise InvalidParams(f"invalid raw transaction: {type(exc).__name__}: {exc}") from exc
         return transaction
 
-    def send_raw_transaction(self, raw: bytes) -> MinedBlock:
-        """Validate, execute and mine ``raw`` in a new block, durable before this returns."""
+    def send_raw_transaction(self, raw: bytes) -> Submitted:
+        """Validate ``raw``; mine it in a new block, durable before this returns, with any
+        waiting transactions of its sender it makes next; or, if its nonce is ahead of its
+        sender's, queue it until the gap closes."""
         transaction = self.decode(raw)
         with self._lock:
-            self._check(transaction)
-            return self._mine(transaction)
+            self._pool.expire()
+            if self._check(transaction):
+                self._pool.add(transaction)
+                return Submitted(transaction.hash, ())
+            mined = [self._mine(transaction)]
+            mined.extend(self._promote(transaction.sender))
+            return Submitted(transaction.hash, tuple(mined))
 
-    def _check(self, transaction: SignedTransactionAPI) -> None:
+    def _promote(self, sender: bytes) -> list[MinedBlock]:
+        """Mine the sender's waiting transactions while each is the next by nonce; one no
+        longer valid (its sender's balance fell) is dropped, and the rest wait again."""
+        mined: list[MinedBlock] = []
+        while True:
+            expected = self._chain.get_vm().state.get_nonce(Address(sender))
+            waiting = self._pool.take(sender, expected)
+            if waiting is None:
+                return mined
+            try:
+                self._check(waiting)
+                mined.append(self._mine(waiting))
+            except ChainError as exc:
+                log.info(
+                    "waiting transaction dropped",
+                    extra={"tx": "0x" + waiting.hash.hex(), "reason": exc.message},
+                )
+                return mined
+
+    def _check(self, transaction: SignedTransactionAPI) -> bool:
         """Every validity rule, in geth's order: the transaction's own fields, then its
-        sender's account at the head (code, nonce, balance) and the next block's base fee."""
+        sender's account at the head (code, nonce, balance) and the next block's base fee.
+        True when the transaction is valid but for a nonce ahead of its sender's."""
         head = self._chain.get_canonical_head()
         validation.check_fields(transaction, CHAIN_ID, head.gas_limit)
         state = self._chain.get_vm().state
@@ -380,18 +419,13 @@ class EmbeddedChain:
                 f"nonce too low: address 0x{sender.hex()} has nonce {expected}, "
                 f"transaction has {transaction.nonce}"
             )
-        if transaction.nonce > expected:
-            raise ChainError(
-                f"nonce too high: address 0x{sender.hex()} has nonce {expected}, "
-                f"transaction has {transaction.nonce} (this chain mines at once and keeps no "
-                "queue of future transactions)"
-            )
         cost = validation.max_cost(transaction)
         balance = state.get_balance(sender)
         if balance < cost:
             raise ChainError(
                 f"insufficient funds for gas * price + value: balance {balance}, cost {cost}"
             )
+        return bool(transaction.nonce > expected)
 
     def _mine(self, transaction: SignedTransactionAPI) -> MinedBlock:
         """Execute and mine one block as one SQLite transaction (one fsync, all or nothing).

@@ -20,6 +20,7 @@ from services.ledger.faucet import FaucetLimits
 from services.ledger.filters import Filters
 from services.ledger.index import EventIndex
 from services.ledger.operator import OperatorKeys, load_or_create, passphrase
+from services.ledger.pool import PoolLimits
 from services.ledger.rpc import Dispatcher, EmbeddedMethods
 
 log = logging.getLogger("robocloud.ledger")
@@ -52,6 +53,7 @@ class EmbeddedLedger:
         limits: FaucetLimits,
         faucet_amount_wei: int,
         call_limits: CallLimits,
+        pool_limits: PoolLimits,
         registration_mode: RegistrationMode,
         filters: Filters,
     ) -> None:
@@ -59,7 +61,9 @@ class EmbeddedLedger:
         self.faucet_key = keys.faucet
         self.limits = limits
         self.faucet_amount_wei = faucet_amount_wei
-        self.chain = EmbeddedChain(data_dir / "chain.sqlite", keys.genesis_state(), call_limits)
+        self.chain = EmbeddedChain(
+            data_dir / "chain.sqlite", keys.genesis_state(), call_limits, pool_limits
+        )
         self.chain_id = self.chain.chain_id
         self.deployment = deploy(self.chain, keys.admin)
         if apply_registration_mode(self.chain, keys.admin, self.deployment, registration_mode):

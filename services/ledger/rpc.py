@@ -442,8 +442,7 @@ class EmbeddedMethods:
 
     def send_raw_transaction(self, params: list[Any]) -> Any:
         raw = as_bytes(param(params, 0), "raw transaction")
-        mined = self.chain.send_raw_transaction(raw)
-        return encoding.data(mined.block.transactions[0].hash)
+        return encoding.data(self.chain.send_raw_transaction(raw).hash)
 
     # ----- logs and filters -----
 

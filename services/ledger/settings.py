@@ -9,6 +9,7 @@ from pydantic import Field, SecretStr
 from robocloud.ledger.models import RegistrationMode
 from services.common.settings import ServiceSettings
 from services.ledger.calls import CallLimits
+from services.ledger.pool import PoolLimits
 
 
 class LedgerSettings(ServiceSettings):
@@ -37,6 +38,15 @@ class LedgerSettings(ServiceSettings):
     ledger_filter_timeout_s: float = Field(
         default=300.0, gt=0, description="a filter nobody polls for this long is removed"
     )
+    ledger_pool_max_per_sender: int = Field(
+        default=64, gt=0, description="transactions one sender may have waiting for a nonce gap"
+    )
+    ledger_pool_max_total: int = Field(
+        default=1024, gt=0, description="transactions waiting for a nonce gap, all senders"
+    )
+    ledger_pool_timeout_s: float = Field(
+        default=3 * 3600.0, gt=0, description="a transaction waits this long, then is dropped"
+    )
     ledger_registration_mode: Literal["open", "approved"] = Field(
         default="open",
         description="open: robots register themselves; approved: a registrar approves each",
@@ -48,6 +58,11 @@ class LedgerSettings(ServiceSettings):
 
     def call_limits(self) -> CallLimits:
         return CallLimits(self.ledger_rpc_gas_cap, self.ledger_rpc_evm_timeout_s)
+
+    def pool_limits(self) -> PoolLimits:
+        return PoolLimits(
+            self.ledger_pool_max_per_sender, self.ledger_pool_max_total, self.ledger_pool_timeout_s
+        )
 
     def registration_mode(self) -> RegistrationMode:
         return RegistrationMode[self.ledger_registration_mode.upper()]
