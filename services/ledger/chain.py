@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -126,11 +127,16 @@ class EmbeddedChain:
         self._lock = threading.RLock()
         self._pool = PendingPool(pool_limits or PoolLimits())
         self._chain, self._db = open_chain(path, genesis_state)
+        self._transaction_builder = self._chain.get_vm_class(
+            self._chain.header
+        ).get_transaction_builder()
         self._path = path
         self.call_limits = call_limits or CallLimits()
         self._calls = SnapshotCalls(path, self.call_limits)
         self._listeners: list[BlockListener] = []
         self._recent: OrderedDict[bytes, tuple[SignedTransactionAPI, MinedBlock]] = OrderedDict()
+        self._recent_receipts: dict[bytes, tuple[ReceiptAPI, ...]] = {}
+        self._head = self._chain.get_canonical_head()
 
     @property
     def chain_id(self) -> int:
@@ -148,14 +154,15 @@ class EmbeddedChain:
     # ----- blocks -----
 
     def head(self) -> BlockHeaderAPI:
-        with self._lock:
-            return self._chain.get_canonical_head()
+        """The last mined block's header; read without the lock (one attribute, replaced
+        whole after each commit), so that it never waits for a block being mined."""
+        return self._head
 
     def header_at(self, tag: BlockTag) -> BlockHeaderAPI:
         """The header a tag names; every mined block is final, so all named tags are the head."""
         with self._lock:
             if tag in ("latest", "pending", "safe", "finalized"):
-                return self._chain.get_canonical_head()
+                return self._head
             if tag == "earliest":
                 return self._chain.get_canonical_block_header_by_number(0)  # type: ignore[arg-type]
             if not isinstance(tag, int) or tag < 0:
@@ -188,11 +195,21 @@ class EmbeddedChain:
             return block
 
     def receipts(self, block: BlockAPI) -> tuple[ReceiptAPI, ...]:
+        recent = self._recent_receipts.get(block.hash)
+        if recent is not None:
+            return recent
         with self._lock:
-            for _, mined in self._recent.values():
-                if mined.block.hash == block.hash:
-                    return mined.receipts
             return tuple(block.get_receipts(self._chain.chaindb))
+
+    def recent(self, tx_hash: bytes) -> Located | None:
+        """A transaction among the last mined, without the lock (a lookup in a dict that
+        only the mining thread changes): the receipt a client asks for right after sending
+        is answered without waiting for the next block, and without a worker thread."""
+        found = self._recent.get(tx_hash)
+        return Located(found[0], found[1].block, 0) if found is not None else None
+
+    def recent_receipts(self, block_hash: bytes) -> tuple[ReceiptAPI, ...] | None:
+        return self._recent_receipts.get(block_hash)
 
     def locate(self, tx_hash: bytes) -> Located | None:
         """Where a mined transaction is, from py-evm's own hash index (not a scan).
@@ -361,7 +378,7 @@ class EmbeddedChain:
         validation.check_raw_size(raw)
         if raw[0] == BLOB_TRANSACTION_TYPE:
             raise ChainError("blob transactions (type 3) are not supported by this chain")
-        builder = self._chain.get_vm().get_transaction_builder()
+        builder = self._transaction_builder
         try:
             transaction = builder.decode(raw)
             transaction.sender  # noqa: B018 - recovers the signer, which can fail
@@ -430,16 +447,19 @@ class EmbeddedChain:
     def _mine(self, transaction: SignedTransactionAPI) -> MinedBlock:
         """Execute and mine one block as one SQLite transaction (one fsync, all or nothing).
 
-        The pending header is rebuilt first so that the block's timestamp is now, not when
-        the previous block was mined. Listeners run after the commit: a failing listener
-        cannot undo an acknowledged block (the event index catches up from the store).
+        The pending header gets the time now, not when the previous block was mined (only
+        its timestamp changes: the base fee and blob fields follow from the parent alone, so
+        rebuilding the whole header would be wasted). Listeners run after the commit: a
+        failing listener cannot undo an acknowledged block (the event index catches up from
+        the store).
         """
-        head = self._chain.get_canonical_head()
-        self._chain.header = self._chain.create_header_from_parent(head)
+        pending = self._chain.header
+        self._chain.header = pending.copy(timestamp=max(pending.timestamp, int(time.time())))
+        parent_hash = pending.parent_hash
         try:
             with self._db.store.transaction():
                 result, receipts, _ = self._chain.mine_all(
-                    [transaction], mix_hash=keccak(head.hash)
+                    [transaction], mix_hash=keccak(parent_hash)
                 )
         except ValidationError as exc:
             self._chain = DevChain(self._db)
@@ -449,13 +469,16 @@ class EmbeddedChain:
             raise
         mined = MinedBlock(result.imported_block, tuple(receipts))
         self._recent[transaction.hash] = (transaction, mined)
+        self._recent_receipts[mined.block.hash] = mined.receipts
         if len(self._recent) > RECENT_BLOCKS:
-            self._recent.popitem(last=False)
+            _, (_, oldest) = self._recent.popitem(last=False)
+            self._recent_receipts.pop(oldest.block.hash, None)
         for listener in self._listeners:
             try:
                 listener(mined)
             except Exception:
                 log.exception("block listener failed", extra={"block": mined.block.number})
+        self._head = mined.block.header  # last: a reader seeing it finds the block indexed
         return mined
 
 

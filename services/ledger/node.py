@@ -73,7 +73,8 @@ class EmbeddedLedger:
         )
         self.catch_up()
         self.chain.on_block(self._index_block)
-        self.dispatcher = Dispatcher(EmbeddedMethods(self.chain, self.index, filters).table())
+        methods = EmbeddedMethods(self.chain, self.index, filters)
+        self.dispatcher = Dispatcher(methods.table(), inline=methods.inline_table())
         log.info(
             "embedded chain ready",
             extra={
