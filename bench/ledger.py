@@ -1,23 +1,31 @@
-"""Ledger throughput, event-index latency and restart time, against eth-tester in the same run.
+"""Ledger speed against anvil in the same run, event-index latency and restart time.
 
-1. Registration + advertisement throughput: robots sign their own transactions and send them
-   to the service's ``/rpc`` (``eth_sendRawTransaction`` + ``eth_getTransactionReceipt``),
-   against raw ``EthereumTester.send_transaction`` in this process doing the same calls on the
-   same contracts. The issue asks for at least 0.7x.
-2. Event-index queries: p50 of the index's ``eth_getLogs`` filter and of the advertisements
-   read over 10,000 Advertised events (the issue asks for at most 5 ms), and the ratio against
-   eth-tester's ``get_logs`` for the same query. eth-tester's ``get_logs`` is quadratic (1,000
-   events took 82 s in ENVIRONMENT.md), so that ratio is taken on the events of part 1: the
-   same query on the service's own index and on eth-tester's chain, which hold the same events.
-   Against the index over 10,000 events the same eth-tester time gives a lower bound.
-3. Restart: reopening the chain store and a whole service restart, with the chain of part 1.
+``transfers`` (the default part) answers issue 17:
 
-    python bench/ledger.py [--robots 60] [--events 10000] [--queries 200]
+1. Sequential sign-send-receipt: one robot signs a transfer, sends it with
+   ``eth_sendRawTransaction`` and asks for its receipt (until it has one: anvil mines after
+   answering), again and again; through the ledger's ``/rpc`` and through a fresh anvil on
+   the same machine, in alternating rounds so that both see the same machine load. The
+   ratio is the ledger's rate over anvil's (goal: at least 0.5x).
+2. Concurrency: 50 transactions sent at once (50 robots, then one robot's 50 nonces in a
+   shuffled order, which the pending pool puts back in order), the time until all are
+   accepted and until all are mined (goal: within 2 s).
+3. Where a transaction's time goes: the embedded chain in this process, each stage timed
+   (sender recovery, validity checks, execution, tries and block assembly, writing the
+   block, the fsync of the commit, the event index), and HTTP as the rest of the time one
+   transaction takes through /rpc.
+
+``index`` is the earlier benchmark: registration + advertisement throughput against raw
+eth-tester, the event index over 10,000 events against eth-tester's ``get_logs``, restart.
+
+    python bench/ledger.py [transfers|index] [--rounds 5] [--transactions 100]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import random
 import statistics
 import sys
 import tempfile
@@ -30,6 +38,7 @@ import httpx
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO), str(REPO / "clients")]
+os.environ.setdefault("ETH_HASH_BACKEND", "pysha3")  # as the service runs (its __main__)
 
 from eth_abi.abi import encode  # noqa: E402
 from eth_tester import EthereumTester  # noqa: E402
@@ -197,12 +206,7 @@ def tester_logs_ms(tester: EthereumTester, registry: str, cid: bytes, rounds: in
     return p50_ms(lambda: tester.get_logs(from_block=0, address=registry, topics=topics), rounds)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--robots", type=int, default=60)
-    parser.add_argument("--events", type=int, default=10_000)
-    parser.add_argument("--queries", type=int, default=200)
-    args = parser.parse_args()
+def index_part(args: argparse.Namespace) -> None:
     robots = [Identity.generate() for _ in range(args.robots)]
     txs = 2 * args.robots
 
@@ -273,6 +277,264 @@ def main() -> None:
         f"restart with {head} blocks: reopen chain store {reopen_ms:.1f} ms, "
         f"whole service stop+start until ready {restart_s:.2f} s"
     )
+
+
+# ----- transfers: the ledger against anvil -----
+
+
+class Node:
+    """One JSON-RPC endpoint over one kept-alive connection."""
+
+    def __init__(self, name: str, url: str) -> None:
+        self.name = name
+        self.url = url
+        self.client = httpx.Client(timeout=30)
+
+    def call(self, method: str, params: list[Any]) -> Any:
+        body = self.client.post(
+            self.url, json={"jsonrpc": "2.0", "id": 1, "method": method, "params": params}
+        ).json()
+        if "error" in body:
+            raise RuntimeError(f"{self.name} {method}: {body['error']}")
+        return body["result"]
+
+    def receipt(self, tx_hash: str) -> dict[str, Any]:
+        while True:
+            found = self.call("eth_getTransactionReceipt", [tx_hash])
+            if found is not None:
+                if found["status"] != "0x1":
+                    raise RuntimeError(f"{self.name}: {tx_hash} failed")
+                return dict(found)
+
+
+def transfer(robot: Identity, nonce: int) -> str:
+    signed = robot.account.sign_transaction(
+        {
+            "chainId": 1337,
+            "nonce": nonce,
+            "gas": 21_000,
+            "maxFeePerGas": 10**11,
+            "maxPriorityFeePerGas": 10**9,
+            "to": "0x" + "22" * 20,
+            "value": 1,
+        }
+    )
+    return "0x" + bytes(signed.raw_transaction).hex()
+
+
+def sequential_rate(node: Node, robot: Identity, count: int) -> float:
+    """Transactions per second, each signed, sent and its receipt read before the next."""
+    nonce = int(node.call("eth_getTransactionCount", [robot.address, "latest"]), 16)
+    started = time.perf_counter()
+    for offset in range(count):
+        node.receipt(node.call("eth_sendRawTransaction", [transfer(robot, nonce + offset)]))
+    return count / (time.perf_counter() - started)
+
+
+def concurrent_seconds(url: str, raws: list[str]) -> tuple[float, float]:
+    """Send ``raws`` at once, one connection each; seconds until all were accepted, and
+    until all were mined."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    nodes = [Node("node", url) for _ in raws]
+    started = time.perf_counter()
+    with ThreadPoolExecutor(len(raws)) as pool:
+        hashes = list(
+            pool.map(
+                lambda pair: pair[0].call("eth_sendRawTransaction", [pair[1]]),
+                zip(nodes, raws, strict=True),
+            )
+        )
+        accepted = time.perf_counter() - started
+        list(pool.map(lambda pair: pair[0].receipt(pair[1]), zip(nodes, hashes, strict=True)))
+    return accepted, time.perf_counter() - started
+
+
+def funded_robots(ledger_url: str, anvil: Node, count: int) -> list[Identity]:
+    robots = [Identity.generate() for _ in range(count)]
+    for robot in robots:
+        with ServiceClient(ledger_url, robot) as client:
+            client.post_json("/v1/faucet", {"address": robot.address})
+        anvil.call("anvil_setBalance", [robot.address, hex(10**20)])
+    return robots
+
+
+def breakdown(count: int) -> dict[str, float]:
+    """Milliseconds per transaction in each stage of the embedded chain, in this process."""
+    import eth.chains.base as chains
+    import eth.vm.base as vms
+
+    from services.ledger import encoding
+
+    timings: dict[str, float] = {}
+
+    def timed(stage: str, function: Callable[..., Any]) -> Callable[..., Any]:
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            started = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - started
+
+        return wrapper
+
+    robot = Identity.generate()
+    address = bytes.fromhex(robot.address[2:])
+    with tempfile.TemporaryDirectory() as tmp:
+        genesis = {address: {"balance": 10**24, "nonce": 0, "code": b"", "storage": {}}}
+        chain = EmbeddedChain(Path(tmp) / "chain.sqlite", genesis)
+        index = EventIndex(Path(tmp) / "index.sqlite", "0x" + "11" * 20, "0x" + "22" * 20)
+        chain.on_block(
+            timed(
+                "event index",
+                lambda mined: index.add_block(
+                    mined.block.number,
+                    mined.block.hash,
+                    encoding.block_logs(mined.block, mined.receipts),
+                ),
+            )
+        )
+        raws = [bytes.fromhex(transfer(robot, nonce)[2:]) for nonce in range(2 * count)]
+        originals = {
+            "apply_all_transactions": vms.VM.apply_all_transactions,
+            "set_block_transactions_and_withdrawals": vms.VM.set_block_transactions_and_withdrawals,
+            "mine_block": vms.VM.mine_block,
+            "persist_block": chains.Chain.persist_block,
+        }
+        store = chain._db.store
+        connection = store.connection
+
+        class TimedCommit:
+            def execute(self, sql: str, *args: Any) -> Any:
+                if sql != "COMMIT":
+                    return connection.execute(sql, *args)
+                started = time.perf_counter()
+                try:
+                    return connection.execute(sql, *args)
+                finally:
+                    timings["commit (fsync)"] = timings.get("commit (fsync)", 0.0) + (
+                        time.perf_counter() - started
+                    )
+
+        for raw in raws[:count]:  # warm up
+            chain.send_raw_transaction(raw)
+        timings.clear()
+        chain.decode = timed("sender recovery (decode)", chain.decode)  # type: ignore[method-assign]
+        chain._check = timed("validity checks", chain._check)  # type: ignore[method-assign]
+        vms.VM.apply_all_transactions = timed("execution", originals["apply_all_transactions"])  # type: ignore[method-assign]
+        vms.VM.set_block_transactions_and_withdrawals = timed(  # type: ignore[method-assign]
+            "transaction and receipt tries", originals["set_block_transactions_and_withdrawals"]
+        )
+        vms.VM.mine_block = timed("state trie and block sealing", originals["mine_block"])  # type: ignore[method-assign]
+        chains.Chain.persist_block = timed("writing the block", originals["persist_block"])  # type: ignore[method-assign]
+        store.connection = TimedCommit()  # type: ignore[assignment]
+        started = time.perf_counter()
+        try:
+            for raw in raws[count:]:
+                submitted = chain.send_raw_transaction(raw)
+                located = chain.locate(submitted.hash)
+                assert located is not None
+                encoding.receipt(
+                    located.block, chain.receipts(located.block), 0, located.transaction
+                )
+            total = time.perf_counter() - started
+        finally:
+            for name, original in originals.items():
+                owner = chains.Chain if name == "persist_block" else vms.VM
+                setattr(owner, name, original)
+            store.connection = connection
+        index.close()
+        chain.close()
+    stages = {stage: seconds / count * 1000 for stage, seconds in timings.items()}
+    stages["in-process total"] = total / count * 1000
+    return stages
+
+
+def transfers_part(args: argparse.Namespace) -> None:
+    from tests.integration.robocloud.ledger.nodes import ethereum_node
+
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {
+            "ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": "bench",
+            "ROBOCLOUD_LEDGER_FAUCET_PER_MINUTE": "100000",
+        }
+        process = ServiceProcess("ledger", Path(tmp) / "ledger", env).start()
+        try:
+            with ethereum_node(Path(tmp) / "anvil.log") as anvil_url:
+                ledger = Node("ledger", f"{process.url}/rpc")
+                anvil = Node("anvil", anvil_url)
+                robots = funded_robots(process.url, anvil, 2 + 2 * args.rounds)
+                ours, theirs = [], []
+                print(f"sequential sign-send-receipt transfers, {args.transactions} per round")
+                for round_ in range(args.rounds):
+                    first, second = (ledger, anvil) if round_ % 2 == 0 else (anvil, ledger)
+                    rates = {
+                        node.name: sequential_rate(node, robots[2 * round_ + i], args.transactions)
+                        for i, node in enumerate((first, second))
+                    }
+                    ours.append(rates["ledger"])
+                    theirs.append(rates["anvil"])
+                    print(
+                        f"  round {round_ + 1}: ledger {rates['ledger']:6.1f} tx/s, "
+                        f"anvil {rates['anvil']:6.1f} tx/s, "
+                        f"ratio {rates['ledger'] / rates['anvil']:.2f}x"
+                    )
+                ratio = statistics.median(o / t for o, t in zip(ours, theirs, strict=True))
+                print(
+                    f"  median: ledger {statistics.median(ours):.1f} tx/s, anvil "
+                    f"{statistics.median(theirs):.1f} tx/s, ratio {ratio:.2f}x (goal >= 0.50x)"
+                )
+                print("50 transactions at once (accepted / mined, seconds; goal: mined <= 2 s)")
+                many = funded_robots(process.url, anvil, 50)
+                for node_name, url in (("ledger", f"{process.url}/rpc"), ("anvil", anvil_url)):
+                    raws = [transfer(robot, 0) for robot in many]
+                    accepted, mined = concurrent_seconds(url, raws)
+                    print(f"  {node_name:6s} 50 robots:            {accepted:5.2f} / {mined:5.2f}")
+                single = robots[-1]
+                for node in (ledger, anvil):
+                    start = int(
+                        node.call("eth_getTransactionCount", [single.address, "latest"]), 16
+                    )
+                    nonces = list(range(start, start + 50))
+                    random.Random(17).shuffle(nonces)
+                    raws = [transfer(single, nonce) for nonce in nonces]
+                    url = f"{process.url}/rpc" if node is ledger else anvil_url
+                    accepted, mined = concurrent_seconds(url, raws)
+                    print(
+                        f"  {node.name:6s} one robot, 50 shuffled nonces: "
+                        f"{accepted:5.2f} / {mined:5.2f}"
+                    )
+                http_ms = 1000 / statistics.median(ours)
+        finally:
+            process.stop()
+    stages = breakdown(args.transactions)
+    print("where a transaction's time goes (ms per transaction)")
+    for stage, ms in stages.items():
+        print(f"  {stage:32s} {ms:6.3f}")
+    signer = Identity.generate()
+    started = time.perf_counter()
+    for nonce in range(args.transactions):
+        transfer(signer, nonce)
+    signing_ms = (time.perf_counter() - started) / args.transactions * 1000
+    rest = http_ms - stages["in-process total"] - signing_ms
+    print(f"  {'signing (the client, eth-account)':32s} {signing_ms:6.3f}")
+    print(f"  {'through /rpc (median round)':32s} {http_ms:6.3f}")
+    print(f"  {'HTTP and JSON, both requests':32s} {rest:6.3f}   (the difference)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("part", nargs="?", choices=("transfers", "index"), default="transfers")
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--transactions", type=int, default=100)
+    parser.add_argument("--robots", type=int, default=60)
+    parser.add_argument("--events", type=int, default=10_000)
+    parser.add_argument("--queries", type=int, default=200)
+    args = parser.parse_args()
+    if args.part == "transfers":
+        transfers_part(args)
+    else:
+        index_part(args)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from services.ledger.backend import open_ledger
 from services.ledger.errors import ERRORS
 from services.ledger.grants import RoleGrant, open_granter
 from services.ledger.node import Ledger
+from services.ledger.rpc import NOT_INLINE
 from services.ledger.settings import LedgerSettings
 
 log = logging.getLogger("robocloud.ledger")
@@ -56,7 +57,9 @@ def _router() -> APIRouter:
         """Ethereum JSON-RPC 2.0: single calls and batches."""
         ledger = _ledger(request)
         body = await request.body()
-        answer = await anyio.to_thread.run_sync(ledger.dispatcher.handle, body)
+        answer = ledger.dispatcher.handle_inline(body)
+        if answer is NOT_INLINE:
+            answer = await anyio.to_thread.run_sync(ledger.dispatcher.handle, body)
         if answer is None:
             return Response(status_code=204)
         return JSONResponse(answer)

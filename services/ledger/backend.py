@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from services.ledger.external import ExternalLedger
 from services.ledger.faucet import FaucetLimits
+from services.ledger.filters import Filters
 from services.ledger.node import EmbeddedLedger, Ledger
 from services.ledger.settings import LedgerSettings
 
@@ -29,5 +30,7 @@ def open_ledger(settings: LedgerSettings) -> Ledger:
         limits,
         settings.ledger_faucet_amount_wei,
         settings.call_limits(),
+        settings.pool_limits(),
         settings.registration_mode(),
+        Filters(settings.ledger_max_filters, settings.ledger_filter_timeout_s),
     )

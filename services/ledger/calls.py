@@ -12,19 +12,24 @@ changes. So a slow call delays nobody's transaction or read.
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
-from eth.abc import BlockHeaderAPI
+from eth.abc import BlockHeaderAPI, ComputationAPI, SignedTransactionAPI, StateAPI
 from eth.consensus.applier import ConsensusApplier
 from eth.consensus.noproof import NoProofConsensus
+from eth.exceptions import Revert
+from eth.vm.chain_context import ChainContext
+from eth.vm.forks.frontier.validation import validate_frontier_transaction
 from eth.vm.forks.prague import PragueVM
 from eth.vm.forks.prague.computation import PragueComputation
 from eth.vm.forks.prague.state import PragueState
+from eth_typing import Address, Hash32
 
 from services.ledger.chaindb import DevChain, DurableAtomicDB
 
@@ -60,19 +65,93 @@ class BoundedComputation(PragueComputation):
         super().consume_gas(amount, reason)
 
 
+AccessEntries = tuple[tuple[bytes, tuple[int, ...]], ...]
+"""An EIP-2930 access list: addresses, each with its storage slots."""
+
+
+class AccessRecorder:
+    """Every account and storage slot a call warms, in order of first access."""
+
+    def __init__(self) -> None:
+        self.accounts: dict[bytes, dict[int, None]] = {}
+
+    def account(self, address: bytes) -> None:
+        self.accounts.setdefault(bytes(address), {})
+
+    def slot(self, address: bytes, slot: int) -> None:
+        self.accounts.setdefault(bytes(address), {})[slot] = None
+
+    def entries(self, excluded: set[bytes]) -> AccessEntries:
+        """As geth's access-list tracer: ``excluded`` accounts (sender, recipient, coinbase,
+        precompiles: warm anyway) appear only for the slots touched in them."""
+        return tuple(
+            (address, tuple(slots))
+            for address, slots in self.accounts.items()
+            if slots or (address not in excluded and not _is_precompile(address))
+        )
+
+
+def _is_precompile(address: bytes) -> bool:
+    """Prague's precompiles sit at 0x01 to 0x11."""
+    return address[:19] == bytes(19) and 1 <= address[19] <= 0x11
+
+
+class CallState(PragueState):
+    """A free call's state: the block's base fee stays visible to ``BASEFEE``, but the call
+    pays nothing, so the fee checks of a real transaction do not apply (geth's NoBaseFee);
+    the sender's nonce and its balance for the value still do. ``recorder``, when set,
+    sees every account and slot the call warms (``eth_createAccessList``)."""
+
+    computation_class = BoundedComputation
+    recorder: AccessRecorder | None = None
+
+    def mark_address_warm(self, address: Address) -> None:
+        if self.recorder is not None:
+            self.recorder.account(address)
+        super().mark_address_warm(address)
+
+    def mark_storage_warm(self, address: Address, slot: int) -> None:
+        if self.recorder is not None:
+            self.recorder.slot(address, slot)
+        super().mark_storage_warm(address, slot)
+
+    def validate_transaction(self, transaction: SignedTransactionAPI) -> None:
+        validate_frontier_transaction(self, transaction)
+
+
 class SnapshotChain(DevChain):
     """The development chain's rules with the bounded computation, for reads only."""
 
     vm_configuration = ConsensusApplier(NoProofConsensus).amend_vm_configuration(
-        (
-            (
-                0,
-                PragueVM.configure(
-                    _state_class=PragueState.configure(computation_class=BoundedComputation)
-                ),
-            ),
-        )
+        ((0, PragueVM.configure(_state_class=CallState)),)
     )
+
+    def state_for_call(self, header: BlockHeaderAPI, pending: bool) -> StateAPI:
+        """The state a call at ``header`` runs on, in that block's own context.
+
+        As geth and anvil do, a call at a mined block sees that block's number, timestamp,
+        base fee and coinbase, on the state after it; ``pending`` sees the block that would
+        be mined next (number + 1, the time now, the next base fee) on the same state.
+        """
+        vm_class = self.get_vm_class(header)
+        ancestors = vm_class.get_prev_hashes(header.parent_hash, self.chaindb)
+        if pending:
+            context = self.create_header_from_parent(header)
+            previous: Iterable[Hash32] = itertools.chain((header.hash,), ancestors or ())
+        else:
+            context, previous = header, ancestors or ()
+        return vm_class.build_state(self.chaindb.db, context, ChainContext(self.chain_id), previous)
+
+
+def execute(state: StateAPI, transaction: SignedTransactionAPI, gas_price: int) -> ComputationAPI:
+    """Run ``transaction`` for free on ``state`` and undo it; ``GASPRICE`` reads
+    ``gas_price``."""
+    snapshot = state.snapshot()
+    try:
+        with state.override_transaction_context(gas_price=gas_price):
+            return state.apply_transaction(transaction.copy(gas_price=0))
+    finally:
+        state.revert(snapshot)
 
 
 class SnapshotCalls:
@@ -109,3 +188,108 @@ class SnapshotCalls:
             for db in self._opened:
                 db.close()
             self._opened.clear()
+
+
+class GasAllowanceExceeded(Exception):
+    """The call fails even with all the gas it may have (not a revert)."""
+
+    def __init__(self, allowance: int) -> None:
+        super().__init__(f"gas required exceeds allowance ({allowance})")
+        self.allowance = allowance
+
+
+ESTIMATE_TOLERANCE = 100
+"""The search stops once ``hi - lo <= lo / 100``: the answer is at most 1 % above the least
+gas that succeeds (geth stops at 1.5 %)."""
+CALL_STIPEND = 2_300
+
+
+def estimate_gas(
+    state: StateAPI,
+    transaction_with_gas: Callable[[int], SignedTransactionAPI],
+    gas_price: int,
+    allowance: int,
+) -> int:
+    """The least gas (within 1 %) with which the call succeeds, by geth's binary search.
+
+    One run with the whole ``allowance`` decides whether the call can succeed at all (its
+    revert, or ``GasAllowanceExceeded``); the gas it used, net of refunds, bounds the answer
+    from below. A first guess just above what it used, plus the stipend and the 63/64 that
+    each nested call keeps back, nearly always succeeds, so the search then narrows a small
+    range. Failure at a lower gas, whatever its kind, means too little gas.
+    """
+
+    def run(gas: int) -> ComputationAPI:
+        return execute(state, transaction_with_gas(gas), gas_price)
+
+    whole = transaction_with_gas(allowance)
+    if not whole.data and whole.to and not state.get_code(whole.to):
+        return int(whole.intrinsic_gas)  # a plain transfer, as geth short-circuits it
+    first = run(allowance)
+    if first.is_error:
+        if isinstance(first.error, Revert):
+            first.raise_if_error()
+        raise GasAllowanceExceeded(allowance)
+    used = allowance - first.get_gas_remaining()
+    refund = min(first.get_gas_refund(), used // 5)
+    low, high = used - refund - 1, allowance
+    optimistic = (used + CALL_STIPEND) * 64 // 63
+    if optimistic < high:
+        if run(optimistic).is_error:
+            low = optimistic
+        else:
+            high = optimistic
+    while low + 1 < high and (high - low) * ESTIMATE_TOLERANCE > low:
+        middle = min((high + low) // 2, low * 2)
+        if run(middle).is_error:
+            low = middle
+        else:
+            high = middle
+    return high
+
+
+@dataclass(frozen=True)
+class AccessList:
+    """``eth_createAccessList``'s answer; ``error`` when the call fails even with it."""
+
+    entries: AccessEntries
+    gas_used: int
+    error: str | None = None
+
+
+ACCESS_LIST_ROUNDS = 4
+"""Listing accounts can change what a call does (it may read its own gas): geth reruns until
+the list is stable; so do we, this many times at most."""
+
+
+def create_access_list(
+    state: StateAPI,
+    transaction_with_gas: Callable[..., SignedTransactionAPI],
+    gas_price: int,
+    allowance: int,
+    excluded: set[bytes],
+) -> AccessList:
+    """The accounts and slots the call touches, and the gas it uses with them listed."""
+    entries: AccessEntries = ()
+    assert isinstance(state, CallState)
+    for _ in range(ACCESS_LIST_ROUNDS):
+        recorder = AccessRecorder()
+        state.recorder = recorder
+        try:
+            computation = execute(state, transaction_with_gas(allowance, entries), gas_price)
+        finally:
+            state.recorder = None
+        found = recorder.entries(excluded)
+        if found == entries:
+            break
+        entries = found
+    used = allowance - computation.get_gas_remaining()
+    gas_used = used - min(computation.get_gas_refund(), used // 5)
+    error = None
+    if computation.is_error:
+        error = (
+            "execution reverted"
+            if isinstance(computation.error, Revert)
+            else str(computation.error)
+        )
+    return AccessList(entries, gas_used, error)

@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, Literal
 
 from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
 from eth.exceptions import BlockNotFound, HeaderNotFound, Revert, TransactionNotFound
@@ -27,9 +28,24 @@ from eth_typing import Address
 from eth_utils.crypto import keccak
 from eth_utils.exceptions import ValidationError
 
-from robocloud.ledger.abi import decode_revert
-from services.ledger.calls import CallLimits, CallTimeout, SnapshotCalls, SnapshotChain
+from services.ledger import validation
+from services.ledger.calls import (
+    AccessEntries,
+    AccessList,
+    CallLimits,
+    CallTimeout,
+    GasAllowanceExceeded,
+    SnapshotCalls,
+    SnapshotChain,
+    create_access_list,
+    estimate_gas,
+    execute,
+)
 from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
+from services.ledger.pool import PendingPool, PoolLimits
+from services.ledger.refusals import ChainError as ChainError
+from services.ledger.refusals import InvalidParams as InvalidParams
+from services.ledger.refusals import Reverted as Reverted
 
 log = logging.getLogger("robocloud.ledger.chain")
 
@@ -38,33 +54,6 @@ BlockTag = int | str
 
 BLOB_TRANSACTION_TYPE = 3
 RECENT_BLOCKS = 64
-
-
-class ChainError(Exception):
-    """A request the chain refuses; ``code`` is the JSON-RPC error code nodes use for it."""
-
-    code = -32000
-
-    def __init__(self, message: str, data: str | None = None) -> None:
-        super().__init__(message)
-        self.message = message
-        self.data = data
-
-
-class InvalidParams(ChainError):
-    """The request itself is malformed (not decodable, wrong types)."""
-
-    code = -32602
-
-
-class Reverted(ChainError):
-    """The EVM reverted; ``data`` is the revert payload and the message carries its reason."""
-
-    code = 3
-
-    def __init__(self, payload: bytes) -> None:
-        super().__init__(f"execution reverted: {decode_revert(payload)}", "0x" + payload.hex())
-        self.payload = payload
 
 
 @dataclass(frozen=True)
@@ -76,7 +65,24 @@ class CallRequest:
     data: bytes = b""
     value: int = 0
     gas: int | None = None
-    gas_price: int = 0
+    gas_price: int | None = None
+    max_fee_per_gas: int | None = None
+    max_priority_fee_per_gas: int | None = None
+
+    @property
+    def fee_cap(self) -> int:
+        """What the sender must afford per gas (0: the call is free and checks no balance)."""
+        if self.gas_price is not None:
+            return self.gas_price
+        return self.max_fee_per_gas or 0
+
+    def effective_gas_price(self, base_fee: int) -> int:
+        """What ``GASPRICE`` reads, as in a mined transaction with these fees."""
+        if self.gas_price is not None:
+            return self.gas_price
+        if self.max_fee_per_gas is None:
+            return 0
+        return min(self.max_fee_per_gas, (self.max_priority_fee_per_gas or 0) + base_fee)
 
 
 @dataclass(frozen=True)
@@ -85,6 +91,15 @@ class MinedBlock:
 
     block: BlockAPI
     receipts: tuple[ReceiptAPI, ...]
+
+
+@dataclass(frozen=True)
+class Submitted:
+    """A transaction accepted: the blocks it caused to be mined (itself first, then any of
+    its sender's waiting transactions it made next), or none when it waits in the pool."""
+
+    hash: bytes
+    mined: tuple[MinedBlock, ...]
 
 
 @dataclass(frozen=True)
@@ -107,14 +122,21 @@ class EmbeddedChain:
         path: Path,
         genesis_state: Mapping[bytes, Any] | None = None,
         call_limits: CallLimits | None = None,
+        pool_limits: PoolLimits | None = None,
     ) -> None:
         self._lock = threading.RLock()
+        self._pool = PendingPool(pool_limits or PoolLimits())
         self._chain, self._db = open_chain(path, genesis_state)
+        self._transaction_builder = self._chain.get_vm_class(
+            self._chain.header
+        ).get_transaction_builder()
         self._path = path
         self.call_limits = call_limits or CallLimits()
         self._calls = SnapshotCalls(path, self.call_limits)
         self._listeners: list[BlockListener] = []
         self._recent: OrderedDict[bytes, tuple[SignedTransactionAPI, MinedBlock]] = OrderedDict()
+        self._recent_receipts: dict[bytes, tuple[ReceiptAPI, ...]] = {}
+        self._head = self._chain.get_canonical_head()
 
     @property
     def chain_id(self) -> int:
@@ -132,14 +154,15 @@ class EmbeddedChain:
     # ----- blocks -----
 
     def head(self) -> BlockHeaderAPI:
-        with self._lock:
-            return self._chain.get_canonical_head()
+        """The last mined block's header; read without the lock (one attribute, replaced
+        whole after each commit), so that it never waits for a block being mined."""
+        return self._head
 
     def header_at(self, tag: BlockTag) -> BlockHeaderAPI:
         """The header a tag names; every mined block is final, so all named tags are the head."""
         with self._lock:
             if tag in ("latest", "pending", "safe", "finalized"):
-                return self._chain.get_canonical_head()
+                return self._head
             if tag == "earliest":
                 return self._chain.get_canonical_block_header_by_number(0)  # type: ignore[arg-type]
             if not isinstance(tag, int) or tag < 0:
@@ -172,11 +195,21 @@ class EmbeddedChain:
             return block
 
     def receipts(self, block: BlockAPI) -> tuple[ReceiptAPI, ...]:
+        recent = self._recent_receipts.get(block.hash)
+        if recent is not None:
+            return recent
         with self._lock:
-            for _, mined in self._recent.values():
-                if mined.block.hash == block.hash:
-                    return mined.receipts
             return tuple(block.get_receipts(self._chain.chaindb))
+
+    def recent(self, tx_hash: bytes) -> Located | None:
+        """A transaction among the last mined, without the lock (a lookup in a dict that
+        only the mining thread changes): the receipt a client asks for right after sending
+        is answered without waiting for the next block, and without a worker thread."""
+        found = self._recent.get(tx_hash)
+        return Located(found[0], found[1].block, 0) if found is not None else None
+
+    def recent_receipts(self, block_hash: bytes) -> tuple[ReceiptAPI, ...] | None:
+        return self._recent_receipts.get(block_hash)
 
     def locate(self, tx_hash: bytes) -> Located | None:
         """Where a mined transaction is, from py-evm's own hash index (not a scan).
@@ -215,10 +248,19 @@ class EmbeddedChain:
         with self._lock:
             return int(self._state(tag).get_storage(address, slot))
 
+    def next_header(self, header: BlockHeaderAPI) -> BlockHeaderAPI:
+        """The header a child of ``header`` would have (its base fee, its blob fields)."""
+        with self._lock:
+            return self._chain.create_header_from_parent(header)
+
     def base_fee(self) -> int:
         """The base fee the next block will charge."""
         with self._lock:
-            return int(self._chain.header.base_fee_per_gas or 0)
+            return self.base_fee_locked()
+
+    def base_fee_locked(self) -> int:
+        """The next block's base fee, under the chain's lock (it follows from the head alone)."""
+        return int(self._chain.header.base_fee_per_gas or 0)
 
     def _state(self, tag: BlockTag) -> Any:
         return self._chain.get_vm(at_header=self.header_at(tag)).state
@@ -226,18 +268,21 @@ class EmbeddedChain:
     # ----- execution -----
 
     def call(self, request: CallRequest, tag: BlockTag) -> bytes:
-        """Run a call on the state after block ``tag``; raise ``Reverted`` with its reason."""
-        return bytes(self._execute(request, tag, SnapshotChain.get_transaction_result))
+        """Run a call in block ``tag``'s context; raise ``Reverted`` with its reason."""
+        return bytes(self._execute(request, tag, "call"))
 
     def estimate_gas(self, request: CallRequest, tag: BlockTag) -> int:
-        """The least gas with which the call succeeds; ``Reverted`` if it never does."""
-        return int(self._execute(request, tag, SnapshotChain.estimate_gas))
+        """The least gas (within 1 %) with which the call succeeds; ``Reverted`` if it never
+        does."""
+        return int(self._execute(request, tag, "estimate"))
+
+    def create_access_list(self, request: CallRequest, tag: BlockTag) -> AccessList:
+        """The accounts and slots the call touches, and its gas with them listed."""
+        found: AccessList = self._execute(request, tag, "access_list")
+        return found
 
     def _execute(
-        self,
-        request: CallRequest,
-        tag: BlockTag,
-        run: Callable[[SnapshotChain, SignedTransactionAPI, BlockHeaderAPI], Any],
+        self, request: CallRequest, tag: BlockTag, mode: Literal["call", "estimate", "access_list"]
     ) -> Any:
         """Run an unsigned ``request`` on a snapshot, with py-evm's failures as ChainErrors.
 
@@ -245,9 +290,49 @@ class EmbeddedChain:
         """
         with self._lock:
             header = self.header_at(tag)
+        pending = tag == "pending"
+        estimate = mode == "estimate"
 
         def work(chain: SnapshotChain) -> Any:
-            return run(chain, self._spoof(chain, request, header), header)
+            state = chain.state_for_call(header, pending)
+            allowance = self._allowance(request, state, header.gas_limit, estimate)
+            vm_class = chain.get_vm_class(header)
+            nonce = state.get_nonce(Address(request.sender))
+
+            def transaction_with_gas(gas: int, access_list: AccessEntries = ()) -> Any:
+                fields: dict[str, Any] = {
+                    "nonce": nonce,
+                    "gas_price": 0,
+                    "gas": gas,
+                    "to": request.to,
+                    "value": request.value,
+                    "data": request.data,
+                }
+                if access_list:
+                    builder = vm_class.get_transaction_builder()
+                    unsigned: Any = builder.new_unsigned_access_list_transaction(  # type: ignore[attr-defined]
+                        chain_id=CHAIN_ID, access_list=access_list, **fields
+                    )
+                else:
+                    unsigned = vm_class.create_unsigned_transaction(**fields)
+                return SpoofTransaction(unsigned, from_=request.sender)
+
+            intrinsic = int(transaction_with_gas(allowance).intrinsic_gas)
+            if allowance < intrinsic:
+                if estimate:
+                    raise GasAllowanceExceeded(allowance)
+                raise ChainError(
+                    f"intrinsic gas too low: gas {allowance}, minimum needed {intrinsic}"
+                )
+            price = request.effective_gas_price(int(state.execution_context.base_fee_per_gas or 0))
+            if estimate:
+                return estimate_gas(state, transaction_with_gas, price, allowance)
+            if mode == "access_list":
+                excluded = {request.sender, request.to, bytes(header.coinbase)}
+                return create_access_list(state, transaction_with_gas, price, allowance, excluded)
+            computation = execute(state, transaction_with_gas(allowance), price)
+            computation.raise_if_error()
+            return computation.output
 
         try:
             return self._calls.run(header, work)
@@ -255,6 +340,8 @@ class EmbeddedChain:
             raise ChainError(
                 f"execution aborted (timeout = {self.call_limits.timeout_s:g}s)"
             ) from exc
+        except GasAllowanceExceeded as exc:
+            raise ChainError(str(exc)) from exc
         except Revert as exc:
             raise Reverted(bytes(exc.args[0]) if exc.args else b"") from exc
         except ValidationError as exc:
@@ -264,20 +351,23 @@ class EmbeddedChain:
                 raise ChainError(f"execution failed: {type(exc).__name__} {exc}") from exc
             raise
 
-    def _spoof(
-        self, chain: SnapshotChain, request: CallRequest, header: BlockHeaderAPI
-    ) -> SignedTransactionAPI:
-        """The request as a transaction py-evm executes without a signature."""
-        vm = chain.get_vm(at_header=header)
-        unsigned = vm.create_unsigned_transaction(
-            nonce=vm.state.get_nonce(Address(request.sender)),
-            gas_price=request.gas_price,
-            gas=self.call_limits.gas_for(request.gas, header.gas_limit),
-            to=request.to,  # type: ignore[arg-type]
-            value=request.value,
-            data=request.data,
-        )
-        return cast(SignedTransactionAPI, SpoofTransaction(unsigned, from_=request.sender))
+    def _allowance(
+        self, request: CallRequest, state: Any, block_gas_limit: int, estimate: bool
+    ) -> int:
+        """The gas the call runs with, checked against what its sender can pay, as geth does:
+        a priced call must be affordable; an estimate searches no higher than affordable."""
+        allowance = self.call_limits.gas_for(request.gas, block_gas_limit)
+        balance = int(state.get_balance(Address(request.sender)))
+        fee_cap = request.fee_cap
+        if fee_cap and estimate and balance >= request.value:
+            allowance = min(allowance, (balance - request.value) // fee_cap)
+        want = allowance * fee_cap + request.value
+        if balance < want:
+            raise ChainError(
+                f"insufficient funds for gas * price + value: address 0x{request.sender.hex()} "
+                f"have {balance} want {want}"
+            )
+        return allowance
 
     # ----- transactions -----
 
@@ -285,9 +375,10 @@ class EmbeddedChain:
         """A signed transaction from its raw bytes, or ``InvalidParams`` saying why not."""
         if not raw:
             raise InvalidParams("invalid raw transaction: empty")
+        validation.check_raw_size(raw)
         if raw[0] == BLOB_TRANSACTION_TYPE:
             raise ChainError("blob transactions (type 3) are not supported by this chain")
-        builder = self._chain.get_vm().get_transaction_builder()
+        builder = self._transaction_builder
         try:
             transaction = builder.decode(raw)
             transaction.sender  # noqa: B018 - recovers the signer, which can fail
@@ -295,57 +386,80 @@ class EmbeddedChain:
             raise InvalidParams(f"invalid raw transaction: {type(exc).__name__}: {exc}") from exc
         return transaction
 
-    def send_raw_transaction(self, raw: bytes) -> MinedBlock:
-        """Validate, execute and mine ``raw`` in a new block, durable before this returns."""
+    def send_raw_transaction(self, raw: bytes) -> Submitted:
+        """Validate ``raw``; mine it in a new block, durable before this returns, with any
+        waiting transactions of its sender it makes next; or, if its nonce is ahead of its
+        sender's, queue it until the gap closes."""
         transaction = self.decode(raw)
         with self._lock:
-            self._check(transaction)
-            return self._mine(transaction)
+            self._pool.expire()
+            if self._check(transaction):
+                self._pool.add(transaction)
+                return Submitted(transaction.hash, ())
+            mined = [self._mine(transaction)]
+            mined.extend(self._promote(transaction.sender))
+            return Submitted(transaction.hash, tuple(mined))
 
-    def _check(self, transaction: SignedTransactionAPI) -> None:
-        if transaction.chain_id is None:
-            raise ChainError(
-                "only replay-protected (EIP-155) transactions are accepted: sign with chain id "
-                f"{CHAIN_ID}"
-            )
-        if transaction.chain_id != CHAIN_ID:
-            raise ChainError(
-                f"invalid chain id {transaction.chain_id}: this chain's id is {CHAIN_ID}"
-            )
+    def _promote(self, sender: bytes) -> list[MinedBlock]:
+        """Mine the sender's waiting transactions while each is the next by nonce; one no
+        longer valid (its sender's balance fell) is dropped, and the rest wait again."""
+        mined: list[MinedBlock] = []
+        while True:
+            expected = self._chain.get_vm().state.get_nonce(Address(sender))
+            waiting = self._pool.take(sender, expected)
+            if waiting is None:
+                return mined
+            try:
+                self._check(waiting)
+                mined.append(self._mine(waiting))
+            except ChainError as exc:
+                log.info(
+                    "waiting transaction dropped",
+                    extra={"tx": "0x" + waiting.hash.hex(), "reason": exc.message},
+                )
+                return mined
+
+    def _check(self, transaction: SignedTransactionAPI) -> bool:
+        """Every validity rule, in geth's order: the transaction's own fields, then its
+        sender's account at the head (code, nonce, balance) and the next block's base fee.
+        True when the transaction is valid but for a nonce ahead of its sender's."""
+        head = self._chain.get_canonical_head()
+        validation.check_fields(transaction, CHAIN_ID, head.gas_limit)
         state = self._chain.get_vm().state
-        expected = state.get_nonce(transaction.sender)
+        sender = transaction.sender
+        validation.check_sender(
+            transaction, bytes(state.get_code_hash(sender)), self.base_fee_locked()
+        )
+        expected = state.get_nonce(sender)
         if transaction.nonce < expected:
             raise ChainError(
-                f"nonce too low: address 0x{transaction.sender.hex()} has nonce {expected}, "
+                f"nonce too low: address 0x{sender.hex()} has nonce {expected}, "
                 f"transaction has {transaction.nonce}"
             )
-        if transaction.nonce > expected:
-            raise ChainError(
-                f"nonce too high: address 0x{transaction.sender.hex()} has nonce {expected}, "
-                f"transaction has {transaction.nonce} (this chain mines at once and keeps no "
-                "queue of future transactions)"
-            )
-        price = getattr(transaction, "max_fee_per_gas", None) or transaction.gas_price
-        cost = transaction.gas * price + transaction.value
-        balance = state.get_balance(transaction.sender)
+        cost = validation.max_cost(transaction)
+        balance = state.get_balance(sender)
         if balance < cost:
             raise ChainError(
                 f"insufficient funds for gas * price + value: balance {balance}, cost {cost}"
             )
+        return bool(transaction.nonce > expected)
 
     def _mine(self, transaction: SignedTransactionAPI) -> MinedBlock:
         """Execute and mine one block as one SQLite transaction (one fsync, all or nothing).
 
-        The pending header is rebuilt first so that the block's timestamp is now, not when
-        the previous block was mined. Listeners run after the commit: a failing listener
-        cannot undo an acknowledged block (the event index catches up from the store).
+        The pending header gets the time now, not when the previous block was mined (only
+        its timestamp changes: the base fee and blob fields follow from the parent alone, so
+        rebuilding the whole header would be wasted). Listeners run after the commit: a
+        failing listener cannot undo an acknowledged block (the event index catches up from
+        the store).
         """
-        head = self._chain.get_canonical_head()
-        self._chain.header = self._chain.create_header_from_parent(head)
+        pending = self._chain.header
+        self._chain.header = pending.copy(timestamp=max(pending.timestamp, int(time.time())))
+        parent_hash = pending.parent_hash
         try:
             with self._db.store.transaction():
                 result, receipts, _ = self._chain.mine_all(
-                    [transaction], mix_hash=keccak(head.hash)
+                    [transaction], mix_hash=keccak(parent_hash)
                 )
         except ValidationError as exc:
             self._chain = DevChain(self._db)
@@ -355,13 +469,16 @@ class EmbeddedChain:
             raise
         mined = MinedBlock(result.imported_block, tuple(receipts))
         self._recent[transaction.hash] = (transaction, mined)
+        self._recent_receipts[mined.block.hash] = mined.receipts
         if len(self._recent) > RECENT_BLOCKS:
-            self._recent.popitem(last=False)
+            _, (_, oldest) = self._recent.popitem(last=False)
+            self._recent_receipts.pop(oldest.block.hash, None)
         for listener in self._listeners:
             try:
                 listener(mined)
             except Exception:
                 log.exception("block listener failed", extra={"block": mined.block.number})
+        self._head = mined.block.header  # last: a reader seeing it finds the block indexed
         return mined
 
 

@@ -78,8 +78,7 @@ def send_as(
     if to is not None:
         transaction["to"] = to
     signed = identity.account.sign_transaction(transaction)
-    mined = chain.send_raw_transaction(bytes(signed.raw_transaction))
-    return bytes(mined.block.transactions[0].hash)
+    return chain.send_raw_transaction(bytes(signed.raw_transaction)).hash
 
 
 def deploy(chain: EmbeddedChain, admin: Identity) -> Deployment:

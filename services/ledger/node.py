@@ -17,8 +17,10 @@ from services.ledger.calls import CallLimits
 from services.ledger.chain import ChainError, EmbeddedChain, MinedBlock
 from services.ledger.contracts import Deployment, apply_registration_mode, deploy, send_as
 from services.ledger.faucet import FaucetLimits
+from services.ledger.filters import Filters
 from services.ledger.index import EventIndex
 from services.ledger.operator import OperatorKeys, load_or_create, passphrase
+from services.ledger.pool import PoolLimits
 from services.ledger.rpc import Dispatcher, EmbeddedMethods
 
 log = logging.getLogger("robocloud.ledger")
@@ -51,13 +53,17 @@ class EmbeddedLedger:
         limits: FaucetLimits,
         faucet_amount_wei: int,
         call_limits: CallLimits,
+        pool_limits: PoolLimits,
         registration_mode: RegistrationMode,
+        filters: Filters,
     ) -> None:
         keys: OperatorKeys = load_or_create(data_dir, passphrase(data_dir, configured_passphrase))
         self.faucet_key = keys.faucet
         self.limits = limits
         self.faucet_amount_wei = faucet_amount_wei
-        self.chain = EmbeddedChain(data_dir / "chain.sqlite", keys.genesis_state(), call_limits)
+        self.chain = EmbeddedChain(
+            data_dir / "chain.sqlite", keys.genesis_state(), call_limits, pool_limits
+        )
         self.chain_id = self.chain.chain_id
         self.deployment = deploy(self.chain, keys.admin)
         if apply_registration_mode(self.chain, keys.admin, self.deployment, registration_mode):
@@ -67,7 +73,8 @@ class EmbeddedLedger:
         )
         self.catch_up()
         self.chain.on_block(self._index_block)
-        self.dispatcher = Dispatcher(EmbeddedMethods(self.chain, self.index).table())
+        methods = EmbeddedMethods(self.chain, self.index, filters)
+        self.dispatcher = Dispatcher(methods.table(), inline=methods.inline_table())
         log.info(
             "embedded chain ready",
             extra={

@@ -12,13 +12,16 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from typing import Any
 
+from eth.abc import BlockAPI
 from eth_utils.address import is_hex_address
+from eth_utils.crypto import keccak
 
 import robocloud
 from robocloud import bounded_json
-from services.ledger import encoding
+from services.ledger import encoding, fees
 from services.ledger.chain import (
     BlockTag,
     CallRequest,
@@ -26,7 +29,8 @@ from services.ledger.chain import (
     EmbeddedChain,
     InvalidParams,
 )
-from services.ledger.index import EventIndex, IndexLimitError, LogFilter
+from services.ledger.filters import MAX_OPTIONS, MAX_TOPICS, Filters, LogCriteria
+from services.ledger.index import EventIndex, IndexLimitError
 
 log = logging.getLogger("robocloud.ledger.rpc")
 
@@ -41,6 +45,10 @@ MAX_DEPTH = 32
 MAX_ID_LENGTH = 128
 PRIORITY_FEE_WEI = 10**9
 NAMED_TAGS = ("latest", "pending", "earliest", "safe", "finalized")
+MAX_FEE_HISTORY_BLOCKS = 1024
+MAX_PERCENTILES = 100
+PROTOCOL_VERSION = 68
+"""eth/68, the wire protocol geth answered ``eth_protocolVersion`` with."""
 
 Method = Callable[[list[Any]], Any]
 
@@ -61,15 +69,46 @@ class RpcFailure(Exception):
         return error
 
 
+class NotInline(Exception):
+    """An inline method cannot answer without blocking: run the request on a worker thread."""
+
+
+NOT_INLINE = object()
+INLINE_MAX_BYTES = 4096
+
+
 class Dispatcher:
     """JSON-RPC 2.0 framing over a table of methods taking positional parameters."""
 
     def __init__(
-        self, methods: Mapping[str, Method], fallback: Callable[[str, list[Any]], Any] | None = None
+        self,
+        methods: Mapping[str, Method],
+        fallback: Callable[[str, list[Any]], Any] | None = None,
+        inline: Mapping[str, Method] | None = None,
     ) -> None:
-        """``fallback`` answers methods not in the table (a proxy to an external node)."""
+        """``fallback`` answers methods not in the table (a proxy to an external node);
+        ``inline`` are versions of some methods that never block (no lock, no disk, no
+        unbounded work), which may raise ``NotInline`` to hand the request to a thread."""
         self.methods = dict(methods)
         self.fallback = fallback
+        self.inline = dict(inline or {})
+
+    def handle_inline(self, body: bytes) -> Any:
+        """The answer to a small single call of an inline method, computed on the caller's
+        thread (the event loop: a worker thread costs a quarter of a millisecond per
+        request); ``NOT_INLINE`` for everything else, which ``handle`` then answers."""
+        if len(body) > INLINE_MAX_BYTES:
+            return NOT_INLINE
+        try:
+            document = bounded_json.loads(body, max_depth=MAX_DEPTH)
+        except bounded_json.JsonError:
+            return NOT_INLINE
+        if not isinstance(document, dict) or document.get("method") not in self.inline:
+            return NOT_INLINE
+        try:
+            return self._one(document, self.inline)
+        except NotInline:
+            return NOT_INLINE
 
     def handle(self, body: bytes) -> Any:
         """The response document for a request body; None when nothing is to be answered."""
@@ -89,7 +128,9 @@ class Dispatcher:
             return [answer for answer in answers if answer is not None] or None
         return self._one(document)
 
-    def _one(self, request: Any) -> dict[str, Any] | None:
+    def _one(
+        self, request: Any, table: Mapping[str, Method] | None = None
+    ) -> dict[str, Any] | None:
         if not isinstance(request, dict) or request.get("jsonrpc") != "2.0":
             return _error(None, RpcFailure(INVALID_REQUEST, "not a JSON-RPC 2.0 request"))
         request_id = request.get("id")
@@ -98,19 +139,28 @@ class Dispatcher:
                 None, RpcFailure(INVALID_REQUEST, "id must be a string, a number or null")
             )
         method, params = request.get("method"), request.get("params", [])
-        if not isinstance(method, str) or not isinstance(params, list | type(None)):
+        if not isinstance(method, str) or not isinstance(params, list | dict | type(None)):
             failure = RpcFailure(INVALID_REQUEST, "method must be a string, params an array")
             return _error(request_id, failure)
+        if isinstance(params, dict):
+            # Ethereum methods take positional parameters only: by-name parameters are a
+            # valid request with invalid parameters (-32602), as geth and anvil answer them.
+            failure = RpcFailure(
+                INVALID_PARAMS, "invalid params: expected an array of positional parameters"
+            )
+            return _error(request_id, failure) if "id" in request else None
         try:
-            result = self.call(method, params or [])
+            result = self.call(method, params or [], table)
         except RpcFailure as failure:
             return _error(request_id, failure) if "id" in request else None
         if "id" not in request:
             return None
         return {"jsonrpc": "2.0", "id": request_id, "result": result}
 
-    def call(self, method: str, params: list[Any]) -> Any:
-        handler = self.methods.get(method)
+    def call(
+        self, method: str, params: list[Any], table: Mapping[str, Method] | None = None
+    ) -> Any:
+        handler = (self.methods if table is None else table).get(method)
         if handler is None and self.fallback is None:
             raise RpcFailure(
                 METHOD_NOT_FOUND, f"the method {method} does not exist/is not available"
@@ -119,7 +169,7 @@ class Dispatcher:
             if handler is None and self.fallback is not None:
                 return self.fallback(method, params)
             return handler(params)  # type: ignore[misc]
-        except RpcFailure:
+        except (RpcFailure, NotInline):
             raise
         except ChainError as exc:
             raise RpcFailure(exc.code, exc.message, exc.data) from exc
@@ -187,12 +237,39 @@ def as_quantity(value: Any, what: str) -> int:
         raise InvalidParams(f"invalid {what}: {value!r}") from exc
 
 
+def _percentiles(value: Any) -> list[float] | None:
+    """Reward percentiles as geth checks them: numbers from 0 to 100, ascending."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) > MAX_PERCENTILES:
+        raise InvalidParams(f"invalid reward percentiles: at most {MAX_PERCENTILES} numbers")
+    previous = 0.0
+    for item in value:
+        if isinstance(item, bool) or not isinstance(item, int | float):
+            raise InvalidParams(f"invalid reward percentile: {item!r}")
+        if not 0 <= item <= 100 or item < previous:
+            raise InvalidParams(f"invalid reward percentile: {item}")
+        previous = float(item)
+    return [float(item) for item in value]
+
+
+def _transaction_at(block: BlockAPI | None, index: int) -> Any:
+    if block is None or index >= len(block.transactions):
+        return None
+    return encoding.transaction(block, index, block.transactions[index])
+
+
+def _optional_quantity(value: dict[str, Any], key: str) -> int | None:
+    return as_quantity(value[key], key) if value.get(key) is not None else None
+
+
 class EmbeddedMethods:
     """The ``eth_*`` methods over the embedded chain and its event index."""
 
-    def __init__(self, chain: EmbeddedChain, index: EventIndex) -> None:
+    def __init__(self, chain: EmbeddedChain, index: EventIndex, filters: Filters) -> None:
         self.chain = chain
         self.index = index
+        self.filters = filters
 
     def table(self) -> dict[str, Method]:
         return {
@@ -219,7 +296,56 @@ class EmbeddedMethods:
             "eth_estimateGas": self.estimate_gas,
             "eth_sendRawTransaction": self.send_raw_transaction,
             "eth_getLogs": self.logs,
+            "eth_newFilter": self.new_filter,
+            "eth_newBlockFilter": self.new_block_filter,
+            "eth_getFilterChanges": self.filter_changes,
+            "eth_getFilterLogs": self.filter_logs,
+            "eth_uninstallFilter": self.uninstall_filter,
+            "eth_getBlockReceipts": self.block_receipts,
+            "eth_getBlockTransactionCountByNumber": self.transaction_count_by_number,
+            "eth_getBlockTransactionCountByHash": self.transaction_count_by_hash,
+            "eth_getTransactionByBlockNumberAndIndex": self.transaction_by_number_and_index,
+            "eth_getTransactionByBlockHashAndIndex": self.transaction_by_hash_and_index,
+            "eth_createAccessList": self.create_access_list,
+            "eth_coinbase": lambda _: encoding.address(self.chain.head().coinbase),
+            "web3_sha3": lambda params: encoding.data(keccak(as_bytes(param(params, 0), "data"))),
+            "eth_protocolVersion": lambda _: encoding.quantity(PROTOCOL_VERSION),
         }
+
+    def inline_table(self) -> dict[str, Method]:
+        """What a client asks between transactions, answered without a worker thread: none
+        of these takes the chain's lock or reads the disk (a receipt only when its block is
+        among the last mined; otherwise ``NotInline``)."""
+        table = self.table()
+        constant = (
+            "web3_clientVersion",
+            "eth_chainId",
+            "net_version",
+            "net_listening",
+            "eth_syncing",
+            "eth_mining",
+            "eth_accounts",
+            "eth_protocolVersion",
+            "eth_maxPriorityFeePerGas",
+            "eth_blockNumber",
+        )
+        return {name: table[name] for name in constant} | {
+            "eth_getTransactionReceipt": self.recent_receipt,
+            "eth_getTransactionByHash": self.recent_transaction,
+        }
+
+    def recent_receipt(self, params: list[Any]) -> Any:
+        located = self.chain.recent(as_bytes(param(params, 0), "transaction hash", 32))
+        receipts = self.chain.recent_receipts(located.block.hash) if located else None
+        if located is None or receipts is None:
+            raise NotInline()
+        return encoding.receipt(located.block, receipts, located.index, located.transaction)
+
+    def recent_transaction(self, params: list[Any]) -> Any:
+        located = self.chain.recent(as_bytes(param(params, 0), "transaction hash", 32))
+        if located is None:
+            raise NotInline()
+        return encoding.transaction(located.block, located.index, located.transaction)
 
     # ----- blocks and transactions -----
 
@@ -259,22 +385,63 @@ class EmbeddedMethods:
         receipts = self.chain.receipts(located.block)
         return encoding.receipt(located.block, receipts, located.index, located.transaction)
 
+    def block_receipts(self, params: list[Any]) -> Any:
+        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        if block is None:
+            return None
+        receipts = self.chain.receipts(block)
+        return [
+            encoding.receipt(block, receipts, index, transaction)
+            for index, transaction in enumerate(block.transactions)
+        ]
+
+    def _block_by_hash_param(self, value: Any) -> BlockAPI | None:
+        return self.chain.block_by_hash(as_bytes(value, "block hash", 32))
+
+    def transaction_count_by_number(self, params: list[Any]) -> Any:
+        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        return encoding.quantity(len(block.transactions)) if block is not None else None
+
+    def transaction_count_by_hash(self, params: list[Any]) -> Any:
+        block = self._block_by_hash_param(param(params, 0))
+        return encoding.quantity(len(block.transactions)) if block is not None else None
+
+    def transaction_by_number_and_index(self, params: list[Any]) -> Any:
+        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        return _transaction_at(block, as_quantity(param(params, 1), "index"))
+
+    def transaction_by_hash_and_index(self, params: list[Any]) -> Any:
+        block = self._block_by_hash_param(param(params, 0))
+        return _transaction_at(block, as_quantity(param(params, 1), "index"))
+
     def fee_history(self, params: list[Any]) -> Any:
-        count = min(max(as_quantity(param(params, 0), "block count"), 1), 1024)
+        """geth's ``eth_feeHistory``: base fees (one more, the next block's), gas used
+        ratios, the blob fields, and the tips actually paid at the requested percentiles of
+        each block's gas (weighted by the gas each transaction used)."""
+        count = min(max(as_quantity(param(params, 0), "block count"), 1), MAX_FEE_HISTORY_BLOCKS)
         newest = self.chain.header_at(self.tag(param(params, 1, "latest"))).block_number
-        percentiles = param(params, 2, []) or []
+        percentiles = _percentiles(param(params, 2, None))
         oldest = max(newest - count + 1, 0)
         headers = [self.chain.header_at(n) for n in range(oldest, newest + 1)]
+        next_header = self.chain.next_header(headers[-1])
         body: dict[str, Any] = {
             "oldestBlock": encoding.quantity(oldest),
             "baseFeePerGas": [encoding.quantity(encoding.base_fee(h)) for h in headers]
-            + [encoding.quantity(self.chain.base_fee())],
+            + [encoding.quantity(encoding.base_fee(next_header))],
             "gasUsedRatio": [h.gas_used / h.gas_limit for h in headers],
+            "baseFeePerBlobGas": [
+                encoding.quantity(fees.blob_base_fee(h)) for h in [*headers, next_header]
+            ],
+            "blobGasUsedRatio": [fees.blob_gas_used_ratio(h) for h in headers],
         }
-        if percentiles:
-            body["reward"] = [[encoding.quantity(PRIORITY_FEE_WEI)] * len(percentiles)] * len(
-                headers
-            )
+        if percentiles is not None:
+            rewards = []
+            for header in headers:
+                block = self.chain.block_by_number(header.block_number)
+                assert block is not None
+                paid = fees.tips_paid(block, self.chain.receipts(block))
+                rewards.append([encoding.quantity(tip) for tip in fees.rewards(paid, percentiles)])
+            body["reward"] = rewards
         return body
 
     # ----- accounts -----
@@ -303,14 +470,21 @@ class EmbeddedMethods:
         if not isinstance(value, dict):
             raise InvalidParams("invalid call object: expected an object")
         data = value.get("input", value.get("data")) or "0x"
-        price = value.get("gasPrice", value.get("maxFeePerGas"))
+        if value.get("gasPrice") is not None and (
+            value.get("maxFeePerGas") is not None or value.get("maxPriorityFeePerGas") is not None
+        ):
+            raise InvalidParams(
+                "both gasPrice and (maxFeePerGas or maxPriorityFeePerGas) specified"
+            )
         return CallRequest(
             sender=as_address(value["from"]) if value.get("from") else b"\x00" * 20,
             to=as_address(value["to"]) if value.get("to") else b"",
             data=as_bytes(data, "call data"),
-            value=as_quantity(value.get("value", "0x0"), "value"),
+            value=as_quantity(value.get("value") or "0x0", "value"),
             gas=as_quantity(value["gas"], "gas") if value.get("gas") else None,
-            gas_price=as_quantity(price, "gas price") if price else 0,
+            gas_price=_optional_quantity(value, "gasPrice"),
+            max_fee_per_gas=_optional_quantity(value, "maxFeePerGas"),
+            max_priority_fee_per_gas=_optional_quantity(value, "maxPriorityFeePerGas"),
         )
 
     def call(self, params: list[Any]) -> Any:
@@ -322,49 +496,108 @@ class EmbeddedMethods:
         gas = self.chain.estimate_gas(request, self.tag(param(params, 1, "latest")))
         return encoding.quantity(gas)
 
+    def create_access_list(self, params: list[Any]) -> Any:
+        request = self.call_request(param(params, 0))
+        found = self.chain.create_access_list(request, self.tag(param(params, 1, "latest")))
+        return {
+            "accessList": [
+                {
+                    "address": encoding.address(address),
+                    "storageKeys": [encoding.data(slot.to_bytes(32, "big")) for slot in slots],
+                }
+                for address, slots in found.entries
+            ],
+            "gasUsed": encoding.quantity(found.gas_used),
+        }
+
     def send_raw_transaction(self, params: list[Any]) -> Any:
         raw = as_bytes(param(params, 0), "raw transaction")
-        mined = self.chain.send_raw_transaction(raw)
-        return encoding.data(mined.block.transactions[0].hash)
+        return encoding.data(self.chain.send_raw_transaction(raw).hash)
 
-    # ----- logs -----
+    # ----- logs and filters -----
 
-    def logs(self, params: list[Any]) -> Any:
-        query = param(params, 0)
+    def log_criteria(self, query: Any) -> LogCriteria:
+        """``eth_getLogs``/``eth_newFilter`` criteria, validated as nodes validate them."""
         if not isinstance(query, dict):
             raise InvalidParams("invalid filter: expected an object")
-        head = self.chain.head().block_number
-        block_hash = None
-        if query.get("blockHash"):
-            block_hash = as_bytes(query["blockHash"], "block hash", 32)
-            block = self.chain.block_by_hash(block_hash)
-            if block is None:
-                raise ChainError(f"block {query['blockHash']} not found")
-            first = last = int(block.number)
-        else:
-            first = self._bound(query.get("fromBlock", "latest"), head)
-            last = self._bound(query.get("toBlock", "latest"), head)
         addresses = query.get("address") or []
         if isinstance(addresses, str):
             addresses = [addresses]
+        raw_topics = query.get("topics") or []
+        if not isinstance(addresses, list) or not isinstance(raw_topics, list):
+            raise InvalidParams("invalid filter: address and topics must be arrays")
+        if len(raw_topics) > MAX_TOPICS:
+            raise InvalidParams("exceeded maximum topics len")
         topics: list[tuple[bytes, ...] | None] = []
-        for position in query.get("topics") or []:
+        for position in raw_topics:
             if position is None:
                 topics.append(None)
-            else:
-                options = position if isinstance(position, list) else [position]
-                topics.append(tuple(as_bytes(t, "topic", 32) for t in options))
-        log_filter = LogFilter(
-            from_block=first,
-            to_block=last,
+                continue
+            options = position if isinstance(position, list) else [position]
+            if len(options) > MAX_OPTIONS:
+                raise InvalidParams(f"too many topics at one position: at most {MAX_OPTIONS}")
+            topics.append(tuple(as_bytes(t, "topic", 32) for t in options if t is not None))
+        if len(addresses) > MAX_OPTIONS:
+            raise InvalidParams(f"too many addresses: at most {MAX_OPTIONS}")
+        criteria = LogCriteria(
+            from_block=self.tag(query.get("fromBlock") or "latest"),
+            to_block=self.tag(query.get("toBlock") or "latest"),
             addresses=tuple(as_address(a) for a in addresses),
-            topics=tuple(topics),
-            block_hash=block_hash,
+            topics=tuple(t if t else None for t in topics),
         )
-        return [entry.to_rpc() for entry in self.index.logs(log_filter)]
+        if query.get("blockHash") is None:
+            return criteria
+        if query.get("fromBlock") is not None or query.get("toBlock") is not None:
+            raise InvalidParams(
+                "cannot specify both blockHash and fromBlock/toBlock, choose one or the other"
+            )
+        block_hash = as_bytes(query["blockHash"], "block hash", 32)
+        block = self.chain.block_by_hash(block_hash)
+        if block is None:
+            raise ChainError("unknown block")
+        return replace(criteria, block_hash=block_hash, block_number=int(block.number))
 
-    def _bound(self, value: Any, head: int) -> int:
-        tag = self.tag(value)
-        if tag == "earliest":
-            return 0
-        return head if isinstance(tag, str) else tag
+    def logs(self, params: list[Any]) -> Any:
+        criteria = self.log_criteria(param(params, 0))
+        found = self.index.logs(criteria.resolve(self.chain.head().block_number))
+        return [entry.to_rpc() for entry in found]
+
+    def new_filter(self, params: list[Any]) -> Any:
+        criteria = self.log_criteria(param(params, 0))
+        head = self.chain.head().block_number
+        criteria.resolve(head)  # refused now, as eth_getLogs would be, not at the first poll
+        return self.filters.install(criteria, head)
+
+    def new_block_filter(self, params: list[Any]) -> Any:
+        return self.filters.install(None, self.chain.head().block_number)
+
+    def filter_changes(self, params: list[Any]) -> Any:
+        filter_id = _filter_id(param(params, 0))
+        changes = self.filters.changes(filter_id, self.chain.head().block_number)
+        if changes.criteria is None:
+            answer: list[Any] = []
+            for number in range(changes.first, changes.last + 1):
+                block = self.chain.block_by_number(number)
+                if block is not None:
+                    answer.append(encoding.data(block.hash))
+        elif changes.first > changes.last:
+            answer = []
+        else:
+            window = changes.criteria.window(changes.first, changes.last)
+            answer = [entry.to_rpc() for entry in self.index.logs(window)] if window else []
+        self.filters.reported(filter_id, changes.last)
+        return answer
+
+    def filter_logs(self, params: list[Any]) -> Any:
+        criteria = self.filters.criteria(_filter_id(param(params, 0)))
+        found = self.index.logs(criteria.resolve(self.chain.head().block_number))
+        return [entry.to_rpc() for entry in found]
+
+    def uninstall_filter(self, params: list[Any]) -> Any:
+        return self.filters.uninstall(_filter_id(param(params, 0)))
+
+
+def _filter_id(value: Any) -> str:
+    if not isinstance(value, str) or not value.startswith("0x") or len(value) > 66:
+        raise InvalidParams(f"invalid filter id: {value!r}")
+    return value.lower()

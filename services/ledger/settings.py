@@ -10,6 +10,7 @@ from robocloud.ledger.models import RegistrationMode
 from services.common.settings import CommaList, ServiceSettings
 from services.ledger.calls import CallLimits
 from services.ledger.grants import RoleGrant, parse_grants
+from services.ledger.pool import PoolLimits
 
 
 class LedgerSettings(ServiceSettings):
@@ -31,6 +32,21 @@ class LedgerSettings(ServiceSettings):
     )
     ledger_rpc_evm_timeout_s: float = Field(
         default=5.0, gt=0, description="wall-clock limit of one eth_call or eth_estimateGas"
+    )
+    ledger_max_filters: int = Field(
+        default=1000, gt=0, description="filters (eth_newFilter, eth_newBlockFilter) at once"
+    )
+    ledger_filter_timeout_s: float = Field(
+        default=300.0, gt=0, description="a filter nobody polls for this long is removed"
+    )
+    ledger_pool_max_per_sender: int = Field(
+        default=64, gt=0, description="transactions one sender may have waiting for a nonce gap"
+    )
+    ledger_pool_max_total: int = Field(
+        default=1024, gt=0, description="transactions waiting for a nonce gap, all senders"
+    )
+    ledger_pool_timeout_s: float = Field(
+        default=3 * 3600.0, gt=0, description="a transaction waits this long, then is dropped"
     )
     ledger_registration_mode: Literal["open", "approved"] = Field(
         default="open",
@@ -54,6 +70,11 @@ class LedgerSettings(ServiceSettings):
 
     def call_limits(self) -> CallLimits:
         return CallLimits(self.ledger_rpc_gas_cap, self.ledger_rpc_evm_timeout_s)
+
+    def pool_limits(self) -> PoolLimits:
+        return PoolLimits(
+            self.ledger_pool_max_per_sender, self.ledger_pool_max_total, self.ledger_pool_timeout_s
+        )
 
     def registration_mode(self) -> RegistrationMode:
         return RegistrationMode[self.ledger_registration_mode.upper()]

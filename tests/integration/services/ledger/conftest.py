@@ -13,9 +13,11 @@ import httpx
 import pytest
 
 from robocloud.identity import Identity
-from robocloud.ledger import Ledger
+from robocloud.ledger import JsonRpcClient, Ledger
 from robocloud.signing import sign_request
+from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
 from tests.procs import ServiceProcess, audience_of
+from tests.rawtx import RawTx
 
 PASSPHRASE = "integration-tests-only"
 LEDGER_ENV = {
@@ -106,3 +108,63 @@ def signed_post(url: str, path: str, identity: Identity, body: Any) -> httpx.Res
 
 def faucet(url: str, identity: Identity, address: str | None = None) -> httpx.Response:
     return signed_post(url, "/v1/faucet", identity, {"address": address or identity.address})
+
+
+def call(url: str, method: str, params: Any) -> dict[str, Any]:
+    """One JSON-RPC exchange with a node's endpoint ``url`` (the ledger's ends in /rpc)."""
+    payload = {"jsonrpc": "2.0", "id": 1, "method": method, "params": params}
+    answer: dict[str, Any] = httpx.post(url, json=payload, timeout=60).json()
+    return answer
+
+
+def result(url: str, method: str, params: Any) -> Any:
+    answer = call(url, method, params)
+    assert "result" in answer, answer
+    return answer["result"]
+
+
+@dataclass
+class Pair:
+    """The ledger's /rpc and a fresh anvil: the same request to both, answers compared."""
+
+    ledger: str
+    anvil: str
+
+    @property
+    def service_url(self) -> str:
+        return self.ledger.removesuffix("/rpc")
+
+    @property
+    def urls(self) -> tuple[str, str]:
+        return self.ledger, self.anvil
+
+    def funded(self) -> Identity:
+        """A fresh key with ether on both chains."""
+        identity = Identity.generate()
+        assert faucet(self.service_url, identity).status_code == 200
+        fund(JsonRpcClient(self.anvil), identity)
+        return identity
+
+    def deploy(self, identity: Identity, init_code: bytes) -> tuple[str, str]:
+        """Deploy ``init_code`` from ``identity`` on both; the two contract addresses."""
+        addresses = []
+        for url in self.urls:
+            nonce = int(result(url, "eth_getTransactionCount", [identity.address, "latest"]), 16)
+            tx = RawTx(nonce=nonce, to=b"", data=init_code, gas=1_000_000, max_fee=10**11)
+            tx_hash = result(url, "eth_sendRawTransaction", [tx.sign(bytes(identity.account.key))])
+            receipt = result(url, "eth_getTransactionReceipt", [tx_hash])
+            assert receipt["status"] == "0x1", receipt
+            addresses.append(receipt["contractAddress"])
+        return addresses[0], addresses[1]
+
+
+@pytest.fixture(scope="module")
+def pair(service: Service, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Pair]:
+    with ethereum_node(tmp_path_factory.mktemp("anvil") / "anvil.log") as anvil:
+        yield Pair(f"{service.url}/rpc", anvil)
+
+
+def deploying(runtime: bytes) -> bytes:
+    """Init code that returns ``runtime`` (at most 255 bytes) as the contract's code."""
+    assert len(runtime) < 256
+    return bytes.fromhex(f"60{len(runtime):02x}80600b6000396000f3") + runtime

@@ -59,9 +59,9 @@ def test_reopen_keeps_head_hash_receipts_and_state(tmp_path: Path) -> None:
     chain = EmbeddedChain(tmp_path / "chain.sqlite", operator.genesis_state())
     deployment = deploy(chain, operator.admin)
     fund(chain, operator, robot)
-    mined = chain.send_raw_transaction(
+    (mined,) = chain.send_raw_transaction(
         raw_call(robot, 0, deployment.registry, REGISTRY.encode_call("register", METADATA))
-    )
+    ).mined
     assert receipt_status(mined.receipts[0]) == 1
     head = chain.head()
     chain.close()

@@ -14,8 +14,10 @@ from services.ledger.rpc import (
     INVALID_REQUEST,
     MAX_BATCH,
     METHOD_NOT_FOUND,
+    NOT_INLINE,
     PARSE_ERROR,
     Dispatcher,
+    NotInline,
     RpcFailure,
 )
 
@@ -89,12 +91,22 @@ def test_a_revert_carries_code_3_and_its_data() -> None:
         {"method": "echo", "id": 1},
         {"jsonrpc": "1.0", "method": "echo", "id": 1},
         {"jsonrpc": "2.0", "method": 7, "id": 1},
-        {"jsonrpc": "2.0", "method": "echo", "params": {"named": 1}, "id": 1},
+        {"jsonrpc": "2.0", "method": "echo", "params": "positional", "id": 1},
         "just a string",
     ],
 )
 def test_malformed_requests_are_invalid(document: Any) -> None:
     assert handle(document)["error"]["code"] == INVALID_REQUEST
+
+
+def test_parameters_by_name_are_invalid_params() -> None:
+    """A well-formed request whose parameters Ethereum methods cannot take (as geth says)."""
+    answer = handle({"jsonrpc": "2.0", "method": "echo", "params": {"named": 1}, "id": 1})
+    assert answer["id"] == 1
+    assert answer["error"] == {
+        "code": -32602,
+        "message": "invalid params: expected an array of positional parameters",
+    }
 
 
 def test_a_batch_answers_each_call_and_skips_notifications() -> None:
@@ -118,3 +130,47 @@ def test_empty_and_oversized_batches_are_invalid() -> None:
 def test_bodies_that_are_not_json_are_parse_errors() -> None:
     assert DISPATCHER.handle(b'{"jsonrpc": ')["error"]["code"] == PARSE_ERROR
     assert DISPATCHER.handle(b"\xff")["error"]["code"] == PARSE_ERROR
+
+
+def _needs_thread(_: list[Any]) -> Any:
+    raise NotInline()
+
+
+INLINE = Dispatcher(
+    {"echo": lambda params: ["threaded", *params], "slow": lambda params: "threaded"},
+    inline={"echo": lambda params: ["inline", *params], "slow": _needs_thread},
+)
+
+
+def body(document: Any) -> bytes:
+    return json.dumps(document).encode()
+
+
+def test_inline_methods_answer_on_the_callers_thread() -> None:
+    request = {"jsonrpc": "2.0", "id": 3, "method": "echo", "params": [1]}
+    assert INLINE.handle_inline(body(request)) == {
+        "jsonrpc": "2.0",
+        "id": 3,
+        "result": ["inline", 1],
+    }
+
+
+@pytest.mark.parametrize(
+    "document",
+    [
+        {"jsonrpc": "2.0", "id": 1, "method": "slow", "params": []},
+        {"jsonrpc": "2.0", "id": 1, "method": "unknown", "params": []},
+        [{"jsonrpc": "2.0", "id": 1, "method": "echo", "params": []}],
+        {"jsonrpc": "2.0", "id": 1, "method": "echo", "params": ["x" * 5000]},
+    ],
+    ids=["raises-not-inline", "not-an-inline-method", "batch", "large-body"],
+)
+def test_everything_else_goes_to_a_thread(document: Any) -> None:
+    assert INLINE.handle_inline(body(document)) is NOT_INLINE
+    answer = INLINE.handle(body(document))
+    assert answer is not None
+
+
+def test_malformed_bodies_are_left_to_the_threaded_path() -> None:
+    assert INLINE.handle_inline(b"{not json") is NOT_INLINE
+    assert INLINE.handle(b"{not json")["error"]["code"] == PARSE_ERROR
