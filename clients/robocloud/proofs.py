@@ -23,6 +23,7 @@ from typing import Any
 
 from robocloud import jcs, merkle
 from robocloud.errors import FormatError, InvalidAnswerError
+from robocloud.templates import canonical_record
 
 ROOT_AT_SELECTOR = bytes.fromhex("899314ce")
 """keccak-256("rootAt(address,uint64)")[:4], checked against AnchorLog's ABI in the tests."""
@@ -153,7 +154,7 @@ class RecordProof:
 
     def check_hashes(self) -> None:
         """Steps 1 and 2: the record is in its template log, that head in the epoch's TMT."""
-        leaf = merkle.leaf_hash(jcs.canonical(self.record))
+        leaf = merkle.leaf_hash(canonical_record(self.record))
         try:
             merkle.verify_inclusion(
                 self.leaf_index, self.tree_size, leaf, self.inclusion, self.template_root

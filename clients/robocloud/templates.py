@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 from eth_utils.address import is_checksum_address
 
-from robocloud import bounded_json
+from robocloud import bounded_json, jcs
 from robocloud.cid import CIDError, parse_cid
 from robocloud.errors import FormatError
 from robocloud.jcs import MAX_SAFE_INTEGER
@@ -461,6 +461,15 @@ def check_envelope(record: Any) -> str:
     if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= MAX_T:
         raise RecordInvalid("t", "must be an integer of nanoseconds from 0 to 2**63 - 1")
     return template_id
+
+
+def canonical_record(record: Mapping[str, Any]) -> bytes:
+    """A record's canonical bytes, its Merkle leaf's data: RFC 8785 with ``t`` exact.
+
+    ``t`` counts nanoseconds since the epoch (about 1.7e18 today), beyond the integers RFC 8785
+    can hold, so integers are written with all their digits (see :func:`robocloud.jcs.canonical`).
+    """
+    return jcs.canonical(record, exact_integers=True)
 
 
 def validate_record(template: Template, record: Any) -> None:

@@ -29,6 +29,7 @@ from robocloud.templates import (
     RecordInvalid,
     Scalar,
     Template,
+    canonical_record,
     check_envelope,
     parse_template_id,
     validate_data,
@@ -276,7 +277,7 @@ class RecordStore:
             zip(records, checked, strict=True)
         ):
             stored = self._offloaded(position, record, template)
-            groups.setdefault(template_id, []).append((position, jcs.canonical(stored)))
+            groups.setdefault(template_id, []).append((position, canonical_record(stored)))
         ids: list[str] = [""] * len(records)
         with self._write_lock:
             for template_id, items in groups.items():

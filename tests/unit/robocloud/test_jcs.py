@@ -94,3 +94,33 @@ def test_unsafe_integers_and_non_json_values_are_jcs_errors() -> None:
 def test_deep_documents_are_refused_before_canonicalization() -> None:
     with pytest.raises(JsonDepthError):
         canonicalize(b"[" * 10_000 + b"]" * 10_000)
+
+
+@pytest.mark.parametrize(
+    "document",
+    [
+        '{"numbers": [333333333.33333329, 1E30, 4.50, 2e-3], "string": "\\u20ac$\\u000F\\u000aA"}',
+        '{"\\u20ac": 1, "\\r": [true, null, {"b": -0.0, "a": 9007199254740991}], "\\ufb33": 2}',
+    ],
+)
+def test_exact_integers_change_nothing_inside_rfc_8785s_domain(document: str) -> None:
+    value = json.loads(document)
+    assert canonical(value, exact_integers=True) == canonical(value)
+
+
+def test_exact_integers_keep_every_digit_of_a_nanosecond_time() -> None:
+    one, two = 1_700_000_000_123_456_789, 1_700_000_000_123_456_790
+    assert canonical({"t": one}, exact_integers=True) == b'{"t":1700000000123456789}'
+    assert canonical({"t": one}, exact_integers=True) != canonical({"t": two}, exact_integers=True)
+    assert json.loads(canonical({"t": -(2**63)}, exact_integers=True)) == {"t": -(2**63)}
+    for value in ({1: "int key"}, [float("nan")], b"bytes", [[[]]] * 1 + [{"x": {1, 2}}]):
+        with pytest.raises(JcsError):
+            canonical(value, exact_integers=True)
+
+
+def test_exact_integers_bound_the_nesting() -> None:
+    deep: list[object] = []
+    for _ in range(100):
+        deep = [deep]
+    with pytest.raises(JcsError, match="nested deeper"):
+        canonical(deep, exact_integers=True)

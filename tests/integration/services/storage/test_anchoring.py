@@ -11,11 +11,12 @@ from typing import Any
 import httpx
 import pytest
 
-from robocloud import jcs, merkle
+from robocloud import merkle
 from robocloud.cas import Cas
 from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService, Role
 from robocloud.proofs import ProofVerificationError, verify_record_proof
+from robocloud.templates import canonical_record
 from tests.conftest import ServiceFactory
 from tests.integration.services.storage.counter import counter_record, write_counter_records
 from tests.procs import ServiceProcess, free_port
@@ -149,6 +150,6 @@ def test_epochs_cut_while_the_ledger_is_down_are_anchored_in_order_when_it_retur
     epoch_2 = httpx.get(f"{storage.url}/v1/epochs/2", timeout=10).json()
     root = bytes.fromhex(epoch_2["heads"][0]["root"])
     leaves = [
-        merkle.leaf_hash(jcs.canonical(counter_record(identity.address, i))) for i in range(20)
+        merkle.leaf_hash(canonical_record(counter_record(identity.address, i))) for i in range(20)
     ]
     assert root == merkle.root(leaves)

@@ -10,8 +10,9 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
-from robocloud import jcs, merkle
+from robocloud import merkle
 from robocloud.identity import Identity
+from robocloud.templates import canonical_record
 from tests.integration.services.storage.counter import counter_record, write_counter_records
 from tests.procs import ServiceProcess
 
@@ -19,7 +20,7 @@ WRITER = Identity.generate()
 
 
 def leaf(i: int) -> bytes:
-    return merkle.leaf_hash(jcs.canonical(counter_record(WRITER.address, i)))
+    return merkle.leaf_hash(canonical_record(counter_record(WRITER.address, i)))
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from robocloud.templates import canonical_record
 from services.storage.recordstore import (
     OffloadFailed,
     RecordIdInvalid,
@@ -90,3 +91,15 @@ def test_record_ids(open_store: StoreFactory) -> None:
         store.get("state-1-0")
     with pytest.raises(RecordNotFound):
         store.get("gps-1-0")
+
+
+def test_a_time_in_epoch_nanoseconds_is_stored_and_proved_exactly(open_store: StoreFactory) -> None:
+    """Real recordings stamp records near 1.7e18 ns, past the integers RFC 8785 holds."""
+    store = open_store()
+    t = 1_700_000_000_123_456_789
+    (record_id,) = store.append([state_record(t)], author=AUTHOR)
+    stored = store.get(record_id)
+    assert stored.record["t"] == t
+    entry = store.logs.entry("state@1", 0)
+    assert b'"t":1700000000123456789' in entry.record
+    assert entry.record == canonical_record(stored.record)
