@@ -298,8 +298,8 @@ def bench_queries(records: int = 1_000_000, queries: int = 200) -> None:
 
 
 CHAIN_TPS = 120
-START_NS = 1_000_000_000_000
-"""Inside 2**53: the records' JCS form cannot hold epoch nanoseconds in ``t`` yet."""
+START_NS = 1_700_000_000_000_000_000
+"""November 2023 in nanoseconds since the epoch, as real recordings stamp their messages."""
 
 
 @dataclass(frozen=True)

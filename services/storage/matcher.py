@@ -3,8 +3,9 @@
 A draft is generated from a message definition so that a designer edits and approves a
 template instead of typing one: nested messages become containers, arrays ``{"array": ...}``,
 the pixel bytes of ``sensor_msgs/Image`` and ``CompressedImage`` an ``image`` (a CID in cas),
-other byte sequences a ``file``. Time needs care because records are JCS (RFC 8785) and JSON
-integers stop being exact at 2**53 (about 104 days of nanoseconds):
+other byte sequences a ``file``. Time needs care: a record's ``t`` is exact at any size, but
+values in ``data`` stay I-JSON, whose integers stop being exact at 2**53 (about 104 days of
+nanoseconds), so that any JSON reader gets them right:
 
 - a message's top-level ``std_msgs/Header`` is not copied: its stamp becomes the record's
   ``t`` (the bag's receive time when the stamp is zero) and its ``frame_id`` the string field

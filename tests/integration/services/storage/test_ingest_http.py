@@ -21,8 +21,8 @@ from tests.bagfactory import typestore_for, write_bag
 from tests.conftest import ServiceFactory
 from tests.procs import ServiceProcess
 
-START_NS = 1_000_000_000_000
-"""Inside 2**53: records' JCS cannot yet hold epoch nanoseconds in ``t``."""
+START_NS = 1_700_000_000_000_000_000
+"""November 2023 in nanoseconds since the epoch, as real recordings stamp their messages."""
 
 
 class Storage(ServiceClient):

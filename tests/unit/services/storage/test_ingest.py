@@ -20,8 +20,8 @@ from services.storage.recordstore import Authorship, RecordStore
 from tests.bagfactory import typestore_for, write_bag
 from tests.blobs import MemoryBlobs
 
-START_NS = 1_000_000_000_000
-"""Inside 2**53: records' JCS cannot yet hold epoch nanoseconds in ``t`` (see the report)."""
+START_NS = 1_700_000_000_000_000_000
+"""November 2023 in nanoseconds since the epoch, as real recordings stamp their messages."""
 
 
 class Node:
