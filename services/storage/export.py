@@ -26,7 +26,7 @@ JSON_SCHEMA = "https://json-schema.org/draft/2020-12/schema"
 
 
 def record_json(record: dict[str, Any]) -> bytes:
-    """A record's JSON, compact and with sorted keys (``t`` exact, as in the record's canonical bytes)."""
+    """A record's JSON, compact, keys sorted, ``t`` exact as in its canonical bytes."""
     return json.dumps(
         record, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
     ).encode()

@@ -44,6 +44,7 @@ from services.common.durable import atomic_write
 from services.storage.bags import (
     SUFFIXES,
     Bag,
+    BagConnection,
     BagCorrupt,
     BagError,
     MessageUndecodable,
@@ -57,7 +58,9 @@ from services.storage.matcher import (
     BlobSink,
     ConversionError,
     Converter,
+    DraftError,
     compile_converter,
+    draft_template,
     record_topic,
 )
 from services.storage.recordlog import RecordLogs
@@ -99,6 +102,9 @@ class TopicReport:
     template: str | None = None
     skipped: str | None = None
     """Why this topic is not ingested (no approved template bound, no definition)."""
+    draft: dict[str, Any] | None = None
+    """For a topic bound to no template, one generated from its message definition: the
+    designer edits and submits it (``POST /v1/templates``) and binds it."""
 
 
 @dataclass
@@ -143,6 +149,16 @@ class Job:
     def from_json(cls, document: dict[str, Any]) -> Job:
         topics = [TopicReport(**topic) for topic in document.pop("topics")]
         return cls(topics=topics, **document)
+
+
+def _draft(connection: BagConnection) -> dict[str, Any] | None:
+    """The draft template a connection's definition gives, when it gives one."""
+    if connection.typestore is None:
+        return None
+    try:
+        return draft_template(connection.typestore, connection.msgtype)
+    except DraftError:
+        return None
 
 
 class IngestFailed(Exception):
@@ -289,6 +305,7 @@ class IngestJobs:
             template_id = self.bindings.resolve(connection.topic, connection.msgtype)
             if template_id is None:
                 report.skipped = "no template is bound to this topic or message type"
+                report.draft = _draft(connection)
                 continue
             try:
                 template = self.store.catalog.approved(template_id)

@@ -16,10 +16,11 @@ from robocloud.client import ServiceClient
 from robocloud.errors import ApiError
 from robocloud.identity import Identity
 from robocloud.ingest import Ingest
+from robocloud.storage import Storage as StorageClient
 from services.storage.matcher import draft_template
 from tests.bagfactory import typestore_for, write_bag
 from tests.conftest import ServiceFactory
-from tests.procs import ServiceProcess
+from tests.procs import SHARED_DATA, ServiceProcess
 
 START_NS = 1_700_000_000_000_000_000
 """November 2023 in nanoseconds since the epoch, as real recordings stamp their messages."""
@@ -113,3 +114,36 @@ def test_bad_bags_fail_without_records(
     )
     assert unsigned.status_code == 401
     assert unsigned.json()["error"]["code"]
+
+
+def test_a_real_recording_is_ingested_through_the_draft_its_job_proposes(
+    storage: ServiceProcess, identity: Identity
+) -> None:
+    """cartographer's tiny bag (2014, so ``t`` is past 2**53): ingest, take the draft the job
+    proposes for ``/imu``, approve and bind it, ingest again, query one second of it."""
+    bag = SHARED_DATA / "rosbag1" / "cartographer_b0-2014-07-21-12-42-53-tiny.bag"
+    with (
+        StorageClient(storage.url, identity) as records,
+        Ingest(storage.url, identity) as ingest,
+    ):
+        first = ingest.wait(ingest.upload(bag)["id"], timeout_s=120)
+        assert first["status"] == "succeeded", first["error"]
+        assert sorted(first["unbound_topics"]) == ["horizontal_laser_2d", "imu"]
+        assert first["records"]["committed"] == 0
+        draft = next(t["draft"] for t in first["topics"] if t["topic"] == "imu")
+        created = records.create_template(draft)
+        records.submit_template(created.id)
+        records.review_template(created.id, "approve", "cartographer's IMU")
+        ingest.bind(created.id, topic="/imu")
+
+        second = ingest.wait(ingest.upload(bag)["id"], timeout_s=120)
+        assert second["status"] == "succeeded", second["error"]
+        assert second["records"]["committed"] == 1243
+        assert second["unbound_topics"] == ["horizontal_laser_2d"]
+        start = 1_405_946_575_000_000_000
+        page = records.query(template=created.id, start=start, end=start + 10**9, limit=1000)
+    times = [stored.record["t"] for stored in page.records]
+    assert times == sorted(times)
+    assert 150 < len(times) < 250  # the IMU runs near 200 Hz
+    assert all(start <= t < start + 10**9 for t in times)
+    assert page.records[0].record["data"]["frame_id"]

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from robocloud.identity import Identity
+from robocloud.templates import parse_template
 from services.storage.catalog import Catalog
 from services.storage.ingest import IngestJobs, Job, JobNotFound
 from services.storage.matcher import Bindings, draft_template
@@ -102,6 +103,11 @@ def test_ingest_writes_bound_topics_and_reports_the_rest(node: Node, tmp_path: P
     assert reports["/gps"].template is None
     assert "no template" in (reports["/gps"].skipped or "")
     assert job.to_json()["unbound_topics"] == ["/gps"]
+    draft = reports["/gps"].draft
+    assert draft is not None
+    assert draft["name"] == "nav_sat_fix"
+    assert parse_template(draft).id == "nav_sat_fix@1"
+    assert reports["/imu"].draft is None
     assert node.logs.size(imu) == 160
     assert node.logs.size(image) == 20
     first = node.store.get("imu-1-0")
