@@ -9,6 +9,7 @@ from robocloud.client import ServiceClient
 from robocloud.errors import PermissionDeniedError
 from robocloud.identity import Identity
 from robocloud.ledger import Role
+from robocloud.storage import Storage
 from services.common.errors import Forbidden, Unavailable
 from services.common.registry_auth import RegistryAuthorizer
 from tests.conftest import ServiceFactory
@@ -66,3 +67,33 @@ def test_allowed_addresses_skip_the_ledger_and_an_unreachable_ledger_is_503() ->
     with pytest.raises(Unavailable) as unavailable:
         anyio.run(authorizer.authorize, Identity.generate().address)
     assert unavailable.value.code == "ledger_unreachable"
+
+
+def test_only_a_reviewer_approves_a_template(
+    service: Service, robot: RobotFactory, service_factory: ServiceFactory
+) -> None:
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_AUTH": "registered",
+            "ROBOCLOUD_LEDGER_URL": service.url,
+            "ROBOCLOUD_STORAGE_ANCHOR": "false",
+            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+        },
+    )
+    designer, reviewer = robot(), robot()
+    assert designer.identity is not None
+    assert reviewer.identity is not None
+    document = {"name": "dock_state", "version": 1, "fields": {"state": "string"}}
+    with Storage(storage.url, designer.identity) as client:
+        client.create_template(document)
+        client.submit_template("dock_state@1")
+        with pytest.raises(PermissionDeniedError) as denied:
+            client.review_template("dock_state@1", "approve", "my own")
+        assert denied.value.code == "role_required"
+        assert denied.value.details == {"address": designer.identity.address, "role": "reviewer"}
+        assert client.template("dock_state@1").status == "submitted"
+    service.admin.grant_role(reviewer.identity.address, Role.REVIEWER)
+    with Storage(storage.url, reviewer.identity) as client:
+        approved = client.review_template("dock_state@1", "approve", "looks right")
+    assert (approved.status, approved.reviewer) == ("approved", reviewer.identity.address)
