@@ -19,6 +19,7 @@ import math
 import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any, Literal
 
 from eth_utils.address import is_checksum_address
@@ -433,8 +434,53 @@ def _check_float(value: Any, path: str) -> None:
 
 
 def validate_data(template: Template, data: Any, path: str = "data") -> None:
-    """Check ``data`` against ``template``'s fields; :class:`RecordInvalid` names the path."""
-    check_container(template.fields, data, path)
+    """Check ``data`` against ``template``'s fields; :class:`RecordInvalid` names the path.
+
+    Plain valid data (nearly all of it, at ingestion's rate) is accepted by
+    :func:`_conforms`, which builds no path strings; whatever it does not accept at once (a
+    CID, a range, a problem) is checked by the walk that names the problem.
+    """
+    if not _conforms_container(template.fields, data):
+        check_container(template.fields, data, path)
+
+
+def _conforms_container(fields: Mapping[str, FieldType], value: Any) -> bool:
+    return (
+        type(value) is dict
+        and len(value) == len(fields)
+        and all(name in value and _conforms(kind, value[name]) for name, kind in fields.items())
+    )
+
+
+def _conforms(kind: FieldType, value: Any) -> bool:
+    """Whether ``value`` certainly passes :func:`_check`: never true for a value it refuses,
+    false for kinds it leaves to it (CIDs, ranges)."""
+    if isinstance(kind, Scalar):
+        name = kind.kind
+        if name == "float":
+            return _conforming_number(value)
+        if name == "int":
+            return type(value) is int and -MAX_SAFE_INTEGER <= value <= MAX_SAFE_INTEGER
+        if name == "string":
+            return type(value) is str and len(value) <= MAX_STRING
+        if name == "bool":
+            return type(value) is bool
+        return False
+    if isinstance(kind, ArrayOf):
+        if type(value) is not list:
+            return False
+        item = kind.item
+        if isinstance(item, Scalar) and item.kind == "float":
+            return all(_conforming_number(element) for element in value)
+        return all(_conforms(item, element) for element in value)
+    return _conforms_container(kind.fields, value)
+
+
+def _conforming_number(value: Any) -> bool:
+    kind = type(value)
+    if kind is float:
+        return math.isfinite(value)
+    return kind is int and -MAX_SAFE_INTEGER <= value <= MAX_SAFE_INTEGER
 
 
 def check_envelope(record: Any) -> str:
@@ -455,12 +501,18 @@ def check_envelope(record: Any) -> str:
     if not isinstance(topic, str) or not TOPIC.fullmatch(topic):
         raise RecordInvalid("topic", "must be a ROS topic name starting with / (at most 256)")
     robot = record["robot"]
-    if not isinstance(robot, str) or not is_checksum_address(robot):
+    if not isinstance(robot, str) or not _is_checksummed(robot):
         raise RecordInvalid("robot", "must be a checksummed address 0x...")
     t = record["t"]
     if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= MAX_T:
         raise RecordInvalid("t", "must be an integer of nanoseconds from 0 to 2**63 - 1")
     return template_id
+
+
+@lru_cache(maxsize=4096)
+def _is_checksummed(address: str) -> bool:
+    """EIP-55 costs a keccak; a batch or a bag repeats a few robots' addresses many times."""
+    return len(address) == 42 and is_checksum_address(address)
 
 
 def canonical_record(record: Mapping[str, Any]) -> bytes:

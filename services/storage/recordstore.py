@@ -129,6 +129,19 @@ def _string_leaves(template: Template) -> list[str]:
     ]
 
 
+NUMBER_CHARACTERS = 25
+"""The longest canonical number a record's data holds, with its comma: a float's 24
+(-1.7976931348623157e+308), an I-JSON integer's 17."""
+
+
+def _certainly_inline(values: list[Any], limit: int) -> bool:
+    """Whether an array of numbers is short enough that its canonical bytes fit under
+    ``limit`` whatever they are, so it need not be serialized to be measured."""
+    if len(values) * NUMBER_CHARACTERS + 2 > limit:
+        return False
+    return all(type(value) in (int, float, bool) for value in values)
+
+
 def _array_leaves(template: Template) -> list[list[str]]:
     return [path.split(".") for path, kind in template.leaves() if isinstance(kind, ArrayOf)]
 
@@ -247,7 +260,7 @@ class RecordStore:
             value: Any = data
             for part in parts:
                 value = value[part]
-            if not isinstance(value, list):
+            if not isinstance(value, list) or _certainly_inline(value, self.array_inline_bytes):
                 continue
             encoded = jcs.canonical(value)
             if len(encoded) <= self.array_inline_bytes:
@@ -272,23 +285,23 @@ class RecordStore:
             return []
         checked = self._checked(records)
         meta = author.meta()
-        groups: dict[str, list[tuple[int, bytes]]] = {}
+        groups: dict[str, list[tuple[int, dict[str, Any], bytes]]] = {}
         for position, (record, (template_id, template)) in enumerate(
             zip(records, checked, strict=True)
         ):
             stored = self._offloaded(position, record, template)
-            groups.setdefault(template_id, []).append((position, canonical_record(stored)))
+            groups.setdefault(template_id, []).append((position, stored, canonical_record(stored)))
         ids: list[str] = [""] * len(records)
         with self._write_lock:
             for template_id, items in groups.items():
                 views = self._open_views(template_id)
                 first = self.logs.append(
-                    template_id, [LogEntry(record=data, meta=meta) for _, data in items]
+                    template_id, [LogEntry(record=data, meta=meta) for _, _, data in items]
                 )
                 if first != views.size:
                     raise RuntimeError(f"{template_id}: log at {first}, views at {views.size}")
-                views.add(flatten(json.loads(data), first + n) for n, (_, data) in enumerate(items))
-                for n, (position, _) in enumerate(items):
+                views.add(flatten(stored, first + n) for n, (_, stored, _) in enumerate(items))
+                for n, (position, _, _) in enumerate(items):
                     ids[position] = record_id(template_id, first + n)
         self._wake.set()
         if self.notify is not None:

@@ -6,6 +6,9 @@ import json
 import struct
 
 import pytest
+import rfc8785
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from robocloud.bounded_json import JsonDepthError
 from robocloud.errors import FormatError
@@ -124,3 +127,37 @@ def test_exact_integers_bound_the_nesting() -> None:
         deep = [deep]
     with pytest.raises(JcsError, match="nested deeper"):
         canonical(deep, exact_integers=True)
+
+
+@settings(max_examples=3000, deadline=None)
+@given(st.floats(allow_nan=False, allow_infinity=False))
+def test_numbers_agree_with_the_rfc8785_package(value: float) -> None:
+    assert canonical(value) == rfc8785.dumps(value)
+
+
+JSON_VALUES = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**53) + 1, 2**53 - 1)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(),
+    lambda children: (
+        st.lists(children, max_size=5) | st.dictionaries(st.text(), children, max_size=5)
+    ),
+    max_leaves=30,
+)
+
+
+@settings(max_examples=1000, deadline=None)
+@given(JSON_VALUES)
+def test_documents_agree_with_the_rfc8785_package(value: object) -> None:
+    """The reference implementation on the same values: key order by UTF-16 code units,
+    string escapes, numbers; a lone surrogate is refused by both."""
+    try:
+        expected = rfc8785.dumps(value)
+    except rfc8785.CanonicalizationError:
+        with pytest.raises(JcsError):
+            canonical(value)
+        return
+    assert canonical(value) == expected
+    assert canonical(value, exact_integers=True) == expected
