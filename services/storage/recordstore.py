@@ -186,6 +186,9 @@ class RecordStore:
             self._rebuild(template_id)
         self.keywords = KeywordIndex(root / "keywords")
         self._wake = threading.Event()
+        self._keyword_lock = threading.Lock()
+        """Whoosh takes one writer at a time: the background thread and a caller of
+        :meth:`index_keywords` take turns."""
         self._stop = threading.Event()
         self._keyword_thread = threading.Thread(
             target=self._index_keywords_forever, name="storage-keywords", daemon=True
@@ -346,6 +349,10 @@ class RecordStore:
 
     def index_keywords(self) -> None:
         """Index every template's records past its keyword mark, in batches."""
+        with self._keyword_lock:
+            self._index_keywords()
+
+    def _index_keywords(self) -> None:
         for template_id in self.template_ids():
             views = self.views(template_id)
             if views is None:
