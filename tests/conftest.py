@@ -19,6 +19,15 @@ def identity() -> Identity:
 
 
 @pytest.fixture
+def keystore(identity: Identity, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """``identity`` in a keystore the CLI opens (its passphrase in the environment)."""
+    path = tmp_path / "key.json"
+    identity.save(path, "pw", scrypt_n=2**4)
+    monkeypatch.setenv("ROBOCLOUD_PASSPHRASE", "pw")
+    return path
+
+
+@pytest.fixture
 def service_factory(tmp_path: Path) -> Iterator[ServiceFactory]:
     """Start real service processes; every one is stopped when the test ends, even on failure."""
     started: list[ServiceProcess] = []

@@ -8,6 +8,7 @@ State that changes record by record goes to SQLite instead, opened by ``open_sql
 from __future__ import annotations
 
 import os
+import secrets
 import sqlite3
 from pathlib import Path
 from typing import Literal
@@ -87,3 +88,21 @@ class AppendLog:
 
     def close(self) -> None:
         os.close(self._fd)
+
+
+def generated_secret(path: Path) -> str:
+    """The secret kept in ``path`` (0600), generated and made durable the first time.
+
+    Created with ``O_EXCL``, so two processes starting together agree on one secret.
+    """
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        return path.read_text().strip()
+    secret = secrets.token_urlsafe(32)
+    with os.fdopen(fd, "w") as handle:
+        handle.write(secret)
+        handle.flush()
+        os.fsync(handle.fileno())
+    fsync_dir(path.parent)
+    return secret

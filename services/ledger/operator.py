@@ -12,14 +12,12 @@ account keeps its nonces from racing the admin's (granting roles from a wallet o
 
 from __future__ import annotations
 
-import os
-import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from robocloud.identity import Identity
-from services.common.durable import fsync_dir
+from services.common.durable import fsync_dir, generated_secret
 
 SECRET_FILE = "operator.secret"
 KEYS_DIR = "keys"
@@ -47,20 +45,7 @@ class OperatorKeys:
 
 def passphrase(data_dir: Path, configured: str | None) -> str:
     """The configured passphrase, else the one generated into ``operator.secret``."""
-    if configured:
-        return configured
-    path = data_dir / SECRET_FILE
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        return path.read_text().strip()
-    secret = secrets.token_urlsafe(32)
-    with os.fdopen(fd, "w") as handle:
-        handle.write(secret)
-        handle.flush()
-        os.fsync(handle.fileno())
-    fsync_dir(data_dir)
-    return secret
+    return configured or generated_secret(data_dir / SECRET_FILE)
 
 
 def admin_keystore(data_dir: Path) -> Path:

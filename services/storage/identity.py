@@ -15,8 +15,6 @@ the default under ``make up`` and compose) or an operator with ``robocloud admin
 from __future__ import annotations
 
 import logging
-import os
-import secrets
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -25,7 +23,7 @@ from robocloud.cid import CID
 from robocloud.identity import Identity
 from robocloud.ledger import Ledger
 from robocloud.ledger.models import Role
-from services.common.durable import fsync_dir
+from services.common.durable import fsync_dir, generated_secret
 
 log = logging.getLogger("robocloud.storage.identity")
 
@@ -35,20 +33,7 @@ KEYSTORE = Path("keys") / "node.json"
 
 def passphrase(data_dir: Path, configured: str | None) -> str:
     """The configured passphrase, else the one generated into ``node.secret``."""
-    if configured:
-        return configured
-    path = data_dir / SECRET_FILE
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        return path.read_text().strip()
-    secret = secrets.token_urlsafe(32)
-    with os.fdopen(fd, "w") as handle:
-        handle.write(secret)
-        handle.flush()
-        os.fsync(handle.fileno())
-    fsync_dir(data_dir)
-    return secret
+    return configured or generated_secret(data_dir / SECRET_FILE)
 
 
 def load_or_create(data_dir: Path, configured_passphrase: str | None) -> Identity:

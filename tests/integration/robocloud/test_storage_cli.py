@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import pytest
 from typer.testing import CliRunner
 
 from robocloud.cli import app
@@ -14,14 +13,6 @@ from robocloud.storage import Storage
 from tests.conftest import ServiceFactory
 
 runner = CliRunner()
-
-
-@pytest.fixture
-def keystore(identity: Identity, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    path = tmp_path / "key.json"
-    identity.save(path, "pw", scrypt_n=2**4)
-    monkeypatch.setenv("ROBOCLOUD_PASSPHRASE", "pw")
-    return path
 
 
 def test_templates_and_query_from_the_cli(

@@ -13,7 +13,6 @@ from typer.testing import CliRunner
 
 from robocloud.cas import Cas, CasError
 from robocloud.cli import app
-from robocloud.identity import Identity
 from tests.integration.services.cas.conftest import pin_list, store_unchanged
 from tests.procs import SHARED_DATA, ServiceProcess
 from tests.reference import reference_cid, write_tree
@@ -33,14 +32,6 @@ NESTED = {
 @pytest.fixture(scope="module")
 def cas_service(shared_cas_service: ServiceProcess) -> ServiceProcess:
     return shared_cas_service
-
-
-@pytest.fixture
-def keystore(identity: Identity, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    path = tmp_path / "key.json"
-    identity.save(path, "pw", scrypt_n=2**4)
-    monkeypatch.setenv("ROBOCLOUD_PASSPHRASE", "pw")
-    return path
 
 
 def test_the_fixture_directory_adds_to_kubos_cid(cas: Cas) -> None:

@@ -70,6 +70,9 @@ def test_pin_unpin_and_pins(cas: Cas, identity: Identity) -> None:
 def gateway_answering(answer: Callable[[str], tuple[int, str, bytes]]) -> Iterator[str]:
     class Gateway(BaseHTTPRequestHandler):
         def _reply(self) -> None:
+            # Read what the client sends, as any server does before answering: the SDK
+            # computes its CIDs from the body it streams.
+            self.rfile.read(int(self.headers.get("Content-Length") or 0))
             status, content_type, body = answer(self.path)
             self.send_response(status)
             self.send_header("Content-Type", content_type)
@@ -160,14 +163,6 @@ def work(tmp_path: Path) -> Path:
     """A directory of this test's files alone (the service keeps its data in ``tmp_path``)."""
     path = tmp_path / "work"
     path.mkdir()
-    return path
-
-
-@pytest.fixture
-def keystore(identity: Identity, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    path = tmp_path / "key.json"
-    identity.save(path, "pw", scrypt_n=2**4)
-    monkeypatch.setenv("ROBOCLOUD_PASSPHRASE", "pw")
     return path
 
 

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,16 +18,7 @@ from robocloud.templates import canonical_record
 from tests.conftest import ServiceFactory
 from tests.integration.services.storage.counter import counter_record, write_counter_records
 from tests.procs import ServiceProcess, free_port
-
-
-def wait_for(check: Callable[[], Any], what: str, timeout_s: float = 90.0) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
+from tests.waiting import wait_for
 
 
 def node_state(storage: ServiceProcess) -> dict[str, Any]:

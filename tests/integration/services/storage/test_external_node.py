@@ -18,8 +18,9 @@ from tests.conftest import ServiceFactory
 from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
 from tests.integration.services.ledger.conftest import LEDGER_ENV, PASSPHRASE
 from tests.integration.services.storage.counter import write_counter_records
-from tests.integration.services.storage.test_anchoring import node_state, wait_for
+from tests.integration.services.storage.test_anchoring import node_state
 from tests.procs import free_port
+from tests.waiting import wait_for
 
 
 def test_proofs_verify_against_anvil(service_factory: ServiceFactory, tmp_path: Path) -> None:
