@@ -41,7 +41,6 @@ from services.storage.queries import QueryInvalid
 from services.storage.recordlog import InvalidTemplateId
 from services.storage.recordstore import (
     OffloadFailed,
-    RecordIdInvalid,
     RecordRejected,
 )
 from services.storage.recordstore import RecordNotFound as StoredRecordNotFound
@@ -127,7 +126,6 @@ ERRORS = ErrorMap(
         OffloadFailed: ErrorRule(
             502, "cas_unavailable", lambda exc: {"index": exc.index, "field": exc.path}
         ),
-        RecordIdInvalid: ErrorRule(400, "invalid_record_id", lambda exc: {"id": exc.text[:80]}),
         StoredRecordNotFound: ErrorRule(404, "record_not_found", lambda exc: {"id": exc.record_id}),
         QueryInvalid: ErrorRule(
             400, "invalid_query", lambda exc: {"parameter": exc.parameter, "reason": exc.code}

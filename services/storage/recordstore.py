@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from robocloud import jcs
+from robocloud.proofs import RecordId
 from robocloud.templates import (
     ArrayOf,
     RecordInvalid,
@@ -41,7 +41,6 @@ from services.storage.segments import SegmentCache, TemplateSegments, flatten
 
 log = logging.getLogger("robocloud.storage.records")
 
-RECORD_ID = re.compile(r"([a-z][a-z0-9_]{0,62})-([1-9][0-9]{0,8})-(0|[1-9][0-9]{0,18})")
 KEYWORD_BATCH = 2000
 READ_BATCH = 4096
 
@@ -80,12 +79,6 @@ class RecordRejected(RecordInvalid):
         self.args = (f"record {index}: {path or 'record'}: {message}",)
 
 
-class RecordIdInvalid(ValueError):
-    def __init__(self, text: str) -> None:
-        super().__init__(f"{text[:80]!r} is not a record id (<name>-<version>-<index>)")
-        self.text = text
-
-
 class RecordNotFound(LookupError):
     def __init__(self, record_id: str) -> None:
         super().__init__(f"no record {record_id}")
@@ -104,14 +97,6 @@ class OffloadFailed(Exception):
 def record_id(template_id: str, index: int) -> str:
     name, version = parse_template_id(template_id)
     return f"{name}-{version}-{index}"
-
-
-def parse_record_id(text: str) -> tuple[str, int]:
-    """``imu-1-42`` as ``("imu@1", 42)``."""
-    match = RECORD_ID.fullmatch(text)
-    if match is None:
-        raise RecordIdInvalid(text)
-    return f"{match.group(1)}@{match.group(2)}", int(match.group(3))
 
 
 @dataclass(frozen=True)
@@ -313,7 +298,8 @@ class RecordStore:
 
     def get(self, text: str) -> StoredRecord:
         """A record by id, exactly as its log holds it, with its authorship."""
-        template_id, index = parse_record_id(text)
+        parsed = RecordId.parse(text)
+        template_id, index = parsed.template, parsed.index
         try:
             entry = self.logs.entry(template_id, index)
         except (EntryNotFound, LookupError) as exc:
