@@ -27,6 +27,7 @@ from services.common.errors import BadRequest, UnsupportedMediaType
 from services.storage import bags_api, identity, records_api
 from services.storage.anchoring import LedgerAndCas, StorageNode
 from services.storage.catalog import Catalog
+from services.storage.datasets import DatasetPublisher
 from services.storage.errors import ERRORS
 from services.storage.ingest import CasBlobs, IngestJobs
 from services.storage.knowledge import KnowledgeBase
@@ -326,7 +327,9 @@ def _close_records(app: FastAPI) -> None:
 
 
 # ----- bag ingestion and export (engineer bags) -----
-def _open_ingest(app: FastAPI, settings: StorageSettings, node: StorageNode) -> None:
+def _open_ingest(
+    app: FastAPI, settings: StorageSettings, node: StorageNode, knowledge: KnowledgeBase
+) -> None:
     data_dir = settings.resolved_data_dir()
     offload = _cas_offload(node, settings)
     clients: dict[str, Cas] = {}
@@ -336,6 +339,12 @@ def _open_ingest(app: FastAPI, settings: StorageSettings, node: StorageNode) -> 
             clients["cas"] = Cas(settings.cas_url, node.identity.identity, retries=1)
         return clients["cas"]
 
+    @contextmanager
+    def ledger() -> Iterator[Ledger]:
+        with Ledger.connect(settings.ledger_url, node.identity.identity) as chain:
+            yield chain
+
+    publish = DatasetPublisher(app.state.records, knowledge, cas, ledger, node.identity)
     app.state.ingest_cas = cas
     app.state.bindings = Bindings(data_dir / "bindings.json")
     app.state.ingest_jobs = IngestJobs(
@@ -346,6 +355,7 @@ def _open_ingest(app: FastAPI, settings: StorageSettings, node: StorageNode) -> 
         lambda: CasBlobs(offload),
         batch_records=settings.storage_ingest_batch_records,
         max_pending=settings.storage_max_ingest_jobs,
+        publish=publish if settings.storage_publish_datasets else None,
     )
 
 
@@ -384,6 +394,6 @@ def build_app(settings: StorageSettings) -> FastAPI:
     )
     app.state.node = _open_node(settings)
     _open_records(app, settings, app.state.node)
-    _open_ingest(app, settings, app.state.node)
     app.state.knowledge = _open_knowledge(settings)
+    _open_ingest(app, settings, app.state.node, app.state.knowledge)
     return app

@@ -125,6 +125,9 @@ class Job:
     staged: dict[str, int] = field(default_factory=dict)
     committed: dict[str, int] = field(default_factory=dict)
     intent: dict[str, Any] | None = None
+    dataset: dict[str, Any] | None = None
+    """What publishing the ingested dataset gave: the bag's CID, its description's CID and the
+    advertisement's transaction, or the error that stopped it (the records stay committed)."""
     created_ns: int = field(default_factory=time.time_ns)
     updated_ns: int = field(default_factory=time.time_ns)
 
@@ -140,6 +143,7 @@ class Job:
             "topics": [asdict(topic) for topic in self.topics],
             "unbound_topics": [t.topic for t in self.topics if t.template is None],
             "record_ids": self.record_ids,
+            "dataset": self.dataset,
             "error": self.error,
             "created_ns": self.created_ns,
             "updated_ns": self.updated_ns,
@@ -182,6 +186,7 @@ class IngestJobs:
         batch_records: int = 5000,
         max_pending: int = 16,
         keep_finished: int = 1000,
+        publish: Callable[[Job, Path], dict[str, Any]] | None = None,
     ) -> None:
         self.root = root
         self.store = store
@@ -191,6 +196,8 @@ class IngestJobs:
         self.batch_records = batch_records
         self.max_pending = max_pending
         self.keep_finished = keep_finished
+        self.publish = publish
+        """Describes and advertises what a job ingested, once its records are committed."""
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._lock = threading.Lock()
         self._queue: queue.Queue[str | None] = queue.Queue()
@@ -292,9 +299,20 @@ class IngestJobs:
         if job.status in ("queued", "staging"):
             self._stage(job)
         self._commit(job)
+        dataset = self._published(job) if job.records_committed else None
         shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         shutil.rmtree(self.root / job.id / "bag", ignore_errors=True)
-        self._update(job, status="succeeded")
+        self._update(job, status="succeeded", dataset=dataset)
+
+    def _published(self, job: Job) -> dict[str, Any] | None:
+        """Publish the job's dataset; a failure is reported with the job, which succeeded."""
+        if self.publish is None:
+            return None
+        try:
+            return self.publish(job, self.root / job.id / "bag")
+        except Exception as exc:
+            log.warning("dataset not published", extra={"job": job.id, "error": str(exc)})
+            return {"error": str(exc)[:500]}
 
     def _plan(self, bag: Bag) -> tuple[list[TopicReport], dict[tuple[str, str], Any]]:
         reports: list[TopicReport] = []

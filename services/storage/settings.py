@@ -100,3 +100,7 @@ class StorageSettings(ServiceSettings):
     storage_max_ingest_jobs: int = Field(
         default=16, ge=1, description="ingest jobs queued or running at once"
     )
+    storage_publish_datasets: bool = Field(
+        default=True,
+        description="describe each ingested bag, index it and advertise it on the ledger",
+    )

@@ -16,7 +16,9 @@ from robocloud.client import ServiceClient
 from robocloud.errors import ApiError
 from robocloud.identity import Identity
 from robocloud.ingest import Ingest
+from robocloud.ledger import LedgerService
 from robocloud.storage import Storage as StorageClient
+from robocloud.unixfs import import_bytes
 from services.storage.matcher import draft_template
 from tests.bagfactory import typestore_for, write_bag
 from tests.conftest import ServiceFactory
@@ -147,3 +149,47 @@ def test_a_real_recording_is_ingested_through_the_draft_its_job_proposes(
     assert 150 < len(times) < 250  # the IMU runs near 200 Hz
     assert all(start <= t < start + 10**9 for t in times)
     assert page.records[0].record["data"]["frame_id"]
+
+
+def storage_address(storage: ServiceProcess) -> str:
+    return str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
+
+
+def test_an_ingested_bag_is_described_indexed_and_advertised(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    ledger = service_factory("ledger")
+    cas = service_factory("cas")
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_LEDGER_URL": ledger.url,
+            "ROBOCLOUD_CAS_URL": cas.url,
+            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+        },
+    )
+    bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        imu = approve(records, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        job = ingest.wait(ingest.upload(bag)["id"], timeout_s=180)
+    assert job["status"] == "succeeded", job["error"]
+    dataset = job["dataset"]
+    assert set(dataset) == {"cid", "description", "tx"}, dataset
+    assert dataset["cid"] == str(import_bytes(bag.read_bytes())[1])
+
+    with LedgerService(ledger.url) as service:
+        (advertised,) = service.advertisements(cid=dataset["cid"])
+    assert advertised.description == dataset["description"]
+    assert advertised.advertiser == storage_address(storage)
+    query = f"""
+        PREFIX rc: <https://w3id.org/robocloud#>
+        SELECT ?count WHERE {{ <ipfs://{dataset["cid"]}> rc:recordCount ?count }}
+    """
+    answer = httpx.get(
+        f"{storage.url}/v1/knowledge/sparql",
+        params={"query": query},
+        headers={"Accept": "application/sparql-results+json"},
+        timeout=30,
+    ).json()
+    assert [row["count"]["value"] for row in answer["results"]["bindings"]] == ["40"]

@@ -1,0 +1,99 @@
+"""The dataset description of every ingested bag, stored, indexed and advertised on the ledger.
+
+So that a robot that never saw the bag finds it by SPARQL (which robot, which topics and
+templates, which time range, how many records) and fetches it: the bag itself goes to cas when
+it was uploaded, each template's canonical JSON too (descriptions name templates by CID), the
+description is validated and indexed by the knowledge base, and ``Registry.advertise(bag,
+description)`` announces it, signed by the storage node's own key.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from robocloud import jcs
+from robocloud.cas import Cas
+from robocloud.cid import CID, parse_cid
+from robocloud.ledger import Ledger
+from robocloud.proofs import RecordId
+from robocloud.semantic import TemplateCount, dataset_description, robot_iri
+from services.storage.identity import NodeIdentity
+from services.storage.ingest import Job
+from services.storage.knowledge import KnowledgeBase
+from services.storage.recordstore import RecordStore
+
+log = logging.getLogger("robocloud.storage.datasets")
+
+
+class DatasetPublisher:
+    """Called by the ingest worker once a job has committed its records."""
+
+    def __init__(
+        self,
+        store: RecordStore,
+        knowledge: KnowledgeBase,
+        cas: Callable[[], Cas],
+        ledger: Callable[[], AbstractContextManager[Ledger]],
+        node: NodeIdentity,
+    ) -> None:
+        self.store = store
+        self.knowledge = knowledge
+        self.cas = cas
+        self.ledger = ledger
+        self.node = node
+
+    def __call__(self, job: Job, bag: Path) -> dict[str, Any]:
+        """Publish ``job``'s dataset; what was published, for the job's report."""
+        bag_cid = self._bag_cid(job, bag)
+        counts = [self._count(template, ids) for template, ids in job.record_ids.items()]
+        start, end = self._time_range(job)
+        with self.ledger() as chain:
+            chain_id = chain.chain_id
+            description = dataset_description(
+                bag_cid,
+                producer=robot_iri(chain_id, str(job.author["signer"])),
+                storage_node=robot_iri(chain_id, self.node.address),
+                topics=sorted({t.topic for t in job.topics if t.template is not None}),
+                record_counts=counts,
+                start=start,
+                end=end,
+                title=f"ROS bag {bag_cid}",
+            )
+            description_cid = self.cas().add_bytes(description.canonical())
+            self.knowledge.add(str(description_cid))
+            self.node.ensure_registered(chain)
+            event = chain.advertise(bag_cid.binary, description_cid.binary)
+        log.info(
+            "dataset advertised",
+            extra={"job": job.id, "cid": str(bag_cid), "description": str(description_cid)},
+        )
+        return {"cid": str(bag_cid), "description": str(description_cid), "tx": event.tx_hash}
+
+    def _bag_cid(self, job: Job, bag: Path) -> CID:
+        """The CID the bag came by, else the CID of the uploaded file, put in cas."""
+        kind, _, value = job.bag.partition(":")
+        if kind == "cid":
+            return parse_cid(value, "bag")
+        return self.cas().add_directory(bag) if bag.is_dir() else self.cas().add_file(bag)
+
+    def _count(self, template_id: str, ids: list[str]) -> TemplateCount:
+        """A template's records in the job, named by the CID of its canonical JSON in cas."""
+        document = self.store.catalog.approved(template_id).to_json()
+        template_cid = self.cas().add_bytes(jcs.canonical(document))
+        first, last = (RecordId.parse(text).index for text in ids)
+        return TemplateCount(template_id, template_cid, last - first + 1)
+
+    def _time_range(self, job: Job) -> tuple[datetime, datetime]:
+        """From the first to the last record the job committed, over all its templates."""
+        ids = [text for first_and_last in job.record_ids.values() for text in first_and_last]
+        times = [self.store.get(text).record["t"] for text in ids]
+        return _utc(min(times)), _utc(max(times))
+
+
+def _utc(nanoseconds: int) -> datetime:
+    return datetime.fromtimestamp(nanoseconds / 1e9, tz=UTC)
