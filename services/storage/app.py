@@ -344,7 +344,15 @@ def _open_ingest(
         with Ledger.connect(settings.ledger_url, node.identity.identity) as chain:
             yield chain
 
-    publish = DatasetPublisher(app.state.records, knowledge, cas, ledger, node.identity)
+    publish = DatasetPublisher(
+        app.state.records,
+        knowledge,
+        cas,
+        ledger,
+        node.identity,
+        epochs=node.epochs if node.anchorer is not None else None,
+        epoch_wait_s=2 * settings.storage_epoch_s + 1,
+    )
     app.state.ingest_cas = cas
     app.state.bindings = Bindings(data_dir / "bindings.json")
     app.state.ingest_jobs = IngestJobs(

@@ -10,6 +10,7 @@ description)`` announces it, signed by the storage node's own key.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from datetime import UTC, datetime
@@ -22,6 +23,7 @@ from robocloud.cid import CID, parse_cid
 from robocloud.ledger import Ledger
 from robocloud.proofs import RecordId
 from robocloud.semantic import TemplateCount, dataset_description, robot_iri
+from services.storage.anchoring import EpochStore
 from services.storage.identity import NodeIdentity
 from services.storage.ingest import Job
 from services.storage.knowledge import KnowledgeBase
@@ -40,8 +42,13 @@ class DatasetPublisher:
         cas: Callable[[], Cas],
         ledger: Callable[[], AbstractContextManager[Ledger]],
         node: NodeIdentity,
+        epochs: EpochStore | None = None,
+        epoch_wait_s: float = 5.0,
     ) -> None:
         self.store = store
+        self.epochs = epochs
+        """Where the epoch proving the dataset's records is found; None when nothing anchors."""
+        self.epoch_wait_s = epoch_wait_s
         self.knowledge = knowledge
         self.cas = cas
         self.ledger = ledger
@@ -52,6 +59,7 @@ class DatasetPublisher:
         bag_cid = self._bag_cid(job, bag)
         counts = [self._count(template, ids) for template, ids in job.record_ids.items()]
         start, end = self._time_range(job)
+        epoch, tmt_root = self._epoch(job)
         with self.ledger() as chain:
             chain_id = chain.chain_id
             description = dataset_description(
@@ -62,6 +70,8 @@ class DatasetPublisher:
                 record_counts=counts,
                 start=start,
                 end=end,
+                epoch=epoch,
+                tmt_root=tmt_root,
                 title=f"ROS bag {bag_cid}",
             )
             description_cid = self.cas().add_bytes(description.canonical())
@@ -73,6 +83,23 @@ class DatasetPublisher:
             extra={"job": job.id, "cid": str(bag_cid), "description": str(description_cid)},
         )
         return {"cid": str(bag_cid), "description": str(description_cid), "tx": event.tx_hash}
+
+    def _epoch(self, job: Job) -> tuple[int | None, str | None]:
+        """The first epoch holding every record of the job, and its TMT root: cut within an
+        epoch's length of the commit, so waited for that long (anchoring follows later)."""
+        if self.epochs is None:
+            return None, None
+        last = [RecordId.parse(ids[-1]) for ids in job.record_ids.values()]
+        deadline = time.monotonic() + self.epoch_wait_s
+        while True:
+            found = [self.epochs.epoch_of(record.template, record.index) for record in last]
+            if all(epoch is not None for epoch in found):
+                epoch = max(epoch for epoch in found if epoch is not None)
+                tree = self.epochs.tree(epoch)
+                return (epoch, tree.root.hex()) if tree is not None else (None, None)
+            if time.monotonic() > deadline:
+                return None, None
+            time.sleep(0.1)
 
     def _bag_cid(self, job: Job, bag: Path) -> CID:
         """The CID the bag came by, else the CID of the uploaded file, put in cas."""

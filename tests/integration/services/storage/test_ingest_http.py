@@ -184,7 +184,9 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
     assert advertised.advertiser == storage_address(storage)
     query = f"""
         PREFIX rc: <https://w3id.org/robocloud#>
-        SELECT ?count WHERE {{ <ipfs://{dataset["cid"]}> rc:recordCount ?count }}
+        SELECT ?count ?epoch ?root WHERE {{
+            <ipfs://{dataset["cid"]}> rc:recordCount ?count ; rc:epoch ?epoch ; rc:tmtRoot ?root
+        }}
     """
     answer = httpx.get(
         f"{storage.url}/v1/knowledge/sparql",
@@ -192,4 +194,13 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
         headers={"Accept": "application/sparql-results+json"},
         timeout=30,
     ).json()
-    assert [row["count"]["value"] for row in answer["results"]["bindings"]] == ["40"]
+    ((count, epoch, root),) = [
+        (row["count"]["value"], int(row["epoch"]["value"]), row["root"]["value"])
+        for row in answer["results"]["bindings"]
+    ]
+    assert count == "40"
+    manifest = httpx.get(f"{storage.url}/v1/epochs/{epoch}", timeout=10).json()
+    assert manifest["tmt_root"] == root
+    assert manifest["heads"] == [
+        {"template": imu, "size": 40, "root": manifest["heads"][0]["root"]}
+    ]
