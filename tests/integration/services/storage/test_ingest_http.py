@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +25,7 @@ from services.storage.matcher import draft_template
 from tests.bagfactory import typestore_for, write_bag
 from tests.conftest import ServiceFactory
 from tests.procs import SHARED_DATA, ServiceProcess
+from tests.waiting import wait_for
 
 START_NS = 1_700_000_000_000_000_000
 """November 2023 in nanoseconds since the epoch, as real recordings stamp their messages."""
@@ -204,3 +207,46 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
     assert manifest["heads"] == [
         {"template": imu, "size": 40, "root": manifest["heads"][0]["root"]}
     ]
+
+
+def test_kill_9_while_committing_a_bag_ingests_it_exactly_once(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """The service dies between two batches of a job; at the next start the job resumes and
+    every message of the bound topic is a record exactly once."""
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_STORAGE_INGEST_BATCH_RECORDS": "200",
+            "ROBOCLOUD_STORAGE_ANCHOR": "false",
+            "ROBOCLOUD_STORAGE_PUBLISH_DATASETS": "false",
+        },
+    )
+    bag = write_bag(tmp_path / "run.bag", "ros1", 12_000, start_ns=START_NS)
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        imu = approve(records, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        job_id = ingest.upload(bag)["id"]
+        wait_for(
+            lambda: ingest.job(job_id)["records"]["committed"] > 0,
+            "the job to commit its first batch",
+        )
+    assert storage.process is not None
+    os.kill(storage.process.pid, signal.SIGKILL)
+    storage.process.wait()
+    storage.start()
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        done = ingest.wait(job_id, timeout_s=300)
+        assert done["status"] == "succeeded", done["error"]
+        times: list[int] = []
+        cursor = None
+        while True:
+            page = records.query(template=imu, limit=1000, cursor=cursor)
+            times.extend(stored.record["t"] for stored in page.records)
+            if page.next is None:
+                break
+            cursor = page.next
+    expected = done["messages"]["total"]
+    assert done["records"]["committed"] == expected
+    assert len(times) == expected
+    assert len(set(times)) == expected
