@@ -211,6 +211,12 @@ class EmbeddedChain:
     def recent_receipts(self, block_hash: bytes) -> tuple[ReceiptAPI, ...] | None:
         return self._recent_receipts.get(block_hash)
 
+    def waiting(self, tx_hash: bytes) -> SignedTransactionAPI | None:
+        """A transaction accepted but waiting in the pool for its sender's nonce gap."""
+        with self._lock:
+            self._pool.expire()
+            return self._pool.find(tx_hash)
+
     def locate(self, tx_hash: bytes) -> Located | None:
         """Where a mined transaction is, from py-evm's own hash index (not a scan).
 

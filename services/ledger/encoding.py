@@ -164,6 +164,16 @@ def transaction(block: BlockAPI, index: int, tx: SignedTransactionAPI) -> dict[s
     return fields
 
 
+def pending_transaction(tx: SignedTransactionAPI, next_base_fee: int) -> dict[str, Any]:
+    """A transaction in the pool, as geth and anvil show one: in no block yet, its gas price
+    what it would pay in the next block."""
+    fields = transaction_fields(tx)
+    fields |= {"blockHash": None, "blockNumber": None, "transactionIndex": None}
+    if tx.type_id not in (None, 1):
+        fields["gasPrice"] = quantity(effective_gas_price(tx, next_base_fee))
+    return fields
+
+
 def block(value: BlockAPI, full_transactions: bool) -> dict[str, Any]:
     header = value.header
     transactions: list[Any] = (

@@ -52,11 +52,16 @@ class PendingPool:
         return len(self._by_sender.get(sender, {}))
 
     def contains(self, tx_hash: bytes) -> bool:
-        return any(
-            waiting.transaction.hash == tx_hash
-            for queue in self._by_sender.values()
-            for waiting in queue.values()
-        )
+        return self.find(tx_hash) is not None
+
+    def find(self, tx_hash: bytes) -> SignedTransactionAPI | None:
+        """The waiting transaction of that hash (a scan: the pool holds at most
+        ``max_total``, 1,024 by default)."""
+        for queue in self._by_sender.values():
+            for waiting in queue.values():
+                if waiting.transaction.hash == tx_hash:
+                    return waiting.transaction
+        return None
 
     def add(self, transaction: SignedTransactionAPI) -> None:
         """Queue ``transaction`` (already valid but for its nonce), or refuse it as geth

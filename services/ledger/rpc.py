@@ -373,10 +373,14 @@ class EmbeddedMethods:
         return encoding.block(block, full) if block is not None else None
 
     def transaction_by_hash(self, params: list[Any]) -> Any:
-        located = self.chain.locate(as_bytes(param(params, 0), "transaction hash", 32))
-        if located is None:
+        tx_hash = as_bytes(param(params, 0), "transaction hash", 32)
+        located = self.chain.locate(tx_hash)
+        if located is not None:
+            return encoding.transaction(located.block, located.index, located.transaction)
+        waiting = self.chain.waiting(tx_hash)
+        if waiting is None:
             return None
-        return encoding.transaction(located.block, located.index, located.transaction)
+        return encoding.pending_transaction(waiting, self.chain.base_fee())
 
     def transaction_receipt(self, params: list[Any]) -> Any:
         located = self.chain.locate(as_bytes(param(params, 0), "transaction hash", 32))

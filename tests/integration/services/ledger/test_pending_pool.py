@@ -44,6 +44,28 @@ def test_ten_nonces_out_of_order_are_all_mined_on_both(pair: Pair) -> None:
         assert result(url, "eth_getTransactionCount", [sender.address, "latest"]) == "0xa"
 
 
+def test_a_waiting_transaction_is_found_by_hash_in_no_block_on_both(pair: Pair) -> None:
+    sender = pair.funded()
+    answers = []
+    for url in pair.urls:
+        waiting = result(url, "eth_sendRawTransaction", [transfer(sender, 1, value=7)])
+        found = result(url, "eth_getTransactionByHash", [waiting])
+        assert found is not None, url
+        answers.append(found)
+        next_base_fee = int(
+            result(url, "eth_feeHistory", ["0x1", "latest", []])["baseFeePerGas"][-1], 16
+        )
+        tip = int(found["maxPriorityFeePerGas"], 16)
+        assert int(found["gasPrice"], 16) == next_base_fee + tip, url
+        result(url, "eth_sendRawTransaction", [transfer(sender, 0)])
+        mined = result(url, "eth_getTransactionByHash", [waiting])
+        assert mined["blockNumber"] is not None, url
+    ours, anvil = answers
+    keys = ("hash", "nonce", "from", "to", "value", "blockHash", "blockNumber", "maxFeePerGas")
+    assert {key: ours[key] for key in keys} == {key: anvil[key] for key in keys}
+    assert (ours["blockHash"], ours["blockNumber"], ours["transactionIndex"]) == (None, None, None)
+
+
 def test_a_waiting_transaction_is_replaced_only_for_a_higher_price_on_both(pair: Pair) -> None:
     sender = pair.funded()
     for url in pair.urls:
