@@ -22,7 +22,7 @@ from services.storage.export import jsonl_stream, mcap_stream
 from services.storage.ingest import IngestJobs, fetch_from_cas
 from services.storage.matcher import Bindings
 from services.storage.queries import QueryEngine, RecordQuery
-from services.storage.records_api import _authorship, _robot
+from services.storage.records_api import authorship_of, robot_filter
 
 router = APIRouter(tags=["ingest"])
 EXPORT_PAGE = 1000
@@ -72,7 +72,7 @@ async def _spool_upload(request: Request, directory: Path, limit: int) -> tuple[
 async def ingest(request: Request) -> JSONResponse:
     """Ingest a bag: a JSON body ``{"cid"}`` names one in cas (a file, or a directory for a
     split ROS 2 bag); any other body is the bag file itself, streamed. Answers the job."""
-    author = _authorship(request)
+    author = authorship_of(request)
     settings = request.app.state.settings
     jobs = _jobs(request)
     incoming = jobs.root / "incoming"
@@ -104,7 +104,7 @@ async def get_job(request: Request, job_id: str) -> dict[str, Any]:
 
 @router.post("/v1/jobs/{job_id}/resume", status_code=202)
 async def resume_job(request: Request, job_id: str) -> dict[str, Any]:
-    _authorship(request)
+    authorship_of(request)
     job = await anyio.to_thread.run_sync(lambda: _jobs(request).resume(job_id))
     return job.to_json()
 
@@ -121,7 +121,7 @@ async def bind(
     body: Binding = json_body(Binding),  # type: ignore[assignment]
 ) -> dict[str, Any]:
     """Bind a topic or a message type to a template id (a topic binding wins)."""
-    _authorship(request)
+    authorship_of(request)
     bindings: Bindings = request.app.state.bindings
     await anyio.to_thread.run_sync(
         lambda: bindings.bind(template_id=body.template, topic=body.topic, msgtype=body.msgtype)
@@ -171,7 +171,7 @@ async def export(
     query = RecordQuery(
         template=template,
         topic=topic,
-        robot=_robot(robot),
+        robot=robot_filter(robot),
         start=start,
         end=end,
         where=tuple(where or ()),

@@ -140,7 +140,8 @@ async def get_template(request: Request, template_id: str) -> JSONResponse:
     return _version(_catalog(request).get(template_id))
 
 
-def _authorship(request: Request) -> Authorship:
+def authorship_of(request: Request) -> Authorship:
+    """What a stored record keeps of the signed request that wrote it (records and ingestion)."""
     verified = verified_request(request)
     path = (request.scope.get("raw_path") or request.url.path.encode()).split(b"?", 1)[0]
     query = request.scope.get("query_string", b"").decode("latin-1")
@@ -236,7 +237,7 @@ async def _records_of(request: Request, settings: StorageSettings) -> list[Any]:
 @router.post("/v1/records", status_code=201)
 async def append_records(request: Request) -> dict[str, Any]:
     """Store a batch of records (all or none); their ids in the order sent."""
-    author = _authorship(request)
+    author = authorship_of(request)
     records = await _records_of(request, request.app.state.settings)
     ids = await anyio.to_thread.run_sync(lambda: _store(request).append(records, author=author))
     return {"ids": ids, "count": len(ids)}
@@ -253,7 +254,8 @@ def _rendered(stored: StoredRecord, meta: bool = False) -> dict[str, Any]:
     return rendered
 
 
-def _robot(robot: str | None) -> str | None:
+def robot_filter(robot: str | None) -> str | None:
+    """A query's ``robot`` as a checksummed address (records, intervals, export)."""
     if robot is None:
         return None
     if not is_address(robot):
@@ -278,7 +280,7 @@ async def query_records(
     query = RecordQuery(
         template=template,
         topic=topic,
-        robot=_robot(robot),
+        robot=robot_filter(robot),
         start=start,
         end=end,
         where=tuple(where or ()),
@@ -315,7 +317,9 @@ async def state_intervals(
     """When each robot entered and left the state ``field == value`` (exit null: still in)."""
     engine: QueryEngine = request.app.state.queries
     intervals = await anyio.to_thread.run_sync(
-        lambda: engine.intervals(template, field, value, robot=_robot(robot), start=start, end=end)
+        lambda: engine.intervals(
+            template, field, value, robot=robot_filter(robot), start=start, end=end
+        )
     )
     return {
         "template": template,
