@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ from robocloud.cas import Cas
 from robocloud.cli.context import JsonOption, KeystoreOption, fail, load_identity
 from robocloud.cli.output import console, show, show_json
 from robocloud.ingest import Ingest
+from robocloud.templates import NAME as TEMPLATE_NAME
 
 StorageOption = typer.Option(
     None,
@@ -27,13 +29,20 @@ def ingest(
     ),
     storage: str | None = StorageOption,
     cas: str | None = typer.Option(None, "--cas", help="URL of cas (for ROS 2 directories)."),
+    drafts: Path | None = typer.Option(
+        None,
+        "--drafts",
+        file_okay=False,
+        help="Write the draft template proposed for each unbound topic into this directory.",
+    ),
     keystore: Path | None = KeystoreOption,
     as_json: bool = JsonOption,
 ) -> None:
     """Ingest a bag: every topic bound to an approved template becomes records.
 
     Waits for the job and prints what became of each topic; topics without an approved
-    template are listed, not ingested.
+    template are listed, not ingested, with the draft template their message definition gives
+    (``--drafts DIR`` writes them out for ``robocloud templates create``).
     """
     identity = load_identity(keystore)
     with Ingest(storage, identity) as client:
@@ -60,9 +69,46 @@ def ingest(
             show(
                 f"  {topic['topic']} ({topic['msgtype']}): {topic['template'] or topic['skipped']}"
             )
+    if drafts is not None:
+        _write_drafts(job, drafts)
+        if not as_json:
+            show(f"draft templates of unbound topics written to {drafts}")
     if job["status"] != "succeeded":
         fail(f"ingest failed: {job['error']['message']}")
 
 
+def _write_drafts(job: dict[str, Any], directory: Path) -> None:
+    """One ``<name>.json`` per proposed draft, named by the service: never a path it chose."""
+    directory.mkdir(parents=True, exist_ok=True)
+    for topic in job["topics"]:
+        draft = topic.get("draft")
+        if not isinstance(draft, dict) or not TEMPLATE_NAME.fullmatch(str(draft.get("name"))):
+            continue
+        target = directory / f"{draft['name']}.json"
+        target.write_text(json.dumps(draft, indent=2, sort_keys=True) + "\n")
+
+
+def bind(
+    template: str = typer.Argument(..., help="An approved template, name@version."),
+    topic: str | None = typer.Option(None, "--topic", help="Bind this topic."),
+    msgtype: str | None = typer.Option(
+        None, "--msgtype", help="Bind this message type (a topic binding wins over it)."
+    ),
+    storage: str | None = StorageOption,
+    keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Bind a topic or a message type to an approved template, for the next ingests."""
+    if (topic is None) == (msgtype is None):
+        raise typer.BadParameter("give exactly one of --topic and --msgtype")
+    with Ingest(storage, load_identity(keystore)) as client:
+        answer = client.bind(template, topic=topic, msgtype=msgtype)
+    if as_json:
+        show_json(answer)
+    else:
+        show(f"{topic or msgtype} -> {template}")
+
+
 def register(app: typer.Typer) -> None:
     app.command("ingest")(ingest)
+    app.command("bind")(bind)

@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 from robocloud.cli import app
 from robocloud.identity import Identity
 from robocloud.storage import Storage
+from tests.bagfactory import write_bag
 from tests.conftest import ServiceFactory
 
 runner = CliRunner()
@@ -68,3 +69,38 @@ def test_templates_and_query_from_the_cli(
     wrong = runner.invoke(app, ["query", "--template", "gps@1", "--where", "alt>1", *common])
     assert wrong.exit_code != 0
     assert "unknown field" in wrong.stderr or "no field alt" in wrong.stderr
+
+
+def test_a_bag_from_draft_to_verified_record_from_the_cli(
+    service_factory: ServiceFactory, keystore: Path, tmp_path: Path
+) -> None:
+    """The README's flow: ingest, write the proposed drafts, create, submit, review, bind,
+    ingest again, query."""
+    storage = service_factory("storage", {"ROBOCLOUD_STORAGE_PUBLISH_DATASETS": "false"})
+    signed = ["--storage", storage.url, "--keystore", str(keystore)]
+    bag = write_bag(tmp_path / "run.bag", "ros1", 60, start_ns=1_700_000_000_000_000_000)
+    drafts = tmp_path / "drafts"
+    first = runner.invoke(app, ["ingest", str(bag), "--drafts", str(drafts), *signed])
+    assert first.exit_code == 0, first.output
+    assert sorted(path.name for path in drafts.iterdir()) == [
+        "image.json",
+        "imu.json",
+        "nav_sat_fix.json",
+    ]
+    steps = [
+        ["templates", "create", str(drafts / "imu.json")],
+        ["templates", "submit", "imu@1"],
+        ["templates", "review", "imu@1", "approve"],
+        ["bind", "imu@1", "--topic", "/imu"],
+    ]
+    for step in steps:
+        done = runner.invoke(app, [*step, *signed])
+        assert done.exit_code == 0, (step, done.output)
+    second = runner.invoke(app, ["ingest", str(bag), *signed, "--json"])
+    assert second.exit_code == 0, second.output
+    job = json.loads(second.stdout)
+    assert job["record_ids"] == {"imu@1": ["imu-1-0", "imu-1-47"]}
+    both = runner.invoke(app, ["bind", "imu@1", "--topic", "/imu", "--msgtype", "x/msg/Y", *signed])
+    assert both.exit_code == 2
+    page = runner.invoke(app, ["query", "--template", "imu@1", "--storage", storage.url, "--json"])
+    assert len(json.loads(page.stdout)["records"]) == 48
