@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import anyio
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
@@ -21,8 +21,8 @@ from services.storage.bags import SUFFIXES, detect_format
 from services.storage.export import jsonl_stream, mcap_stream
 from services.storage.ingest import IngestJobs, fetch_from_cas
 from services.storage.matcher import Bindings
-from services.storage.queries import QueryEngine, RecordQuery
-from services.storage.records_api import authorship_of, robot_filter
+from services.storage.queries import QueryEngine
+from services.storage.records_api import RecordFilters, authorship_of
 
 router = APIRouter(tags=["ingest"])
 EXPORT_PAGE = 1000
@@ -129,7 +129,7 @@ async def bind(
     return bindings.to_json()
 
 
-def _pages(engine: QueryEngine, query: RecordQuery, first: Any, limit: int) -> Iterator[Any]:
+def _pages(engine: QueryEngine, filters: RecordFilters, first: Any, limit: int) -> Iterator[Any]:
     page, sent = first, 0
     while True:
         for stored in page.records:
@@ -139,8 +139,7 @@ def _pages(engine: QueryEngine, query: RecordQuery, first: Any, limit: int) -> I
             sent += 1
         if page.next is None:
             return
-        query = RecordQuery(**{**query.__dict__, "cursor": page.next})
-        page = engine.records(query)
+        page = engine.records(filters.query(EXPORT_PAGE, page.next))
 
 
 async def _in_thread(chunks: Iterator[bytes]) -> AsyncIterator[bytes]:
@@ -157,30 +156,15 @@ async def _in_thread(chunks: Iterator[bytes]) -> AsyncIterator[bytes]:
 @router.get("/v1/export")
 async def export(
     request: Request,
+    filters: Annotated[RecordFilters, Depends()],
     format: Literal["mcap", "jsonl"] = "jsonl",
-    template: str | None = None,
-    topic: Annotated[str | None, Query(max_length=256)] = None,
-    robot: str | None = None,
-    start: Annotated[int | None, Query(ge=0)] = None,
-    end: Annotated[int | None, Query(ge=0)] = None,
-    where: Annotated[list[str] | None, Query()] = None,
-    keywords: Annotated[str | None, Query(max_length=1024)] = None,
     limit: Annotated[int, Query(ge=1, le=10_000_000)] = 1_000_000,
 ) -> StreamingResponse:
     """A query's records (filters as ``GET /v1/records``) as MCAP or JSON lines, streamed."""
-    query = RecordQuery(
-        template=template,
-        topic=topic,
-        robot=robot_filter(robot),
-        start=start,
-        end=end,
-        where=tuple(where or ()),
-        keywords=keywords,
-        limit=EXPORT_PAGE,
-    )
+    query = filters.query(EXPORT_PAGE)
     engine: QueryEngine = request.app.state.queries
     first = await anyio.to_thread.run_sync(engine.records, query)
-    records = _pages(engine, query, first, limit)
+    records = _pages(engine, filters, first, limit)
     if format == "mcap":
         catalog = request.app.state.catalog
         chunks = mcap_stream(records, lambda template_id: catalog.get(template_id).template)

@@ -263,31 +263,46 @@ def robot_filter(robot: str | None) -> str | None:
     return to_checksum_address(robot)
 
 
+class RecordFilters:
+    """The filters ``GET /v1/records`` and ``GET /v1/export`` share, parsed once for both."""
+
+    def __init__(
+        self,
+        template: str | None = None,
+        topic: Annotated[str | None, Query(max_length=256)] = None,
+        robot: str | None = None,
+        start: Annotated[int | None, Query(ge=0, description="t >= start (ns)")] = None,
+        end: Annotated[int | None, Query(ge=0, description="t < end (ns)")] = None,
+        where: Annotated[list[str] | None, Query(description="field op value, AND")] = None,
+        keywords: Annotated[str | None, Query(max_length=1024)] = None,
+    ) -> None:
+        self.template, self.topic, self.robot = template, topic, robot_filter(robot)
+        self.start, self.end, self.keywords = start, end, keywords
+        self.where = tuple(where or ())
+
+    def query(self, limit: int, cursor: str | None = None) -> RecordQuery:
+        return RecordQuery(
+            template=self.template,
+            topic=self.topic,
+            robot=self.robot,
+            start=self.start,
+            end=self.end,
+            where=self.where,
+            keywords=self.keywords,
+            limit=limit,
+            cursor=cursor,
+        )
+
+
 @router.get("/v1/records")
 async def query_records(
     request: Request,
-    template: str | None = None,
-    topic: Annotated[str | None, Query(max_length=256)] = None,
-    robot: str | None = None,
-    start: Annotated[int | None, Query(ge=0, description="t >= start (ns)")] = None,
-    end: Annotated[int | None, Query(ge=0, description="t < end (ns)")] = None,
-    where: Annotated[list[str] | None, Query(description="field op value, AND")] = None,
-    keywords: Annotated[str | None, Query(max_length=1024)] = None,
+    filters: Annotated[RecordFilters, Depends()],
     limit: int = 100,
     cursor: str | None = None,
 ) -> dict[str, Any]:
     """Records matching every filter, in log order; ``next`` is the cursor of the next page."""
-    query = RecordQuery(
-        template=template,
-        topic=topic,
-        robot=robot_filter(robot),
-        start=start,
-        end=end,
-        where=tuple(where or ()),
-        keywords=keywords,
-        limit=limit,
-        cursor=cursor,
-    )
+    query = filters.query(limit, cursor)
     engine: QueryEngine = request.app.state.queries
     page = await anyio.to_thread.run_sync(engine.records, query)
     return {

@@ -11,7 +11,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import httpx
-import pytest
 from typer.testing import CliRunner, Result
 
 from robocloud.cid import CID
@@ -26,19 +25,10 @@ DATA_CID = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
 ADDRESS = "0x5B38Da6a701c568545dCfcB03FcB875f56beddC4"
 
 
-@pytest.fixture
-def keystore(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, Identity]:
-    identity = Identity.generate()
-    path = tmp_path / "key.json"
-    identity.save(path, "pw", scrypt_n=2**4)
-    monkeypatch.setenv("ROBOCLOUD_PASSPHRASE", "pw")
-    return path, identity
-
-
 def test_register_funds_registers_and_is_idempotent(
-    service: Service, keystore: tuple[Path, Identity]
+    service: Service, keystore: Path, identity: Identity
 ) -> None:
-    path, identity = keystore
+    path = keystore
     common = ["--keystore", str(path), "--ledger", service.url]
     first = runner.invoke(app, ["register", *common])
     assert first.exit_code == 0, first.output
@@ -71,8 +61,8 @@ def test_register_funds_registers_and_is_idempotent(
     }
 
 
-def test_register_prints_json(service: Service, keystore: tuple[Path, Identity]) -> None:
-    path, identity = keystore
+def test_register_prints_json(service: Service, keystore: Path, identity: Identity) -> None:
+    path = keystore
     common = ["--keystore", str(path), "--ledger", service.url, "--json"]
     first = json.loads(runner.invoke(app, ["register", *common]).stdout)
     assert first["address"] == identity.address
@@ -89,9 +79,9 @@ def test_register_prints_json(service: Service, keystore: tuple[Path, Identity])
 
 
 def test_advertise_records_the_first_advertiser(
-    service: Service, keystore: tuple[Path, Identity]
+    service: Service, keystore: Path, identity: Identity
 ) -> None:
-    path, identity = keystore
+    path = keystore
     common = ["--keystore", str(path), "--ledger", service.url]
     assert runner.invoke(app, ["register", *common]).exit_code == 0
     cid = str(CID.from_block(identity.address.encode()))
@@ -115,9 +105,9 @@ def test_advertise_records_the_first_advertiser(
 
 
 def test_an_unregistered_robot_cannot_advertise(
-    service: Service, keystore: tuple[Path, Identity]
+    service: Service, keystore: Path, identity: Identity
 ) -> None:
-    path, identity = keystore
+    path = keystore
     common = ["--keystore", str(path), "--ledger", service.url]
     refused = runner.invoke(app, ["advertise", DATA_CID, *common])
     assert refused.exit_code == 4
@@ -133,9 +123,9 @@ def test_an_unregistered_robot_cannot_advertise(
 
 
 def test_a_bad_cid_is_refused_before_anything_is_sent(
-    service: Service, keystore: tuple[Path, Identity]
+    service: Service, keystore: Path, identity: Identity
 ) -> None:
-    path, _ = keystore
+    path = keystore
     refused = runner.invoke(
         app, ["advertise", "not-a-cid", "--keystore", str(path), "--ledger", service.url]
     )
@@ -145,12 +135,13 @@ def test_a_bad_cid_is_refused_before_anything_is_sent(
 
 def test_an_unregistered_robot_is_told_to_register_by_a_registered_only_cas(
     service: Service,
-    keystore: tuple[Path, Identity],
+    keystore: Path,
+    identity: Identity,
     service_factory: ServiceFactory,
     tmp_path: Path,
 ) -> None:
     """A cas that accepts only registered robots: refused with the hint, then accepted."""
-    path, identity = keystore
+    path = keystore
     cas = service_factory(
         "cas", {"ROBOCLOUD_AUTH": "registered", "ROBOCLOUD_LEDGER_URL": service.url}
     )

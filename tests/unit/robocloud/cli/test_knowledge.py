@@ -53,19 +53,10 @@ def test_image_size_reads_png_and_jpeg_headers_and_nothing_else(
     assert image_size(header) == size
 
 
-@pytest.fixture
-def keystore(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, Identity]:
-    identity = Identity.generate()
-    path = tmp_path / "key.json"
-    identity.save(path, "pw", scrypt_n=2**4)
-    monkeypatch.setenv("ROBOCLOUD_PASSPHRASE", "pw")
-    return path, identity
-
-
 def test_describe_print_builds_a_valid_description_of_the_file(
-    tmp_path: Path, keystore: tuple[Path, Identity]
+    tmp_path: Path, keystore: Path, identity: Identity
 ) -> None:
-    path, identity = keystore
+    path = keystore
     image = tmp_path / "front.png"
     image.write_bytes(png(640, 480))
     done = runner.invoke(
@@ -125,9 +116,9 @@ def test_describe_print_builds_a_valid_description_of_the_file(
     ],
 )
 def test_describe_refuses_what_would_not_be_a_valid_description(
-    tmp_path: Path, keystore: tuple[Path, Identity], name: str, options: list[str], message: str
+    tmp_path: Path, keystore: Path, identity: Identity, name: str, options: list[str], message: str
 ) -> None:
-    path, _ = keystore
+    path = keystore
     target = tmp_path / name
     target.write_bytes(png(2, 2))
     done = runner.invoke(
