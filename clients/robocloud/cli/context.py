@@ -15,6 +15,12 @@ from robocloud.cli.output import untrusted
 from robocloud.identity import PASSPHRASE_ENV, Identity, default_keystore_path
 
 JsonOption = typer.Option(False, "--json", help="Print one JSON document instead of text.")
+StorageOption = typer.Option(
+    None,
+    "--storage",
+    help="URL of the storage service (records, templates, ingestion, knowledge base).",
+    show_default="$ROBOCLOUD_STORAGE_URL, else http://127.0.0.1:8082",
+)
 KeystoreOption = typer.Option(
     None,
     "--keystore",

@@ -10,17 +10,10 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress
 
 from robocloud.cas import Cas
-from robocloud.cli.context import JsonOption, KeystoreOption, fail, load_identity
+from robocloud.cli.context import JsonOption, KeystoreOption, StorageOption, fail, load_identity
 from robocloud.cli.output import console, show, show_json
 from robocloud.ingest import Ingest
 from robocloud.templates import NAME as TEMPLATE_NAME
-
-StorageOption = typer.Option(
-    None,
-    "--storage",
-    help="URL of the storage service.",
-    show_default="$ROBOCLOUD_STORAGE_URL, else http://127.0.0.1:8082",
-)
 
 
 def ingest(

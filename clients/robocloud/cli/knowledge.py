@@ -22,7 +22,14 @@ from robocloud import bounded_json
 from robocloud.cas import Cas
 from robocloud.cid import CID
 from robocloud.cli.cas import CasOption
-from robocloud.cli.context import JsonOption, KeystoreOption, cid_argument, fail, load_identity
+from robocloud.cli.context import (
+    JsonOption,
+    KeystoreOption,
+    StorageOption,
+    cid_argument,
+    fail,
+    load_identity,
+)
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.ledger import LedgerOption
 from robocloud.cli.output import rows, show, show_json, untrusted
@@ -38,12 +45,6 @@ from robocloud.semantic import (
 )
 from robocloud.unixfs import Importer
 
-StorageOption = typer.Option(
-    None,
-    "--storage",
-    help="URL of the storage service (its knowledge base).",
-    show_default="$ROBOCLOUD_STORAGE_URL, else http://127.0.0.1:8082",
-)
 HEADER_BYTES = 1 << 16
 """Where an image's size is looked for: a JPEG's frame header comes before its pixels."""
 FORMATS = {

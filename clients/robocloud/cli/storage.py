@@ -8,18 +8,12 @@ from typing import Any
 
 import typer
 
-from robocloud.cli.context import JsonOption, KeystoreOption, fail, load_identity
+from robocloud.cli.context import JsonOption, KeystoreOption, StorageOption, fail, load_identity
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.output import rows, show, show_json, untrusted
 from robocloud.storage import Storage, TemplateVersion
 from robocloud.templates import load_template_document, type_to_json
 
-StorageOption = typer.Option(
-    None,
-    "--storage",
-    help="URL of the storage service.",
-    show_default="$ROBOCLOUD_STORAGE_URL, else http://127.0.0.1:8082",
-)
 MAX_TEMPLATE_FILE = 256 * 1024
 
 templates_app = typer.Typer(

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import typer
 
-from robocloud.cli.context import JsonOption, fail
+from robocloud.cli.context import JsonOption, StorageOption, fail
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.ledger import LedgerOption
 from robocloud.cli.output import rows, show, show_json
@@ -18,13 +18,6 @@ from robocloud.ledger import JsonRpcClient, LedgerService
 from robocloud.ledger.client import checksum
 from robocloud.ledger.transactions import quantity
 from robocloud.proofs import RecordId, RecordIdError, verify_record_proof
-
-StorageOption = typer.Option(
-    None,
-    "--storage",
-    help="URL of the storage service.",
-    show_default="$ROBOCLOUD_STORAGE_URL, else http://127.0.0.1:8082",
-)
 
 
 def verify(
