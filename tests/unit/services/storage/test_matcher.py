@@ -11,7 +11,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from robocloud.templates import parse_template, validate_data
+from robocloud.templates import Template, parse_template, validate_data
 from robocloud.unixfs import import_bytes
 from services.storage.bags import Bag
 from services.storage.matcher import (
@@ -19,6 +19,7 @@ from services.storage.matcher import (
     BindingRefused,
     Bindings,
     ConversionError,
+    Converter,
     compile_converter,
     draft_name,
     draft_template,
@@ -125,20 +126,26 @@ def _stamp_ns(message: Any) -> int:
     return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
 
 
+def draft_converters(bag: Bag) -> dict[str, tuple[Template, Converter]]:
+    """Each topic's draft template, approved as it is, and its converter."""
+    converters = {}
+    for connection in bag.connections:
+        assert connection.typestore is not None
+        template = parse_template(draft_template(connection.typestore, connection.msgtype))
+        converters[connection.topic] = (
+            template,
+            compile_converter(template, connection.typestore, connection.msgtype),
+        )
+    return converters
+
+
 @pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
 def test_records_from_generated_bags_match_rosbags(tmp_path: Path, kind: BagKind) -> None:
     path = write_bag(tmp_path / ("g.bag" if kind == "ros1" else "g"), kind, 30)
     blobs = MemoryBlobs()
     produced = []
     with Bag.open(path) as bag:
-        converters = {}
-        for connection in bag.connections:
-            assert connection.typestore is not None
-            template = parse_template(draft_template(connection.typestore, connection.msgtype))
-            converters[connection.topic] = (
-                template,
-                compile_converter(template, connection.typestore, connection.msgtype),
-            )
+        converters = draft_converters(bag)
         for message in bag.messages():
             template, converter = converters[message.topic]
             data = converter.data(message.data, blobs)
@@ -240,14 +247,7 @@ def test_real_recording_records_validate_or_are_refused_by_path() -> None:
     """rosbag2's test_msgs carry int64 extremes: refused by path, never sent on to fail JCS."""
     validated, refused = [], []
     with Bag.open(DATA / "rosbag2/rosbag2_cdr_test_sqlite3") as bag:
-        converters = {}
-        for connection in bag.connections:
-            assert connection.typestore is not None
-            template = parse_template(draft_template(connection.typestore, connection.msgtype))
-            converters[connection.topic] = (
-                template,
-                compile_converter(template, connection.typestore, connection.msgtype),
-            )
+        converters = draft_converters(bag)
         for message in bag.messages():
             template, converter = converters[message.topic]
             try:
