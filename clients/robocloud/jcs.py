@@ -15,7 +15,7 @@ to the RFC's own examples on the same values.
 from __future__ import annotations
 
 import math
-import re
+from json.encoder import encode_basestring
 from typing import Any
 
 from robocloud import bounded_json
@@ -23,17 +23,6 @@ from robocloud.errors import FormatError
 
 MAX_SAFE_INTEGER = 2**53 - 1
 """I-JSON (RFC 7493) integers: beyond this an ECMAScript reader would round them."""
-
-_ESCAPED = re.compile(r'[\x00-\x1f"\\]')
-_ESCAPES = {chr(code): f"\\u{code:04x}" for code in range(0x20)} | {
-    "\\": "\\\\",
-    '"': '\\"',
-    "\b": "\\b",
-    "\f": "\\f",
-    "\n": "\\n",
-    "\r": "\\r",
-    "\t": "\\t",
-}
 
 
 class JcsError(FormatError):
@@ -67,9 +56,9 @@ def _dump(value: Any, out: list[str], depth: int, exact_integers: bool) -> None:
     """One value; containers recurse, at most as deep as any JSON document may nest."""
     kind = type(value)
     if kind is float:
-        out.append(_number(value))
+        out.append(number_text(value))
     elif kind is str:
-        out.append(_string(value))
+        out.append(string_text(value))
     elif kind is int:
         if not exact_integers and not -MAX_SAFE_INTEGER <= value <= MAX_SAFE_INTEGER:
             raise JcsError(f"not canonicalizable: {value} is beyond +-(2**53 - 1)")
@@ -106,7 +95,7 @@ def _dump_object(value: dict[Any, Any], out: list[str], depth: int, exact_intege
     for position, key in enumerate(keys):
         if position:
             out.append(",")
-        out.append(_string(key))
+        out.append(string_text(key))
         out.append(":")
         _dump(value[key], out, depth, exact_integers)
     out.append("}")
@@ -124,13 +113,14 @@ def _utf16(key: str) -> bytes:
     return key.encode("utf-16-be", "surrogatepass")
 
 
-def _string(text: str) -> str:
-    if _ESCAPED.search(text) is None:
-        return '"' + text + '"'
-    return '"' + _ESCAPED.sub(lambda match: _ESCAPES[match.group()], text) + '"'
+def string_text(text: str) -> str:
+    """A string's canonical JSON: the standard library's encoder (C) escapes exactly what RFC
+    8785 does: quote, backslash, ``\\b \\f \\n \\r \\t`` in short form, other controls as
+    lowercase ``\\u00xx``, nothing else."""
+    return encode_basestring(text)
 
 
-def _number(value: float) -> str:
+def number_text(value: float) -> str:
     """ECMAScript's Number::toString (RFC 8785 section 3.2.2.3) from Python's shortest repr."""
     if math.isnan(value) or math.isinf(value):
         raise JcsError(f"not canonicalizable: {value} is not a JSON number")

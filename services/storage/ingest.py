@@ -35,10 +35,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import orjson
+
 from robocloud.cas import Cas
 from robocloud.cid import CID, DAG_PB
 from robocloud.directory import check_name
-from robocloud.templates import RecordInvalid, Template, validate_data
+from robocloud.templates import RecordInvalid, Template
 from robocloud.unixfs import DIRECTORY, HAMT_SHARD, decode_node
 from services.common.durable import atomic_write
 from services.storage.bags import (
@@ -64,7 +66,7 @@ from services.storage.matcher import (
     record_topic,
 )
 from services.storage.recordlog import RecordLogs
-from services.storage.recordstore import Authorship, RecordStore
+from services.storage.recordstore import Authorship, EncodedRecord, RecordStore
 
 log = logging.getLogger("robocloud.storage.ingest")
 
@@ -372,14 +374,14 @@ class IngestJobs:
                         template, converter = plans[connection.topic, connection.msgtype]
                         message = bag.decode(connection, t_ns, raw)
                         record = self._record(
-                            job, template, converter, connection.topic, message, t_ns, blobs, robot
+                            template, converter, connection.topic, message, t_ns, blobs, robot
                         )
                         spool = spools.get(template.id)
                         if spool is None:
                             spool = spools[template.id] = (
                                 staged_dir / f"{template.id}.jsonl"
                             ).open("wb")
-                        spool.write(json.dumps(record, separators=(",", ":")).encode() + b"\n")
+                        spool.write(record.canonical + b"\n")
                         counts[template.id] = counts.get(template.id, 0) + 1
                         done += 1
                         if done % PROGRESS_EVERY == 0:
@@ -413,7 +415,6 @@ class IngestJobs:
 
     def _record(
         self,
-        job: Job,
         template: Template,
         converter: Converter,
         topic: str,
@@ -421,23 +422,23 @@ class IngestJobs:
         t_ns: int,
         blobs: BlobSink,
         robot: str,
-    ) -> dict[str, Any]:
+    ) -> EncodedRecord:
+        """The record of one message, checked and encoded as the log will hold it."""
         try:
-            data = converter.data(message, blobs)
-            validate_data(template, data)
+            record = {
+                "template": template.id,
+                "topic": record_topic(topic),
+                "robot": robot,
+                "t": converter.record_time(message, t_ns),
+                "data": converter.data(message, blobs),
+            }
+            return self.store.encode([record])[0]
         except (ConversionError, RecordInvalid) as exc:
             raise IngestFailed(
                 "record_invalid",
-                f"topic {topic!r} at t={t_ns}: {exc}",
+                f"topic {topic!r} at t={t_ns}: {exc.path}: {exc.reason}",
                 {"topic": topic, "t": t_ns, "field": exc.path, "template": template.id},
             ) from exc
-        return {
-            "template": template.id,
-            "topic": record_topic(topic),
-            "robot": robot,
-            "t": converter.record_time(message, t_ns),
-            "data": data,
-        }
 
     def _commit(self, job: Job) -> None:
         author = Authorship(**job.author)
@@ -453,7 +454,7 @@ class IngestJobs:
                 while job.committed[template_id] < staged:
                     start = job.committed[template_id]
                     count = min(self.batch_records, staged - start)
-                    batch = [json.loads(spool.readline()) for _ in range(count)]
+                    batch = [_staged(template_id, spool.readline()) for _ in range(count)]
                     intent = {
                         "template": template_id,
                         "start": start,
@@ -461,7 +462,7 @@ class IngestJobs:
                         "log_size": self.logs.size(template_id),
                     }
                     self._update(job, intent=intent)
-                    ids = self.store.append(batch, author=author)
+                    ids = self.store.append_encoded(batch, author=author)
                     self._committed(job, template_id, start + count, ids[0], ids[-1])
 
     def _committed(self, job: Job, template_id: str, upto: int, first: str, last: str) -> None:
@@ -503,6 +504,12 @@ class IngestJobs:
             )
         else:
             self._update(job, intent=None)
+
+
+def _staged(template_id: str, line: bytes) -> EncodedRecord:
+    """A spool line: a record's canonical bytes, checked when it was staged."""
+    canonical = line.rstrip(b"\n")
+    return EncodedRecord(template_id, orjson.loads(canonical), canonical)
 
 
 class CasBlobs:

@@ -1,16 +1,22 @@
-"""Keywords of records in a Whoosh index: each word of a record's strings -> its address.
+"""Keywords of records in a Whoosh index: each word of a record's strings -> its addresses.
 
-A record's address is ``<template id>/<index>``, its place in the template's log. Whoosh
-analysis costs about 0.1 ms a record, more than the rest of an append, so the index is
-brought up to date by a background thread that reads the logs past its mark (``marks.json``,
-replaced atomically after each commit) rather than on the write path: a record is
-acknowledged once its log holds it, and is found by keyword a moment later. Documents are
-written with ``update_document`` on the unique address, so re-indexing what a crash left
-between a commit and its mark never doubles an entry.
+A record's address is its template id and its index, its place in the template's log. Whoosh
+analysis costs about 0.1 ms a document, more than the rest of an append, so the index is
+brought up to date by a background thread past its mark (``marks.json``, replaced atomically
+after each commit) rather than on the write path: a record is acknowledged once its log holds
+it, and is found by keyword a moment later.
+
+Robots repeat their strings (a frame id, an encoding, a state name), so one document stands for
+every record of a batch with the same text: its ``records`` field lists their indexes as runs
+(``0-1999`` for a constant frame id). A batch starts at the template's mark, so after a crash
+between a commit and its mark the same batch is indexed again from the same start; its key
+(template, start, digest of the text) replaces the documents of the first attempt, which the
+new batch covers, since a log only grows.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import threading
 from collections.abc import Iterable
@@ -25,7 +31,8 @@ from services.common.durable import atomic_write
 MARKS = "marks.json"
 MAX_TERMS = 16
 MAX_HITS = 100_000
-"""Addresses one keyword query may match before it must be narrowed."""
+"""Records one keyword query may match before it must be narrowed (a document stands for at
+least one, so the search never needs more documents than this either)."""
 
 
 class TooManyKeywordHits(Exception):
@@ -34,8 +41,25 @@ class TooManyKeywordHits(Exception):
         self.limit = limit
 
 
-def address(template_id: str, index_: int) -> str:
-    return f"{template_id}/{index_}"
+def runs(indexes: list[int]) -> str:
+    """Ascending record indexes as runs: ``3,5-9,12``."""
+    parts: list[str] = []
+    start = previous = indexes[0]
+    for index_ in indexes[1:]:
+        if index_ != previous + 1:
+            parts.append(f"{start}-{previous}" if previous > start else str(start))
+            start = index_
+        previous = index_
+    parts.append(f"{start}-{previous}" if previous > start else str(start))
+    return ",".join(parts)
+
+
+def parse_runs(text: str) -> list[range]:
+    found = []
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        found.append(range(int(first), int(last or first) + 1))
+    return found
 
 
 class KeywordIndex:
@@ -46,8 +70,9 @@ class KeywordIndex:
         self.directory = directory
         self.analyzer = StandardAnalyzer(stoplist=None, minsize=1)
         schema = fields.Schema(
-            address=fields.ID(stored=True, unique=True),
-            template=fields.ID,
+            key=fields.ID(unique=True),
+            template=fields.ID(stored=True),
+            records=fields.STORED,
             text=fields.TEXT(analyzer=self.analyzer),
         )
         if index.exists_in(directory):
@@ -62,13 +87,21 @@ class KeywordIndex:
         with self._lock:
             return self.marks.get(template_id, 0)
 
-    def add(self, template_id: str, texts: Iterable[tuple[int, str]], upto: int) -> None:
-        """Index ``(record index, text)`` pairs of ``template_id``; its mark becomes ``upto``."""
+    def add(self, template_id: str, start: int, texts: Iterable[str], upto: int) -> None:
+        """Index the texts of records ``start``, ``start + 1``... of ``template_id``, one
+        document per distinct text; its mark becomes ``upto``."""
+        grouped: dict[str, list[int]] = {}
+        for index_, text in enumerate(texts, start):
+            grouped.setdefault(text, []).append(index_)
         writer = self.index.writer()
         try:
-            for record_index, text in texts:
+            for text, indexes in grouped.items():
+                digest = hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:32]
                 writer.update_document(
-                    address=address(template_id, record_index), template=template_id, text=text
+                    key=f"{template_id}/{start}/{digest}",
+                    template=template_id,
+                    records=runs(indexes),
+                    text=text,
                 )
         except BaseException:
             writer.cancel()
@@ -89,13 +122,16 @@ class KeywordIndex:
         if template_id is not None:
             clauses.append(Term("template", template_id))
         found: dict[str, set[int]] = {}
+        count = 0
         with self.index.searcher() as searcher:
-            hits = searcher.search(And(clauses), limit=MAX_HITS + 1)
-            if hits.scored_length() > MAX_HITS:
-                raise TooManyKeywordHits(MAX_HITS)
-            for hit in hits:
-                template, _, position = hit["address"].rpartition("/")
-                found.setdefault(template, set()).add(int(position))
+            for hit in searcher.search(And(clauses), limit=MAX_HITS + 1):
+                spans = parse_runs(hit["records"])
+                count += sum(len(span) for span in spans)
+                if count > MAX_HITS:
+                    raise TooManyKeywordHits(MAX_HITS)
+                records = found.setdefault(hit["template"], set())
+                for span in spans:
+                    records.update(span)
         return found
 
     def close(self) -> None:

@@ -288,6 +288,8 @@ class _Compiler:
         item = self.field(kind.item, element, f"{path}[]")
         if is_bytes and isinstance(kind.item, Scalar) and kind.item.kind == "int":
             return lambda value, blobs: list(value)
+        if isinstance(kind.item, Scalar) and kind.item.kind == "float":
+            return _floats_reader(item)
         return lambda values, blobs: [item(value, blobs) for value in values]
 
     def container(self, kind: Container, msgtype: str, path: str) -> Callable[[Any, BlobSink], Any]:
@@ -333,6 +335,26 @@ def _float_reader(path: str) -> Callable[[Any, BlobSink], float]:
         if not math.isfinite(number):
             raise ConversionError(path, f"{number} is not a finite number (JSON has no NaN)")
         return number
+
+    return read
+
+
+_FLOAT_ONLY = frozenset((float,))
+
+
+def _floats_reader(item: Callable[[Any, BlobSink], float]) -> Callable[[Any, BlobSink], Any]:
+    """An array of floats (covariances, ranges) as it comes, when every item is a finite
+    float (their sum is finite), without a call per item; else item by item, which converts
+    integers and names the first NaN."""
+
+    def read(values: Any, blobs: BlobSink) -> list[Any]:
+        if (
+            type(values) is list
+            and _FLOAT_ONLY.issuperset(map(type, values))
+            and math.isfinite(sum(values))
+        ):
+            return values
+        return [item(value, blobs) for value in values]
 
     return read
 

@@ -22,6 +22,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import orjson
+
 from robocloud import jcs
 from robocloud.proofs import RecordId
 from robocloud.templates import (
@@ -32,16 +34,17 @@ from robocloud.templates import (
     canonical_record,
     check_envelope,
     parse_template_id,
-    validate_data,
 )
 from services.storage.catalog import Catalog, TemplateNotApproved, TemplateNotFound
 from services.storage.keywords import KeywordIndex
 from services.storage.recordlog import EntryNotFound, LogEntry, RecordLogs
-from services.storage.segments import SegmentCache, TemplateSegments, flatten
+from services.storage.segments import SegmentCache, TemplateSegments
 
 log = logging.getLogger("robocloud.storage.records")
 
-KEYWORD_BATCH = 2000
+KEYWORD_BATCH = 16384
+"""Records per keyword commit: a Whoosh commit writes a segment, and a batch's repeated
+strings make one document each."""
 READ_BATCH = 4096
 
 Offload = Callable[[bytes], str]
@@ -97,6 +100,15 @@ class OffloadFailed(Exception):
 def record_id(template_id: str, index: int) -> str:
     name, version = parse_template_id(template_id)
     return f"{name}-{version}-{index}"
+
+
+@dataclass(frozen=True)
+class EncodedRecord:
+    """A checked record as its log will hold it: large arrays in cas, its canonical bytes."""
+
+    template_id: str
+    record: dict[str, Any]
+    canonical: bytes
 
 
 @dataclass(frozen=True)
@@ -215,34 +227,48 @@ class RecordStore:
         while start < size:
             stop = min(size, start + READ_BATCH)
             entries = self.logs.entries(template_id, start, stop)
-            views.add(flatten(json.loads(e.record), start + n) for n, e in enumerate(entries))
+            views.add(
+                views.flatten(orjson.loads(e.record), start + n) for n, e in enumerate(entries)
+            )
             start = stop
         if size:
             log.info("views rebuilt", extra={"template": template_id, "records": size})
 
-    def _checked(self, records: Sequence[Any]) -> list[tuple[str, Template]]:
-        """Each record's template id and approved template; the first problem refuses all."""
-        checked = []
-        for position, record in enumerate(records):
-            try:
-                template_id = check_envelope(record)
-                template = self.catalog.approved(template_id)
-                validate_data(template, record["data"])
-            except TemplateNotFound as exc:
-                raise RecordRejected(
-                    position, "template", str(exc), code="template_not_found"
-                ) from exc
-            except TemplateNotApproved as exc:
-                raise RecordRejected(
-                    position, "template", str(exc), code="template_not_approved"
-                ) from exc
-            except RecordInvalid as exc:
-                raise RecordRejected(position, exc.path, exc.reason) from exc
-            checked.append((template_id, template))
-        return checked
+    def encode(self, records: Sequence[Any]) -> list[EncodedRecord]:
+        """Check every record against its approved template (the first problem refuses all,
+        before anything reaches cas), then move large arrays to cas: what :meth:`append_encoded`
+        logs.
 
-    def _offloaded(self, position: int, record: dict[str, Any], template: Template) -> Any:
-        """``record`` with every array larger than the inline bound replaced by its cas CID."""
+        Raises :class:`RecordRejected` (naming the record and field path), or
+        :class:`OffloadFailed` when cas cannot take a large array.
+        """
+        checked = [self._checked(position, record) for position, record in enumerate(records)]
+        return [
+            self._offloaded(position, template, record, canonical)
+            for position, (template, record, canonical) in enumerate(checked)
+        ]
+
+    def _checked(self, position: int, record: Any) -> tuple[Template, dict[str, Any], bytes]:
+        try:
+            template = self.catalog.approved(check_envelope(record))
+            return template, record, template.encoder.canonical(record)
+        except TemplateNotFound as exc:
+            raise RecordRejected(position, "template", str(exc), code="template_not_found") from exc
+        except TemplateNotApproved as exc:
+            raise RecordRejected(
+                position, "template", str(exc), code="template_not_approved"
+            ) from exc
+        except RecordInvalid as exc:
+            raise RecordRejected(position, exc.path, exc.reason) from exc
+
+    def _offloaded(
+        self, position: int, template: Template, record: dict[str, Any], canonical: bytes
+    ) -> EncodedRecord:
+        """The record with every array larger than the inline bound replaced by its cas CID.
+
+        A record whose canonical bytes fit under the bound holds no such array."""
+        if len(canonical) <= self.array_inline_bytes:
+            return EncodedRecord(template.id, record, canonical)
         data = record["data"]
         for parts in _array_leaves(template):
             value: Any = data
@@ -261,35 +287,39 @@ class RecordStore:
             except Exception as exc:
                 raise OffloadFailed(position, path, str(exc)) from exc
             data = _replaced(data, parts, cid)
-        return {**record, "data": data} if data is not record["data"] else record
+        if data is record["data"]:
+            return EncodedRecord(template.id, record, canonical)
+        stored = {**record, "data": data}
+        return EncodedRecord(template.id, stored, canonical_record(stored))
 
     def append(self, records: Sequence[Any], *, author: Authorship) -> list[str]:
         """Validate, offload, log durably and index ``records``; their ids in the same order.
 
-        Raises :class:`RecordRejected` (naming the record and field path) before anything is
-        stored, or :class:`OffloadFailed` when cas cannot take a large array.
+        Raises as :meth:`encode` does, before anything is stored.
         """
+        return self.append_encoded(self.encode(records), author=author)
+
+    def append_encoded(self, records: Sequence[EncodedRecord], *, author: Authorship) -> list[str]:
+        """Log durably and index records :meth:`encode` made; their ids in the same order."""
         if not records:
             return []
-        checked = self._checked(records)
         meta = author.meta()
-        groups: dict[str, list[tuple[int, dict[str, Any], bytes]]] = {}
-        for position, (record, (template_id, template)) in enumerate(
-            zip(records, checked, strict=True)
-        ):
-            stored = self._offloaded(position, record, template)
-            groups.setdefault(template_id, []).append((position, stored, canonical_record(stored)))
+        groups: dict[str, list[tuple[int, EncodedRecord]]] = {}
+        for position, encoded in enumerate(records):
+            groups.setdefault(encoded.template_id, []).append((position, encoded))
         ids: list[str] = [""] * len(records)
         with self._write_lock:
             for template_id, items in groups.items():
                 views = self._open_views(template_id)
                 first = self.logs.append(
-                    template_id, [LogEntry(record=data, meta=meta) for _, _, data in items]
+                    template_id, [LogEntry(record=item.canonical, meta=meta) for _, item in items]
                 )
                 if first != views.size:
                     raise RuntimeError(f"{template_id}: log at {first}, views at {views.size}")
-                views.add(flatten(stored, first + n) for n, (_, stored, _) in enumerate(items))
-                for n, (position, _, _) in enumerate(items):
+                views.add(
+                    views.flatten(item.record, first + n) for n, (_, item) in enumerate(items)
+                )
+                for n, (position, _) in enumerate(items):
                     ids[position] = record_id(template_id, first + n)
         self._wake.set()
         if self.notify is not None:
@@ -347,13 +377,12 @@ class RecordStore:
             if not strings:
                 continue
             start = self.keywords.mark(template_id)
-            size = self.logs.size(template_id)
+            size = views.size
             while start < size and not self._stop.is_set():
                 stop = min(size, start + KEYWORD_BATCH)
-                texts = []
-                for n, entry in enumerate(self.logs.entries(template_id, start, stop)):
-                    doc = flatten(json.loads(entry.record), start + n)
-                    text = " ".join(str(doc[path]) for path in strings)
-                    texts.append((start + n, text))
-                self.keywords.add(template_id, texts, stop)
+                texts = (
+                    " ".join([str(doc[path]) for path in strings])
+                    for doc in views.docs_between(start, stop)
+                )
+                self.keywords.add(template_id, start, texts, stop)
                 start = stop

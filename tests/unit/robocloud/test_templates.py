@@ -6,6 +6,9 @@ import json
 from typing import Any
 
 import pytest
+import rfc8785
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from robocloud.bounded_json import JsonDepthError, JsonError
 from robocloud.templates import (
@@ -17,6 +20,7 @@ from robocloud.templates import (
     Scalar,
     TemplateIdInvalid,
     TemplateInvalid,
+    canonical_record,
     evaluate,
     load_template_document,
     parse_template,
@@ -257,6 +261,9 @@ def test_a_record_breaking_its_template_names_the_field(data: Any, path: str) ->
         validate_record(parse_template(POSE), _record(data))
     assert caught.value.path == path
     assert str(caught.value).startswith(f"{path}: ")
+    with pytest.raises(RecordInvalid) as encoded:
+        parse_template(POSE).encoder.canonical(_record(data))
+    assert encoded.value.path == path
 
 
 @pytest.mark.parametrize(
@@ -305,3 +312,39 @@ def test_a_deep_value_is_checked_only_as_deep_as_the_template() -> None:
 def test_template_documents_refuse_nan() -> None:
     with pytest.raises(JsonError):
         load_template_document(json.dumps({"name": "x", "version": float("nan")}))
+
+
+FLOATS = st.one_of(
+    st.floats(allow_nan=False, allow_infinity=False),
+    st.sampled_from([0.0, -0.0, 1e-6, 2.5e-6, 9.99e-7, 1e-7, 1e15, 1e16, 1e21, 2.0, -3.0, 5e-324]),
+    st.integers(-(2**53) + 1, 2**53 - 1).map(float),
+)
+NUMBERS = st.one_of(FLOATS, st.integers(-(2**53) + 1, 2**53 - 1))
+TEXTS = st.one_of(st.text(max_size=40), st.sampled_from(["1.0,", "[2.0]", "e+5", "-0.0", "null"]))
+
+
+@st.composite
+def pose_data(draw: st.DrawFn) -> dict[str, Any]:
+    low = draw(st.integers(-(2**53) + 1, 2**53 - 11))
+    band = sorted(draw(st.lists(FLOATS, min_size=2, max_size=2)))
+    x, y, z = draw(st.tuples(NUMBERS, NUMBERS, NUMBERS))
+    return _data(
+        frame=draw(TEXTS),
+        seq=draw(st.integers(-(2**53) + 1, 2**53 - 1)),
+        ok=draw(st.booleans()),
+        pose={"position": {"x": x, "y": y, "z": z}},
+        ranges=draw(st.one_of(st.lists(NUMBERS, max_size=8), st.just(CID_TEXT))),
+        window=[low, low + draw(st.integers(0, 10))],
+        band=band,
+    )
+
+
+@settings(max_examples=400, deadline=None)
+@given(pose_data(), st.integers(0, 2**63 - 1))
+def test_the_encoder_writes_what_validate_and_canonical_write(data: Any, t: int) -> None:
+    """The ingest fast path (orjson plus its rewrites) against the reference walk and RFC 8785."""
+    record = _record(data, t=t)
+    validate_record(parse_template(POSE), record)
+    encoded = parse_template(POSE).encoder.canonical(record)
+    assert encoded == canonical_record(record)
+    assert rfc8785.dumps(data) in encoded
