@@ -15,10 +15,16 @@
    block, the fsync of the commit, the event index), and HTTP as the rest of the time one
    transaction takes through /rpc.
 
+``calls`` answers the eth_call latency that storage's proof verification pays: the p50 of one
+``AnchorLog.rootAt`` view call at ``latest`` through ``/rpc`` (the SDK's JSON-RPC client, as
+``robocloud verify`` sends it), beside ``eth_chainId`` through the same client (the HTTP
+floor: an answer with no chain work) and the same call on the embedded chain in this process.
+
 ``index`` is the earlier benchmark: registration + advertisement throughput against raw
 eth-tester, the event index over 10,000 events against eth-tester's ``get_logs``, restart.
 
-    python bench/ledger.py [transfers|index] [--rounds 5] [--transactions 100]
+    python bench/ledger.py [transfers|calls|index] [--rounds 5] [--transactions 100]
+        [--calls 1000]
 """
 
 from __future__ import annotations
@@ -48,7 +54,7 @@ from robocloud.cid import CID  # noqa: E402
 from robocloud.client import ServiceClient  # noqa: E402
 from robocloud.identity import Identity  # noqa: E402
 from robocloud.ledger.abi import ContractAbi  # noqa: E402
-from services.ledger.chain import EmbeddedChain  # noqa: E402
+from services.ledger.chain import CallRequest, EmbeddedChain  # noqa: E402
 from services.ledger.contracts import artifact  # noqa: E402
 from services.ledger.encoding import LogEntry  # noqa: E402
 from services.ledger.index import EventIndex, LogFilter  # noqa: E402
@@ -522,17 +528,57 @@ def transfers_part(args: argparse.Namespace) -> None:
     print(f"  {'HTTP and JSON, both requests':32s} {rest:6.3f}   (the difference)")
 
 
+def calls_part(args: argparse.Namespace) -> None:
+    from robocloud.ledger import LedgerService
+    from robocloud.ledger.rpc import JsonRpcClient
+    from robocloud.proofs import root_at_call
+
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {"ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": "bench", "ROBOCLOUD_LEDGER_GRANT_ROLES": ""}
+        process = ServiceProcess("ledger", Path(tmp) / "ledger", env).start()
+        try:
+            with LedgerService(process.url) as service:
+                anchor_log = service.contracts().anchor_log
+            call = root_at_call(anchor_log, "0x" + "33" * 20, 1)
+            with JsonRpcClient(f"{process.url}/rpc") as rpc:
+                for _ in range(50):  # warm up: connections, caches, worker threads
+                    rpc.request("eth_call", [call, "latest"])
+                over_rpc = p50_ms(lambda: rpc.request("eth_call", [call, "latest"]), args.calls)
+                floor = p50_ms(lambda: rpc.request("eth_chainId", []), args.calls)
+        finally:
+            process.stop()
+        chain = EmbeddedChain(Path(tmp) / "ledger" / "chain.sqlite")
+        try:
+            request = CallRequest(
+                b"\x00" * 20, bytes.fromhex(call["to"][2:]), bytes.fromhex(call["data"][2:])
+            )
+            for _ in range(50):
+                chain.call(request, "latest")
+            in_process = p50_ms(lambda: chain.call(request, "latest"), args.calls)
+        finally:
+            chain.close()
+    print(f"AnchorLog.rootAt eth_call at latest, p50 of {args.calls} (ms)")
+    print(f"  through /rpc (SDK client)        {over_rpc:6.3f}   (target well under 1.5 ms)")
+    print(f"  eth_chainId through /rpc         {floor:6.3f}   (HTTP and JSON, no chain work)")
+    print(f"  EmbeddedChain.call in process    {in_process:6.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("part", nargs="?", choices=("transfers", "index"), default="transfers")
+    parser.add_argument(
+        "part", nargs="?", choices=("transfers", "calls", "index"), default="transfers"
+    )
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--transactions", type=int, default=100)
     parser.add_argument("--robots", type=int, default=60)
     parser.add_argument("--events", type=int, default=10_000)
     parser.add_argument("--queries", type=int, default=200)
+    parser.add_argument("--calls", type=int, default=1000)
     args = parser.parse_args()
     if args.part == "transfers":
         transfers_part(args)
+    elif args.part == "calls":
+        calls_part(args)
     else:
         index_part(args)
 

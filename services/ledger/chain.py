@@ -33,8 +33,10 @@ from services.ledger.calls import (
     AccessEntries,
     AccessList,
     CallLimits,
+    CallState,
     CallTimeout,
     GasAllowanceExceeded,
+    OverBudget,
     SnapshotCalls,
     SnapshotChain,
     create_access_list,
@@ -52,6 +54,7 @@ log = logging.getLogger("robocloud.ledger.chain")
 BlockTag = int | str
 """A block number, or one of ``latest``, ``pending``, ``earliest``, ``safe``, ``finalized``."""
 
+HEAD_TAGS = ("latest", "pending", "safe", "finalized")
 BLOB_TRANSACTION_TYPE = 3
 RECENT_BLOCKS = 64
 
@@ -159,10 +162,11 @@ class EmbeddedChain:
         return self._head
 
     def header_at(self, tag: BlockTag) -> BlockHeaderAPI:
-        """The header a tag names; every mined block is final, so all named tags are the head."""
+        """The header a tag names; every mined block is final, so all named tags but
+        ``earliest`` are the head (read without the lock, as ``head`` is)."""
+        if tag in HEAD_TAGS:
+            return self._head
         with self._lock:
-            if tag in ("latest", "pending", "safe", "finalized"):
-                return self._head
             if tag == "earliest":
                 return self._chain.get_canonical_block_header_by_number(0)  # type: ignore[arg-type]
             if not isinstance(tag, int) or tag < 0:
@@ -273,9 +277,13 @@ class EmbeddedChain:
 
     # ----- execution -----
 
-    def call(self, request: CallRequest, tag: BlockTag) -> bytes:
-        """Run a call in block ``tag``'s context; raise ``Reverted`` with its reason."""
-        return bytes(self._execute(request, tag, "call"))
+    def call(self, request: CallRequest, tag: BlockTag, budget_s: float | None = None) -> bytes:
+        """Run a call in block ``tag``'s context; raise ``Reverted`` with its reason.
+
+        With ``budget_s`` the call is abandoned with ``OverBudget`` once it runs that long
+        (a caller that must not be held up tries it cheaply first, then runs it elsewhere).
+        """
+        return bytes(self._execute(request, tag, "call", budget_s))
 
     def estimate_gas(self, request: CallRequest, tag: BlockTag) -> int:
         """The least gas (within 1 %) with which the call succeeds; ``Reverted`` if it never
@@ -288,19 +296,21 @@ class EmbeddedChain:
         return found
 
     def _execute(
-        self, request: CallRequest, tag: BlockTag, mode: Literal["call", "estimate", "access_list"]
+        self,
+        request: CallRequest,
+        tag: BlockTag,
+        mode: Literal["call", "estimate", "access_list"],
+        budget_s: float | None = None,
     ) -> Any:
         """Run an unsigned ``request`` on a snapshot, with py-evm's failures as ChainErrors.
 
-        Only finding the block takes the chain's lock; the execution itself does not.
+        Only finding a block by number takes the chain's lock; the execution itself does not.
         """
-        with self._lock:
-            header = self.header_at(tag)
+        header = self.header_at(tag)
         pending = tag == "pending"
         estimate = mode == "estimate"
 
-        def work(chain: SnapshotChain) -> Any:
-            state = chain.state_for_call(header, pending)
+        def work(chain: SnapshotChain, state: CallState) -> Any:
             allowance = self._allowance(request, state, header.gas_limit, estimate)
             vm_class = chain.get_vm_class(header)
             nonce = state.get_nonce(Address(request.sender))
@@ -341,8 +351,10 @@ class EmbeddedChain:
             return computation.output
 
         try:
-            return self._calls.run(header, work)
+            return self._calls.run(header, pending, work, budget_s)
         except CallTimeout as exc:
+            if budget_s is not None:
+                raise OverBudget() from exc
             raise ChainError(
                 f"execution aborted (timeout = {self.call_limits.timeout_s:g}s)"
             ) from exc
