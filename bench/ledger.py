@@ -367,10 +367,11 @@ def funded_robots(ledger_url: str, anvil: Node, count: int) -> list[Identity]:
 
 def breakdown(count: int) -> dict[str, float]:
     """Milliseconds per transaction in each stage of the embedded chain, in this process."""
-    import eth.chains.base as chains
+    import eth.db.chain as chaindbs
     import eth.vm.base as vms
 
     from services.ledger import encoding
+    from services.ledger.chaindb import DevChain
 
     timings: dict[str, float] = {}
 
@@ -384,6 +385,16 @@ def breakdown(count: int) -> dict[str, float]:
 
         return wrapper
 
+    stages: list[tuple[Any, str, str]] = [
+        (EmbeddedChain, "decode", "sender recovery (decode)"),
+        (vms.VM, "build_state", "building the head's state"),
+        (EmbeddedChain, "_check", "validity checks"),
+        (vms.VM, "apply_all_transactions", "execution"),
+        (vms.VM, "set_block_transactions_and_withdrawals", "transaction and receipt tries"),
+        (vms.VM, "finalize_block", "state trie and block sealing"),
+        (chaindbs.ChainDB, "persist_block", "writing the block"),
+        (DevChain, "create_header_from_parent", "next pending header"),
+    ]
     robot = Identity.generate()
     address = bytes.fromhex(robot.address[2:])
     with tempfile.TemporaryDirectory() as tmp:
@@ -401,12 +412,6 @@ def breakdown(count: int) -> dict[str, float]:
             )
         )
         raws = [bytes.fromhex(transfer(robot, nonce)[2:]) for nonce in range(2 * count)]
-        originals = {
-            "apply_all_transactions": vms.VM.apply_all_transactions,
-            "set_block_transactions_and_withdrawals": vms.VM.set_block_transactions_and_withdrawals,
-            "mine_block": vms.VM.mine_block,
-            "persist_block": chains.Chain.persist_block,
-        }
         store = chain._db.store
         connection = store.connection
 
@@ -425,14 +430,13 @@ def breakdown(count: int) -> dict[str, float]:
         for raw in raws[:count]:  # warm up
             chain.send_raw_transaction(raw)
         timings.clear()
-        chain.decode = timed("sender recovery (decode)", chain.decode)  # type: ignore[method-assign]
-        chain._check = timed("validity checks", chain._check)  # type: ignore[method-assign]
-        vms.VM.apply_all_transactions = timed("execution", originals["apply_all_transactions"])  # type: ignore[method-assign]
-        vms.VM.set_block_transactions_and_withdrawals = timed(  # type: ignore[method-assign]
-            "transaction and receipt tries", originals["set_block_transactions_and_withdrawals"]
-        )
-        vms.VM.mine_block = timed("state trie and block sealing", originals["mine_block"])  # type: ignore[method-assign]
-        chains.Chain.persist_block = timed("writing the block", originals["persist_block"])  # type: ignore[method-assign]
+        originals = [(owner, name, owner.__dict__[name]) for owner, name, _ in stages]
+        for owner, name, stage in stages:
+            original = owner.__dict__[name]
+            if isinstance(original, classmethod):
+                setattr(owner, name, classmethod(timed(stage, original.__func__)))
+            else:
+                setattr(owner, name, timed(stage, original))
         store.connection = TimedCommit()  # type: ignore[assignment]
         started = time.perf_counter()
         try:
@@ -445,15 +449,14 @@ def breakdown(count: int) -> dict[str, float]:
                 )
             total = time.perf_counter() - started
         finally:
-            for name, original in originals.items():
-                owner = chains.Chain if name == "persist_block" else vms.VM
+            for owner, name, original in originals:
                 setattr(owner, name, original)
             store.connection = connection
         index.close()
         chain.close()
-    stages = {stage: seconds / count * 1000 for stage, seconds in timings.items()}
-    stages["in-process total"] = total / count * 1000
-    return stages
+    per_transaction = {stage: seconds / count * 1000 for stage, seconds in timings.items()}
+    per_transaction["in-process total"] = total / count * 1000
+    return per_transaction
 
 
 def transfers_part(args: argparse.Namespace) -> None:

@@ -21,7 +21,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
+from eth.abc import (
+    BlockAPI,
+    BlockHeaderAPI,
+    ReceiptAPI,
+    SignedTransactionAPI,
+    StateAPI,
+    VirtualMachineAPI,
+)
 from eth.exceptions import BlockNotFound, HeaderNotFound, Revert, TransactionNotFound
 from eth.vm.spoof import SpoofTransaction
 from eth_typing import Address
@@ -411,39 +418,48 @@ class EmbeddedChain:
         transaction = self.decode(raw)
         with self._lock:
             self._pool.expire()
-            if self._check(transaction):
+            vm = self._next_vm()
+            if self._check(transaction, vm.state):
                 self._pool.add(transaction)
                 return Submitted(transaction.hash, ())
-            mined = [self._mine(transaction)]
+            mined = [self._mine(transaction, vm)]
             mined.extend(self._promote(transaction.sender))
             return Submitted(transaction.hash, tuple(mined))
+
+    def _next_vm(self) -> VirtualMachineAPI:
+        """The VM of the block to mine next: the time now (at least the parent's + 1, which
+        the pending header holds) and ``prevrandao`` keccak of the parent hash."""
+        pending = self._chain.header
+        return self._chain.next_vm(
+            max(pending.timestamp, int(time.time())), keccak(pending.parent_hash)
+        )
 
     def _promote(self, sender: bytes) -> list[MinedBlock]:
         """Mine the sender's waiting transactions while each is the next by nonce; one no
         longer valid (its sender's balance fell) is dropped, and the rest wait again."""
         mined: list[MinedBlock] = []
-        while True:
-            expected = self._chain.get_vm().state.get_nonce(Address(sender))
-            waiting = self._pool.take(sender, expected)
+        while self._pool.waiting(sender):
+            vm = self._next_vm()
+            waiting = self._pool.take(sender, vm.state.get_nonce(Address(sender)))
             if waiting is None:
                 return mined
             try:
-                self._check(waiting)
-                mined.append(self._mine(waiting))
+                self._check(waiting, vm.state)
+                mined.append(self._mine(waiting, vm))
             except ChainError as exc:
                 log.info(
                     "waiting transaction dropped",
                     extra={"tx": "0x" + waiting.hash.hex(), "reason": exc.message},
                 )
                 return mined
+        return mined
 
-    def _check(self, transaction: SignedTransactionAPI) -> bool:
+    def _check(self, transaction: SignedTransactionAPI, state: StateAPI) -> bool:
         """Every validity rule, in geth's order: the transaction's own fields, then its
-        sender's account at the head (code, nonce, balance) and the next block's base fee.
-        True when the transaction is valid but for a nonce ahead of its sender's."""
-        head = self._chain.get_canonical_head()
-        validation.check_fields(transaction, CHAIN_ID, head.gas_limit)
-        state = self._chain.get_vm().state
+        sender's account in ``state``, the head's (code, nonce, balance) and the next
+        block's base fee. True when the transaction is valid but for a nonce ahead of its
+        sender's."""
+        validation.check_fields(transaction, CHAIN_ID, self._head.gas_limit)
         sender = transaction.sender
         validation.check_sender(
             transaction, bytes(state.get_code_hash(sender)), self.base_fee_locked()
@@ -462,30 +478,26 @@ class EmbeddedChain:
             )
         return bool(transaction.nonce > expected)
 
-    def _mine(self, transaction: SignedTransactionAPI) -> MinedBlock:
-        """Execute and mine one block as one SQLite transaction (one fsync, all or nothing).
+    def _mine(self, transaction: SignedTransactionAPI, vm: VirtualMachineAPI) -> MinedBlock:
+        """Execute and mine one block on ``vm`` as one SQLite transaction (one fsync, all or
+        nothing).
 
-        The pending header gets the time now, not when the previous block was mined (only
-        its timestamp changes: the base fee and blob fields follow from the parent alone, so
-        rebuilding the whole header would be wasted). Listeners run after the commit: a
-        failing listener cannot undo an acknowledged block (the event index catches up from
-        the store).
+        The pending header got the time now in ``_next_vm``, not when the previous block was
+        mined (only its timestamp changes: the base fee and blob fields follow from the
+        parent alone, so rebuilding the whole header would be wasted). Listeners run after
+        the commit: a failing listener cannot undo an acknowledged block (the event index
+        catches up from the store).
         """
-        pending = self._chain.header
-        self._chain.header = pending.copy(timestamp=max(pending.timestamp, int(time.time())))
-        parent_hash = pending.parent_hash
         try:
             with self._db.store.transaction():
-                result, receipts, _ = self._chain.mine_all(
-                    [transaction], mix_hash=keccak(parent_hash)
-                )
+                block, receipts = self._chain.mine_one(vm, transaction)
         except ValidationError as exc:
             self._chain = DevChain(self._db)
             raise ChainError(str(exc)) from exc
         except BaseException:
             self._chain = DevChain(self._db)
             raise
-        mined = MinedBlock(result.imported_block, tuple(receipts))
+        mined = MinedBlock(block, receipts)
         self._recent[transaction.hash] = (transaction, mined)
         self._recent_receipts[mined.block.hash] = mined.receipts
         if len(self._recent) > RECENT_BLOCKS:
