@@ -76,9 +76,11 @@ class BoundedComputation(PragueComputation):
     state: CallState
 
     def consume_gas(self, amount: int, reason: str) -> None:
+        """py-evm's own ``consume_gas`` (a call to the gas meter) after the deadline check,
+        without the frame ``super()`` would add: it runs once per opcode."""
         if time.monotonic() > self.state.deadline:
             raise CallTimeout(reason)
-        super().consume_gas(amount, reason)
+        self._gas_meter.consume_gas(amount, reason)
 
 
 AccessEntries = tuple[tuple[bytes, tuple[int, ...]], ...]
