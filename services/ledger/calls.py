@@ -127,6 +127,13 @@ class CallState(PragueState):
     gas_price = 0
     """What ``GASPRICE`` reads in the call running on this state."""
 
+    def get_tip(self, transaction: SignedTransactionAPI) -> int:
+        """Nothing: the call pays no fee, so the coinbase earns none. py-evm's London rule
+        (fee cap minus base fee) is negative for a call's zero fee cap, and would take
+        ``gas used * base fee`` from the coinbase, failing any call that uses more gas than
+        the coinbase's balance pays for (geth skips fee payment for such calls)."""
+        return 0
+
     def get_transaction_context(self, transaction: SignedTransactionAPI) -> TransactionContextAPI:
         """The call's context with its own ``GASPRICE``: py-evm's way of overriding it copies
         the transaction twice per call."""

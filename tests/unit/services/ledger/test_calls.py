@@ -88,3 +88,15 @@ def test_reverted_aborted_and_over_budget_calls_leave_nothing(
         chain.call(looping, "latest", budget_s=0.01)
     assert counts(chain, address) == (0, 0)
     chain.close()
+
+
+def test_a_call_that_runs_out_of_gas_says_so(
+    counter: tuple[EmbeddedChain, bytes, Identity],
+) -> None:
+    """A call pays no fee, so however much gas it burns, the coinbase is not charged for it."""
+    chain, address, _ = counter
+    looping = CallRequest(sender=b"\x00" * 20, to=address, data=b"\x01", gas=300_000)
+    with pytest.raises(ChainError, match="OutOfGas"):
+        chain.call(looping, "latest", budget_s=60)
+    assert counts(chain, address) == (0, 0)
+    chain.close()
