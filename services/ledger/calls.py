@@ -41,7 +41,7 @@ from eth.vm.chain_context import ChainContext
 from eth.vm.forks.frontier.validation import validate_frontier_transaction
 from eth.vm.forks.prague import PragueVM
 from eth.vm.forks.prague.computation import PragueComputation
-from eth.vm.forks.prague.state import PragueState
+from eth.vm.forks.prague.state import PragueState, PragueTransactionExecutor
 from eth_typing import Address, Hash32
 
 from services.ledger.chaindb import DevChain, DurableAtomicDB
@@ -114,6 +114,18 @@ def _is_precompile(address: bytes) -> bool:
     return address[:19] == bytes(19) and 1 <= address[19] <= 0x11
 
 
+class CallExecutor(PragueTransactionExecutor):
+    """Runs a call as py-evm runs a transaction, less the finalization: refunding the
+    sender, paying the coinbase and clearing touched empty accounts change only state that
+    the call's snapshot throws away (its output, error, gas and refund counter are known by
+    then), and cost a tenth of a small call."""
+
+    def finalize_computation(
+        self, transaction: SignedTransactionAPI, computation: ComputationAPI
+    ) -> ComputationAPI:
+        return computation
+
+
 class CallState(PragueState):
     """A free call's state: the block's base fee stays visible to ``BASEFEE``, but the call
     pays nothing, so the fee checks of a real transaction do not apply (geth's NoBaseFee);
@@ -121,18 +133,12 @@ class CallState(PragueState):
     sees every account and slot the call warms (``eth_createAccessList``)."""
 
     computation_class = BoundedComputation
+    transaction_executor_class = CallExecutor
     recorder: AccessRecorder | None = None
     deadline = math.inf
     """``time.monotonic()`` past which the call running on this state stops."""
     gas_price = 0
     """What ``GASPRICE`` reads in the call running on this state."""
-
-    def get_tip(self, transaction: SignedTransactionAPI) -> int:
-        """Nothing: the call pays no fee, so the coinbase earns none. py-evm's London rule
-        (fee cap minus base fee) is negative for a call's zero fee cap, and would take
-        ``gas used * base fee`` from the coinbase, failing any call that uses more gas than
-        the coinbase's balance pays for (geth skips fee payment for such calls)."""
-        return 0
 
     def get_transaction_context(self, transaction: SignedTransactionAPI) -> TransactionContextAPI:
         """The call's context with its own ``GASPRICE``: py-evm's way of overriding it copies
