@@ -15,10 +15,16 @@
    block, the fsync of the commit, the event index), and HTTP as the rest of the time one
    transaction takes through /rpc.
 
+``calls`` answers the eth_call latency that storage's proof verification pays: the p50 of one
+``AnchorLog.rootAt`` view call at ``latest`` through ``/rpc`` (the SDK's JSON-RPC client, as
+``robocloud verify`` sends it), beside ``eth_chainId`` through the same client (the HTTP
+floor: an answer with no chain work) and the same call on the embedded chain in this process.
+
 ``index`` is the earlier benchmark: registration + advertisement throughput against raw
 eth-tester, the event index over 10,000 events against eth-tester's ``get_logs``, restart.
 
-    python bench/ledger.py [transfers|index] [--rounds 5] [--transactions 100]
+    python bench/ledger.py [transfers|calls|index] [--rounds 5] [--transactions 100]
+        [--calls 1000]
 """
 
 from __future__ import annotations
@@ -48,7 +54,7 @@ from robocloud.cid import CID  # noqa: E402
 from robocloud.client import ServiceClient  # noqa: E402
 from robocloud.identity import Identity  # noqa: E402
 from robocloud.ledger.abi import ContractAbi  # noqa: E402
-from services.ledger.chain import EmbeddedChain  # noqa: E402
+from services.ledger.chain import CallRequest, EmbeddedChain  # noqa: E402
 from services.ledger.contracts import artifact  # noqa: E402
 from services.ledger.encoding import LogEntry  # noqa: E402
 from services.ledger.index import EventIndex, LogFilter  # noqa: E402
@@ -361,10 +367,11 @@ def funded_robots(ledger_url: str, anvil: Node, count: int) -> list[Identity]:
 
 def breakdown(count: int) -> dict[str, float]:
     """Milliseconds per transaction in each stage of the embedded chain, in this process."""
-    import eth.chains.base as chains
+    import eth.db.chain as chaindbs
     import eth.vm.base as vms
 
     from services.ledger import encoding
+    from services.ledger.chaindb import DevChain
 
     timings: dict[str, float] = {}
 
@@ -378,6 +385,16 @@ def breakdown(count: int) -> dict[str, float]:
 
         return wrapper
 
+    stages: list[tuple[Any, str, str]] = [
+        (EmbeddedChain, "decode", "sender recovery (decode)"),
+        (vms.VM, "build_state", "building the head's state"),
+        (EmbeddedChain, "_check", "validity checks"),
+        (vms.VM, "apply_all_transactions", "execution"),
+        (vms.VM, "set_block_transactions_and_withdrawals", "transaction and receipt tries"),
+        (vms.VM, "finalize_block", "state trie and block sealing"),
+        (chaindbs.ChainDB, "persist_block", "writing the block"),
+        (DevChain, "create_header_from_parent", "next pending header"),
+    ]
     robot = Identity.generate()
     address = bytes.fromhex(robot.address[2:])
     with tempfile.TemporaryDirectory() as tmp:
@@ -395,12 +412,6 @@ def breakdown(count: int) -> dict[str, float]:
             )
         )
         raws = [bytes.fromhex(transfer(robot, nonce)[2:]) for nonce in range(2 * count)]
-        originals = {
-            "apply_all_transactions": vms.VM.apply_all_transactions,
-            "set_block_transactions_and_withdrawals": vms.VM.set_block_transactions_and_withdrawals,
-            "mine_block": vms.VM.mine_block,
-            "persist_block": chains.Chain.persist_block,
-        }
         store = chain._db.store
         connection = store.connection
 
@@ -419,14 +430,13 @@ def breakdown(count: int) -> dict[str, float]:
         for raw in raws[:count]:  # warm up
             chain.send_raw_transaction(raw)
         timings.clear()
-        chain.decode = timed("sender recovery (decode)", chain.decode)  # type: ignore[method-assign]
-        chain._check = timed("validity checks", chain._check)  # type: ignore[method-assign]
-        vms.VM.apply_all_transactions = timed("execution", originals["apply_all_transactions"])  # type: ignore[method-assign]
-        vms.VM.set_block_transactions_and_withdrawals = timed(  # type: ignore[method-assign]
-            "transaction and receipt tries", originals["set_block_transactions_and_withdrawals"]
-        )
-        vms.VM.mine_block = timed("state trie and block sealing", originals["mine_block"])  # type: ignore[method-assign]
-        chains.Chain.persist_block = timed("writing the block", originals["persist_block"])  # type: ignore[method-assign]
+        originals = [(owner, name, owner.__dict__[name]) for owner, name, _ in stages]
+        for owner, name, stage in stages:
+            original = owner.__dict__[name]
+            if isinstance(original, classmethod):
+                setattr(owner, name, classmethod(timed(stage, original.__func__)))
+            else:
+                setattr(owner, name, timed(stage, original))
         store.connection = TimedCommit()  # type: ignore[assignment]
         started = time.perf_counter()
         try:
@@ -439,15 +449,14 @@ def breakdown(count: int) -> dict[str, float]:
                 )
             total = time.perf_counter() - started
         finally:
-            for name, original in originals.items():
-                owner = chains.Chain if name == "persist_block" else vms.VM
+            for owner, name, original in originals:
                 setattr(owner, name, original)
             store.connection = connection
         index.close()
         chain.close()
-    stages = {stage: seconds / count * 1000 for stage, seconds in timings.items()}
-    stages["in-process total"] = total / count * 1000
-    return stages
+    per_transaction = {stage: seconds / count * 1000 for stage, seconds in timings.items()}
+    per_transaction["in-process total"] = total / count * 1000
+    return per_transaction
 
 
 def transfers_part(args: argparse.Namespace) -> None:
@@ -522,17 +531,57 @@ def transfers_part(args: argparse.Namespace) -> None:
     print(f"  {'HTTP and JSON, both requests':32s} {rest:6.3f}   (the difference)")
 
 
+def calls_part(args: argparse.Namespace) -> None:
+    from robocloud.ledger import LedgerService
+    from robocloud.ledger.rpc import JsonRpcClient
+    from robocloud.proofs import root_at_call
+
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {"ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": "bench", "ROBOCLOUD_LEDGER_GRANT_ROLES": ""}
+        process = ServiceProcess("ledger", Path(tmp) / "ledger", env).start()
+        try:
+            with LedgerService(process.url) as service:
+                anchor_log = service.contracts().anchor_log
+            call = root_at_call(anchor_log, "0x" + "33" * 20, 1)
+            with JsonRpcClient(f"{process.url}/rpc") as rpc:
+                for _ in range(50):  # warm up: connections, caches, worker threads
+                    rpc.request("eth_call", [call, "latest"])
+                over_rpc = p50_ms(lambda: rpc.request("eth_call", [call, "latest"]), args.calls)
+                floor = p50_ms(lambda: rpc.request("eth_chainId", []), args.calls)
+        finally:
+            process.stop()
+        chain = EmbeddedChain(Path(tmp) / "ledger" / "chain.sqlite")
+        try:
+            request = CallRequest(
+                b"\x00" * 20, bytes.fromhex(call["to"][2:]), bytes.fromhex(call["data"][2:])
+            )
+            for _ in range(50):
+                chain.call(request, "latest")
+            in_process = p50_ms(lambda: chain.call(request, "latest"), args.calls)
+        finally:
+            chain.close()
+    print(f"AnchorLog.rootAt eth_call at latest, p50 of {args.calls} (ms)")
+    print(f"  through /rpc (SDK client)        {over_rpc:6.3f}   (target well under 1.5 ms)")
+    print(f"  eth_chainId through /rpc         {floor:6.3f}   (HTTP and JSON, no chain work)")
+    print(f"  EmbeddedChain.call in process    {in_process:6.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("part", nargs="?", choices=("transfers", "index"), default="transfers")
+    parser.add_argument(
+        "part", nargs="?", choices=("transfers", "calls", "index"), default="transfers"
+    )
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--transactions", type=int, default=100)
     parser.add_argument("--robots", type=int, default=60)
     parser.add_argument("--events", type=int, default=10_000)
     parser.add_argument("--queries", type=int, default=200)
+    parser.add_argument("--calls", type=int, default=1000)
     args = parser.parse_args()
     if args.part == "transfers":
         transfers_part(args)
+    elif args.part == "calls":
+        calls_part(args)
     else:
         index_part(args)
 

@@ -99,8 +99,18 @@ def percentile(values: list[float], fraction: float) -> float:
     return ordered[min(len(ordered) - 1, int(fraction * len(ordered)))]
 
 
+PROOF_IMU = {"name": "imu", "fields": {"x": "float", "y": "int"}}
+"""The template of ``entries``' records, which the storage service needs in its catalog to
+open the logs the bench appended to."""
+
+
 def bench_proofs(work: Path, records: int, batches: int, proofs: int) -> None:
     storage_port = free_port()
+    catalog = Catalog(work / "storage" / "catalog")
+    version = catalog.create(PROOF_IMU, author=ROBOT)
+    catalog.submit(version.id, author=ROBOT)
+    catalog.review(version.id, "approve", reviewer=ROBOT)
+    catalog.close()
     address = load_or_create(work / "storage", None).address
     ledger = ServiceProcess(
         "ledger",

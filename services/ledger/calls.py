@@ -8,19 +8,32 @@ Calls never take the chain's lock: each worker thread reads the store through it
 read-only SQLite connection (WAL lets it read the last committed state while a block is being
 mined), and a call executes on the state root of the block it names, which no later block
 changes. So a slow call delays nobody's transaction or read.
+
+Because that state never changes, each thread keeps the py-evm state it built for the last
+mined block it ran a call on and runs the next call at that block on it again: every call runs
+inside a snapshot that is reverted, so what stays behind is only py-evm's read caches (decoded
+accounts, trie lookups, code). Building the state and walking the trie again cost more than
+executing a typical view call.
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import TypeVar, cast
 
-from eth.abc import BlockHeaderAPI, ComputationAPI, SignedTransactionAPI, StateAPI
+from eth.abc import (
+    BlockHeaderAPI,
+    ComputationAPI,
+    SignedTransactionAPI,
+    StateAPI,
+    TransactionContextAPI,
+)
 from eth.consensus.applier import ConsensusApplier
 from eth.consensus.noproof import NoProofConsensus
 from eth.exceptions import Revert
@@ -28,7 +41,7 @@ from eth.vm.chain_context import ChainContext
 from eth.vm.forks.frontier.validation import validate_frontier_transaction
 from eth.vm.forks.prague import PragueVM
 from eth.vm.forks.prague.computation import PragueComputation
-from eth.vm.forks.prague.state import PragueState
+from eth.vm.forks.prague.state import PragueState, PragueTransactionExecutor
 from eth_typing import Address, Hash32
 
 from services.ledger.chaindb import DevChain, DurableAtomicDB
@@ -38,6 +51,11 @@ T = TypeVar("T")
 
 class CallTimeout(Exception):
     """The call ran past the wall-clock limit; deliberately not a VMError, so it unwinds all."""
+
+
+class OverBudget(Exception):
+    """A call given a budget shorter than the configured limit ran past it; nothing of it
+    remains, so it can be run again with the whole limit."""
 
 
 @dataclass(frozen=True)
@@ -52,17 +70,17 @@ class CallLimits:
         return cap if requested is None else min(requested, cap)
 
 
-_deadline = threading.local()
-
-
 class BoundedComputation(PragueComputation):
-    """Checks the calling thread's deadline each time an opcode is charged its gas."""
+    """Checks its call's deadline each time an opcode is charged its gas."""
+
+    state: CallState
 
     def consume_gas(self, amount: int, reason: str) -> None:
-        deadline: float | None = getattr(_deadline, "at", None)
-        if deadline is not None and time.monotonic() > deadline:
+        """py-evm's own ``consume_gas`` (a call to the gas meter) after the deadline check,
+        without the frame ``super()`` would add: it runs once per opcode."""
+        if time.monotonic() > self.state.deadline:
             raise CallTimeout(reason)
-        super().consume_gas(amount, reason)
+        self._gas_meter.consume_gas(amount, reason)
 
 
 AccessEntries = tuple[tuple[bytes, tuple[int, ...]], ...]
@@ -96,6 +114,18 @@ def _is_precompile(address: bytes) -> bool:
     return address[:19] == bytes(19) and 1 <= address[19] <= 0x11
 
 
+class CallExecutor(PragueTransactionExecutor):
+    """Runs a call as py-evm runs a transaction, less the finalization: refunding the
+    sender, paying the coinbase and clearing touched empty accounts change only state that
+    the call's snapshot throws away (its output, error, gas and refund counter are known by
+    then), and cost a tenth of a small call."""
+
+    def finalize_computation(
+        self, transaction: SignedTransactionAPI, computation: ComputationAPI
+    ) -> ComputationAPI:
+        return computation
+
+
 class CallState(PragueState):
     """A free call's state: the block's base fee stays visible to ``BASEFEE``, but the call
     pays nothing, so the fee checks of a real transaction do not apply (geth's NoBaseFee);
@@ -103,7 +133,19 @@ class CallState(PragueState):
     sees every account and slot the call warms (``eth_createAccessList``)."""
 
     computation_class = BoundedComputation
+    transaction_executor_class = CallExecutor
     recorder: AccessRecorder | None = None
+    deadline = math.inf
+    """``time.monotonic()`` past which the call running on this state stops."""
+    gas_price = 0
+    """What ``GASPRICE`` reads in the call running on this state."""
+
+    def get_transaction_context(self, transaction: SignedTransactionAPI) -> TransactionContextAPI:
+        """The call's context with its own ``GASPRICE``: py-evm's way of overriding it copies
+        the transaction twice per call."""
+        return self.get_transaction_context_class()(
+            gas_price=self.gas_price, origin=transaction.sender
+        )
 
     def mark_address_warm(self, address: Address) -> None:
         if self.recorder is not None:
@@ -143,19 +185,34 @@ class SnapshotChain(DevChain):
         return vm_class.build_state(self.chaindb.db, context, ChainContext(self.chain_id), previous)
 
 
-def execute(state: StateAPI, transaction: SignedTransactionAPI, gas_price: int) -> ComputationAPI:
-    """Run ``transaction`` for free on ``state`` and undo it; ``GASPRICE`` reads
-    ``gas_price``."""
+def execute(state: CallState, transaction: SignedTransactionAPI, gas_price: int) -> ComputationAPI:
+    """Run ``transaction`` (priced at zero: it pays nothing) on ``state`` and undo it;
+    ``GASPRICE`` reads ``gas_price``."""
     snapshot = state.snapshot()
+    state.gas_price = gas_price
     try:
-        with state.override_transaction_context(gas_price=gas_price):
-            return state.apply_transaction(transaction.copy(gas_price=0))
+        return state.apply_transaction(transaction)
     finally:
+        state.gas_price = 0
         state.revert(snapshot)
 
 
+STATE_REUSES = 1_000
+"""Calls run on one kept state before it is built anew: py-evm logs every account and trie
+node a state reads (for witnesses), so a state kept forever would grow without bound."""
+
+
+@dataclass
+class _KeptState:
+    """The state a thread built for one mined block, and how many more calls may reuse it."""
+
+    block_hash: bytes
+    state: CallState
+    uses_left: int
+
+
 class SnapshotCalls:
-    """Runs calls against the store at ``path`` with one read-only chain per worker thread."""
+    """Runs calls against the store at ``path`` with one read-only chain per thread."""
 
     def __init__(self, path: Path, limits: CallLimits) -> None:
         self.path = path
@@ -164,14 +221,53 @@ class SnapshotCalls:
         self._opened: list[DurableAtomicDB] = []
         self._opened_lock = threading.Lock()
 
-    def run(self, header: BlockHeaderAPI, work: Callable[[SnapshotChain], T]) -> T:
-        """``work(chain)`` with this thread's deadline set; ``CallTimeout`` when it runs out."""
+    def run(
+        self,
+        header: BlockHeaderAPI,
+        pending: bool,
+        work: Callable[[SnapshotChain, CallState], T],
+        timeout_s: float | None = None,
+    ) -> T:
+        """``work(chain, state)`` on the state a call at ``header`` sees, stopped with
+        ``CallTimeout`` after ``timeout_s`` (the configured limit when None).
+
+        The state is kept for the next call at the same block when ``work`` returns or the
+        call reverted (execution is undone by then); any other failure may have stopped
+        py-evm half-way through a transaction, so that state is dropped.
+        """
         chain = self._chain()
-        _deadline.at = time.monotonic() + self.limits.timeout_s
+        kept = None if pending else self._reusable(header)
+        if kept is not None:
+            state = kept.state
+        else:
+            state = cast(CallState, chain.state_for_call(header, pending))
+            if not pending:  # a pending block's context holds the time now: never kept
+                kept = _KeptState(header.hash, state, STATE_REUSES)
+        limit = self.limits.timeout_s if timeout_s is None else timeout_s
+        state.deadline = time.monotonic() + limit
         try:
-            return work(chain)
+            result = work(chain, state)
+        except Revert:
+            self._keep(kept)
+            raise
         finally:
-            _deadline.at = None
+            state.deadline = math.inf
+        self._keep(kept)
+        return result
+
+    def _reusable(self, header: BlockHeaderAPI) -> _KeptState | None:
+        """This thread's kept state if it is ``header``'s and may be used again; taken out
+        until the call ends well."""
+        kept: _KeptState | None = getattr(self._local, "kept", None)
+        self._local.kept = None
+        if kept is None or kept.block_hash != header.hash or not kept.uses_left:
+            return None
+        return kept
+
+    def _keep(self, kept: _KeptState | None) -> None:
+        if kept is not None:
+            kept.uses_left -= 1
+            self._local.kept = kept
 
     def _chain(self) -> SnapshotChain:
         chain: SnapshotChain | None = getattr(self._local, "chain", None)
@@ -205,7 +301,7 @@ CALL_STIPEND = 2_300
 
 
 def estimate_gas(
-    state: StateAPI,
+    state: CallState,
     transaction_with_gas: Callable[[int], SignedTransactionAPI],
     gas_price: int,
     allowance: int,
@@ -263,7 +359,7 @@ the list is stable; so do we, this many times at most."""
 
 
 def create_access_list(
-    state: StateAPI,
+    state: CallState,
     transaction_with_gas: Callable[..., SignedTransactionAPI],
     gas_price: int,
     allowance: int,
@@ -271,7 +367,6 @@ def create_access_list(
 ) -> AccessList:
     """The accounts and slots the call touches, and the gas it uses with them listed."""
     entries: AccessEntries = ()
-    assert isinstance(state, CallState)
     for _ in range(ACCESS_LIST_ROUNDS):
         recorder = AccessRecorder()
         state.recorder = recorder

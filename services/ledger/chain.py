@@ -21,7 +21,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
+from eth.abc import (
+    BlockAPI,
+    BlockHeaderAPI,
+    ReceiptAPI,
+    SignedTransactionAPI,
+    StateAPI,
+    VirtualMachineAPI,
+)
 from eth.exceptions import BlockNotFound, HeaderNotFound, Revert, TransactionNotFound
 from eth.vm.spoof import SpoofTransaction
 from eth_typing import Address
@@ -33,8 +40,10 @@ from services.ledger.calls import (
     AccessEntries,
     AccessList,
     CallLimits,
+    CallState,
     CallTimeout,
     GasAllowanceExceeded,
+    OverBudget,
     SnapshotCalls,
     SnapshotChain,
     create_access_list,
@@ -52,6 +61,7 @@ log = logging.getLogger("robocloud.ledger.chain")
 BlockTag = int | str
 """A block number, or one of ``latest``, ``pending``, ``earliest``, ``safe``, ``finalized``."""
 
+HEAD_TAGS = ("latest", "pending", "safe", "finalized")
 BLOB_TRANSACTION_TYPE = 3
 RECENT_BLOCKS = 64
 
@@ -159,10 +169,11 @@ class EmbeddedChain:
         return self._head
 
     def header_at(self, tag: BlockTag) -> BlockHeaderAPI:
-        """The header a tag names; every mined block is final, so all named tags are the head."""
+        """The header a tag names; every mined block is final, so all named tags but
+        ``earliest`` are the head (read without the lock, as ``head`` is)."""
+        if tag in HEAD_TAGS:
+            return self._head
         with self._lock:
-            if tag in ("latest", "pending", "safe", "finalized"):
-                return self._head
             if tag == "earliest":
                 return self._chain.get_canonical_block_header_by_number(0)  # type: ignore[arg-type]
             if not isinstance(tag, int) or tag < 0:
@@ -273,9 +284,13 @@ class EmbeddedChain:
 
     # ----- execution -----
 
-    def call(self, request: CallRequest, tag: BlockTag) -> bytes:
-        """Run a call in block ``tag``'s context; raise ``Reverted`` with its reason."""
-        return bytes(self._execute(request, tag, "call"))
+    def call(self, request: CallRequest, tag: BlockTag, budget_s: float | None = None) -> bytes:
+        """Run a call in block ``tag``'s context; raise ``Reverted`` with its reason.
+
+        With ``budget_s`` the call is abandoned with ``OverBudget`` once it runs that long
+        (a caller that must not be held up tries it cheaply first, then runs it elsewhere).
+        """
+        return bytes(self._execute(request, tag, "call", budget_s))
 
     def estimate_gas(self, request: CallRequest, tag: BlockTag) -> int:
         """The least gas (within 1 %) with which the call succeeds; ``Reverted`` if it never
@@ -288,19 +303,21 @@ class EmbeddedChain:
         return found
 
     def _execute(
-        self, request: CallRequest, tag: BlockTag, mode: Literal["call", "estimate", "access_list"]
+        self,
+        request: CallRequest,
+        tag: BlockTag,
+        mode: Literal["call", "estimate", "access_list"],
+        budget_s: float | None = None,
     ) -> Any:
         """Run an unsigned ``request`` on a snapshot, with py-evm's failures as ChainErrors.
 
-        Only finding the block takes the chain's lock; the execution itself does not.
+        Only finding a block by number takes the chain's lock; the execution itself does not.
         """
-        with self._lock:
-            header = self.header_at(tag)
+        header = self.header_at(tag)
         pending = tag == "pending"
         estimate = mode == "estimate"
 
-        def work(chain: SnapshotChain) -> Any:
-            state = chain.state_for_call(header, pending)
+        def work(chain: SnapshotChain, state: CallState) -> Any:
             allowance = self._allowance(request, state, header.gas_limit, estimate)
             vm_class = chain.get_vm_class(header)
             nonce = state.get_nonce(Address(request.sender))
@@ -341,8 +358,10 @@ class EmbeddedChain:
             return computation.output
 
         try:
-            return self._calls.run(header, work)
+            return self._calls.run(header, pending, work, budget_s)
         except CallTimeout as exc:
+            if budget_s is not None:
+                raise OverBudget() from exc
             raise ChainError(
                 f"execution aborted (timeout = {self.call_limits.timeout_s:g}s)"
             ) from exc
@@ -399,39 +418,48 @@ class EmbeddedChain:
         transaction = self.decode(raw)
         with self._lock:
             self._pool.expire()
-            if self._check(transaction):
+            vm = self._next_vm()
+            if self._check(transaction, vm.state):
                 self._pool.add(transaction)
                 return Submitted(transaction.hash, ())
-            mined = [self._mine(transaction)]
+            mined = [self._mine(transaction, vm)]
             mined.extend(self._promote(transaction.sender))
             return Submitted(transaction.hash, tuple(mined))
+
+    def _next_vm(self) -> VirtualMachineAPI:
+        """The VM of the block to mine next: the time now (at least the parent's + 1, which
+        the pending header holds) and ``prevrandao`` keccak of the parent hash."""
+        pending = self._chain.header
+        return self._chain.next_vm(
+            max(pending.timestamp, int(time.time())), keccak(pending.parent_hash)
+        )
 
     def _promote(self, sender: bytes) -> list[MinedBlock]:
         """Mine the sender's waiting transactions while each is the next by nonce; one no
         longer valid (its sender's balance fell) is dropped, and the rest wait again."""
         mined: list[MinedBlock] = []
-        while True:
-            expected = self._chain.get_vm().state.get_nonce(Address(sender))
-            waiting = self._pool.take(sender, expected)
+        while self._pool.waiting(sender):
+            vm = self._next_vm()
+            waiting = self._pool.take(sender, vm.state.get_nonce(Address(sender)))
             if waiting is None:
                 return mined
             try:
-                self._check(waiting)
-                mined.append(self._mine(waiting))
+                self._check(waiting, vm.state)
+                mined.append(self._mine(waiting, vm))
             except ChainError as exc:
                 log.info(
                     "waiting transaction dropped",
                     extra={"tx": "0x" + waiting.hash.hex(), "reason": exc.message},
                 )
                 return mined
+        return mined
 
-    def _check(self, transaction: SignedTransactionAPI) -> bool:
+    def _check(self, transaction: SignedTransactionAPI, state: StateAPI) -> bool:
         """Every validity rule, in geth's order: the transaction's own fields, then its
-        sender's account at the head (code, nonce, balance) and the next block's base fee.
-        True when the transaction is valid but for a nonce ahead of its sender's."""
-        head = self._chain.get_canonical_head()
-        validation.check_fields(transaction, CHAIN_ID, head.gas_limit)
-        state = self._chain.get_vm().state
+        sender's account in ``state``, the head's (code, nonce, balance) and the next
+        block's base fee. True when the transaction is valid but for a nonce ahead of its
+        sender's."""
+        validation.check_fields(transaction, CHAIN_ID, self._head.gas_limit)
         sender = transaction.sender
         validation.check_sender(
             transaction, bytes(state.get_code_hash(sender)), self.base_fee_locked()
@@ -450,30 +478,26 @@ class EmbeddedChain:
             )
         return bool(transaction.nonce > expected)
 
-    def _mine(self, transaction: SignedTransactionAPI) -> MinedBlock:
-        """Execute and mine one block as one SQLite transaction (one fsync, all or nothing).
+    def _mine(self, transaction: SignedTransactionAPI, vm: VirtualMachineAPI) -> MinedBlock:
+        """Execute and mine one block on ``vm`` as one SQLite transaction (one fsync, all or
+        nothing).
 
-        The pending header gets the time now, not when the previous block was mined (only
-        its timestamp changes: the base fee and blob fields follow from the parent alone, so
-        rebuilding the whole header would be wasted). Listeners run after the commit: a
-        failing listener cannot undo an acknowledged block (the event index catches up from
-        the store).
+        The pending header got the time now in ``_next_vm``, not when the previous block was
+        mined (only its timestamp changes: the base fee and blob fields follow from the
+        parent alone, so rebuilding the whole header would be wasted). Listeners run after
+        the commit: a failing listener cannot undo an acknowledged block (the event index
+        catches up from the store).
         """
-        pending = self._chain.header
-        self._chain.header = pending.copy(timestamp=max(pending.timestamp, int(time.time())))
-        parent_hash = pending.parent_hash
         try:
             with self._db.store.transaction():
-                result, receipts, _ = self._chain.mine_all(
-                    [transaction], mix_hash=keccak(parent_hash)
-                )
+                block, receipts = self._chain.mine_one(vm, transaction)
         except ValidationError as exc:
             self._chain = DevChain(self._db)
             raise ChainError(str(exc)) from exc
         except BaseException:
             self._chain = DevChain(self._db)
             raise
-        mined = MinedBlock(result.imported_block, tuple(receipts))
+        mined = MinedBlock(block, receipts)
         self._recent[transaction.hash] = (transaction, mined)
         self._recent_receipts[mined.block.hash] = mined.receipts
         if len(self._recent) > RECENT_BLOCKS:

@@ -19,7 +19,14 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, cast
 
-from eth.abc import AtomicWriteBatchAPI, BlockHeaderAPI
+from eth.abc import (
+    AtomicWriteBatchAPI,
+    BlockAPI,
+    BlockHeaderAPI,
+    ReceiptAPI,
+    SignedTransactionAPI,
+    VirtualMachineAPI,
+)
 from eth.chains.base import MiningChain
 from eth.consensus.applier import ConsensusApplier
 from eth.consensus.noproof import NoProofConsensus
@@ -127,6 +134,33 @@ class DevChain(MiningChain):
         """Keep the genesis gas limit, as eth-tester does, instead of py-evm's drift."""
         header_params["gas_limit"] = parent_header.gas_limit
         return super().create_header_from_parent(parent_header, **header_params)
+
+    def next_vm(self, timestamp: int, mix_hash: bytes) -> VirtualMachineAPI:
+        """The VM that will mine the next block, its header given the time and randomness;
+        its state is the head's, so checks read what the block will be built on."""
+        self.header = self.header.copy(timestamp=timestamp, mix_hash=mix_hash)
+        return self.get_vm(self.header)
+
+    def mine_one(
+        self, vm: VirtualMachineAPI, transaction: SignedTransactionAPI
+    ) -> tuple[BlockAPI, tuple[ReceiptAPI, ...]]:
+        """Mine ``transaction`` alone in a block on ``vm`` (from ``next_vm``) and store it.
+
+        This is py-evm's ``mine_all`` less what only a block received from elsewhere needs:
+        ``mine_all`` validates the block it has just built twice (``VM.mine_block`` and
+        ``Chain.persist_block``: its roots, gas and header fields against what it computed
+        itself a moment before) and reads it back from the database to report it as the new
+        canonical block. The block, its receipts and what is stored are the same.
+        """
+        header = vm.get_header()
+        new_header, receipts, _ = vm.apply_all_transactions([transaction], header)
+        filled = vm.set_block_transactions_and_withdrawals(
+            vm.get_block(), new_header, [transaction], receipts
+        )
+        block = vm.finalize_block(filled).block
+        self.chaindb.persist_block(block)
+        self.header = self.create_header_from_parent(block.header)
+        return block, receipts
 
 
 def default_genesis_state(funded_accounts: int = 10) -> dict[bytes, Any]:

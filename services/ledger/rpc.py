@@ -22,7 +22,9 @@ from eth_utils.crypto import keccak
 import robocloud
 from robocloud import bounded_json
 from services.ledger import encoding, fees
+from services.ledger.calls import OverBudget
 from services.ledger.chain import (
+    HEAD_TAGS,
     BlockTag,
     CallRequest,
     ChainError,
@@ -75,6 +77,8 @@ class NotInline(Exception):
 
 NOT_INLINE = object()
 INLINE_MAX_BYTES = 4096
+INLINE_CALL_BUDGET_S = 0.005
+"""How long an ``eth_call`` may hold the event loop before it is handed to a worker thread."""
 
 
 class Dispatcher:
@@ -332,7 +336,23 @@ class EmbeddedMethods:
         return {name: table[name] for name in constant} | {
             "eth_getTransactionReceipt": self.recent_receipt,
             "eth_getTransactionByHash": self.recent_transaction,
+            "eth_call": self.head_call,
         }
+
+    def head_call(self, params: list[Any]) -> Any:
+        """``eth_call`` at the head (a proof's ``rootAt``, a contract's view), tried on the
+        caller's thread for at most ``INLINE_CALL_BUDGET_S``: a view call takes well under a
+        millisecond, a worker thread a quarter of one more. A call at another block, or one
+        that runs past the budget (abandoned, nothing of it kept), goes to a worker thread
+        with the whole time limit."""
+        tag = param(params, 1, "latest")
+        if tag not in HEAD_TAGS:
+            raise NotInline()
+        request = self.call_request(param(params, 0))
+        try:
+            return encoding.data(self.chain.call(request, tag, INLINE_CALL_BUDGET_S))
+        except OverBudget as exc:
+            raise NotInline() from exc
 
     def recent_receipt(self, params: list[Any]) -> Any:
         located = self.chain.recent(as_bytes(param(params, 0), "transaction hash", 32))

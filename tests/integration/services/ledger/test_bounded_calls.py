@@ -115,13 +115,17 @@ def test_reads_transactions_and_readiness_go_on_while_the_loop_runs(
 
 
 def test_sigterm_stops_the_service_while_a_call_runs(tmp_path: Path) -> None:
-    process = start_ledger(tmp_path / "data", {"ROBOCLOUD_LEDGER_RPC_EVM_TIMEOUT_S": "120"})
+    # Gas for hours of looping: with a block's worth, the loop runs out of gas within the
+    # shutdown's grace period on a fast machine, and is answered before the service stops.
+    env = {"ROBOCLOUD_LEDGER_RPC_EVM_TIMEOUT_S": "120", "ROBOCLOUD_LEDGER_RPC_GAS_CAP": str(10**12)}
+    process = start_ledger(tmp_path / "data", env)
     try:
         address = deploy_loop(process.url)
         outcome: list[str] = []
 
         def run_loop() -> None:
-            payload = {"jsonrpc": "2.0", "id": 1, "method": "eth_call", "params": [{"to": address}]}
+            call = {"to": address, "gas": hex(10**12)}
+            payload = {"jsonrpc": "2.0", "id": 1, "method": "eth_call", "params": [call]}
             try:
                 response = httpx.post(f"{process.url}/rpc", json=payload, timeout=60)
                 outcome.append(str(response.status_code))

@@ -10,6 +10,7 @@ import pytest
 
 from tests.integration.services.ledger.conftest import Pair, call, deploying, result
 from tests.rawtx import RawTx
+from tests.unit.services.ledger.test_calls import COUNTER
 
 # NUMBER, TIMESTAMP, BASEFEE and GASPRICE as four words: the block context a call sees.
 CONTEXT = bytes.fromhex("435f5242602052486040523a60605260805ff3")
@@ -104,3 +105,25 @@ def test_a_priced_call_its_sender_cannot_afford_is_refused_on_both(
     for url, address in zip(pair.urls, contracts, strict=True):
         error = call(url, "eth_call", [{"to": address, "gasPrice": hex(10**9)}, "latest"])["error"]
         assert error["message"].lower().startswith("insufficient funds for gas * price + value")
+
+
+def test_calls_leave_nothing_behind_and_see_each_new_head(pair: Pair) -> None:
+    """The ledger reuses a state for calls at the same block (anvil need not): a call that
+    writes storage and transient storage changes nothing the next call or block sees."""
+    owner = pair.funded()
+    addresses = pair.deploy(owner, deploying(COUNTER))
+    for url, address in zip(pair.urls, addresses, strict=True):
+        deployed = result(url, "eth_blockNumber", [])
+        assert [counts(url, address, "latest") for _ in range(3)] == [(0, 0)] * 3, url
+        nonce = int(result(url, "eth_getTransactionCount", [owner.address, "latest"]), 16)
+        tx = RawTx(nonce=nonce, to=bytes.fromhex(address[2:]), gas=100_000, max_fee=10**11)
+        tx_hash = result(url, "eth_sendRawTransaction", [tx.sign(bytes(owner.account.key))])
+        assert result(url, "eth_getTransactionReceipt", [tx_hash])["status"] == "0x1"
+        assert counts(url, address, "latest") == (1, 0), url
+        assert counts(url, address, deployed) == (0, 0), url
+        assert counts(url, address, "latest") == (1, 0), url
+
+
+def counts(url: str, address: str, tag: str) -> tuple[int, int]:
+    answer = result(url, "eth_call", [{"to": address}, tag])
+    return int(answer[2:66], 16), int(answer[66:130], 16)
