@@ -4,6 +4,8 @@ reader's output can be checked against rosbags' deserialisation of the same byte
 
 from __future__ import annotations
 
+import io
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
@@ -13,6 +15,7 @@ from rosbags.rosbag1 import Writer as Rosbag1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.typesys import Stores, get_typestore
+from ruamel.yaml import YAML
 
 BagKind = Literal["ros1", "sqlite3", "mcap"]
 TOPICS = {
@@ -125,3 +128,72 @@ def write_bag(
         for topic, t_ns, message in messages(store, count, image_every, start_ns):
             writer2.write(connections[topic], t_ns, store.serialize_cdr(message, TOPICS[topic]))
     return path
+
+
+def write_split_bag(
+    path: Path,
+    kind: Literal["sqlite3", "mcap"],
+    count: int,
+    parts: int,
+    *,
+    image_every: int = 10,
+    start_ns: int = START_NS,
+) -> Path:
+    """A ROS 2 bag directory split into ``parts`` storage files, as rosbag2 writes one with
+    ``--max-bag-duration``: the messages of :func:`messages` cut in consecutive runs, one
+    storage file each, under one ``metadata.yaml`` listing every file.
+
+    rosbags' writer does not split, so each part is a bag of its own whose storage file is
+    moved into ``path`` and whose metadata is merged.
+    """
+    store = typestore_for(kind)
+    plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+    every = list(messages(store, count, image_every, start_ns))
+    path.mkdir()
+    infos: list[dict[str, Any]] = []
+    for part in range(parts):
+        chunk = every[part * len(every) // parts : (part + 1) * len(every) // parts]
+        scratch = path / f".part{part}"
+        with Rosbag2Writer(scratch, version=9, storage_plugin=plugin) as writer:
+            connections = {
+                topic: writer.add_connection(topic, msgtype, typestore=store)
+                for topic, msgtype in TOPICS.items()
+            }
+            for topic, t_ns, message in chunk:
+                raw = store.serialize_cdr(message, TOPICS[topic])
+                writer.write(connections[topic], t_ns, raw)
+        info = YAML(typ="safe").load((scratch / "metadata.yaml").read_text())
+        infos.append(info["rosbag2_bagfile_information"])
+        (stored,) = info["rosbag2_bagfile_information"]["relative_file_paths"]
+        name = f"{path.name}_{part}{Path(stored).suffix}"
+        (scratch / stored).rename(path / name)
+        infos[-1]["files"][0]["path"] = name
+        shutil.rmtree(scratch)
+    (path / "metadata.yaml").write_text(_merged_metadata(infos))
+    return path
+
+
+def _merged_metadata(parts: list[dict[str, Any]]) -> str:
+    """One ``metadata.yaml`` over the parts' own, counts summed per topic."""
+    merged = dict(parts[0])
+    files = [file for part in parts for file in part["files"]]
+    merged["files"] = files
+    merged["relative_file_paths"] = [file["path"] for file in files]
+    merged["message_count"] = sum(part["message_count"] for part in parts)
+    starts = [file["starting_time"]["nanoseconds_since_epoch"] for file in files]
+    ends = [
+        file["starting_time"]["nanoseconds_since_epoch"] + file["duration"]["nanoseconds"]
+        for file in files
+    ]
+    merged["starting_time"] = {"nanoseconds_since_epoch": min(starts)}
+    merged["duration"] = {"nanoseconds": max(ends) - min(starts)}
+    topics: dict[str, dict[str, Any]] = {}
+    for part in parts:
+        for entry in part["topics_with_message_count"]:
+            name = entry["topic_metadata"]["name"]
+            known = topics.setdefault(name, {**entry, "message_count": 0})
+            known["message_count"] += entry["message_count"]
+    merged["topics_with_message_count"] = list(topics.values())
+    text = io.StringIO()
+    YAML(typ="safe").dump({"rosbag2_bagfile_information": merged}, text)
+    return text.getvalue()

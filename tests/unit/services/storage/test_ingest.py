@@ -118,7 +118,7 @@ def test_ingest_writes_bound_topics_and_reports_the_rest(node: Node, tmp_path: P
     frame = node.store.get("image-1-0").record["data"]["data"]
     assert node.blobs.files[frame][:3] == bytes([9, 10, 11])
     assert job.record_ids == {imu: ["imu-1-0", "imu-1-159"], image: ["image-1-0", "image-1-19"]}
-    assert not (node.root / "jobs" / job.id / "staged").exists()
+    assert [path.name for path in (node.root / "jobs" / job.id).iterdir()] == ["job.json"]
 
 
 @pytest.mark.parametrize("damage", ["truncate", "undefined"])
@@ -145,7 +145,7 @@ def test_a_failing_bag_appends_nothing(node: Node, tmp_path: Path, damage: str) 
     assert job.error["code"] == expected
     assert job.error["resumable"] is False
     if damage == "truncate":
-        assert job.error["details"]["file"] == "bag"
+        assert job.error["details"]["file"] == "bag.bag"
     else:
         assert job.error["details"]["topic"].startswith("/test_service")
     assert node.logs.size(imu) == 0
