@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import io
 import shutil
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, Literal
 
@@ -68,8 +68,17 @@ def navsatfix(store: Any, index: int, t_ns: int) -> Any:
     )
 
 
-def image(store: Any, index: int, t_ns: int, width: int = 8, height: int = 6) -> Any:
-    pixels = (np.arange(width * height * 3, dtype=np.uint32) + index) % 256
+def image(
+    store: Any,
+    index: int,
+    t_ns: int,
+    width: int = 8,
+    height: int = 6,
+    pixels: np.ndarray | None = None,
+) -> Any:
+    """An rgb8 image; ``pixels`` (``height * width * 3`` bytes) default to ``index``'s pattern."""
+    if pixels is None:
+        pixels = (np.arange(width * height * 3, dtype=np.uint32) + index) % 256
     return store.types["sensor_msgs/msg/Image"](
         header=_header(store, index, t_ns, "camera"),
         height=height,
@@ -106,6 +115,20 @@ def write_bag(
 ) -> Path:
     """Write ``count`` messages to a new bag at ``path`` (a ``.bag`` file or a ROS 2 directory)."""
     store = typestore_for(kind)
+    stream = messages(store, count, image_every, start_ns)
+    return write_messages(path, kind, store, stream, ros1_chunk_bytes=ros1_chunk_bytes)
+
+
+def write_messages(
+    path: Path,
+    kind: BagKind,
+    store: Any,
+    stream: Iterable[tuple[str, int, Any]],
+    *,
+    ros1_chunk_bytes: int = 1 << 20,
+) -> Path:
+    """Write ``(topic, t_ns, message)`` of :data:`TOPICS`, built with ``store`` (the typestore
+    of ``kind``), to a new bag at ``path``, one message in memory at a time."""
     if kind == "ros1":
         writer = Rosbag1Writer(path)
         writer.set_compression(Rosbag1Writer.CompressionFormat.LZ4)
@@ -115,7 +138,7 @@ def write_bag(
                 topic: writer.add_connection(topic, msgtype, typestore=store)
                 for topic, msgtype in TOPICS.items()
             }
-            for topic, t_ns, message in messages(store, count, image_every, start_ns):
+            for topic, t_ns, message in stream:
                 raw = store.serialize_ros1(message, TOPICS[topic])
                 writer.write(connections[topic], t_ns, raw)
         return path
@@ -125,7 +148,7 @@ def write_bag(
             topic: writer2.add_connection(topic, msgtype, typestore=store)
             for topic, msgtype in TOPICS.items()
         }
-        for topic, t_ns, message in messages(store, count, image_every, start_ns):
+        for topic, t_ns, message in stream:
             writer2.write(connections[topic], t_ns, store.serialize_cdr(message, TOPICS[topic]))
     return path
 
@@ -147,21 +170,13 @@ def write_split_bag(
     moved into ``path`` and whose metadata is merged.
     """
     store = typestore_for(kind)
-    plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
     every = list(messages(store, count, image_every, start_ns))
     path.mkdir()
     infos: list[dict[str, Any]] = []
     for part in range(parts):
         chunk = every[part * len(every) // parts : (part + 1) * len(every) // parts]
         scratch = path / f".part{part}"
-        with Rosbag2Writer(scratch, version=9, storage_plugin=plugin) as writer:
-            connections = {
-                topic: writer.add_connection(topic, msgtype, typestore=store)
-                for topic, msgtype in TOPICS.items()
-            }
-            for topic, t_ns, message in chunk:
-                raw = store.serialize_cdr(message, TOPICS[topic])
-                writer.write(connections[topic], t_ns, raw)
+        write_messages(scratch, kind, store, chunk)
         info = YAML(typ="safe").load((scratch / "metadata.yaml").read_text())
         infos.append(info["rosbag2_bagfile_information"])
         (stored,) = info["rosbag2_bagfile_information"]["relative_file_paths"]
