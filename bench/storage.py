@@ -46,7 +46,7 @@ import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -476,34 +476,6 @@ def bench_ingestion(options: argparse.Namespace) -> None:
 
 # ----- a bag of about 1 GB: memory bounded whatever the bag's size (issue 15) -----
 
-WIDTH, HEIGHT = 640, 480
-FRAME_BYTES = WIDTH * HEIGHT * 3
-CAMERA_HZ, IMU_HZ = 10, 200
-
-
-def camera_run(store: Any, gigabytes: float) -> Iterator[tuple[str, int, Any]]:
-    """A recording of about ``gigabytes``: 640x480 rgb8 frames at 10 Hz (every one distinct:
-    a gradient under sensor noise), IMU at 200 Hz, NavSatFix at 10 Hz, in time order."""
-    import numpy as np
-
-    from tests.bagfactory import image, imu, navsatfix
-
-    rng = np.random.default_rng(15)
-    rows, columns = np.indices((HEIGHT, WIDTH))
-    gradient = np.stack([rows * 255 // HEIGHT, columns * 255 // WIDTH, (rows + columns) % 256], -1)
-    base = gradient.astype(np.uint8).reshape(-1)
-    per_frame = IMU_HZ // CAMERA_HZ
-    frames = max(1, round(gigabytes * 1e9 / FRAME_BYTES))
-    for step in range(frames * per_frame):
-        t_ns = START_NS + step * SECOND_NS // IMU_HZ
-        yield "/imu", t_ns, imu(store, step, t_ns)
-        if step % per_frame == 0:
-            pixels = base + rng.integers(0, 24, FRAME_BYTES, dtype=np.uint8)
-            frame = image(store, step, t_ns + 1, WIDTH, HEIGHT, pixels=pixels)
-            yield "/camera/image_raw", t_ns + 1, frame
-        elif step % per_frame == per_frame // 2:
-            yield "/gps", t_ns + 1, navsatfix(store, step, t_ns + 1)
-
 
 def _vm_hwm_mib(pid: int) -> float:
     """A child's peak resident set (Linux ``VmHWM``)."""
@@ -536,15 +508,23 @@ def bench_bigbag_ingest(bag: Path, work: Path) -> Result:
 
 
 def bench_bigbag(options: argparse.Namespace) -> None:
-    from tests.bagfactory import typestore_for, write_messages
+    from tests.bagfactory import (
+        CAMERA_HZ,
+        FRAME_BYTES,
+        IMU_HZ,
+        camera_run,
+        typestore_for,
+        write_messages,
+    )
 
     for gigabytes in options.bag_gb:
         with tempfile.TemporaryDirectory(prefix="bench-bigbag-") as scratch:
             name = "big.bag" if options.kind == "ros1" else "big"
             started = time.perf_counter()
             store = typestore_for(options.kind)
+            frames = max(1, round(gigabytes * 1e9 / FRAME_BYTES))
             bag = write_messages(
-                Path(scratch) / name, options.kind, store, camera_run(store, gigabytes)
+                Path(scratch) / name, options.kind, store, camera_run(store, frames)
             )
             size = sum(p.stat().st_size for p in ([bag] if bag.is_file() else bag.iterdir()))
             print(

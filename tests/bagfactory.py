@@ -104,6 +104,30 @@ def messages(
             yield "/imu", t_ns, imu(store, index, t_ns)
 
 
+WIDTH, HEIGHT = 640, 480
+FRAME_BYTES = WIDTH * HEIGHT * 3
+CAMERA_HZ, IMU_HZ = 10, 200
+
+
+def camera_run(store: Any, frames: int) -> Iterator[tuple[str, int, Any]]:
+    """A camera recording: ``frames`` 640x480 rgb8 images at 10 Hz (each distinct: a gradient
+    under sensor noise, 0.9 MB), IMU at 200 Hz and NavSatFix at 10 Hz, in time order."""
+    rng = np.random.default_rng(15)
+    rows, columns = np.indices((HEIGHT, WIDTH))
+    gradient = np.stack([rows * 255 // HEIGHT, columns * 255 // WIDTH, (rows + columns) % 256], -1)
+    base = gradient.astype(np.uint8).reshape(-1)
+    per_frame = IMU_HZ // CAMERA_HZ
+    for step in range(frames * per_frame):
+        t_ns = START_NS + step * 1_000_000_000 // IMU_HZ
+        yield "/imu", t_ns, imu(store, step, t_ns)
+        if step % per_frame == 0:
+            pixels = base + rng.integers(0, 24, FRAME_BYTES, dtype=np.uint8)
+            frame = image(store, step, t_ns + 1, WIDTH, HEIGHT, pixels=pixels)
+            yield "/camera/image_raw", t_ns + 1, frame
+        elif step % per_frame == per_frame // 2:
+            yield "/gps", t_ns + 1, navsatfix(store, step, t_ns + 1)
+
+
 def write_bag(
     path: Path,
     kind: BagKind,
