@@ -41,6 +41,7 @@ import argparse
 import multiprocessing
 import random
 import resource
+import shutil
 import statistics
 import sys
 import tempfile
@@ -337,8 +338,17 @@ def bench_rosbags(bag: Path, work: Path) -> Result:
     return Result("rosbags read+deserialize", time.perf_counter() - started, count, _peak_rss_mib())
 
 
-def _ingest(bag: Path, work: Path, logs: Any, notify: Callable[[int], None] | None) -> int:
-    """One ingest job of ``bag`` into a fresh record store over ``logs``: its records."""
+def _ingest(
+    bag: Path,
+    work: Path,
+    logs: Any,
+    notify: Callable[[int], None] | None,
+    add_blob: Callable[[bytes], str] | None = None,
+) -> int:
+    """One ingest job of ``bag`` into a fresh record store over ``logs``: its records.
+
+    Image bytes go through ``add_blob`` (a cas client's ``add_bytes``), or are only hashed
+    into their CID when it is None."""
     from robocloud.unixfs import import_bytes
     from services.storage.catalog import Catalog
     from services.storage.ingest import CasBlobs, IngestJobs
@@ -356,7 +366,7 @@ def _ingest(bag: Path, work: Path, logs: Any, notify: Callable[[int], None] | No
         catalog.submit(version.id, author=author)
         catalog.review(version.id, "approve", reviewer=author)
         bindings.bind(template_id=version.id, msgtype=msgtype)
-    blobs = CasBlobs(lambda data: str(import_bytes(data)[1]))
+    blobs = CasBlobs(add_blob or (lambda data: str(import_bytes(data)[1])))
     jobs = IngestJobs(root / "jobs", store, logs, bindings, lambda: blobs)
     signer = Authorship(
         signer=author,
@@ -372,7 +382,10 @@ def _ingest(bag: Path, work: Path, logs: Any, notify: Callable[[int], None] | No
         received_at_ns=time.time_ns(),
     )
     copy = work / bag.name
-    copy.write_bytes(bag.read_bytes())
+    if bag.is_dir():
+        shutil.copytree(bag, copy)
+    else:
+        shutil.copyfile(bag, copy)
     job = jobs.wait(jobs.submit(copy, "upload:bench", signer).id, timeout_s=3600)
     if job.status != "succeeded":
         raise SystemExit(f"ingest failed: {job.error}")
@@ -471,6 +484,74 @@ def bench_ingestion(options: argparse.Namespace) -> None:
     )
 
 
+# ----- a bag of about 1 GB: memory bounded whatever the bag's size (issue 15) -----
+
+
+def _vm_hwm_mib(pid: int) -> float:
+    """A child's peak resident set (Linux ``VmHWM``)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def bench_bigbag_ingest(bag: Path, work: Path) -> Result:
+    """An ingest job into a fresh record store, image bytes stored in a cas started here."""
+    from robocloud.cas import Cas
+    from services.storage.recordlog import RecordLogs
+
+    cas = ServiceProcess("cas", work / "cas", QUIET).start()
+    try:
+        logs = RecordLogs(work / "logs")
+        with Cas(cas.url, Identity.generate()) as client:
+            started = time.perf_counter()
+            count = _ingest(bag, work, logs, None, lambda data: str(client.add_bytes(data)))
+            seconds = time.perf_counter() - started
+        logs.close()
+        assert cas.process is not None
+        cas_rss = _vm_hwm_mib(cas.process.pid)
+    finally:
+        cas.stop()
+    return Result(
+        f"ingest, images to cas (cas peak RSS {cas_rss:.0f} MiB)", seconds, count, _peak_rss_mib()
+    )
+
+
+def bench_bigbag(options: argparse.Namespace) -> None:
+    from tests.bagfactory import (
+        CAMERA_HZ,
+        FRAME_BYTES,
+        IMU_HZ,
+        camera_run,
+        typestore_for,
+        write_messages,
+    )
+
+    for gigabytes in options.bag_gb:
+        with tempfile.TemporaryDirectory(prefix="bench-bigbag-") as scratch:
+            name = "big.bag" if options.kind == "ros1" else "big"
+            started = time.perf_counter()
+            store = typestore_for(options.kind)
+            frames = max(1, round(gigabytes * 1e9 / FRAME_BYTES))
+            bag = write_messages(
+                Path(scratch) / name, options.kind, store, camera_run(store, frames)
+            )
+            size = sum(p.stat().st_size for p in ([bag] if bag.is_file() else bag.iterdir()))
+            print(
+                f"== bag of {size / 1e9:.2f} GB ({options.kind}; 640x480 rgb8 at {CAMERA_HZ} Hz, "
+                f"IMU at {IMU_HZ} Hz, NavSatFix at {CAMERA_HZ} Hz), written in "
+                f"{time.perf_counter() - started:.0f} s"
+            )
+            results = [isolated(bench_rosbags, bag), isolated(bench_bigbag_ingest, bag)]
+        for result in results:
+            rate = size / 1e6 / result.seconds
+            print(
+                f"  {result.name:54} {result.seconds:7.1f} s  {rate:6.1f} MB/s"
+                f"  {result.messages:7} msg  peak RSS {result.peak_rss_mib:5.0f} MiB"
+            )
+        print(f"  ingest / rosbags time: {results[1].seconds / results[0].seconds:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--records", type=int, default=1_000_000)
@@ -480,8 +561,18 @@ def main() -> None:
     parser.add_argument("--proofs", type=int, default=300)
     parser.add_argument("--messages", type=int, default=200_000)
     parser.add_argument("--kind", choices=["ros1", "sqlite3", "mcap"], default="ros1")
-    parser.add_argument("--only", choices=["queries", "proofs", "ingest"])
+    parser.add_argument("--only", choices=["queries", "proofs", "ingest", "bigbag"])
+    parser.add_argument(
+        "--bag-gb",
+        type=float,
+        nargs="+",
+        default=[1.0],
+        help="bigbag: the sizes of bag to ingest (several show how memory follows the size)",
+    )
     args = parser.parse_args()
+    if args.only == "bigbag":
+        bench_bigbag(args)
+        return
     if args.only in (None, "ingest"):
         bench_ingestion(args)
     if args.only in (None, "queries"):

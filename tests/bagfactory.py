@@ -4,7 +4,9 @@ reader's output can be checked against rosbags' deserialisation of the same byte
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import io
+import shutil
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, Literal
 
@@ -13,6 +15,7 @@ from rosbags.rosbag1 import Writer as Rosbag1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.typesys import Stores, get_typestore
+from ruamel.yaml import YAML
 
 BagKind = Literal["ros1", "sqlite3", "mcap"]
 TOPICS = {
@@ -65,8 +68,17 @@ def navsatfix(store: Any, index: int, t_ns: int) -> Any:
     )
 
 
-def image(store: Any, index: int, t_ns: int, width: int = 8, height: int = 6) -> Any:
-    pixels = (np.arange(width * height * 3, dtype=np.uint32) + index) % 256
+def image(
+    store: Any,
+    index: int,
+    t_ns: int,
+    width: int = 8,
+    height: int = 6,
+    pixels: np.ndarray | None = None,
+) -> Any:
+    """An rgb8 image; ``pixels`` (``height * width * 3`` bytes) default to ``index``'s pattern."""
+    if pixels is None:
+        pixels = (np.arange(width * height * 3, dtype=np.uint32) + index) % 256
     return store.types["sensor_msgs/msg/Image"](
         header=_header(store, index, t_ns, "camera"),
         height=height,
@@ -92,6 +104,30 @@ def messages(
             yield "/imu", t_ns, imu(store, index, t_ns)
 
 
+WIDTH, HEIGHT = 640, 480
+FRAME_BYTES = WIDTH * HEIGHT * 3
+CAMERA_HZ, IMU_HZ = 10, 200
+
+
+def camera_run(store: Any, frames: int) -> Iterator[tuple[str, int, Any]]:
+    """A camera recording: ``frames`` 640x480 rgb8 images at 10 Hz (each distinct: a gradient
+    under sensor noise, 0.9 MB), IMU at 200 Hz and NavSatFix at 10 Hz, in time order."""
+    rng = np.random.default_rng(15)
+    rows, columns = np.indices((HEIGHT, WIDTH))
+    gradient = np.stack([rows * 255 // HEIGHT, columns * 255 // WIDTH, (rows + columns) % 256], -1)
+    base = gradient.astype(np.uint8).reshape(-1)
+    per_frame = IMU_HZ // CAMERA_HZ
+    for step in range(frames * per_frame):
+        t_ns = START_NS + step * 1_000_000_000 // IMU_HZ
+        yield "/imu", t_ns, imu(store, step, t_ns)
+        if step % per_frame == 0:
+            pixels = base + rng.integers(0, 24, FRAME_BYTES, dtype=np.uint8)
+            frame = image(store, step, t_ns + 1, WIDTH, HEIGHT, pixels=pixels)
+            yield "/camera/image_raw", t_ns + 1, frame
+        elif step % per_frame == per_frame // 2:
+            yield "/gps", t_ns + 1, navsatfix(store, step, t_ns + 1)
+
+
 def write_bag(
     path: Path,
     kind: BagKind,
@@ -103,6 +139,20 @@ def write_bag(
 ) -> Path:
     """Write ``count`` messages to a new bag at ``path`` (a ``.bag`` file or a ROS 2 directory)."""
     store = typestore_for(kind)
+    stream = messages(store, count, image_every, start_ns)
+    return write_messages(path, kind, store, stream, ros1_chunk_bytes=ros1_chunk_bytes)
+
+
+def write_messages(
+    path: Path,
+    kind: BagKind,
+    store: Any,
+    stream: Iterable[tuple[str, int, Any]],
+    *,
+    ros1_chunk_bytes: int = 1 << 20,
+) -> Path:
+    """Write ``(topic, t_ns, message)`` of :data:`TOPICS`, built with ``store`` (the typestore
+    of ``kind``), to a new bag at ``path``, one message in memory at a time."""
     if kind == "ros1":
         writer = Rosbag1Writer(path)
         writer.set_compression(Rosbag1Writer.CompressionFormat.LZ4)
@@ -112,7 +162,7 @@ def write_bag(
                 topic: writer.add_connection(topic, msgtype, typestore=store)
                 for topic, msgtype in TOPICS.items()
             }
-            for topic, t_ns, message in messages(store, count, image_every, start_ns):
+            for topic, t_ns, message in stream:
                 raw = store.serialize_ros1(message, TOPICS[topic])
                 writer.write(connections[topic], t_ns, raw)
         return path
@@ -122,6 +172,67 @@ def write_bag(
             topic: writer2.add_connection(topic, msgtype, typestore=store)
             for topic, msgtype in TOPICS.items()
         }
-        for topic, t_ns, message in messages(store, count, image_every, start_ns):
+        for topic, t_ns, message in stream:
             writer2.write(connections[topic], t_ns, store.serialize_cdr(message, TOPICS[topic]))
     return path
+
+
+def write_split_bag(
+    path: Path,
+    kind: Literal["sqlite3", "mcap"],
+    count: int,
+    parts: int,
+    *,
+    image_every: int = 10,
+    start_ns: int = START_NS,
+) -> Path:
+    """A ROS 2 bag directory split into ``parts`` storage files, as rosbag2 writes one with
+    ``--max-bag-duration``: the messages of :func:`messages` cut in consecutive runs, one
+    storage file each, under one ``metadata.yaml`` listing every file.
+
+    rosbags' writer does not split, so each part is a bag of its own whose storage file is
+    moved into ``path`` and whose metadata is merged.
+    """
+    store = typestore_for(kind)
+    every = list(messages(store, count, image_every, start_ns))
+    path.mkdir()
+    infos: list[dict[str, Any]] = []
+    for part in range(parts):
+        chunk = every[part * len(every) // parts : (part + 1) * len(every) // parts]
+        scratch = path / f".part{part}"
+        write_messages(scratch, kind, store, chunk)
+        info = YAML(typ="safe").load((scratch / "metadata.yaml").read_text())
+        infos.append(info["rosbag2_bagfile_information"])
+        (stored,) = info["rosbag2_bagfile_information"]["relative_file_paths"]
+        name = f"{path.name}_{part}{Path(stored).suffix}"
+        (scratch / stored).rename(path / name)
+        infos[-1]["files"][0]["path"] = name
+        shutil.rmtree(scratch)
+    (path / "metadata.yaml").write_text(_merged_metadata(infos))
+    return path
+
+
+def _merged_metadata(parts: list[dict[str, Any]]) -> str:
+    """One ``metadata.yaml`` over the parts' own, counts summed per topic."""
+    merged = dict(parts[0])
+    files = [file for part in parts for file in part["files"]]
+    merged["files"] = files
+    merged["relative_file_paths"] = [file["path"] for file in files]
+    merged["message_count"] = sum(part["message_count"] for part in parts)
+    starts = [file["starting_time"]["nanoseconds_since_epoch"] for file in files]
+    ends = [
+        file["starting_time"]["nanoseconds_since_epoch"] + file["duration"]["nanoseconds"]
+        for file in files
+    ]
+    merged["starting_time"] = {"nanoseconds_since_epoch": min(starts)}
+    merged["duration"] = {"nanoseconds": max(ends) - min(starts)}
+    topics: dict[str, dict[str, Any]] = {}
+    for part in parts:
+        for entry in part["topics_with_message_count"]:
+            name = entry["topic_metadata"]["name"]
+            known = topics.setdefault(name, {**entry, "message_count": 0})
+            known["message_count"] += entry["message_count"]
+    merged["topics_with_message_count"] = list(topics.values())
+    text = io.StringIO()
+    YAML(typ="safe").dump({"rosbag2_bagfile_information": merged}, text)
+    return text.getvalue()

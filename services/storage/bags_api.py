@@ -18,8 +18,9 @@ from robocloud.cid import parse_cid
 from services.common.bodies import json_body, media_type
 from services.common.errors import PayloadTooLarge, UnsupportedMediaType
 from services.storage.bags import SUFFIXES, detect_format
+from services.storage.casbags import BagBounds, fetch_bag
 from services.storage.export import jsonl_stream, mcap_stream
-from services.storage.ingest import IngestJobs, fetch_from_cas
+from services.storage.ingest import IngestJobs
 from services.storage.matcher import Bindings
 from services.storage.queries import QueryEngine
 from services.storage.records_api import RecordFilters, authorship_of
@@ -81,9 +82,8 @@ async def ingest(request: Request) -> JSONResponse:
         body = await json_body(IngestFromCas)(request)
         cid = parse_cid(body.cid, "cid")
         cas = request.app.state.ingest_cas()
-        bag = await anyio.to_thread.run_sync(
-            lambda: fetch_from_cas(cas, cid, incoming, settings.storage_max_bag_bytes)
-        )
+        bounds = BagBounds(settings.storage_max_bag_bytes, settings.storage_max_bag_entries)
+        bag = await anyio.to_thread.run_sync(lambda: fetch_bag(cas, cid, incoming, bounds))
         source = f"cid:{cid}"
     elif media_type(request) in ("application/octet-stream", ""):
         bag, source = await _spool_upload(request, incoming, settings.storage_max_bag_bytes)

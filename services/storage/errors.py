@@ -16,6 +16,7 @@ from services.storage.anchoring import (
     TemplateNotFound,
 )
 from services.storage.bags import BagError
+from services.storage.casbags import BagCasUnavailable, BagNotFetchable, BagNotFound, BagTooLarge
 from services.storage.catalog import (
     CatalogFull,
     LifecycleConflict,
@@ -25,7 +26,7 @@ from services.storage.catalog import (
     TemplateNotApproved,
 )
 from services.storage.catalog import TemplateNotFound as CatalogTemplateNotFound
-from services.storage.ingest import BagNotFetchable, JobNotFound, JobNotResumable, TooManyJobs
+from services.storage.ingest import JobNotFound, JobNotResumable, TooManyJobs
 from services.storage.keywords import TooManyKeywordHits
 from services.storage.knowledge import (
     CasUnavailable,
@@ -137,7 +138,19 @@ ERRORS = ErrorMap(
         BagError: ErrorRule(
             400, "invalid_bag", lambda exc: {"file": exc.path.name, "offset": exc.offset}
         ),
-        BagNotFetchable: ErrorRule(400, "invalid_bag", lambda exc: {"cid": exc.cid}),
+        BagNotFetchable: ErrorRule(
+            400,
+            "invalid_bag",
+            lambda exc: (
+                {"cid": exc.cid, "reason": exc.reason}
+                | ({"entry": exc.entry} if exc.entry is not None else {})
+            ),
+        ),
+        BagNotFound: ErrorRule(404, "bag_not_found", lambda exc: {"cid": exc.cid}),
+        BagTooLarge: ErrorRule(
+            413, "payload_too_large", lambda exc: {"cid": exc.cid, "limit": exc.limit}
+        ),
+        BagCasUnavailable: ErrorRule(502, "cas_unavailable", lambda exc: {"cid": exc.cid}),
         JobNotFound: ErrorRule(404, "job_not_found", lambda exc: {"job": exc.job_id[:64]}),
         JobNotResumable: ErrorRule(
             409, "job_not_resumable", lambda exc: {"job": exc.job_id, "status": exc.status}

@@ -26,7 +26,6 @@ import logging
 import queue
 import secrets
 import shutil
-import tempfile
 import threading
 import time
 from collections import OrderedDict
@@ -37,21 +36,15 @@ from typing import Any, Literal
 
 import orjson
 
-from robocloud.cas import Cas
-from robocloud.cid import CID, DAG_PB
-from robocloud.directory import check_name
 from robocloud.templates import RecordInvalid, Template
-from robocloud.unixfs import DIRECTORY, HAMT_SHARD, decode_node
 from services.common.durable import atomic_write
 from services.storage.bags import (
-    SUFFIXES,
     Bag,
     BagConnection,
     BagCorrupt,
     BagError,
     MessageUndecodable,
     MissingDefinition,
-    detect_format,
 )
 from services.storage.catalog import CatalogError
 from services.storage.matcher import (
@@ -167,6 +160,20 @@ def _draft(connection: BagConnection) -> dict[str, Any] | None:
         return None
 
 
+def _bag_in(directory: Path) -> Path:
+    """A job's bag: ``bag`` (a ROS 2 directory, a ROS 1 file) or ``bag.mcap``/``bag.db3``, as
+    rosbags picks the storage plugin of a bare file by its suffix."""
+    return next(directory.glob("bag*"), directory / "bag")
+
+
+def _remove(path: Path) -> None:
+    """Remove a bag, file or directory, so that a finished job keeps no copy of it."""
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
 class IngestFailed(Exception):
     def __init__(self, code: str, message: str, details: dict[str, Any]) -> None:
         super().__init__(message)
@@ -225,7 +232,7 @@ class IngestJobs:
             job = Job(id=secrets.token_hex(JOB_ID_BYTES), bag=source, author=asdict(author))
             directory = self.root / job.id
             directory.mkdir()
-            shutil.move(str(bag), directory / "bag")
+            shutil.move(str(bag), directory / f"bag{bag.suffix}")
             self._save(job)
             self._jobs[job.id] = job
             self._forget_old()
@@ -303,7 +310,7 @@ class IngestJobs:
         self._commit(job)
         dataset = self._published(job) if job.records_committed else None
         shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
-        shutil.rmtree(self.root / job.id / "bag", ignore_errors=True)
+        _remove(_bag_in(self.root / job.id))
         self._update(job, status="succeeded", dataset=dataset)
 
     def _published(self, job: Job) -> dict[str, Any] | None:
@@ -311,7 +318,7 @@ class IngestJobs:
         if self.publish is None:
             return None
         try:
-            return self.publish(job, self.root / job.id / "bag")
+            return self.publish(job, _bag_in(self.root / job.id))
         except Exception as exc:
             log.warning("dataset not published", extra={"job": job.id, "error": str(exc)})
             return {"error": str(exc)[:500]}
@@ -359,7 +366,7 @@ class IngestJobs:
         robot = job.author["signer"]
         blobs = self.blobs()
         try:
-            with Bag.open(directory / "bag") as bag:
+            with Bag.open(_bag_in(directory)) as bag:
                 reports, plans = self._plan(bag)
                 total = sum(r.messages for r in reports if r.template is not None)
                 self._update(
@@ -533,41 +540,3 @@ class CasBlobs:
             if len(self._known) > self._remembered:
                 self._known.popitem(last=False)
         return cid
-
-
-class BagNotFetchable(Exception):
-    """A cas CID that does not hold a bag this service can fetch."""
-
-    def __init__(self, cid: str, reason: str) -> None:
-        super().__init__(f"{cid}: {reason}")
-        self.cid = cid
-        self.reason = reason
-
-
-def fetch_from_cas(cas: Cas, cid: CID, into: Path, max_bytes: int) -> Path:
-    """Fetch a bag file, or a flat directory (a ROS 2 bag), from cas into a new directory.
-
-    Every block is verified against its CID by the SDK; ``max_bytes`` bounds the whole bag.
-    """
-    target = Path(tempfile.mkdtemp(dir=into, prefix=".bag-"))
-    try:
-        node, data = decode_node(cid, cas.block(cid)) if cid.codec == DAG_PB else (None, None)
-        if data is not None and data.type in (DIRECTORY, HAMT_SHARD):
-            if data.type == HAMT_SHARD:
-                raise BagNotFetchable(str(cid), "a sharded directory is not a bag")
-            assert node is not None
-            bag = target / "bag"
-            bag.mkdir()
-            remaining = max_bytes
-            for link in node.links:
-                name = check_name(link.name or "")
-                remaining -= cas.get_to_file(link.cid, bag / name, max_size=remaining)
-            return bag
-        path = target / "bag.download"
-        cas.get_to_file(cid, path, max_size=max_bytes)
-        named = path.with_name(f"bag{SUFFIXES.get(detect_format(path), '')}")
-        path.rename(named)
-        return named
-    except BaseException:
-        shutil.rmtree(target, ignore_errors=True)
-        raise

@@ -94,6 +94,12 @@ class StorageSettings(ServiceSettings):
     storage_max_bag_bytes: int = Field(
         default=16 * 1024**3, gt=0, description="bytes of one bag, uploaded or fetched from cas"
     )
+    storage_max_bag_entries: int = Field(
+        default=1024,
+        ge=1,
+        le=100_000,
+        description="entries of a ROS 2 bag directory ingested by CID (metadata.yaml, parts)",
+    )
     storage_ingest_batch_records: int = Field(
         default=5000, ge=1, le=100_000, description="records per append while committing a bag"
     )

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import tracemalloc
 from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
@@ -13,12 +14,21 @@ import pytest
 
 from robocloud.identity import Identity
 from robocloud.templates import parse_template
+from robocloud.unixfs import import_bytes
 from services.storage.catalog import Catalog
-from services.storage.ingest import IngestJobs, Job, JobNotFound
+from services.storage.ingest import CasBlobs, IngestJobs, Job, JobNotFound
 from services.storage.matcher import Bindings, draft_template
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore
-from tests.bagfactory import typestore_for, write_bag
+from tests.bagfactory import (
+    FRAME_BYTES,
+    TOPICS,
+    BagKind,
+    camera_run,
+    typestore_for,
+    write_bag,
+    write_messages,
+)
 from tests.blobs import MemoryBlobs
 
 START_NS = 1_700_000_000_000_000_000
@@ -118,7 +128,7 @@ def test_ingest_writes_bound_topics_and_reports_the_rest(node: Node, tmp_path: P
     frame = node.store.get("image-1-0").record["data"]["data"]
     assert node.blobs.files[frame][:3] == bytes([9, 10, 11])
     assert job.record_ids == {imu: ["imu-1-0", "imu-1-159"], image: ["image-1-0", "image-1-19"]}
-    assert not (node.root / "jobs" / job.id / "staged").exists()
+    assert [path.name for path in (node.root / "jobs" / job.id).iterdir()] == ["job.json"]
 
 
 @pytest.mark.parametrize("damage", ["truncate", "undefined"])
@@ -145,7 +155,7 @@ def test_a_failing_bag_appends_nothing(node: Node, tmp_path: Path, damage: str) 
     assert job.error["code"] == expected
     assert job.error["resumable"] is False
     if damage == "truncate":
-        assert job.error["details"]["file"] == "bag"
+        assert job.error["details"]["file"] == "bag.bag"
     else:
         assert job.error["details"]["topic"].startswith("/test_service")
     assert node.logs.size(imu) == 0
@@ -228,3 +238,51 @@ def test_unknown_job(node: Node) -> None:
 def test_job_state_round_trips() -> None:
     job = Job(id="a", bag="cid:b", author=asdict(authorship()))
     assert Job.from_json(json.loads(json.dumps(asdict(job)))) == job
+
+
+def _traced_peak(node: Node, path: Path) -> int:
+    """Bytes the ingest of ``path`` held at most beyond what was held before it started."""
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        job = node.jobs.wait(node.jobs.submit(path, "upload:m", authorship()).id, 300)
+        node.store.index_keywords()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert job.status == "succeeded", job.error
+    return peak - before
+
+
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
+def test_memory_does_not_follow_the_size_of_the_bag(
+    node: Node, tmp_path: Path, kind: BagKind
+) -> None:
+    """A bag of 40 camera frames (0.9 MB each) and one of 10 are ingested with the same peak
+    give or take 4 frames: frames, records and spools are streamed, never gathered (a list of
+    records or of image bytes would hold 30 frames' worth more)."""
+    for msgtype in TOPICS.values():
+        node.bindings.bind(template_id=node.approve(msgtype), msgtype=msgtype)
+    node.blobs = CasBlobs(lambda data: str(import_bytes(data)[1]))  # type: ignore[assignment]
+    store = typestore_for(kind)
+    bags = {}
+    for name, frames in (("warm", 10), ("small", 10), ("large", 40)):
+        path = tmp_path / (f"{name}.bag" if kind == "ros1" else name)
+        bags[name] = write_messages(path, kind, store, camera_run(store, frames))
+    _traced_peak(node, bags["warm"])
+    small, large = _traced_peak(node, bags["small"]), _traced_peak(node, bags["large"])
+    assert large - small < 4 * FRAME_BYTES, (small, large)
+
+
+def test_the_blob_memo_forgets_the_oldest_content() -> None:
+    """Identical frames are stored once, and the memo of what was stored stays bounded."""
+    added: list[bytes] = []
+
+    def add(data: bytes) -> str:
+        added.append(data)
+        return str(import_bytes(data)[1])
+
+    blobs = CasBlobs(add, remembered=2)
+    for data in (b"a", b"a", b"b", b"c", b"c", b"a"):
+        blobs.put(data)
+    assert added == [b"a", b"b", b"c", b"a"]
