@@ -566,9 +566,10 @@ def _container_check(fields: Mapping[str, FieldType]) -> Check:
     return check
 
 
-_NOT_ECMASCRIPT = (b"e+", b"e-6", b"-0.0", b"null")
+_NOT_ECMASCRIPT = (b"e+", b"e-6", b"-0.0,", b"-0.0]", b"-0.0}", b"null")
 """Where orjson's number text may differ from ECMAScript's (exponents from 1e16 up, the
-1e-6 decade, negative zero) or a float was not finite; NaN and infinities come out as null."""
+1e-6 decade, negative zero, which ends where its value does, unlike -0.01) or a float was not
+finite; NaN and infinities come out as null."""
 _INTEGRAL = ((b".0,", b","), (b".0]", b"]"), (b".0}", b"}"))
 
 

@@ -522,18 +522,23 @@ def plain_converter(store: Typestore, msgtype: str) -> PlainConverter:
         readers = [(field_name, for_field(desc)) for field_name, desc in fields]
 
         def convert(message: Any) -> dict[str, Any]:
-            return {key: read(getattr(message, key)) for key, read in readers}
+            plain: dict[str, Any] = {}
+            for key, read in readers:
+                value = getattr(message, key)
+                plain[key] = value if read is None else read(value)
+            return plain
 
         compiled[name] = convert
         return convert
 
-    def for_field(desc: Any) -> PlainConverter:
+    def for_field(desc: Any) -> PlainConverter | None:
+        """How a field's value becomes plain; None when it already is: rosbags deserializes
+        base types to int, float, bool and str."""
         nodetype, detail = desc
         if nodetype == Nodetype.BASE:
-            return _scalar
+            return None
         if nodetype == Nodetype.NAME:
-            inner = for_type(detail)
-            return lambda value: inner(value)
+            return for_type(detail)
         (element_type, element_detail), _size = detail
         if element_type == Nodetype.BASE:
             base = element_detail[0]
@@ -546,12 +551,6 @@ def plain_converter(store: Typestore, msgtype: str) -> PlainConverter:
         return lambda values: [element(value) for value in values]
 
     return for_type(msgtype)
-
-
-def _scalar(value: Any) -> Any:
-    if isinstance(value, int | float | str | bool):
-        return value
-    return value.item()
 
 
 def _bytes(value: Any) -> bytes:

@@ -284,6 +284,13 @@ class IngestJobs:
                 setattr(job, key, value)
             self._save(job)
 
+    def _staging_progress(self, job: Job, done: int) -> None:
+        """Progress readers see at once but that is not saved: staging after a crash starts
+        again from the first message, so two fsyncs per report would buy nothing."""
+        with self._lock:
+            job.messages_done = done
+            job.updated_ns = time.time_ns()
+
     def _work(self) -> None:
         while (job_id := self._queue.get()) is not None:
             job = self._jobs.get(job_id)
@@ -392,7 +399,7 @@ class IngestJobs:
                         counts[template.id] = counts.get(template.id, 0) + 1
                         done += 1
                         if done % PROGRESS_EVERY == 0:
-                            self._update(job, messages_done=done)
+                            self._staging_progress(job, done)
                 finally:
                     for spool in spools.values():
                         spool.flush()
