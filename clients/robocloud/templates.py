@@ -596,6 +596,12 @@ class RecordEncoder:
         template_id = check_envelope(record)
         if template_id != self.template.id:
             raise RecordInvalid("template", f"is {template_id}, expected {self.template.id}")
+        return self.canonical_enveloped(record)
+
+    def canonical_enveloped(self, record: dict[str, Any]) -> bytes:
+        """:meth:`canonical` of a record whose envelope :func:`check_envelope` has passed and
+        names this template: the caller looked its template up by that check."""
+        template_id = self.template.id
         data = record["data"]
         try:
             self.check_data(data)

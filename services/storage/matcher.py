@@ -207,19 +207,19 @@ def compile_converter(template: Template, store: Typestore, msgtype: str) -> Con
     header = has_header(store, msgtype)
     compiler = _Compiler(template.id, store, msgtype)
     sources = dict(store.fielddefs[msgtype][1])
-    readers: list[tuple[str, Callable[[dict[str, Any], BlobSink], Any]]] = []
+    readers: list[tuple[str, str, Callable[[Any, BlobSink], Any]]] = []
     for name, kind in template.fields.items():
         if header and name in (FRAME_ID, "header_frame_id") and _frame_source(sources, name):
             compiler.expect_scalar(kind, "string", name)
-            readers.append((name, _frame_reader))
+            readers.append((name, "header", _frame_reader))
             continue
         ros_name = _source_name(sources, name, skip_header=header)
         if ros_name is None:
             raise BindingInvalid(template.id, msgtype, name, "no field of the message fills it")
-        readers.append((name, _keyed(ros_name, compiler.field(kind, sources[ros_name], name))))
+        readers.append((name, ros_name, compiler.field(kind, sources[ros_name], name)))
 
     def convert(message: dict[str, Any], blobs: BlobSink) -> dict[str, Any]:
-        return {name: read(message, blobs) for name, read in readers}
+        return {name: read(message[key], blobs) for name, key, read in readers}
 
     return Converter(template.id, msgtype, header, convert)
 
@@ -228,8 +228,8 @@ def _frame_source(sources: Mapping[str, Any], name: str) -> bool:
     return name == FRAME_ID or FRAME_ID in sources
 
 
-def _frame_reader(message: dict[str, Any], blobs: BlobSink) -> Any:
-    return message["header"]["frame_id"]
+def _frame_reader(header: dict[str, Any], blobs: BlobSink) -> Any:
+    return header["frame_id"]
 
 
 def _source_name(sources: Mapping[str, Any], name: str, *, skip_header: bool) -> str | None:
@@ -239,12 +239,6 @@ def _source_name(sources: Mapping[str, Any], name: str, *, skip_header: bool) ->
         if field_name(ros_name) == name:
             return ros_name
     return None
-
-
-def _keyed(
-    key: str, read: Callable[[Any, BlobSink], Any]
-) -> Callable[[dict[str, Any], BlobSink], Any]:
-    return lambda message, blobs: read(message[key], blobs)
 
 
 class _Compiler:

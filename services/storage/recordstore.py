@@ -251,7 +251,7 @@ class RecordStore:
     def _checked(self, position: int, record: Any) -> tuple[Template, dict[str, Any], bytes]:
         try:
             template = self.catalog.approved(check_envelope(record))
-            return template, record, template.encoder.canonical(record)
+            return template, record, template.encoder.canonical_enveloped(record)
         except TemplateNotFound as exc:
             raise RecordRejected(position, "template", str(exc), code="template_not_found") from exc
         except TemplateNotApproved as exc:

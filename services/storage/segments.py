@@ -211,11 +211,15 @@ class SegmentCache:
                 self._items.move_to_end(key)
                 return self._items[key]
         value = load()
+        self.put(key, value)
+        return value
+
+    def put(self, key: tuple[str, ...], value: Any) -> None:
         with self._lock:
             self._items[key] = value
+            self._items.move_to_end(key)
             while len(self._items) > self.capacity:
                 self._items.popitem(last=False)
-        return value
 
 
 class TemplateSegments:
@@ -298,6 +302,7 @@ class TemplateSegments:
         sealed = [*self.sealed, segment]
         manifest = {"sealed": [item.to_json() for item in sealed]}
         atomic_write(self.directory / MANIFEST, json.dumps(manifest).encode())
+        self.cache.put((str(self.directory), segment.name), docs)
         self.sealed = sealed
 
     def snapshot(self) -> tuple[list[SealedSegment], list[Doc]]:
