@@ -353,9 +353,10 @@ def _ingest(
     from services.storage.catalog import Catalog
     from services.storage.ingest import CasBlobs, IngestJobs
     from services.storage.matcher import Bindings, draft_template
-    from services.storage.recordstore import Authorship, RecordStore
+    from services.storage.recordstore import Authorship, RecordStore, collect_garbage_less_often
     from tests.bagfactory import TOPICS, typestore_for
 
+    collect_garbage_less_often()
     root = work / "node"
     catalog = Catalog(root / "catalog")
     store = RecordStore(root, logs, catalog, notify=notify)

@@ -33,7 +33,7 @@ from services.storage.ingest import CasBlobs, IngestJobs
 from services.storage.knowledge import KnowledgeBase
 from services.storage.matcher import Bindings
 from services.storage.queries import QueryEngine
-from services.storage.recordstore import Offload, RecordStore
+from services.storage.recordstore import Offload, RecordStore, collect_garbage_less_often
 from services.storage.settings import StorageSettings
 from services.storage.sparql import QueryTooLargeError, SparqlWorkers, UpdateRejectedError
 
@@ -305,6 +305,7 @@ def _cas_offload(node: StorageNode, settings: StorageSettings) -> Offload:
 
 
 def _open_records(app: FastAPI, settings: StorageSettings, node: StorageNode) -> None:
+    collect_garbage_less_often()
     data_dir = settings.resolved_data_dir()
     app.state.catalog = Catalog(data_dir / "catalog", max_versions=settings.storage_max_templates)
     app.state.record_logs = node.logs

@@ -278,18 +278,15 @@ class IngestJobs:
         job.updated_ns = time.time_ns()
         atomic_write(self.root / job.id / "job.json", json.dumps(asdict(job)).encode())
 
-    def _update(self, job: Job, **changes: Any) -> None:
+    def _update(self, job: Job, *, save: bool = True, **changes: Any) -> None:
+        """Change a job; readers see it at once, job.json (two fsyncs) only if ``save``."""
         with self._lock:
             for key, value in changes.items():
                 setattr(job, key, value)
-            self._save(job)
-
-    def _staging_progress(self, job: Job, done: int) -> None:
-        """Progress readers see at once but that is not saved: staging after a crash starts
-        again from the first message, so two fsyncs per report would buy nothing."""
-        with self._lock:
-            job.messages_done = done
-            job.updated_ns = time.time_ns()
+            if save:
+                self._save(job)
+            else:
+                job.updated_ns = time.time_ns()
 
     def _work(self) -> None:
         while (job_id := self._queue.get()) is not None:
@@ -399,7 +396,8 @@ class IngestJobs:
                         counts[template.id] = counts.get(template.id, 0) + 1
                         done += 1
                         if done % PROGRESS_EVERY == 0:
-                            self._staging_progress(job, done)
+                            # Staging restarts from the first message after a crash.
+                            self._update(job, save=False, messages_done=done)
                 finally:
                     for spool in spools.values():
                         spool.flush()
@@ -477,13 +475,19 @@ class IngestJobs:
                     }
                     self._update(job, intent=intent)
                     ids = self.store.append_encoded(batch, author=author)
-                    self._committed(job, template_id, start + count, ids[0], ids[-1])
+                    self._committed(job, template_id, start + count, ids[0], ids[-1], save=False)
 
-    def _committed(self, job: Job, template_id: str, upto: int, first: str, last: str) -> None:
+    def _committed(
+        self, job: Job, template_id: str, upto: int, first: str, last: str, *, save: bool = True
+    ) -> None:
+        """Count a batch as committed. The count need not be saved at once (``save=False``):
+        until the next save, job.json still holds the batch as its intent, which a restart
+        settles against the log to the same count."""
         committed = {**job.committed, template_id: upto}
         span = job.record_ids.get(template_id, [first, last])
         self._update(
             job,
+            save=save,
             committed=committed,
             records_committed=sum(committed.values()),
             record_ids={**job.record_ids, template_id: [span[0], last]},

@@ -14,6 +14,7 @@ fields and its signature, so that authorship can be checked by anyone holding th
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import threading
@@ -38,7 +39,7 @@ from robocloud.templates import (
 from services.storage.catalog import Catalog, TemplateNotApproved, TemplateNotFound
 from services.storage.keywords import KeywordIndex
 from services.storage.recordlog import EntryNotFound, LogEntry, RecordLogs
-from services.storage.segments import SegmentCache, TemplateSegments
+from services.storage.segments import SegmentCaches, TemplateSegments
 
 log = logging.getLogger("robocloud.storage.records")
 
@@ -153,6 +154,23 @@ def _replaced(data: dict[str, Any], parts: list[str], value: Any) -> dict[str, A
     return copy
 
 
+YOUNG_COLLECTION_EVERY = 50_000
+"""Allocations between two collections of the youngest generation (Python's default: 700)."""
+
+
+def collect_garbage_less_often() -> None:
+    """Tune this process's cyclic garbage collector for a storage node.
+
+    A storage node keeps millions of live containers (decoded segments, the views' tails) and
+    ingestion allocates a few dicts per record, so at the default the collector keeps
+    rescanning the live heap: committing 200,000 records took 8.3 s, 4.9 s with young
+    collections every 50,000 allocations, as fast as with the collector off. Records hold no
+    reference cycles; the collector still runs, only less often.
+    """
+    _, middle, old = gc.get_threshold()
+    gc.set_threshold(YOUNG_COLLECTION_EVERY, middle, old)
+
+
 class RecordStore:
     """Records of every approved template: the logs, and views derived from them."""
 
@@ -163,7 +181,7 @@ class RecordStore:
         catalog: Catalog,
         *,
         segment_records: int = 4096,
-        segment_cache: int = 64,
+        segment_cache: int = 16,
         array_inline_bytes: int = 4096,
         offload: Offload | None = None,
         notify: Callable[[int], None] | None = None,
@@ -175,7 +193,7 @@ class RecordStore:
         self.offload = offload
         self.notify = notify
         self.views_dir = root / "views"
-        self.cache = SegmentCache(segment_cache * 8)
+        self.caches = SegmentCaches.holding(segment_cache)
         self._write_lock = threading.Lock()
         self._views: dict[str, TemplateSegments] = {}
         self._views_lock = threading.Lock()
@@ -212,7 +230,7 @@ class RecordStore:
             if views is None:
                 template = self.catalog.get(template_id).template
                 views = TemplateSegments(
-                    self.views_dir / template_id, template, self.segment_records, self.cache
+                    self.views_dir / template_id, template, self.segment_records, self.caches
                 )
                 self._views[template_id] = views
             return views

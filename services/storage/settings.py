@@ -72,7 +72,7 @@ class StorageSettings(ServiceSettings):
         default=4096, ge=16, le=1_000_000, description="records per sealed TinyDB segment"
     )
     storage_segment_cache: int = Field(
-        default=64, ge=1, description="sealed segments kept decoded in memory for queries"
+        default=16, ge=1, description="sealed segments kept decoded in memory for queries"
     )
     storage_array_inline_bytes: int = Field(
         default=4096, ge=64, description="arrays larger than this (canonical JSON) go to cas"
