@@ -214,6 +214,10 @@ class SegmentCache:
         self.put(key, value)
         return value
 
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._items)
+
     def put(self, key: tuple[str, ...], value: Any) -> None:
         with self._lock:
             self._items[key] = value

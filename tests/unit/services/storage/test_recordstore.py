@@ -101,3 +101,21 @@ def test_a_time_in_epoch_nanoseconds_is_stored_and_proved_exactly(open_store: St
     entry = store.logs.entry("state@1", 0)
     assert b'"t":1700000000123456789' in entry.record
     assert entry.record == canonical_record(stored.record)
+
+
+def test_decoded_segments_in_memory_are_bounded(open_store: StoreFactory) -> None:
+    """Sealing and reading many segments keeps the documents of ``segment_cache`` (4) only;
+    an evicted segment is read back from its file, equal to what was sealed."""
+    store = open_store()
+    store.append([state_record(t) for t in range(16 * 12)], author=AUTHOR)
+    store.index_keywords()
+    views = store.views("state@1")
+    assert views is not None
+    assert len(views.sealed) == 12
+    for segment in views.sealed:
+        views.index(segment, "_t")
+    assert len(store.caches.docs) == 4
+    assert len(store.caches.indexes) == 12
+    first = views.docs(views.sealed[0])
+    assert [doc["_t"] for doc in first] == list(range(16))
+    assert len(store.caches.docs) == 4
