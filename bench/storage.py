@@ -12,6 +12,10 @@ Proofs (engineer anchor), against a ledger and a cas started here:
    p50 over random records of a log of ``--records``; the issue asks for at most 5 ms. Printed
    beside the bare ``eth_call`` of ``AnchorLog.rootAt`` in the same run (the floor).
 
+``bench_live``: robots (4 threads, each with its own key) POST NDJSON batches of 1,000 records
+to a storage service with anchoring on: records per second against the same batches appended
+in-process, and acknowledgement to verified proof, p50 and p99.
+
 ``bench_queries``: a 1-second time-window query on a template holding 1,000,000 records
 (100 Hz, so a window holds 100 records), p50 over random windows through the query engine
 (sealed segments' time indexes, records read from the log), against a TinyDB full scan of the
@@ -32,19 +36,21 @@ each measurement runs in its own process (so its peak RSS is its own):
 
     python bench/storage.py [--records 1000000] [--queries 200] [--proof-records 200000]
         [--batches 30] [--proofs 300] [--messages 200000] [--kind ros1|sqlite3|mcap]
-        [--only queries|proofs|ingest]
+        [--robots 4] [--live-batches 10] [--only queries|proofs|live|ingest|bigbag]
 """
 
 from __future__ import annotations
 
 import argparse
 import multiprocessing
+import queue
 import random
 import resource
 import shutil
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -244,12 +250,17 @@ def _record(index: int) -> dict[str, object]:
     }
 
 
-def _fill(root: Path, count: int) -> RecordStore:
+def _approved_imu(root: Path) -> Catalog:
+    """A catalog under ``root`` holding ``IMU`` approved."""
     catalog = Catalog(root / "catalog")
     version = catalog.create(IMU, author=ROBOT)
     catalog.submit(version.id, author=ROBOT)
     catalog.review(version.id, "approve", reviewer=ROBOT)
-    store = RecordStore(root, RecordLogs(root / "logs"), catalog)
+    return catalog
+
+
+def _fill(root: Path, count: int) -> RecordStore:
+    store = RecordStore(root, RecordLogs(root / "logs"), _approved_imu(root))
     started = time.perf_counter()
     batch = 10_000
     for first in range(0, count, batch):
@@ -257,6 +268,112 @@ def _fill(root: Path, count: int) -> RecordStore:
     seconds = time.perf_counter() - started
     print(f"  filled {count} records in {seconds:.1f} s ({count / seconds:,.0f} records/s)")
     return store
+
+
+def _live_record(robot: str, index: int) -> dict[str, object]:
+    return {**_record(index), "robot": robot}
+
+
+def bench_live(work: Path, robots: int, batches: int) -> None:
+    """Live robots: ``robots`` threads, each with its own key, POST NDJSON batches of 1,000
+    records to a storage service (signed requests, anchoring on), back to back. Printed:
+    records per second, against the same batches appended in-process through
+    ``RecordStore.append`` (no HTTP, no signature) in the same run, and the time from each
+    batch's acknowledgement to the moment its last record's proof verifies against the chain
+    (a prover thread fetches and verifies while the robots write), p50 and p99."""
+    from robocloud.storage import Storage
+
+    keys = [Identity.generate() for _ in range(robots)]
+    payloads = [
+        [
+            [_live_record(key.address, batch * 1000 + i) for i in range(1000)]
+            for batch in range(batches)
+        ]
+        for key in keys
+    ]
+    total = robots * batches * 1000
+    store = RecordStore(
+        work / "direct", RecordLogs(work / "direct" / "logs"), _approved_imu(work / "direct")
+    )
+    started = time.perf_counter()
+    for robot_batches in payloads:
+        for batch in robot_batches:
+            store.append(batch, author=AUTHOR)
+    direct = total / (time.perf_counter() - started)
+    store.close()
+
+    _approved_imu(work / "storage").close()
+    address = load_or_create(work / "storage", None).address
+    ledger = ServiceProcess(
+        "ledger",
+        work / "ledger",
+        {**QUIET, "ROBOCLOUD_LEDGER_GRANT_ROLES": f"storage_node:{address}"},
+    ).start()
+    cas = ServiceProcess("cas", work / "cas", QUIET).start()
+    storage = ServiceProcess(
+        "storage",
+        work / "storage",
+        {
+            **QUIET,
+            "ROBOCLOUD_AUTH": "signed",
+            "ROBOCLOUD_LEDGER_URL": ledger.url,
+            "ROBOCLOUD_CAS_URL": cas.url,
+            "ROBOCLOUD_STORAGE_ANCHOR_RETRY_S": "0.2",
+        },
+    ).start()
+    try:
+        with LedgerService(ledger.url) as service:
+            anchor_log = service.contracts().anchor_log
+        acknowledged: queue.Queue[tuple[float, str] | None] = queue.Queue()
+        latencies: list[float] = []
+
+        def robot(key: Identity, batches_of: list[list[dict[str, object]]]) -> None:
+            with Storage(storage.url, key, timeout=120) as client:
+                for batch in batches_of:
+                    ids = client.append(batch)
+                    acknowledged.put((time.perf_counter(), ids[-1]))
+
+        def prover() -> None:
+            with (
+                httpx.Client(base_url=storage.url) as http,
+                JsonRpcClient(f"{ledger.url}/rpc") as rpc,
+            ):
+                while (item := acknowledged.get()) is not None:
+                    acked, record_id = item
+                    while (answer := http.get(f"/v1/records/{record_id}/proof")).status_code != 200:
+                        time.sleep(0.005)
+                    verify_record_proof(
+                        answer.json(), rpc.request, anchor_log=anchor_log, record_id=record_id
+                    )
+                    latencies.append(time.perf_counter() - acked)
+
+        proving = threading.Thread(target=prover)
+        proving.start()
+        writers = [
+            threading.Thread(target=robot, args=pair) for pair in zip(keys, payloads, strict=True)
+        ]
+        started = time.perf_counter()
+        for writer in writers:
+            writer.start()
+        for writer in writers:
+            writer.join()
+        rate = total / (time.perf_counter() - started)
+        acknowledged.put(None)
+        proving.join()
+    finally:
+        storage.stop()
+        cas.stop()
+        ledger.stop()
+    print(f"== live records: {robots} robots, {batches} NDJSON batches of 1,000 each, anchoring on")
+    print(
+        f"  {rate:,.0f} records/s over HTTP ({rate / 120:,.0f}x the 120 tx/s of chain-only "
+        f"storage); in-process RecordStore.append {direct:,.0f} records/s: "
+        f"ratio {rate / direct:.2f}x"
+    )
+    print(
+        f"  acknowledgement to verified proof: p50 {statistics.median(latencies) * 1000:.0f} ms, "
+        f"p99 {percentile(latencies, 0.99) * 1000:.0f} ms (epochs of at most 2,000 ms)"
+    )
 
 
 def _full_scan(store: RecordStore, start: int, end: int) -> int:
@@ -562,7 +679,9 @@ def main() -> None:
     parser.add_argument("--proofs", type=int, default=300)
     parser.add_argument("--messages", type=int, default=200_000)
     parser.add_argument("--kind", choices=["ros1", "sqlite3", "mcap"], default="ros1")
-    parser.add_argument("--only", choices=["queries", "proofs", "ingest", "bigbag"])
+    parser.add_argument("--robots", type=int, default=4)
+    parser.add_argument("--live-batches", type=int, default=10, help="batches of 1,000 per robot")
+    parser.add_argument("--only", choices=["queries", "proofs", "live", "ingest", "bigbag"])
     parser.add_argument(
         "--bag-gb",
         type=float,
@@ -581,6 +700,9 @@ def main() -> None:
     if args.only in (None, "proofs"):
         with tempfile.TemporaryDirectory() as work:
             bench_proofs(Path(work), args.proof_records, args.batches, args.proofs)
+    if args.only in (None, "live"):
+        with tempfile.TemporaryDirectory() as work:
+            bench_live(Path(work), args.robots, args.live_batches)
 
 
 if __name__ == "__main__":
