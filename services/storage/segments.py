@@ -33,7 +33,7 @@ from tinydb import TinyDB
 from tinydb.storages import Storage
 
 from robocloud.templates import Container, Scalar, Template
-from services.common.durable import atomic_write, fsync_dir
+from services.common.durable import atomic_write, fsync_dir, write_synced
 
 Doc = dict[str, Any]
 TABLE = "records"
@@ -179,10 +179,11 @@ def _index_file(directory: Path, segment: SealedSegment, field: str) -> Path:
 
 
 def _write_index(path: Path, values: Sequence[float], typecode: str) -> None:
+    """Written in place: the manifest written after it is what makes it part of the views."""
     order = sorted(range(len(values)), key=values.__getitem__)
     sorted_values = array(typecode, (values[i] for i in order))
     positions = array("I", order)
-    atomic_write(path, sorted_values.tobytes() + positions.tobytes())
+    write_synced(path, sorted_values.tobytes() + positions.tobytes())
 
 
 def _read_index(path: Path, count: int, typecode: str) -> SortedIndex:
@@ -255,6 +256,7 @@ class TemplateSegments:
         self.flatten = flattener(template)
         """A record (parsed from its canonical bytes) and its index as a document."""
         self._kinds = {path: kind for path, kind in template.leaves()}
+        self._bools = {path for path, kind in self._kinds.items() if kind == Scalar("bool")}
         self._lock = threading.Lock()
         directory.mkdir(parents=True, exist_ok=True)
         self.sealed: list[SealedSegment] = self._open_manifest()
@@ -313,7 +315,10 @@ class TemplateSegments:
             os.close(fd)
         os.replace(tmp, path)
         for field in ("_t", *self.fields):
-            values = [_sortable(doc.get(field)) for doc in docs]
+            if field in self._bools:
+                values = [_sortable(doc[field]) for doc in docs]
+            else:
+                values = [doc[field] for doc in docs]
             typecode = "q" if field == "_t" else "d"
             _write_index(_index_file(self.directory, segment, field), values, typecode)
             ranges[field] = (min(values), max(values))
