@@ -23,6 +23,7 @@ from collections.abc import Callable, Collection, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from enum import Enum
+from operator import itemgetter
 from pathlib import Path
 from typing import Any, Literal, Self
 
@@ -344,7 +345,10 @@ class Bag:
             ]
             if wanted:
                 streams.append(self._stream(source, wanted, by_id))
-        yield from heapq.merge(*streams, key=lambda message: message[1])
+        if len(streams) == 1:
+            yield from streams[0]
+        else:
+            yield from heapq.merge(*streams, key=itemgetter(1))
 
     def _stream(
         self, source: Any, wanted: list[Connection], by_id: dict[int, BagConnection]
