@@ -566,11 +566,17 @@ def _container_check(fields: Mapping[str, FieldType]) -> Check:
     return check
 
 
-_NOT_ECMASCRIPT = (b"e+", b"e-6", b"-0.0,", b"-0.0]", b"-0.0}", b"null")
-"""Where orjson's number text may differ from ECMAScript's (exponents from 1e16 up, the
-1e-6 decade, negative zero, which ends where its value does, unlike -0.01) or a float was not
-finite; NaN and infinities come out as null."""
-_INTEGRAL = ((b".0,", b","), (b".0]", b"]"), (b".0}", b"}"))
+def _not_ecmascript(text: bytes) -> bool:
+    """Whether orjson's number text may differ from ECMAScript's here: exponents from 1e16 up,
+    the 1e-6 decade, and negative zero (``-0.0`` ending where its value does, unlike -0.01).
+    Checked data holds no NaN or infinity, which orjson would write as null."""
+    if b"e+" in text or b"e-6" in text:
+        return True
+    return b"-0.0" in text and (b"-0.0," in text or b"-0.0]" in text or b"-0.0}" in text)
+
+
+_INTEGRAL = re.compile(rb"\.0(?=[,\]}])")
+"""The ``.0`` of an integral float, which ECMAScript does not write (``2.0`` is ``2``)."""
 
 
 class RecordEncoder:
@@ -582,7 +588,7 @@ class RecordEncoder:
     with sorted keys (field names are ASCII, so code points and UTF-16 units sort alike) and
     RFC 8785's string escapes; its shortest float digits are ECMAScript's, in the same layout
     except for integral floats (``2.0``, rewritten ``2``) and the cases in
-    ``_NOT_ECMASCRIPT``, which :mod:`robocloud.jcs` writes instead. Checked strings never hold
+    ``_not_ecmascript``, which :mod:`robocloud.jcs` writes instead. Checked strings never hold
     ``.0``, so the rewrite touches numbers only.
     """
 
@@ -608,14 +614,12 @@ class RecordEncoder:
             text = orjson.dumps(data, option=orjson.OPT_SORT_KEYS)
         except (Irregular, TypeError):
             text = b""
-        if not text or any(marker in text for marker in _NOT_ECMASCRIPT):
+        if not text or _not_ecmascript(text):
             check_container(self.template.fields, data, "data")
             return canonical_record(record)
-        for integral, integer in _INTEGRAL:
-            text = text.replace(integral, integer)
         t = record["t"]
         return b'{"data":%s,"robot":"%s","t":%d,"template":"%s","topic":"%s"}' % (
-            text,
+            _INTEGRAL.sub(b"", text),
             record["robot"].encode(),
             t,
             template_id.encode(),
