@@ -20,6 +20,7 @@ import logging
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +40,7 @@ from robocloud.templates import (
 from services.storage.catalog import Catalog, TemplateNotApproved, TemplateNotFound
 from services.storage.keywords import KeywordIndex
 from services.storage.recordlog import EntryNotFound, LogEntry, RecordLogs
-from services.storage.segments import SegmentCaches, TemplateSegments
+from services.storage.segments import Doc, SegmentCaches, TemplateSegments
 
 log = logging.getLogger("robocloud.storage.records")
 
@@ -119,12 +120,16 @@ class StoredRecord:
     meta: dict[str, Any]
 
 
-def _string_leaves(template: Template) -> list[str]:
-    return [
-        path
-        for path, kind in template.leaves()
-        if isinstance(kind, Scalar) and kind.kind == "string"
-    ]
+def _text_of(template: Template) -> Callable[[Doc], str] | None:
+    """What the keyword index reads of a document: its string leaves, space-separated (None
+    for a template without one)."""
+    strings = [path for path, kind in template.leaves() if kind == Scalar("string")]
+    if not strings:
+        return None
+    if len(strings) == 1:
+        return itemgetter(strings[0])
+    read = itemgetter(*strings)
+    return lambda doc: " ".join(read(doc))
 
 
 NUMBER_CHARACTERS = 25
@@ -367,7 +372,7 @@ class RecordStore:
         pending = 0
         for template_id in self.template_ids():
             views = self.views(template_id)
-            if views is not None and _string_leaves(views.template):
+            if views is not None and _text_of(views.template) is not None:
                 pending += max(0, self.logs.size(template_id) - self.keywords.mark(template_id))
         return pending
 
@@ -391,16 +396,13 @@ class RecordStore:
             views = self.views(template_id)
             if views is None:
                 continue
-            strings = _string_leaves(views.template)
-            if not strings:
+            text_of = _text_of(views.template)
+            if text_of is None:
                 continue
             start = self.keywords.mark(template_id)
             size = views.size
             while start < size and not self._stop.is_set():
                 stop = min(size, start + KEYWORD_BATCH)
-                texts = (
-                    " ".join([str(doc[path]) for path in strings])
-                    for doc in views.docs_between(start, stop)
-                )
+                texts = map(text_of, views.docs_between(start, stop))
                 self.keywords.add(template_id, start, texts, stop)
                 start = stop
