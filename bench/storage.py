@@ -274,6 +274,10 @@ def _live_record(robot: str, index: int) -> dict[str, object]:
     return {**_record(index), "robot": robot}
 
 
+PROOF_WAIT_S = 60
+"""How long after its acknowledgement a batch's proof may take before the bench gives up."""
+
+
 def bench_live(work: Path, robots: int, batches: int) -> None:
     """Live robots: ``robots`` threads, each with its own key, POST NDJSON batches of 1,000
     records to a storage service (signed requests, anchoring on), back to back. Printed:
@@ -328,6 +332,7 @@ def bench_live(work: Path, robots: int, batches: int) -> None:
             anchor_log = service.contracts().anchor_log
         acknowledged: queue.Queue[tuple[float, str] | None] = queue.Queue()
         latencies: list[float] = []
+        unproved: list[str] = []
 
         def robot(key: Identity, batches_of: list[list[dict[str, object]]]) -> None:
             with Storage(storage.url, key, timeout=120) as client:
@@ -343,6 +348,9 @@ def bench_live(work: Path, robots: int, batches: int) -> None:
                 while (item := acknowledged.get()) is not None:
                     acked, record_id = item
                     while (answer := http.get(f"/v1/records/{record_id}/proof")).status_code != 200:
+                        if time.perf_counter() - acked > PROOF_WAIT_S:
+                            unproved.append(f"{record_id}: {answer.text[:300]}")
+                            return
                         time.sleep(0.005)
                     verify_record_proof(
                         answer.json(), rpc.request, anchor_log=anchor_log, record_id=record_id
@@ -355,6 +363,8 @@ def bench_live(work: Path, robots: int, batches: int) -> None:
         acknowledged.put(None)
         prover()
         latencies.clear()
+        if unproved:
+            raise SystemExit(f"no proof within {PROOF_WAIT_S} s: {unproved[0]}")
         proving = threading.Thread(target=prover)
         proving.start()
         writers = [
@@ -368,6 +378,8 @@ def bench_live(work: Path, robots: int, batches: int) -> None:
         rate = total / (time.perf_counter() - started)
         acknowledged.put(None)
         proving.join()
+        if unproved:
+            raise SystemExit(f"no proof within {PROOF_WAIT_S} s: {unproved[0]}")
     finally:
         storage.stop()
         cas.stop()
