@@ -56,9 +56,9 @@ def _dump(value: Any, out: list[str], depth: int, exact_integers: bool) -> None:
     """One value; containers recurse, at most as deep as any JSON document may nest."""
     kind = type(value)
     if kind is float:
-        out.append(number_text(value))
+        out.append(_number(value))
     elif kind is str:
-        out.append(string_text(value))
+        out.append(_string(value))
     elif kind is int:
         if not exact_integers and not -MAX_SAFE_INTEGER <= value <= MAX_SAFE_INTEGER:
             raise JcsError(f"not canonicalizable: {value} is beyond +-(2**53 - 1)")
@@ -95,7 +95,7 @@ def _dump_object(value: dict[Any, Any], out: list[str], depth: int, exact_intege
     for position, key in enumerate(keys):
         if position:
             out.append(",")
-        out.append(string_text(key))
+        out.append(_string(key))
         out.append(":")
         _dump(value[key], out, depth, exact_integers)
     out.append("}")
@@ -113,14 +113,14 @@ def _utf16(key: str) -> bytes:
     return key.encode("utf-16-be", "surrogatepass")
 
 
-def string_text(text: str) -> str:
+def _string(text: str) -> str:
     """A string's canonical JSON: the standard library's encoder (C) escapes exactly what RFC
     8785 does: quote, backslash, ``\\b \\f \\n \\r \\t`` in short form, other controls as
     lowercase ``\\u00xx``, nothing else."""
     return encode_basestring(text)
 
 
-def number_text(value: float) -> str:
+def _number(value: float) -> str:
     """ECMAScript's Number::toString (RFC 8785 section 3.2.2.3) from Python's shortest repr."""
     if math.isnan(value) or math.isinf(value):
         raise JcsError(f"not canonicalizable: {value} is not a JSON number")

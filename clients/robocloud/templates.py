@@ -527,6 +527,12 @@ _SCALAR_CHECKS: dict[str, Check] = {
 _FLOAT_ONLY = frozenset((float,))
 
 
+def finite_floats(values: list[Any]) -> bool:
+    """Whether every item is a finite float, in two C loops instead of a call per item: a
+    sum is finite only if every term is (covariances and ranges are read this way)."""
+    return _FLOAT_ONLY.issuperset(map(type, values)) and math.isfinite(sum(values))
+
+
 def _compile(kind: FieldType) -> Check:
     if isinstance(kind, Scalar):
         return _SCALAR_CHECKS[kind.kind]
@@ -541,9 +547,7 @@ def _array_check(item: Check) -> Check:
     def check(value: Any) -> None:
         if type(value) is not list:
             _check_cid(value)
-        elif not (
-            floats and _FLOAT_ONLY.issuperset(map(type, value)) and math.isfinite(sum(value))
-        ):
+        elif not (floats and finite_floats(value)):
             for element in value:
                 item(element)
 

@@ -59,7 +59,7 @@ from services.storage.matcher import (
     record_topic,
 )
 from services.storage.recordlog import RecordLogs
-from services.storage.recordstore import Authorship, EncodedRecord, RecordStore
+from services.storage.recordstore import Authorship, EncodedRecord, OffloadFailed, RecordStore
 
 log = logging.getLogger("robocloud.storage.ingest")
 
@@ -444,11 +444,17 @@ class IngestJobs:
                 "t": converter.record_time(message, t_ns),
                 "data": converter.data(message, blobs),
             }
-            return self.store.encode([record])[0]
+            return self.store.encode_of(template, record)
         except (ConversionError, RecordInvalid) as exc:
             raise IngestFailed(
                 "record_invalid",
                 f"topic {topic!r} at t={t_ns}: {exc.path}: {exc.reason}",
+                {"topic": topic, "t": t_ns, "field": exc.path, "template": template.id},
+            ) from exc
+        except OffloadFailed as exc:
+            raise IngestFailed(
+                "cas_unavailable",
+                f"topic {topic!r} at t={t_ns}: {exc}",
                 {"topic": topic, "t": t_ns, "field": exc.path, "template": template.id},
             ) from exc
 

@@ -42,6 +42,7 @@ from robocloud.templates import (
     FieldType,
     Scalar,
     Template,
+    finite_floats,
     parse_template_id,
 )
 from services.common.durable import atomic_write
@@ -333,20 +334,13 @@ def _float_reader(path: str) -> Callable[[Any, BlobSink], float]:
     return read
 
 
-_FLOAT_ONLY = frozenset((float,))
-
-
 def _floats_reader(item: Callable[[Any, BlobSink], float]) -> Callable[[Any, BlobSink], Any]:
     """An array of floats (covariances, ranges) as it comes, when every item is a finite
     float (their sum is finite), without a call per item; else item by item, which converts
     integers and names the first NaN."""
 
     def read(values: Any, blobs: BlobSink) -> list[Any]:
-        if (
-            type(values) is list
-            and _FLOAT_ONLY.issuperset(map(type, values))
-            and math.isfinite(sum(values))
-        ):
+        if type(values) is list and finite_floats(values):
             return values
         return [item(value, blobs) for value in values]
 

@@ -271,6 +271,14 @@ class RecordStore:
             for position, (template, record, canonical) in enumerate(checked)
         ]
 
+    def encode_of(self, template: Template, record: Any) -> EncodedRecord:
+        """:meth:`encode` of one record of ``template``, which the caller already holds
+        approved (an ingest job looks its templates up once, not once a message).
+
+        Raises :class:`RecordInvalid` naming the field path, or :class:`OffloadFailed`.
+        """
+        return self._offloaded(0, template, record, template.encoder.canonical(record))
+
     def _checked(self, position: int, record: Any) -> tuple[Template, dict[str, Any], bytes]:
         try:
             template = self.catalog.approved(check_envelope(record))

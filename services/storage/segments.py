@@ -316,7 +316,7 @@ class TemplateSegments:
         os.replace(tmp, path)
         for field in ("_t", *self.fields):
             if field in self._bools:
-                values = [_sortable(doc[field]) for doc in docs]
+                values = [float(doc[field]) for doc in docs]
             else:
                 values = [doc[field] for doc in docs]
             typecode = "q" if field == "_t" else "d"
@@ -379,10 +379,3 @@ class TemplateSegments:
         for segment in sealed:
             yield from self.docs(segment)
         yield from tail
-
-
-def _sortable(value: Any) -> float:
-    """A value as a sorted index holds it (bools as 0 and 1)."""
-    if isinstance(value, bool):
-        return 1.0 if value else 0.0
-    return value  # type: ignore[no-any-return]

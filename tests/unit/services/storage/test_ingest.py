@@ -188,6 +188,26 @@ def test_a_value_the_template_refuses_fails_before_anything_is_written(
     assert node.logs.size(imu) == 0
 
 
+def test_a_large_array_cas_cannot_take_fails_the_job_before_anything_is_written(
+    node: Node, tmp_path: Path
+) -> None:
+    """Covariances above the inline bound go to cas while staging; a node without a cas
+    fails the job with ``cas_unavailable`` naming the field, and logs nothing."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    node.jobs.close()
+    node.store.close()
+    node.store = RecordStore(node.root, node.logs, node.catalog, array_inline_bytes=16)
+    node.jobs = node.open_jobs()
+    job = node.jobs.wait(node.jobs.submit(bag(tmp_path, "o", 20), "upload:o", authorship()).id, 60)
+    assert job.status == "failed"
+    assert job.error is not None
+    assert job.error["code"] == "cas_unavailable"
+    assert job.error["details"]["field"].endswith("_covariance")
+    assert "no cas" in job.error["message"]
+    assert node.logs.size(imu) == 0
+
+
 def test_an_interrupted_commit_is_settled_exactly_once(node: Node, tmp_path: Path) -> None:
     """A crash between a batch's append and its acknowledgement in the job: on reopen the batch
     is found in the log by its authorship and not appended again."""
