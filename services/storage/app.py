@@ -363,6 +363,7 @@ def _open_ingest(
         app.state.bindings,
         lambda: CasBlobs(offload),
         batch_records=settings.storage_ingest_batch_records,
+        staging_workers=settings.storage_ingest_workers,
         max_pending=settings.storage_max_ingest_jobs,
         publish=publish if settings.storage_publish_datasets else None,
     )

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import heapq
 from collections import Counter
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from enum import Enum
+from itertools import pairwise
 from operator import itemgetter
 from pathlib import Path
 from typing import Any, Literal, Self
@@ -133,6 +134,9 @@ class BagMessage:
 
 
 RawMessage = tuple[BagConnection, int, bytes]
+Window = tuple[int | None, int | None]
+"""Receive times in nanoseconds: messages from the first (included) to the second (excluded);
+None leaves that side open."""
 
 
 def detect_format(path: Path) -> BagFormat:
@@ -230,6 +234,8 @@ class Bag:
         self.connections: list[BagConnection] = []
         self._by_key: dict[tuple[str, str], BagConnection] = {}
         self._digests: dict[tuple[str, str], str] = {}
+        self._span = (0, 0)
+        """Receive times of the first and the last message, as the bag's index has them."""
 
     @classmethod
     def open(cls, path: Path) -> Self:
@@ -276,6 +282,7 @@ class Bag:
             raise BagCorrupt(_reason(exc), path=self.path) from None
         self._stack.callback(reader.close)
         self._sources = [(reader, self._group(reader.connections))]
+        self._span = (reader.start_time, reader.end_time)
 
     def _open_ros2(self) -> None:
         if self.format is BagFormat.MCAP:
@@ -291,6 +298,7 @@ class Bag:
         except (TypesysError, KeyError, ValueError, OSError) as exc:
             raise BagCorrupt(_reason(exc), path=self.path) from None
         self._stack.callback(reader.close)
+        self._span = (reader.start_time, reader.end_time)
         storage = reader.storage
         storages = getattr(storage, "storages", None)
         if storages is None:
@@ -334,8 +342,16 @@ class Bag:
             by_id[raw.id] = connection
         return by_id
 
-    def raw_messages(self, topics: Collection[str] | None = None) -> Iterator[RawMessage]:
-        """Messages as stored, in time order over every storage file."""
+    def raw_messages(
+        self, topics: Collection[str] | None = None, window: Window | None = None
+    ) -> Iterator[RawMessage]:
+        """Messages as stored, in time order over every storage file.
+
+        The whole bag is checked against its index's message counts at the end. A ``window``
+        (start included, stop excluded, None unbounded) reads only the messages stamped in it:
+        the caller then checks the counts over all its windows (:meth:`check_counts`).
+        """
+        start, stop = window if window is not None else (None, None)
         streams = []
         for source, by_id in self._sources:
             wanted = [
@@ -344,20 +360,46 @@ class Bag:
                 if raw.id in by_id and (topics is None or raw.topic in topics)
             ]
             if wanted:
-                streams.append(self._stream(source, wanted, by_id))
+                streams.append(self._stream(source, wanted, by_id, start, stop, window is None))
         if len(streams) == 1:
             yield from streams[0]
         else:
             yield from heapq.merge(*streams, key=itemgetter(1))
 
+    def time_windows(self, count: int) -> list[Window]:
+        """``count`` consecutive windows of equal duration that together hold every message."""
+        start, stop = self._span
+        bounds: list[int | None] = [None]
+        bounds += [start + (stop - start) * k // count for k in range(1, count)]
+        bounds.append(None)
+        return list(pairwise(bounds))
+
+    def check_counts(self, read: Mapping[tuple[str, str], int]) -> None:
+        """Raise :class:`BagCorrupt` unless ``read`` (messages read per topic and type, over
+        all windows) is what the bag's index counts for each connection it names."""
+        for key, count in read.items():
+            connection = self._by_key[key]
+            if count != connection.count:
+                raise BagCorrupt(
+                    f"topic {connection.topic!r}: read {count} messages where the bag's index "
+                    f"counts {connection.count}",
+                    path=self.path,
+                )
+
     def _stream(
-        self, source: Any, wanted: list[Connection], by_id: dict[int, BagConnection]
+        self,
+        source: Any,
+        wanted: list[Connection],
+        by_id: dict[int, BagConnection],
+        start: int | None,
+        stop: int | None,
+        whole: bool,
     ) -> Iterator[RawMessage]:
         decompress = self._decompress
         path = Path(getattr(source, "path", self.path))
         read: Counter[int] = Counter()
         try:
-            for raw, t_ns, data in source.messages(wanted):
+            for raw, t_ns, data in source.messages(wanted, start, stop):
                 read[raw.id] += 1
                 payload = decompress(data) if decompress is not None else data
                 yield by_id[raw.id], t_ns, payload
@@ -366,6 +408,8 @@ class Bag:
             raise BagCorrupt(_reason(exc), path=path, offset=offset) from None
         except (AssertionError, KeyError, EOFError) as exc:
             raise BagCorrupt(f"damaged record ({_reason(exc)})", path=path) from None
+        if not whole:
+            return
         for raw in wanted:
             if read[raw.id] != raw.msgcount:
                 raise BagCorrupt(

@@ -31,41 +31,36 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from itertools import islice
 from pathlib import Path
 from typing import Any, Literal
 
 import orjson
 
-from robocloud.templates import RecordInvalid, Template
+from robocloud.templates import Template
 from services.common.durable import atomic_write
-from services.storage.bags import (
-    Bag,
-    BagConnection,
-    BagCorrupt,
-    BagError,
-    MessageUndecodable,
-    MissingDefinition,
-)
+from services.storage.bags import Bag, BagConnection
 from services.storage.catalog import CatalogError
-from services.storage.matcher import (
-    BindingInvalid,
-    Bindings,
-    BlobSink,
-    ConversionError,
-    Converter,
-    DraftError,
-    compile_converter,
-    draft_template,
-    record_topic,
-)
+from services.storage.matcher import Bindings, BlobSink, Converter, DraftError, draft_template
 from services.storage.recordlog import RecordLogs
-from services.storage.recordstore import Authorship, EncodedRecord, OffloadFailed, RecordStore
+from services.storage.recordstore import Authorship, EncodedRecord, RecordStore
+from services.storage.staging import (
+    IngestFailed,
+    Plans,
+    RecordMaker,
+    bag_failures,
+    check_complete,
+    compile_plan,
+    spooled_lines,
+    stage_in_processes,
+    stage_window,
+    window_tasks,
+)
 
 log = logging.getLogger("robocloud.storage.ingest")
 
 Status = Literal["queued", "staging", "committing", "succeeded", "failed"]
 JOB_ID_BYTES = 12
-PROGRESS_EVERY = 1000
 
 
 class JobNotFound(LookupError):
@@ -118,6 +113,8 @@ class Job:
     record_ids: dict[str, list[str]] = field(default_factory=dict)
     """Per template, the first and last record id committed."""
     staged: dict[str, int] = field(default_factory=dict)
+    spool_parts: int = 1
+    """Spool files per template: one per staging window."""
     committed: dict[str, int] = field(default_factory=dict)
     intent: dict[str, Any] | None = None
     dataset: dict[str, Any] | None = None
@@ -174,13 +171,6 @@ def _remove(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-class IngestFailed(Exception):
-    def __init__(self, code: str, message: str, details: dict[str, Any]) -> None:
-        super().__init__(message)
-        self.code = code
-        self.details = details
-
-
 class IngestJobs:
     """Ingest jobs on one worker thread, persisted under ``root`` and resumed at open."""
 
@@ -193,6 +183,8 @@ class IngestJobs:
         blobs: Callable[[], BlobSink],
         *,
         batch_records: int = 5000,
+        staging_workers: int = 1,
+        parallel_from_messages: int = 20_000,
         max_pending: int = 16,
         keep_finished: int = 1000,
         publish: Callable[[Job, Path], dict[str, Any]] | None = None,
@@ -203,6 +195,10 @@ class IngestJobs:
         self.bindings = bindings
         self.blobs = blobs
         self.batch_records = batch_records
+        self.staging_workers = staging_workers
+        """Processes that stage a bag of at least ``parallel_from_messages`` messages, each a
+        time window of it (see :mod:`services.storage.staging`); smaller bags stage here."""
+        self.parallel_from_messages = parallel_from_messages
         self.max_pending = max_pending
         self.keep_finished = keep_finished
         self.publish = publish
@@ -327,9 +323,9 @@ class IngestJobs:
             log.warning("dataset not published", extra={"job": job.id, "error": str(exc)})
             return {"error": str(exc)[:500]}
 
-    def _plan(self, bag: Bag) -> tuple[list[TopicReport], dict[tuple[str, str], Any]]:
+    def _plan(self, bag: Bag) -> tuple[list[TopicReport], Plans]:
         reports: list[TopicReport] = []
-        plans: dict[tuple[str, str], tuple[Template, Converter]] = {}
+        plans: Plans = {}
         for connection in bag.connections:
             report = TopicReport(connection.topic, connection.msgtype, connection.count)
             reports.append(report)
@@ -343,23 +339,8 @@ class IngestJobs:
             except CatalogError as exc:
                 report.skipped = f"bound to {template_id}, which is not usable: {exc}"
                 continue
-            if connection.typestore is None:
-                raise IngestFailed(
-                    "message_type_undefined",
-                    f"topic {connection.topic!r} is bound to {template_id} but its type "
-                    f"cannot be decoded: {connection.problem}",
-                    {"topic": connection.topic, "msgtype": connection.msgtype},
-                )
-            try:
-                converter = compile_converter(template, connection.typestore, connection.msgtype)
-            except BindingInvalid as exc:
-                raise IngestFailed(
-                    "binding_invalid",
-                    str(exc),
-                    {"topic": connection.topic, "template": template_id, "field": exc.path},
-                ) from exc
+            plans[connection.topic, connection.msgtype] = compile_plan(connection, template)
             report.template = template_id
-            plans[connection.topic, connection.msgtype] = (template, converter)
         return reports, plans
 
     def _stage(self, job: Job) -> None:
@@ -369,94 +350,41 @@ class IngestJobs:
         staged_dir.mkdir()
         robot = job.author["signer"]
         blobs = self.blobs()
-        try:
-            with Bag.open(_bag_in(directory)) as bag:
-                reports, plans = self._plan(bag)
-                total = sum(r.messages for r in reports if r.template is not None)
-                self._update(
-                    job, status="staging", topics=reports, messages_total=total, messages_done=0
-                )
-                spools: dict[str, Any] = {}
-                counts: dict[str, int] = {}
-                wanted = {topic for topic, _ in plans}
-                done = 0
-                try:
-                    for connection, t_ns, raw in bag.raw_messages(wanted):
-                        template, converter = plans[connection.topic, connection.msgtype]
-                        message = bag.decode(connection, t_ns, raw)
-                        record = self._record(
-                            template, converter, connection.topic, message, t_ns, blobs, robot
-                        )
-                        spool = spools.get(template.id)
-                        if spool is None:
-                            spool = spools[template.id] = (
-                                staged_dir / f"{template.id}.jsonl"
-                            ).open("wb")
-                        spool.write(record.canonical + b"\n")
-                        counts[template.id] = counts.get(template.id, 0) + 1
-                        done += 1
-                        if done % PROGRESS_EVERY == 0:
-                            # Staging restarts from the first message after a crash.
-                            self._update(job, save=False, messages_done=done)
-                finally:
-                    for spool in spools.values():
-                        spool.flush()
-                        spool.close()
-        except BagError as exc:
-            raise IngestFailed(
-                "bag_corrupt" if isinstance(exc, BagCorrupt) else "bag_unreadable",
-                str(exc),
-                {"file": exc.path.name, "offset": exc.offset},
-            ) from exc
-        except MissingDefinition as exc:
-            raise IngestFailed(
-                "message_type_undefined", str(exc), {"topic": exc.topic, "msgtype": exc.msgtype}
-            ) from exc
-        except MessageUndecodable as exc:
-            raise IngestFailed(
-                "message_undecodable", str(exc), {"topic": exc.topic, "t": exc.t_ns}
-            ) from exc
+        done = 0
+
+        def progress(count: int) -> None:
+            nonlocal done
+            done += count
+            # Not saved: staging restarts from the first message after a crash.
+            self._update(job, save=False, messages_done=done)
+
+        with bag_failures(), Bag.open(_bag_in(directory)) as bag:
+            reports, plans = self._plan(bag)
+            total = sum(r.messages for r in reports if r.template is not None)
+            self._update(
+                job, status="staging", topics=reports, messages_total=total, messages_done=0
+            )
+            workers = self.staging_workers if total >= self.parallel_from_messages else 1
+            if workers > 1:
+                tasks = window_tasks(bag, plans, workers, staged_dir, robot, self.store.arrays)
+                staged = stage_in_processes(tasks, blobs, progress)
+                check_complete(bag, plans, staged)
+            else:
+
+                def maker(template: Template, converter: Converter, topic: str) -> RecordMaker:
+                    return RecordMaker(template, converter, topic, robot, self.store.arrays, blobs)
+
+                staged = stage_window(bag, plans, None, staged_dir, 0, maker, progress)
+        counts = staged.records
         self._update(
             job,
             status="committing",
             messages_done=done,
             records_staged=sum(counts.values()),
             staged=counts,
+            spool_parts=workers,
             committed={template_id: 0 for template_id in counts},
         )
-
-    def _record(
-        self,
-        template: Template,
-        converter: Converter,
-        topic: str,
-        message: dict[str, Any],
-        t_ns: int,
-        blobs: BlobSink,
-        robot: str,
-    ) -> EncodedRecord:
-        """The record of one message, checked and encoded as the log will hold it."""
-        try:
-            record = {
-                "template": template.id,
-                "topic": record_topic(topic),
-                "robot": robot,
-                "t": converter.record_time(message, t_ns),
-                "data": converter.data(message, blobs),
-            }
-            return self.store.encode_of(template, record)
-        except (ConversionError, RecordInvalid) as exc:
-            raise IngestFailed(
-                "record_invalid",
-                f"topic {topic!r} at t={t_ns}: {exc.path}: {exc.reason}",
-                {"topic": topic, "t": t_ns, "field": exc.path, "template": template.id},
-            ) from exc
-        except OffloadFailed as exc:
-            raise IngestFailed(
-                "cas_unavailable",
-                f"topic {topic!r} at t={t_ns}: {exc}",
-                {"topic": topic, "t": t_ns, "field": exc.path, "template": template.id},
-            ) from exc
 
     def _commit(self, job: Job) -> None:
         author = Authorship(**job.author)
@@ -465,23 +393,28 @@ class IngestJobs:
         for template_id, staged in job.staged.items():
             if job.committed[template_id] >= staged:
                 continue
-            path = self.root / job.id / "staged" / f"{template_id}.jsonl"
-            with path.open("rb") as spool:
-                for _ in range(job.committed[template_id]):
-                    spool.readline()
-                while job.committed[template_id] < staged:
-                    start = job.committed[template_id]
-                    count = min(self.batch_records, staged - start)
-                    batch = [_staged(template_id, spool.readline()) for _ in range(count)]
-                    intent = {
-                        "template": template_id,
-                        "start": start,
-                        "count": count,
-                        "log_size": self.logs.size(template_id),
-                    }
-                    self._update(job, intent=intent)
-                    ids = self.store.append_encoded(batch, author=author)
-                    self._committed(job, template_id, start + count, ids[0], ids[-1], save=False)
+            spool = spooled_lines(self.root / job.id / "staged", template_id, job.spool_parts)
+            for _ in islice(spool, job.committed[template_id]):
+                pass
+            while job.committed[template_id] < staged:
+                start = job.committed[template_id]
+                count = min(self.batch_records, staged - start)
+                batch = [_staged(template_id, line) for line in islice(spool, count)]
+                if len(batch) != count:
+                    raise IngestFailed(
+                        "ingest_inconsistent",
+                        f"{template_id}: the spool holds {start + len(batch)} of {staged} records",
+                        {"template": template_id},
+                    )
+                intent = {
+                    "template": template_id,
+                    "start": start,
+                    "count": count,
+                    "log_size": self.logs.size(template_id),
+                }
+                self._update(job, intent=intent)
+                ids = self.store.append_encoded(batch, author=author)
+                self._committed(job, template_id, start + count, ids[0], ids[-1], save=False)
 
     def _committed(
         self, job: Job, template_id: str, upto: int, first: str, last: str, *, save: bool = True

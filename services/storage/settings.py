@@ -5,6 +5,7 @@ Each engineer's settings sit in their own block, so that additions merge without
 
 from __future__ import annotations
 
+import os
 from typing import Literal
 
 from pydantic import Field, SecretStr
@@ -102,6 +103,13 @@ class StorageSettings(ServiceSettings):
     )
     storage_ingest_batch_records: int = Field(
         default=5000, ge=1, le=100_000, description="records per append while committing a bag"
+    )
+    storage_ingest_workers: int = Field(
+        default_factory=lambda: min(4, os.cpu_count() or 1),
+        ge=1,
+        le=64,
+        description="processes staging a large bag, each a time window of it (default: the "
+        "machine's cores, at most 4)",
     )
     storage_max_ingest_jobs: int = Field(
         default=16, ge=1, description="ingest jobs queued or running at once"

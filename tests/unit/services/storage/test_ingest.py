@@ -20,6 +20,7 @@ from services.storage.ingest import CasBlobs, IngestJobs, Job, JobNotFound
 from services.storage.matcher import Bindings, draft_template
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore
+from services.storage.staging import spool_path
 from tests.bagfactory import (
     FRAME_BYTES,
     TOPICS,
@@ -46,7 +47,8 @@ class Node:
         self.blobs = MemoryBlobs()
         self.jobs = self.open_jobs()
 
-    def open_jobs(self, batch_records: int = 50) -> IngestJobs:
+    def open_jobs(self, batch_records: int = 50, staging_workers: int = 1) -> IngestJobs:
+        """Jobs that stage any bag in ``staging_workers`` processes (1: in this one)."""
         return IngestJobs(
             self.root / "jobs",
             self.store,
@@ -54,7 +56,13 @@ class Node:
             self.bindings,
             lambda: self.blobs,
             batch_records=batch_records,
+            staging_workers=staging_workers,
+            parallel_from_messages=0,
         )
+
+    def stage_in(self, workers: int) -> None:
+        self.jobs.close()
+        self.jobs = self.open_jobs(staging_workers=workers)
 
     def approve(self, msgtype: str) -> str:
         version = self.catalog.create(
@@ -131,8 +139,86 @@ def test_ingest_writes_bound_topics_and_reports_the_rest(node: Node, tmp_path: P
     assert [path.name for path in (node.root / "jobs" / job.id).iterdir()] == ["job.json"]
 
 
+WORKERS = pytest.mark.parametrize("workers", [1, 3], ids=["in-process", "3-processes"])
+
+
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
+def test_staging_in_processes_logs_what_one_pass_logs(tmp_path: Path, kind: str) -> None:
+    """Time windows staged by three processes give the logs, byte for byte and in the same
+    order, that staging in the service's process gives; their frames reach the blob sink."""
+    logs: dict[int, dict[str, list[bytes]]] = {}
+    author = authorship()
+    for workers in (1, 3):
+        node = Node(tmp_path / f"node-{workers}")
+        try:
+            node.stage_in(workers)
+            imu = node.approve("sensor_msgs/msg/Imu")
+            image = node.approve("sensor_msgs/msg/Image")
+            node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+            node.bindings.bind(template_id=image, msgtype="sensor_msgs/msg/Image")
+            folder = tmp_path / f"bag-{workers}"
+            folder.mkdir()
+            path = bag(folder, "b.bag" if kind == "ros1" else "b", 300, kind=kind)
+            job = node.jobs.wait(node.jobs.submit(path, "upload:p", author).id, 60)
+            assert job.status == "succeeded", job.error
+            assert (job.messages_done, job.records_committed) == (270, 270)
+            logs[workers] = {
+                template_id: [e.record for e in node.logs.entries(template_id, 0, 270)]
+                for template_id in (imu, image)
+            }
+            frames = [json.loads(record)["data"]["data"] for record in logs[workers][image]]
+            assert len(frames) == 30
+            assert set(frames) <= set(node.blobs.files)
+            assert node.blobs.files[frames[0]][:3] == bytes([9, 10, 11])
+        finally:
+            node.close()
+    assert [len(records) for records in logs[3].values()] == [240, 30]
+    assert logs[3] == logs[1]
+
+
+class RefusingBlobs:
+    """A cas that fails, or that names bytes by a CID other than theirs."""
+
+    def __init__(self, answer: str | None) -> None:
+        self.answer = answer
+
+    def put(self, data: bytes) -> str:
+        if self.answer is None:
+            raise ConnectionError("cas is down")
+        return self.answer
+
+
+@pytest.mark.parametrize(
+    ("answer", "message"),
+    [(None, "cas is down"), ("bafkqaaa", "as bafkqaaa where their CID is bafkrei")],
+    ids=["cas-down", "wrong-cid"],
+)
+def test_a_frame_cas_does_not_store_fails_the_job_before_anything_is_written(
+    node: Node, tmp_path: Path, answer: str | None, message: str
+) -> None:
+    """Staging processes hand their frames to the job's blob sink: when cas fails or names
+    them wrongly, the job fails with ``cas_unavailable`` and nothing is logged."""
+    node.stage_in(3)
+    imu = node.approve("sensor_msgs/msg/Imu")
+    image = node.approve("sensor_msgs/msg/Image")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=image, msgtype="sensor_msgs/msg/Image")
+    node.blobs = RefusingBlobs(answer)  # type: ignore[assignment]
+    job = node.jobs.wait(node.jobs.submit(bag(tmp_path, "c", 200), "upload:c", authorship()).id, 60)
+    assert job.status == "failed"
+    assert job.error is not None
+    assert job.error["code"] == "cas_unavailable"
+    assert message in job.error["message"]
+    assert node.logs.template_ids() == []
+    assert not (node.root / "jobs" / job.id / "staged").exists()
+
+
+@WORKERS
 @pytest.mark.parametrize("damage", ["truncate", "undefined"])
-def test_a_failing_bag_appends_nothing(node: Node, tmp_path: Path, damage: str) -> None:
+def test_a_failing_bag_appends_nothing(
+    node: Node, tmp_path: Path, damage: str, workers: int
+) -> None:
+    node.stage_in(workers)
     imu = node.approve("sensor_msgs/msg/Imu")
     node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
     path = bag(tmp_path, "broken.bag", 3000, kind="ros1")
@@ -162,9 +248,13 @@ def test_a_failing_bag_appends_nothing(node: Node, tmp_path: Path, damage: str) 
     assert node.logs.template_ids() == []
 
 
+@WORKERS
 def test_a_value_the_template_refuses_fails_before_anything_is_written(
-    node: Node, tmp_path: Path
+    node: Node, tmp_path: Path, workers: int
 ) -> None:
+    """The refused value is the last message: with three windows, the last process finds it
+    and the job fails with nothing written by any of them."""
+    node.stage_in(workers)
     imu = node.approve("sensor_msgs/msg/Imu")
     node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
     path = write_bag(tmp_path / "far", "sqlite3", 30, start_ns=START_NS)
@@ -176,9 +266,12 @@ def test_a_value_the_template_refuses_fails_before_anything_is_written(
 
     with Writer(far, version=9) as writer:
         connection = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=store)
-        message = make_imu(store, 1, START_NS)
-        message.angular_velocity.x = float("nan")
-        writer.write(connection, START_NS, store.serialize_cdr(message, "sensor_msgs/msg/Imu"))
+        for step in range(30):
+            t_ns = START_NS + step * 10_000_000
+            message = make_imu(store, step, t_ns)
+            if step == 29:
+                message.angular_velocity.x = float("nan")
+            writer.write(connection, t_ns, store.serialize_cdr(message, "sensor_msgs/msg/Imu"))
     assert path.exists()
     job = node.jobs.wait(node.jobs.submit(far, "upload:z", authorship()).id, 60)
     assert job.status == "failed"
@@ -188,8 +281,9 @@ def test_a_value_the_template_refuses_fails_before_anything_is_written(
     assert node.logs.size(imu) == 0
 
 
+@WORKERS
 def test_a_large_array_cas_cannot_take_fails_the_job_before_anything_is_written(
-    node: Node, tmp_path: Path
+    node: Node, tmp_path: Path, workers: int
 ) -> None:
     """Covariances above the inline bound go to cas while staging; a node without a cas
     fails the job with ``cas_unavailable`` naming the field, and logs nothing."""
@@ -198,7 +292,7 @@ def test_a_large_array_cas_cannot_take_fails_the_job_before_anything_is_written(
     node.jobs.close()
     node.store.close()
     node.store = RecordStore(node.root, node.logs, node.catalog, array_inline_bytes=16)
-    node.jobs = node.open_jobs()
+    node.jobs = node.open_jobs(staging_workers=workers)
     job = node.jobs.wait(node.jobs.submit(bag(tmp_path, "o", 20), "upload:o", authorship()).id, 60)
     assert job.status == "failed"
     assert job.error is not None
@@ -230,7 +324,7 @@ def test_an_interrupted_commit_is_settled_exactly_once(node: Node, tmp_path: Pat
     staged = node.root / "jobs" / job.id / "staged"
     staged.mkdir()
     lines = [json.dumps(node.store.get(f"imu-1-{index}").record).encode() for index in range(80)]
-    (staged / f"{imu}.jsonl").write_bytes(b"\n".join(lines) + b"\n")
+    spool_path(staged, imu, 0).write_bytes(b"\n".join(lines) + b"\n")
     job_file.write_text(json.dumps(state))
     node.jobs = node.open_jobs()
     resumed = node.jobs.wait(job.id, 60)
@@ -243,7 +337,7 @@ def test_an_interrupted_commit_is_settled_exactly_once(node: Node, tmp_path: Pat
     state.update(intent={"template": imu, "start": 50, "count": 30, "log_size": 80})
     job_file.write_text(json.dumps(state))
     staged.mkdir(exist_ok=True)
-    (staged / f"{imu}.jsonl").write_bytes(b"\n".join(lines) + b"\n")
+    spool_path(staged, imu, 0).write_bytes(b"\n".join(lines) + b"\n")
     node.jobs = node.open_jobs()
     again = node.jobs.wait(job.id, 60)
     assert again.status == "succeeded"

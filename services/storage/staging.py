@@ -1,0 +1,411 @@
+"""Staging a bag: its bound messages into checked records, spooled per template.
+
+Staging is pure Python for every message (rosbags' deserializer, conversion to the template,
+the template's check, canonical bytes), about 25 µs an IMU message, and a bag holds hundreds
+of thousands of them: one interpreter is the bottleneck of an ingest. So a large bag is cut
+into time windows, each staged by its own process (:func:`stage_in_processes`) into its own
+spool part. Windows follow each other in time and the bag is read in time order, so the
+parts of a template read in window order hold its records in exactly the order one pass
+would give, and every message lies in exactly one window. The bag's index counts are checked
+over all windows together.
+
+Worker processes never talk to cas: a worker computes the CID of an image, a file or a large
+array itself (the UnixFS import the SDK checks cas's answer against) and hands the bytes to
+the parent, which stores them through the job's blob sink before any record is committed and
+refuses the job if cas names them differently.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import multiprocessing
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import IO, Any
+
+from robocloud.templates import MAX_T, RecordInvalid, Template, check_envelope, parse_template
+from robocloud.unixfs import import_bytes
+from services.storage.bags import (
+    Bag,
+    BagConnection,
+    BagCorrupt,
+    BagError,
+    MessageUndecodable,
+    MissingDefinition,
+    Window,
+)
+from services.storage.matcher import (
+    BindingInvalid,
+    BlobSink,
+    ConversionError,
+    Converter,
+    compile_converter,
+    record_topic,
+)
+from services.storage.recordstore import ArrayOffload, OffloadFailed
+
+PROGRESS_EVERY = 1000
+"""Messages between two progress reports."""
+
+Plans = dict[tuple[str, str], tuple[Template, Converter]]
+"""Per (topic, message type) bound to an approved template: the template and its converter."""
+
+
+class IngestFailed(Exception):
+    """An ingest job cannot go on: ``code`` and ``details`` are what the job reports."""
+
+    def __init__(self, code: str, message: str, details: dict[str, Any]) -> None:
+        super().__init__(message)
+        self.code = code
+        self.details = details
+
+
+@dataclass
+class Staged:
+    """What staging one window (or the whole bag) spooled."""
+
+    records: dict[str, int] = field(default_factory=dict)
+    """Records per template id."""
+    messages: dict[tuple[str, str], int] = field(default_factory=dict)
+    """Messages read per (topic, message type)."""
+
+    def add(self, other: Staged) -> None:
+        for template_id, count in other.records.items():
+            self.records[template_id] = self.records.get(template_id, 0) + count
+        for key, count in other.messages.items():
+            self.messages[key] = self.messages.get(key, 0) + count
+
+
+def spool_path(directory: Path, template_id: str, part: int) -> Path:
+    return directory / f"{template_id}.{part}.jsonl"
+
+
+def spooled_lines(directory: Path, template_id: str, parts: int) -> Iterator[bytes]:
+    """A template's spooled records, part after part: its records in the bag's order."""
+    for part in range(parts):
+        path = spool_path(directory, template_id, part)
+        if path.exists():
+            with path.open("rb") as spool:
+                yield from spool
+
+
+def compile_plan(connection: BagConnection, template: Template) -> tuple[Template, Converter]:
+    """The converter filling ``template`` from ``connection``'s messages, or the job's error."""
+    if connection.typestore is None:
+        raise IngestFailed(
+            "message_type_undefined",
+            f"topic {connection.topic!r} is bound to {template.id} but its type "
+            f"cannot be decoded: {connection.problem}",
+            {"topic": connection.topic, "msgtype": connection.msgtype},
+        )
+    try:
+        return template, compile_converter(template, connection.typestore, connection.msgtype)
+    except BindingInvalid as exc:
+        raise IngestFailed(
+            "binding_invalid",
+            str(exc),
+            {"topic": connection.topic, "template": template.id, "field": exc.path},
+        ) from exc
+
+
+@contextmanager
+def bag_failures() -> Iterator[None]:
+    """What reading or decoding the bag raises, as the job's error."""
+    try:
+        yield
+    except BagError as exc:
+        raise IngestFailed(
+            "bag_corrupt" if isinstance(exc, BagCorrupt) else "bag_unreadable",
+            str(exc),
+            {"file": exc.path.name, "offset": exc.offset},
+        ) from exc
+    except MissingDefinition as exc:
+        raise IngestFailed(
+            "message_type_undefined", str(exc), {"topic": exc.topic, "msgtype": exc.msgtype}
+        ) from exc
+    except MessageUndecodable as exc:
+        raise IngestFailed(
+            "message_undecodable", str(exc), {"topic": exc.topic, "t": exc.t_ns}
+        ) from exc
+
+
+@dataclass(frozen=True)
+class RecordMaker:
+    """A bound connection's messages as checked records of its template."""
+
+    template: Template
+    converter: Converter
+    topic: str
+    robot: str
+    arrays: ArrayOffload
+    blobs: BlobSink
+
+    def envelope(self, t_ns: int) -> dict[str, Any]:
+        """A record without data; its envelope is checked once per connection, since only
+        ``t`` changes from one message to the next."""
+        return {
+            "template": self.template.id,
+            "topic": record_topic(self.topic),
+            "robot": self.robot,
+            "t": t_ns,
+            "data": None,
+        }
+
+    def check(self) -> None:
+        try:
+            check_envelope(self.envelope(0))
+        except RecordInvalid as exc:
+            raise self._invalid(0, exc) from exc
+
+    def encoded(self, message: dict[str, Any], t_ns: int) -> bytes:
+        """The canonical bytes of one message's record, as its log will hold them."""
+        try:
+            t = self.converter.record_time(message, t_ns)
+            if not 0 <= t <= MAX_T:
+                raise RecordInvalid("t", "must be an integer of nanoseconds from 0 to 2**63 - 1")
+            record = self.envelope(t)
+            record["data"] = self.converter.data(message, self.blobs)
+            canonical = self.template.encoder.canonical_enveloped(record)
+            return self.arrays.encoded(self.template, record, canonical).canonical
+        except (ConversionError, RecordInvalid) as exc:
+            raise self._invalid(t_ns, exc) from exc
+        except OffloadFailed as exc:
+            raise IngestFailed(
+                "cas_unavailable",
+                f"topic {self.topic!r} at t={t_ns}: {exc}",
+                {"topic": self.topic, "t": t_ns, "field": exc.path, "template": self.template.id},
+            ) from exc
+
+    def _invalid(self, t_ns: int, exc: ConversionError | RecordInvalid) -> IngestFailed:
+        return IngestFailed(
+            "record_invalid",
+            f"topic {self.topic!r} at t={t_ns}: {exc.path}: {exc.reason}",
+            {"topic": self.topic, "t": t_ns, "field": exc.path, "template": self.template.id},
+        )
+
+
+def stage_window(
+    bag: Bag,
+    plans: Plans,
+    window: Window | None,
+    directory: Path,
+    part: int,
+    makers: Callable[[Template, Converter, str], RecordMaker],
+    progress: Callable[[int], None],
+) -> Staged:
+    """Spool the records of ``window``'s messages (None: the whole bag, its index counts
+    checked) to part ``part`` of each template's spool under ``directory``."""
+    makers_by_key = {
+        (topic, msgtype): makers(template, converter, topic)
+        for (topic, msgtype), (template, converter) in plans.items()
+    }
+    for each in makers_by_key.values():
+        each.check()
+    spools: dict[str, IO[bytes]] = {}
+    staged = Staged()
+    records, messages = staged.records, staged.messages
+    done = 0
+    try:
+        for connection, t_ns, raw in bag.raw_messages({topic for topic, _ in plans}, window):
+            key = (connection.topic, connection.msgtype)
+            maker = makers_by_key.get(key)
+            if maker is None:
+                continue
+            canonical = maker.encoded(bag.decode(connection, t_ns, raw), t_ns)
+            template_id = maker.template.id
+            spool = spools.get(template_id)
+            if spool is None:
+                spool = spools[template_id] = spool_path(directory, template_id, part).open("wb")
+            spool.write(canonical + b"\n")
+            records[template_id] = records.get(template_id, 0) + 1
+            messages[key] = messages.get(key, 0) + 1
+            done += 1
+            if done % PROGRESS_EVERY == 0:
+                progress(PROGRESS_EVERY)
+    finally:
+        for spool in spools.values():
+            spool.close()
+    progress(done % PROGRESS_EVERY)
+    return staged
+
+
+# ----- staging in worker processes -----
+@dataclass(frozen=True)
+class WindowTask:
+    """What a worker process needs to stage one window (sent to it pickled)."""
+
+    bag: Path
+    directory: Path
+    part: int
+    window: Window
+    robot: str
+    templates: dict[tuple[str, str], dict[str, Any]]
+    """Per bound (topic, message type), its approved template's document."""
+    inline_bytes: int
+    offload: bool
+    """Whether large arrays may go to cas (False: this node has none, the job fails)."""
+
+
+class ForwardedBlobs:
+    """A worker's blob sink: the CID computed here, the bytes sent to the parent once."""
+
+    def __init__(self, parent: Connection, remembered: int = 4096) -> None:
+        self._parent = parent
+        self._remembered = remembered
+        self._known: OrderedDict[bytes, str] = OrderedDict()
+
+    def put(self, data: bytes) -> str:
+        key = hashlib.sha256(data).digest()
+        cid = self._known.get(key)
+        if cid is None:
+            cid = str(import_bytes(data)[1])
+            self._parent.send(("blob", cid, data))
+            self._known[key] = cid
+            if len(self._known) > self._remembered:
+                self._known.popitem(last=False)
+        return cid
+
+
+def _stage_task(task: WindowTask, parent: Connection) -> None:
+    """A worker process's body: every outcome is one message to the parent."""
+    try:
+        with bag_failures(), Bag.open(task.bag) as bag:
+            connections = {(c.topic, c.msgtype): c for c in bag.connections}
+            plans = {
+                key: compile_plan(connections[key], parse_template(document))
+                for key, document in task.templates.items()
+            }
+            blobs = ForwardedBlobs(parent)
+            arrays = ArrayOffload(task.inline_bytes, blobs.put if task.offload else None)
+
+            def maker(template: Template, converter: Converter, topic: str) -> RecordMaker:
+                return RecordMaker(template, converter, topic, task.robot, arrays, blobs)
+
+            def progress(count: int) -> None:
+                parent.send(("progress", count))
+
+            staged = stage_window(
+                bag, plans, task.window, task.directory, task.part, maker, progress
+            )
+        parent.send(("done", staged))
+    except IngestFailed as exc:
+        parent.send(("failed", exc.code, str(exc), exc.details))
+    except Exception as exc:
+        parent.send(("crashed", f"{type(exc).__name__}: {exc}"))
+
+
+def _context() -> Any:
+    """Workers fork from a clean server process with these modules loaded: never from the
+    storage service itself, whose other threads may hold locks at the moment of a fork."""
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([__name__])
+    return context
+
+
+def _store_blob(blobs: BlobSink, cid: str, data: bytes) -> None:
+    try:
+        stored = blobs.put(data)
+    except Exception as exc:
+        raise IngestFailed(
+            "cas_unavailable", f"storing {cid} ({len(data)} bytes) in cas failed: {exc}", {}
+        ) from exc
+    if stored != cid:
+        raise IngestFailed(
+            "cas_unavailable",
+            f"cas stored {len(data)} bytes as {stored} where their CID is {cid}",
+            {"cid": cid},
+        )
+
+
+def stage_in_processes(
+    tasks: list[WindowTask], blobs: BlobSink, progress: Callable[[int], None]
+) -> Staged:
+    """Stage each task's window in its own process; the first failure stops them all."""
+    context = _context()
+    workers: list[tuple[Any, Connection]] = []
+    staged = Staged()
+    try:
+        for task in tasks:
+            receive, send = context.Pipe(duplex=False)
+            process = context.Process(
+                target=_stage_task, args=(task, send), name=f"stage-{task.part}", daemon=True
+            )
+            process.start()
+            send.close()
+            workers.append((process, receive))
+        pending = {receive: task.part for (_, receive), task in zip(workers, tasks, strict=True)}
+        while pending:
+            for ready in wait(list(pending)):
+                assert isinstance(ready, Connection)
+                if _handle(ready, pending[ready], blobs, progress, staged):
+                    del pending[ready]
+    finally:
+        for process, receive in workers:
+            if process.is_alive():
+                process.terminate()
+            process.join()
+            receive.close()
+    return staged
+
+
+def _handle(
+    worker: Connection,
+    part: int,
+    blobs: BlobSink,
+    progress: Callable[[int], None],
+    staged: Staged,
+) -> bool:
+    """Act on one message of a worker; True once it has finished its window."""
+    try:
+        message = worker.recv()
+    except EOFError:
+        raise IngestFailed(
+            "ingest_failed", f"staging process {part} ended without a result", {"part": part}
+        ) from None
+    kind = message[0]
+    if kind == "progress":
+        progress(message[1])
+    elif kind == "blob":
+        _store_blob(blobs, message[1], message[2])
+    elif kind == "done":
+        staged.add(message[1])
+        return True
+    elif kind == "failed":
+        raise IngestFailed(message[1], message[2], message[3])
+    else:
+        raise IngestFailed("ingest_failed", f"staging process {part}: {message[1]}", {})
+    return False
+
+
+def window_tasks(
+    bag: Bag,
+    plans: Plans,
+    workers: int,
+    directory: Path,
+    robot: str,
+    arrays: ArrayOffload,
+) -> list[WindowTask]:
+    """One task per time window of the bag, ``workers`` windows of equal duration."""
+    templates = {key: template.to_json() for key, (template, _) in plans.items()}
+    return [
+        WindowTask(
+            bag.path,
+            directory,
+            part,
+            window,
+            robot,
+            templates,
+            arrays.inline_bytes,
+            arrays.offload is not None,
+        )
+        for part, window in enumerate(bag.time_windows(workers))
+    ]
+
+
+def check_complete(bag: Bag, plans: Mapping[tuple[str, str], Any], staged: Staged) -> None:
+    """Every bound connection's messages were read, as many as the bag's index counts."""
+    bag.check_counts({key: staged.messages.get(key, 0) for key in plans})
