@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
+import os
 import queue
 import random
 import resource
@@ -457,10 +458,67 @@ class Result:
     seconds: float
     messages: int
     peak_rss_mib: float
+    staging_rss_mib: float = 0.0
+    """Peak of the staging processes' resident sets, added up (they run beside the process)."""
 
 
 def _peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _parent_pid(pid: str) -> int:
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return int(stat.rsplit(")", 1)[1].split()[1])
+
+
+def _rss_mib(pid: str) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+class StagingMemory:
+    """Samples, every 20 ms, the resident sets of the forkserver this process started and of
+    the staging processes it forked, added up; ``peak_mib`` is the highest sum seen."""
+
+    def __init__(self) -> None:
+        self.peak_mib = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+
+    def __enter__(self) -> StagingMemory:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _sample(self) -> None:
+        me = os.getpid()
+        while not self._stop.wait(0.02):
+            try:
+                self.peak_mib = max(self.peak_mib, self._now(me))
+            except (FileNotFoundError, ProcessLookupError, IndexError, ValueError):
+                continue
+
+    @staticmethod
+    def _now(me: int) -> float:
+        parents: dict[str, int] = {}
+        for entry in Path("/proc").iterdir():
+            if entry.name.isdigit():
+                try:
+                    parents[entry.name] = _parent_pid(entry.name)
+                except (FileNotFoundError, ProcessLookupError):
+                    continue
+        servers = {
+            pid
+            for pid, parent in parents.items()
+            if parent == me and b"forkserver" in Path(f"/proc/{pid}/cmdline").read_bytes()
+        }
+        workers = [pid for pid, parent in parents.items() if str(parent) in servers]
+        return sum(_rss_mib(pid) for pid in [*servers, *workers])
 
 
 def bench_rosbags(bag: Path, work: Path) -> Result:
@@ -505,7 +563,10 @@ def _ingest(
         catalog.review(version.id, "approve", reviewer=author)
         bindings.bind(template_id=version.id, msgtype=msgtype)
     blobs = CasBlobs(add_blob or (lambda data: str(import_bytes(data)[1])))
-    jobs = IngestJobs(root / "jobs", store, logs, bindings, lambda: blobs)
+    workers = StorageSettings.model_fields["storage_ingest_workers"].get_default(
+        call_default_factory=True
+    )
+    jobs = IngestJobs(root / "jobs", store, logs, bindings, lambda: blobs, staging_workers=workers)
     signer = Authorship(
         signer=author,
         audience="storage@local",
@@ -536,11 +597,12 @@ def bench_ingest(bag: Path, work: Path) -> Result:
     from services.storage.recordlog import RecordLogs
 
     logs = RecordLogs(work / "logs")
-    started = time.perf_counter()
-    count = _ingest(bag, work, logs, None)
-    seconds = time.perf_counter() - started
+    with StagingMemory() as staging:
+        started = time.perf_counter()
+        count = _ingest(bag, work, logs, None)
+        seconds = time.perf_counter() - started
     logs.close()
-    return Result("ingest, anchoring off", seconds, count, _peak_rss_mib())
+    return Result("ingest, anchoring off", seconds, count, _peak_rss_mib(), staging.peak_mib)
 
 
 def bench_ingest_anchored(bag: Path, work: Path) -> Result:
@@ -556,9 +618,10 @@ def bench_ingest_anchored(bag: Path, work: Path) -> Result:
         )
         node = _open_node(settings)
         node.start()
-        started = time.perf_counter()
-        count = _ingest(bag, work, node.logs, node.notify)
-        seconds = time.perf_counter() - started
+        with StagingMemory() as staging:
+            started = time.perf_counter()
+            count = _ingest(bag, work, node.logs, node.notify)
+            seconds = time.perf_counter() - started
         deadline = time.monotonic() + 60
         while node.epochs.last_anchored() < node.epochs.last() and time.monotonic() < deadline:
             time.sleep(0.2)
@@ -567,7 +630,9 @@ def bench_ingest_anchored(bag: Path, work: Path) -> Result:
     finally:
         cas.stop()
         ledger.stop()
-    return Result(f"ingest, anchoring on ({anchored})", seconds, count, _peak_rss_mib())
+    return Result(
+        f"ingest, anchoring on ({anchored})", seconds, count, _peak_rss_mib(), staging.peak_mib
+    )
 
 
 MEASUREMENTS: list[Callable[[Path, Path], Result]] = [
@@ -612,6 +677,11 @@ def bench_ingestion(options: argparse.Namespace) -> None:
             f"{result.name:48} {result.seconds:8.2f} s  {rate:10.0f} msg/s  "
             f"{baseline.seconds / result.seconds:5.2f}x rosbags  "
             f"peak RSS {result.peak_rss_mib:6.0f} MiB"
+            + (
+                f" (+ {result.staging_rss_mib:.0f} MiB in staging processes)"
+                if result.staging_rss_mib
+                else ""
+            )
         )
     off, on = results[1], results[2]
     rate = on.messages / on.seconds

@@ -29,7 +29,7 @@ import shutil
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from itertools import islice
 from pathlib import Path
@@ -393,28 +393,34 @@ class IngestJobs:
         for template_id, staged in job.staged.items():
             if job.committed[template_id] >= staged:
                 continue
-            spool = spooled_lines(self.root / job.id / "staged", template_id, job.spool_parts)
-            for _ in islice(spool, job.committed[template_id]):
-                pass
-            while job.committed[template_id] < staged:
-                start = job.committed[template_id]
-                count = min(self.batch_records, staged - start)
-                batch = [_staged(template_id, line) for line in islice(spool, count)]
-                if len(batch) != count:
-                    raise IngestFailed(
-                        "ingest_inconsistent",
-                        f"{template_id}: the spool holds {start + len(batch)} of {staged} records",
-                        {"template": template_id},
-                    )
-                intent = {
-                    "template": template_id,
-                    "start": start,
-                    "count": count,
-                    "log_size": self.logs.size(template_id),
-                }
-                self._update(job, intent=intent)
-                ids = self.store.append_encoded(batch, author=author)
-                self._committed(job, template_id, start + count, ids[0], ids[-1], save=False)
+            directory = self.root / job.id / "staged"
+            with spooled_lines(directory, template_id, job.spool_parts) as spool:
+                self._commit_spool(job, template_id, staged, spool, author)
+
+    def _commit_spool(
+        self, job: Job, template_id: str, staged: int, spool: Iterator[bytes], author: Authorship
+    ) -> None:
+        """Append a template's spooled records past those already committed, in batches."""
+        next(islice(spool, job.committed[template_id], job.committed[template_id]), None)
+        while job.committed[template_id] < staged:
+            start = job.committed[template_id]
+            count = min(self.batch_records, staged - start)
+            batch = [_staged(template_id, line) for line in islice(spool, count)]
+            if len(batch) != count:
+                raise IngestFailed(
+                    "ingest_inconsistent",
+                    f"{template_id}: the spool holds {start + len(batch)} of {staged} records",
+                    {"template": template_id},
+                )
+            intent = {
+                "template": template_id,
+                "start": start,
+                "count": count,
+                "log_size": self.logs.size(template_id),
+            }
+            self._update(job, intent=intent)
+            ids = self.store.append_encoded(batch, author=author)
+            self._committed(job, template_id, start + count, ids[0], ids[-1], save=False)
 
     def _committed(
         self, job: Job, template_id: str, upto: int, first: str, last: str, *, save: bool = True

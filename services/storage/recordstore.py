@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from operator import itemgetter
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import orjson
 
@@ -104,9 +104,10 @@ def record_id(template_id: str, index: int) -> str:
     return f"{name}-{version}-{index}"
 
 
-@dataclass(frozen=True)
-class EncodedRecord:
-    """A checked record as its log will hold it: large arrays in cas, its canonical bytes."""
+class EncodedRecord(NamedTuple):
+    """A checked record as its log will hold it: large arrays in cas, its canonical bytes.
+
+    A tuple: an ingest job makes one per record it commits."""
 
     template_id: str
     record: dict[str, Any]
@@ -362,8 +363,9 @@ class RecordStore:
                 views.add(
                     views.flatten(item.record, first + n) for n, (_, item) in enumerate(items)
                 )
-                for n, (position, _) in enumerate(items):
-                    ids[position] = record_id(template_id, first + n)
+                prefix = record_id(template_id, 0)[:-1]
+                for n, (position, _) in enumerate(items, first):
+                    ids[position] = f"{prefix}{n}"
         self._wake.set()
         if self.notify is not None:
             self.notify(len(records))

@@ -21,8 +21,9 @@ import hashlib
 import multiprocessing
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
+from itertools import chain
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import IO, Any
@@ -84,13 +85,12 @@ def spool_path(directory: Path, template_id: str, part: int) -> Path:
     return directory / f"{template_id}.{part}.jsonl"
 
 
-def spooled_lines(directory: Path, template_id: str, parts: int) -> Iterator[bytes]:
+@contextmanager
+def spooled_lines(directory: Path, template_id: str, parts: int) -> Iterator[Iterator[bytes]]:
     """A template's spooled records, part after part: its records in the bag's order."""
-    for part in range(parts):
-        path = spool_path(directory, template_id, part)
-        if path.exists():
-            with path.open("rb") as spool:
-                yield from spool
+    paths = [spool_path(directory, template_id, part) for part in range(parts)]
+    with ExitStack() as files:
+        yield chain.from_iterable(files.enter_context(p.open("rb")) for p in paths if p.exists())
 
 
 def compile_plan(connection: BagConnection, template: Template) -> tuple[Template, Converter]:
