@@ -466,12 +466,15 @@ def _peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _parent_pid(pid: str) -> int:
-    stat = Path(f"/proc/{pid}/stat").read_text()
-    return int(stat.rsplit(")", 1)[1].split()[1])
+def _children(pid: int) -> list[int]:
+    """The processes ``pid``'s threads started (Linux ``/proc/PID/task/TID/children``)."""
+    found: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        found += [int(child) for child in (task / "children").read_text().split()]
+    return found
 
 
-def _rss_mib(pid: str) -> float:
+def _rss_mib(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
@@ -479,11 +482,13 @@ def _rss_mib(pid: str) -> float:
 
 
 class StagingMemory:
-    """Samples, every 20 ms, the resident sets of the forkserver this process started and of
+    """Samples, every 50 ms, the resident sets of the forkserver this process started and of
     the staging processes it forked, added up; ``peak_mib`` is the highest sum seen."""
 
     def __init__(self) -> None:
         self.peak_mib = 0.0
+        self._servers: dict[int, bool] = {}
+        """Child pid: whether it is a forkserver (its command line is read once)."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._sample, daemon=True)
 
@@ -496,28 +501,21 @@ class StagingMemory:
         self._thread.join()
 
     def _sample(self) -> None:
-        me = os.getpid()
-        while not self._stop.wait(0.02):
+        while not self._stop.wait(0.05):
             try:
-                self.peak_mib = max(self.peak_mib, self._now(me))
-            except (FileNotFoundError, ProcessLookupError, IndexError, ValueError):
+                self.peak_mib = max(self.peak_mib, self._now())
+            except (FileNotFoundError, ProcessLookupError):
                 continue
 
-    @staticmethod
-    def _now(me: int) -> float:
-        parents: dict[str, int] = {}
-        for entry in Path("/proc").iterdir():
-            if entry.name.isdigit():
-                try:
-                    parents[entry.name] = _parent_pid(entry.name)
-                except (FileNotFoundError, ProcessLookupError):
-                    continue
-        servers = {
-            pid
-            for pid, parent in parents.items()
-            if parent == me and b"forkserver" in Path(f"/proc/{pid}/cmdline").read_bytes()
-        }
-        workers = [pid for pid, parent in parents.items() if str(parent) in servers]
+    def _is_server(self, pid: int) -> bool:
+        if pid not in self._servers:
+            command = Path(f"/proc/{pid}/cmdline").read_bytes()
+            self._servers[pid] = b"multiprocessing.forkserver" in command
+        return self._servers[pid]
+
+    def _now(self) -> float:
+        servers = [pid for pid in _children(os.getpid()) if self._is_server(pid)]
+        workers = [child for server in servers for child in _children(server)]
         return sum(_rss_mib(pid) for pid in [*servers, *workers])
 
 

@@ -2,13 +2,15 @@
 
 TinyDB rewrites its whole file on every insert, so it is never written one record at a time:
 records gather in an in-memory tail (rebuilt from the record log at start) and, once
-``segment_records`` of them are there, the tail is written with one ``insert_multiple`` into
-a new segment file that is sealed: never written again. Beside each sealed segment lie its
-indexes, sorted arrays of (value, position) for ``t`` and for every int, float and bool leaf
-outside arrays, so that a time window or a comparison is two binary searches per segment
-instead of a scan. ``segments.json`` lists the sealed segments with their value ranges; it is
-replaced atomically after a segment's files are on disk, so it is the views' durable mark: a
-file it does not list is a leftover of a crash and is removed at open.
+``segment_records`` of them are there, the tail is written as a new TinyDB database in one
+call of its storage (the file TinyDB's ``insert_multiple`` would write into a fresh database,
+without the copy of every document it makes first) and sealed: never written again. Beside
+each sealed segment lie its indexes, sorted arrays of (value, position) for ``t`` and for
+every int, float and bool leaf outside arrays, so that a time window or a comparison is two
+binary searches per segment instead of a scan. ``segments.json`` lists the sealed segments
+with their value ranges; it is replaced atomically after a segment's files are on disk, so it
+is the views' durable mark: a file it does not list is a leftover of a crash and is removed at
+open.
 
 A TinyDB document is a record flattened: envelope keys prefixed with ``_`` (``_i`` its index
 in the template's log, ``_t``, ``_topic``, ``_robot``) and each leaf under its dotted path

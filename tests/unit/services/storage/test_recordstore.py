@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
+from tinydb import TinyDB
 
 from robocloud.proofs import RecordIdError
 from robocloud.templates import canonical_record
@@ -13,7 +15,7 @@ from services.storage.recordstore import (
     RecordNotFound,
     RecordRejected,
 )
-from services.storage.segments import MANIFEST
+from services.storage.segments import MANIFEST, TABLE, SegmentStorage
 from tests.unit.services.storage.conftest import AUTHOR, ROBOT_A, StoreFactory, state_record
 
 
@@ -119,3 +121,28 @@ def test_decoded_segments_in_memory_are_bounded(open_store: StoreFactory) -> Non
     first = views.docs(views.sealed[0])
     assert [doc["_t"] for doc in first] == list(range(16))
     assert len(store.caches.docs) == 4
+
+
+def test_a_sealed_segment_is_the_file_tinydb_itself_writes(
+    open_store: StoreFactory, tmp_path: Path
+) -> None:
+    """A segment is written in one call of TinyDB's storage; the file equals, byte for byte,
+    the one TinyDB's ``insert_multiple`` writes into a fresh database from the same documents,
+    and each sorted index is Python's stable sort of its values (ties in position order)."""
+    store = open_store()
+    records = [state_record(t % 5, pose={"x": t % 3, "y": 0.5}) for t in range(16)]
+    store.append(records, author=AUTHOR)
+    views = store.views("state@1")
+    assert views is not None
+    segment = views.sealed[0]
+    docs = views.docs(segment)
+    reference = TinyDB(tmp_path / "reference.json", storage=SegmentStorage)
+    reference.table(TABLE).insert_multiple(docs)
+    reference.close()
+    sealed = views.directory / f"{segment.name}.json"
+    assert sealed.read_bytes() == (tmp_path / "reference.json").read_bytes()
+    for field in ("_t", "pose.x"):
+        index = views.index(segment, field)
+        order = sorted(range(16), key=lambda n: docs[n][field])
+        assert list(index.positions) == order
+        assert list(index.values) == [docs[n][field] for n in order]
