@@ -364,6 +364,7 @@ def _open_ingest(
         lambda: CasBlobs(offload),
         batch_records=settings.storage_ingest_batch_records,
         staging_workers=settings.storage_ingest_workers,
+        parallel_from_messages=settings.storage_ingest_parallel_messages,
         max_pending=settings.storage_max_ingest_jobs,
         publish=publish if settings.storage_publish_datasets else None,
     )

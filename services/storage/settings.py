@@ -111,6 +111,12 @@ class StorageSettings(ServiceSettings):
         description="processes staging a large bag, each a time window of it (default: the "
         "machine's cores, at most 4)",
     )
+    storage_ingest_parallel_messages: int = Field(
+        default=20_000,
+        ge=1,
+        description="bound messages from which a bag is staged in worker processes; smaller "
+        "bags stage in the service's process, where starting workers would cost more",
+    )
     storage_max_ingest_jobs: int = Field(
         default=16, ge=1, description="ingest jobs queued or running at once"
     )

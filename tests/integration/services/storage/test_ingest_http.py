@@ -250,3 +250,91 @@ def test_kill_9_while_committing_a_bag_ingests_it_exactly_once(
     assert done["records"]["committed"] == expected
     assert len(times) == expected
     assert len(set(times)) == expected
+
+
+PARALLEL = {
+    "ROBOCLOUD_STORAGE_INGEST_WORKERS": "2",
+    "ROBOCLOUD_STORAGE_INGEST_PARALLEL_MESSAGES": "1",
+}
+QUIET_NODE = {"ROBOCLOUD_STORAGE_ANCHOR": "false", "ROBOCLOUD_STORAGE_PUBLISH_DATASETS": "false"}
+
+
+def _exported(storage: ServiceProcess, identity: Identity, bag: Path, out: Path) -> bytes:
+    """Ingest ``bag`` (IMU and NavSatFix bound) and export every IMU record as JSON lines."""
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        imu = approve(client, "sensor_msgs/msg/Imu")
+        gps = approve(client, "sensor_msgs/msg/NavSatFix")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        ingest.bind(gps, msgtype="sensor_msgs/msg/NavSatFix")
+        done = ingest.wait(ingest.upload(bag)["id"], timeout_s=120)
+        assert done["status"] == "succeeded", done["error"]
+        assert done["records"] == {"staged": 1800, "committed": 1800}
+        assert done["record_ids"] == {
+            imu: ["imu-1-0", "imu-1-1599"],
+            gps: ["nav_sat_fix-1-0", "nav_sat_fix-1-199"],
+        }
+        ingest.export({"template": imu, "format": "jsonl"}, out)
+    return out.read_bytes()
+
+
+def test_a_bag_staged_by_worker_processes_gives_the_records_of_one_pass(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """The same bag through a service staging in two processes and one staging in its own:
+    the exported records are the same bytes, in the same order."""
+    bag = write_bag(tmp_path / "run.bag", "ros1", 2000, start_ns=START_NS)
+    parallel = service_factory("storage", {**PARALLEL, **QUIET_NODE})
+    single = service_factory("storage", {"ROBOCLOUD_STORAGE_INGEST_WORKERS": "1", **QUIET_NODE})
+    staged_apart = _exported(parallel, identity, bag, tmp_path / "parallel.jsonl")
+    staged_here = _exported(single, identity, bag, tmp_path / "single.jsonl")
+    assert staged_apart.count(b"\n") == 1600
+    assert staged_apart == staged_here
+
+
+def _descendants(pid: int) -> list[int]:
+    found: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        for child in (task / "children").read_text().split():
+            found += [int(child), *_descendants(int(child))]
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_kill_9_while_worker_processes_stage_a_bag(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """The service dies while two processes stage a bag: they do not outlive it, and at the
+    next start the job stages again and ingests every message exactly once."""
+    storage = service_factory("storage", {**PARALLEL, **QUIET_NODE})
+    bag = write_bag(tmp_path / "run.bag", "ros1", 60_000, start_ns=START_NS)
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        imu = approve(records, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        job_id = ingest.upload(bag)["id"]
+        wait_for(
+            lambda: (
+                ingest.job(job_id)["status"] == "staging"
+                and ingest.job(job_id)["messages"]["done"] > 0
+            ),
+            "the workers to stage their first messages",
+        )
+    assert storage.process is not None
+    helpers = _descendants(storage.process.pid)
+    assert len(helpers) >= 3, "a forkserver and two staging processes"
+    os.kill(storage.process.pid, signal.SIGKILL)
+    storage.process.wait()
+    wait_for(lambda: not any(_alive(pid) for pid in helpers), "the staging processes to end")
+    storage.start()
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        done = ingest.wait(job_id, timeout_s=300)
+        assert done["status"] == "succeeded", done["error"]
+        page = records.query(template=imu, limit=1, cursor=None)
+        assert page.records[0].record["t"] == START_NS
+    assert done["records"]["committed"] == done["messages"]["total"] == 48_000
+    assert done["record_ids"] == {imu: ["imu-1-0", "imu-1-47999"]}
