@@ -54,6 +54,7 @@ from services.storage.staging import (
     spooled_lines,
     stage_in_processes,
     stage_window,
+    start_workers_server,
     window_tasks,
 )
 
@@ -207,6 +208,8 @@ class IngestJobs:
         self._lock = threading.Lock()
         self._queue: queue.Queue[str | None] = queue.Queue()
         root.mkdir(parents=True, exist_ok=True)
+        if staging_workers > 1:
+            start_workers_server()
         for path in sorted(root.glob("*/job.json"), key=lambda p: p.stat().st_mtime):
             job = Job.from_json(json.loads(path.read_text()))
             self._jobs[job.id] = job

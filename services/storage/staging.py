@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import multiprocessing
+import multiprocessing.forkserver
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack, contextmanager
@@ -299,11 +300,19 @@ def _stage_task(task: WindowTask, parent: Connection) -> None:
 
 
 def _context() -> Any:
-    """Workers fork from a clean server process with these modules loaded: never from the
-    storage service itself, whose other threads may hold locks at the moment of a fork."""
+    """Workers fork from a clean server process with the main module and this one loaded:
+    never from the storage service itself, whose other threads may hold locks at the moment
+    of a fork."""
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload([__name__])
+    context.set_forkserver_preload(["__main__", __name__])
     return context
+
+
+def start_workers_server() -> None:
+    """Start the server that staging processes fork from, if it is not running: with the
+    service, so that it has loaded its modules (about half a second) before a job needs it."""
+    _context()
+    multiprocessing.forkserver.ensure_running()
 
 
 def _store_blob(blobs: BlobSink, cid: str, data: bytes) -> None:
