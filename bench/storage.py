@@ -28,8 +28,10 @@ A bag of IMU, NavSatFix and small camera images is written with rosbags' own wri
 each measurement runs in its own process (so its peak RSS is its own):
 
 - ``rosbags``: AnyReader over every message, deserialize each: the baseline;
-- ``ingest``: an ingest job (stage: decode, convert, validate, spool; commit: RecordStore.append
-  with fsync per batch) into a fresh node; ratio = rosbags time / ingest time (target >= 0.25x),
+- ``ingest``: an ingest job (stage: decode, convert, validate, spool, in the service's default
+  number of worker processes; commit: RecordStore.append with fsync per batch) into a fresh
+  node; ratio = rosbags time / ingest time (target >= 0.25x), the staging processes' peak
+  RSS (sampled, added up) printed beside the job's own,
   records per second printed beside the 120 transactions per second that chain-only storage
   reaches.
 
@@ -461,6 +463,11 @@ class Result:
     staging_rss_mib: float = 0.0
     """Peak of the staging processes' resident sets, added up (they run beside the process)."""
 
+    def staging_memory(self) -> str:
+        if not self.staging_rss_mib:
+            return ""
+        return f" (+ {self.staging_rss_mib:.0f} MiB in staging processes)"
+
 
 def _peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -674,12 +681,7 @@ def bench_ingestion(options: argparse.Namespace) -> None:
         print(
             f"{result.name:48} {result.seconds:8.2f} s  {rate:10.0f} msg/s  "
             f"{baseline.seconds / result.seconds:5.2f}x rosbags  "
-            f"peak RSS {result.peak_rss_mib:6.0f} MiB"
-            + (
-                f" (+ {result.staging_rss_mib:.0f} MiB in staging processes)"
-                if result.staging_rss_mib
-                else ""
-            )
+            f"peak RSS {result.peak_rss_mib:6.0f} MiB{result.staging_memory()}"
         )
     off, on = results[1], results[2]
     rate = on.messages / on.seconds
@@ -709,7 +711,7 @@ def bench_bigbag_ingest(bag: Path, work: Path) -> Result:
     cas = ServiceProcess("cas", work / "cas", QUIET).start()
     try:
         logs = RecordLogs(work / "logs")
-        with Cas(cas.url, Identity.generate()) as client:
+        with Cas(cas.url, Identity.generate()) as client, StagingMemory() as staging:
             started = time.perf_counter()
             count = _ingest(bag, work, logs, None, lambda data: str(client.add_bytes(data)))
             seconds = time.perf_counter() - started
@@ -719,7 +721,11 @@ def bench_bigbag_ingest(bag: Path, work: Path) -> Result:
     finally:
         cas.stop()
     return Result(
-        f"ingest, images to cas (cas peak RSS {cas_rss:.0f} MiB)", seconds, count, _peak_rss_mib()
+        f"ingest, images to cas (cas peak RSS {cas_rss:.0f} MiB)",
+        seconds,
+        count,
+        _peak_rss_mib(),
+        staging.peak_mib,
     )
 
 
@@ -754,6 +760,7 @@ def bench_bigbag(options: argparse.Namespace) -> None:
             print(
                 f"  {result.name:54} {result.seconds:7.1f} s  {rate:6.1f} MB/s"
                 f"  {result.messages:7} msg  peak RSS {result.peak_rss_mib:5.0f} MiB"
+                f"{result.staging_memory()}"
             )
         print(f"  ingest / rosbags time: {results[1].seconds / results[0].seconds:.2f}")
 
