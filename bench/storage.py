@@ -551,9 +551,10 @@ def _ingest(
     into their CID when it is None."""
     from robocloud.unixfs import import_bytes
     from services.storage.catalog import Catalog
-    from services.storage.ingest import CasBlobs, IngestJobs
+    from services.storage.ingest import IngestJobs
     from services.storage.matcher import Bindings, draft_template
     from services.storage.recordstore import Authorship, RecordStore, collect_garbage_less_often
+    from services.storage.staging import CasBlobs
     from tests.bagfactory import TOPICS, typestore_for
 
     collect_garbage_less_often()

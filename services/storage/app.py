@@ -29,13 +29,14 @@ from services.storage.anchoring import LedgerAndCas, StorageNode
 from services.storage.catalog import Catalog
 from services.storage.datasets import DatasetPublisher
 from services.storage.errors import ERRORS
-from services.storage.ingest import CasBlobs, IngestJobs
+from services.storage.ingest import IngestJobs
 from services.storage.knowledge import KnowledgeBase
 from services.storage.matcher import Bindings
 from services.storage.queries import QueryEngine
 from services.storage.recordstore import Offload, RecordStore, collect_garbage_less_often
 from services.storage.settings import StorageSettings
 from services.storage.sparql import QueryTooLargeError, SparqlWorkers, UpdateRejectedError
+from services.storage.staging import CasBlobs
 
 _COUNT = re.compile(r"0|[1-9][0-9]{0,18}")
 

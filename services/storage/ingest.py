@@ -20,7 +20,6 @@ Topics whose type no approved template binds are reported, not ingested.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import queue
@@ -37,17 +36,15 @@ from typing import Any, Literal
 
 import orjson
 
-from robocloud.templates import Template
 from services.common.durable import atomic_write
 from services.storage.bags import Bag, BagConnection
 from services.storage.catalog import CatalogError
-from services.storage.matcher import Bindings, BlobSink, Converter, DraftError, draft_template
+from services.storage.matcher import Bindings, BlobSink, DraftError, draft_template
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, EncodedRecord, RecordStore
 from services.storage.staging import (
     IngestFailed,
     Plans,
-    RecordMaker,
     bag_failures,
     check_complete,
     compile_plan,
@@ -373,11 +370,10 @@ class IngestJobs:
                 staged = stage_in_processes(tasks, blobs, progress)
                 check_complete(bag, plans, staged)
             else:
-
-                def maker(template: Template, converter: Converter, topic: str) -> RecordMaker:
-                    return RecordMaker(template, converter, topic, robot, self.store.arrays, blobs)
-
-                staged = stage_window(bag, plans, None, staged_dir, 0, maker, progress)
+                arrays = self.store.arrays
+                staged = stage_window(
+                    bag, plans, None, staged_dir, 0, robot, arrays, blobs, progress
+                )
         counts = staged.records
         self._update(
             job,
@@ -476,26 +472,3 @@ def _staged(template_id: str, line: bytes) -> EncodedRecord:
     """A spool line: a record's canonical bytes, checked when it was staged."""
     canonical = line.rstrip(b"\n")
     return EncodedRecord(template_id, orjson.loads(canonical), canonical)
-
-
-class CasBlobs:
-    """Image and file bytes into cas, each distinct content uploaded once per job.
-
-    Camera streams repeat frames (and calibration blobs repeat always); content addressing
-    makes the CID of bytes seen before known without asking cas again.
-    """
-
-    def __init__(self, add: Callable[[bytes], str], remembered: int = 4096) -> None:
-        self._add = add
-        self._remembered = remembered
-        self._known: OrderedDict[bytes, str] = OrderedDict()
-
-    def put(self, data: bytes) -> str:
-        key = hashlib.sha256(data).digest()
-        cid = self._known.get(key)
-        if cid is None:
-            cid = self._add(data)
-            self._known[key] = cid
-            if len(self._known) > self._remembered:
-                self._known.popitem(last=False)
-        return cid

@@ -195,13 +195,15 @@ def stage_window(
     window: Window | None,
     directory: Path,
     part: int,
-    makers: Callable[[Template, Converter, str], RecordMaker],
+    robot: str,
+    arrays: ArrayOffload,
+    blobs: BlobSink,
     progress: Callable[[int], None],
 ) -> Staged:
     """Spool the records of ``window``'s messages (None: the whole bag, its index counts
     checked) to part ``part`` of each template's spool under ``directory``."""
     makers_by_key = {
-        (topic, msgtype): makers(template, converter, topic)
+        (topic, msgtype): RecordMaker(template, converter, topic, robot, arrays, blobs)
         for (topic, msgtype), (template, converter) in plans.items()
     }
     for each in makers_by_key.values():
@@ -251,11 +253,15 @@ class WindowTask:
     """Whether large arrays may go to cas (False: this node has none, the job fails)."""
 
 
-class ForwardedBlobs:
-    """A worker's blob sink: the CID computed here, the bytes sent to the parent once."""
+class CasBlobs:
+    """Image and file bytes into cas, each distinct content uploaded once per job.
 
-    def __init__(self, parent: Connection, remembered: int = 4096) -> None:
-        self._parent = parent
+    Camera streams repeat frames (and calibration blobs repeat always); content addressing
+    makes the CID of bytes seen before known without asking cas again.
+    """
+
+    def __init__(self, add: Callable[[bytes], str], remembered: int = 4096) -> None:
+        self._add = add
         self._remembered = remembered
         self._known: OrderedDict[bytes, str] = OrderedDict()
 
@@ -263,12 +269,22 @@ class ForwardedBlobs:
         key = hashlib.sha256(data).digest()
         cid = self._known.get(key)
         if cid is None:
-            cid = str(import_bytes(data)[1])
-            self._parent.send(("blob", cid, data))
+            cid = self._add(data)
             self._known[key] = cid
             if len(self._known) > self._remembered:
                 self._known.popitem(last=False)
         return cid
+
+
+def _forwarded(parent: Connection) -> Callable[[bytes], str]:
+    """A worker's way to cas: the CID computed here, the bytes sent to the parent."""
+
+    def add(data: bytes) -> str:
+        cid = str(import_bytes(data)[1])
+        parent.send(("blob", cid, data))
+        return cid
+
+    return add
 
 
 def _stage_task(task: WindowTask, parent: Connection) -> None:
@@ -280,17 +296,22 @@ def _stage_task(task: WindowTask, parent: Connection) -> None:
                 key: compile_plan(connections[key], parse_template(document))
                 for key, document in task.templates.items()
             }
-            blobs = ForwardedBlobs(parent)
+            blobs = CasBlobs(_forwarded(parent))
             arrays = ArrayOffload(task.inline_bytes, blobs.put if task.offload else None)
-
-            def maker(template: Template, converter: Converter, topic: str) -> RecordMaker:
-                return RecordMaker(template, converter, topic, task.robot, arrays, blobs)
 
             def progress(count: int) -> None:
                 parent.send(("progress", count))
 
             staged = stage_window(
-                bag, plans, task.window, task.directory, task.part, maker, progress
+                bag,
+                plans,
+                task.window,
+                task.directory,
+                task.part,
+                task.robot,
+                arrays,
+                blobs,
+                progress,
             )
         parent.send(("done", staged))
     except IngestFailed as exc:

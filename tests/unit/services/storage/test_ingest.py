@@ -16,11 +16,11 @@ from robocloud.identity import Identity
 from robocloud.templates import parse_template
 from robocloud.unixfs import import_bytes
 from services.storage.catalog import Catalog
-from services.storage.ingest import CasBlobs, IngestJobs, Job, JobNotFound
+from services.storage.ingest import IngestJobs, Job, JobNotFound
 from services.storage.matcher import Bindings, draft_template
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore
-from services.storage.staging import spool_path
+from services.storage.staging import CasBlobs, spool_path
 from tests.bagfactory import (
     FRAME_BYTES,
     TOPICS,
