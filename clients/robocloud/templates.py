@@ -122,8 +122,9 @@ class Template:
     fields: Mapping[str, FieldType]
     description: str = ""
 
-    @property
+    @cached_property
     def id(self) -> str:
+        """Read for every record ingested: made once."""
         return f"{self.name}@{self.version}"
 
     def to_json(self) -> dict[str, Any]:

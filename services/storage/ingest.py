@@ -28,27 +28,24 @@ import shutil
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from itertools import islice
 from pathlib import Path
 from typing import Any, Literal
-
-import orjson
 
 from services.common.durable import atomic_write
 from services.storage.bags import Bag, BagConnection
 from services.storage.catalog import CatalogError
 from services.storage.matcher import Bindings, BlobSink, DraftError, draft_template
 from services.storage.recordlog import RecordLogs
-from services.storage.recordstore import Authorship, EncodedRecord, RecordStore
+from services.storage.recordstore import Authorship, RecordStore, record_id
 from services.storage.staging import (
     IngestFailed,
     Plans,
+    SpoolReader,
     bag_failures,
     check_complete,
     compile_plan,
-    spooled_lines,
     stage_in_processes,
     stage_window,
     start_workers_server,
@@ -392,23 +389,26 @@ class IngestJobs:
         for template_id, staged in job.staged.items():
             if job.committed[template_id] >= staged:
                 continue
-            directory = self.root / job.id / "staged"
-            with spooled_lines(directory, template_id, job.spool_parts) as spool:
+            template = self.store.catalog.get(template_id).template
+            spool = SpoolReader(self.root / job.id / "staged", template, job.spool_parts)
+            try:
                 self._commit_spool(job, template_id, staged, spool, author)
+            finally:
+                spool.close()
 
     def _commit_spool(
-        self, job: Job, template_id: str, staged: int, spool: Iterator[bytes], author: Authorship
+        self, job: Job, template_id: str, staged: int, spool: SpoolReader, author: Authorship
     ) -> None:
         """Append a template's spooled records past those already committed, in batches."""
-        next(islice(spool, job.committed[template_id], job.committed[template_id]), None)
+        spool.skip(job.committed[template_id])
         while job.committed[template_id] < staged:
             start = job.committed[template_id]
-            count = min(self.batch_records, staged - start)
-            batch = [_staged(template_id, line) for line in islice(spool, count)]
-            if len(batch) != count:
+            batch = spool.batch(min(self.batch_records, staged - start))
+            count = len(batch.canonicals)
+            if count != min(self.batch_records, staged - start):
                 raise IngestFailed(
                     "ingest_inconsistent",
-                    f"{template_id}: the spool holds {start + len(batch)} of {staged} records",
+                    f"{template_id}: the spool holds {start + count} of {staged} records",
                     {"template": template_id},
                 )
             intent = {
@@ -418,8 +418,9 @@ class IngestJobs:
                 "log_size": self.logs.size(template_id),
             }
             self._update(job, intent=intent)
-            ids = self.store.append_encoded(batch, author=author)
-            self._committed(job, template_id, start + count, ids[0], ids[-1], save=False)
+            first = self.store.append_prepared(template_id, batch, author=author)
+            ids = record_id(template_id, first), record_id(template_id, first + count - 1)
+            self._committed(job, template_id, start + count, *ids, save=False)
 
     def _committed(
         self, job: Job, template_id: str, upto: int, first: str, last: str, *, save: bool = True
@@ -466,9 +467,3 @@ class IngestJobs:
             )
         else:
             self._update(job, intent=None)
-
-
-def _staged(template_id: str, line: bytes) -> EncodedRecord:
-    """A spool line: a record's canonical bytes, checked when it was staged."""
-    canonical = line.rstrip(b"\n")
-    return EncodedRecord(template_id, orjson.loads(canonical), canonical)

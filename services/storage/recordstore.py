@@ -20,7 +20,6 @@ import logging
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
-from operator import itemgetter
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -31,7 +30,6 @@ from robocloud.proofs import RecordId
 from robocloud.templates import (
     ArrayOf,
     RecordInvalid,
-    Scalar,
     Template,
     canonical_record,
     check_envelope,
@@ -40,7 +38,12 @@ from robocloud.templates import (
 from services.storage.catalog import Catalog, TemplateNotApproved, TemplateNotFound
 from services.storage.keywords import KeywordIndex
 from services.storage.recordlog import EntryNotFound, LogEntry, RecordLogs
-from services.storage.segments import Doc, SegmentCaches, TemplateSegments
+from services.storage.segments import (
+    PreparedDocuments,
+    SegmentCaches,
+    TemplateSegments,
+    keyword_text,
+)
 
 log = logging.getLogger("robocloud.storage.records")
 
@@ -48,6 +51,9 @@ KEYWORD_BATCH = 16384
 """Records per keyword commit: a Whoosh commit writes a segment, and a batch's repeated
 strings make one document each."""
 READ_BATCH = 4096
+KEYWORD_TEXTS_HELD = 262_144
+"""Keyword texts held for the keyword thread at most (a few MB); past it, the thread reads
+them from the segments, as for live records."""
 
 Offload = Callable[[bytes], str]
 """Stores bytes in cas and returns their CID (text)."""
@@ -115,22 +121,20 @@ class EncodedRecord(NamedTuple):
 
 
 @dataclass(frozen=True)
+class SpooledRecords:
+    """Consecutive records of one template as an ingest staged them: canonical bytes, the
+    documents their views keep, and their keyword texts (None for a template without)."""
+
+    canonicals: list[bytes]
+    documents: PreparedDocuments
+    texts: list[str] | None
+
+
+@dataclass(frozen=True)
 class StoredRecord:
     id: str
     record: dict[str, Any]
     meta: dict[str, Any]
-
-
-def _text_of(template: Template) -> Callable[[Doc], str] | None:
-    """What the keyword index reads of a document: its string leaves, space-separated (None
-    for a template without one)."""
-    strings = [path for path, kind in template.leaves() if kind == Scalar("string")]
-    if not strings:
-        return None
-    if len(strings) == 1:
-        return itemgetter(strings[0])
-    read = itemgetter(*strings)
-    return lambda doc: " ".join(read(doc))
 
 
 NUMBER_CHARACTERS = 25
@@ -250,6 +254,10 @@ class RecordStore:
             self._rebuild(template_id)
         self.keywords = KeywordIndex(root / "keywords")
         self._wake = threading.Event()
+        self._texts_lock = threading.Lock()
+        self._held_texts: dict[str, dict[int, list[str]]] = {}
+        """Keyword texts of records an ingest committed, by template and first index."""
+        self._texts_held = 0
         self._keyword_lock = threading.Lock()
         """Whoosh takes one writer at a time: the background thread and a caller of
         :meth:`index_keywords` take turns."""
@@ -371,6 +379,48 @@ class RecordStore:
             self.notify(len(records))
         return ids
 
+    def append_prepared(
+        self, template_id: str, batch: SpooledRecords, *, author: Authorship
+    ) -> int:
+        """Log durably and index consecutive records of one template that an ingest staged
+        with their documents prepared (:class:`~services.storage.segments.DocumentForm`);
+        the index of the first. Their keyword texts are held for the keyword thread, which
+        would otherwise read them back from the segments."""
+        meta = author.meta()
+        with self._write_lock:
+            views = self._open_views(template_id)
+            entries = [LogEntry(record=canonical, meta=meta) for canonical in batch.canonicals]
+            first = self.logs.append(template_id, entries)
+            if first != views.size:
+                raise RuntimeError(f"{template_id}: log at {first}, views at {views.size}")
+            views.add_prepared(first, batch.documents)
+            if batch.texts is not None:
+                self._hold_texts(template_id, first, batch.texts)
+        self._wake.set()
+        if self.notify is not None:
+            self.notify(len(entries))
+        return first
+
+    def _hold_texts(self, template_id: str, first: int, texts: list[str]) -> None:
+        with self._texts_lock:
+            if self._texts_held + len(texts) <= KEYWORD_TEXTS_HELD:
+                self._held_texts.setdefault(template_id, {})[first] = texts
+                self._texts_held += len(texts)
+
+    def _take_texts(self, template_id: str, start: int) -> list[str]:
+        """Held texts of records ``start``... (consecutive batches, up to a keyword batch),
+        dropping those the keyword index has passed; empty when none are held from there."""
+        taken: list[str] = []
+        with self._texts_lock:
+            held = self._held_texts.get(template_id, {})
+            for first in [first for first in held if first < start]:
+                self._texts_held -= len(held.pop(first))
+            while start + len(taken) in held and len(taken) < KEYWORD_BATCH:
+                texts = held.pop(start + len(taken))
+                self._texts_held -= len(texts)
+                taken += texts
+        return taken
+
     def get(self, text: str) -> StoredRecord:
         """A record by id, exactly as its log holds it, with its authorship."""
         parsed = RecordId.parse(text)
@@ -394,7 +444,7 @@ class RecordStore:
         pending = 0
         for template_id in self.template_ids():
             views = self.views(template_id)
-            if views is not None and _text_of(views.template) is not None:
+            if views is not None and keyword_text(views.template) is not None:
                 pending += max(0, self.logs.size(template_id) - self.keywords.mark(template_id))
         return pending
 
@@ -418,13 +468,17 @@ class RecordStore:
             views = self.views(template_id)
             if views is None:
                 continue
-            text_of = _text_of(views.template)
+            text_of = keyword_text(views.template)
             if text_of is None:
                 continue
             start = self.keywords.mark(template_id)
             size = views.size
             while start < size and not self._stop.is_set():
-                stop = min(size, start + KEYWORD_BATCH)
-                texts = map(text_of, views.docs_between(start, stop))
+                texts = self._take_texts(template_id, start)
+                if texts:
+                    stop = start + len(texts)
+                else:
+                    stop = min(size, start + KEYWORD_BATCH)
+                    texts = list(map(text_of, views.docs_between(start, stop)))
                 self.keywords.add(template_id, start, texts, stop)
                 start = stop

@@ -22,11 +22,13 @@ from __future__ import annotations
 import bisect
 import json
 import os
+import struct
 import threading
 from array import array
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -93,6 +95,18 @@ def flattener(template: Template) -> Callable[[dict[str, Any], int], Doc]:
     return flatten
 
 
+def keyword_text(template: Template) -> Callable[[Doc], str] | None:
+    """What the keyword index reads of a document: its string leaves, space-separated (None
+    for a template without one)."""
+    strings = [path for path, kind in template.leaves() if kind == Scalar("string")]
+    if not strings:
+        return None
+    if len(strings) == 1:
+        return itemgetter(strings[0])
+    read = itemgetter(*strings)
+    return lambda doc: " ".join(read(doc))
+
+
 def reassemble(template: Template, doc: Doc) -> dict[str, Any]:
     """The record of a flattened document, its data nested as the template says."""
 
@@ -121,6 +135,78 @@ def indexed_fields(template: Template) -> list[str]:
         for path, kind in template.leaves()
         if isinstance(kind, Scalar) and kind.kind in INDEXED_KINDS
     )
+
+
+Rows = bytes
+"""Indexed values of consecutive records, one fixed-width row each (:class:`DocumentForm`)."""
+PREFIX = b'{"_i":0,'
+"""How a prepared document starts: its index, unknown until its log takes it, is 0."""
+
+
+class DocumentForm:
+    """What the views of a template keep of a record, computed from its canonical bytes
+    alone, so that an ingest's staging processes can do it for the commit: the document's
+    bytes (exactly those the segment file holds), its indexed values as one fixed-width row
+    (``_t`` as int64, every indexed field as float64), and its keyword text."""
+
+    def __init__(self, template: Template) -> None:
+        self.flatten = flattener(template)
+        self.fields = indexed_fields(template)
+        self.row = struct.Struct("<q" + "d" * len(self.fields))
+        read = itemgetter("_t", *self.fields)
+        self.read_row: Callable[[Doc], tuple[Any, ...]] = (
+            read if self.fields else lambda doc: (doc["_t"],)
+        )
+        self.text_of = keyword_text(template)
+
+    def prepared(self, canonical: bytes) -> tuple[bytes, bytes, str | None]:
+        """A record's document (index 0), its row and its text (None without strings)."""
+        doc = self.flatten(orjson.loads(canonical), 0)
+        text = self.text_of(doc) if self.text_of is not None else None
+        return orjson.dumps(doc), self.row.pack(*self.read_row(doc)), text
+
+    def rows_of(self, docs: Sequence[Doc]) -> Rows:
+        pack, read = self.row.pack, self.read_row
+        return b"".join(pack(*read(doc)) for doc in docs)
+
+    def columns(self, rows: Rows) -> list[Any]:
+        """``_t`` and each indexed field's values, one array each."""
+        table = np.frombuffer(rows, dtype=np.dtype([("t", "<i8"), ("v", "<f8", len(self.fields))]))
+        return [table["t"], *(table["v"][:, n] for n in range(len(self.fields)))]
+
+
+@dataclass(frozen=True)
+class PreparedDocuments:
+    """Consecutive records of a template as :class:`DocumentForm` prepared them."""
+
+    docs: list[bytes]
+    rows: Rows
+    row_size: int
+
+    def __len__(self) -> int:
+        return len(self.docs)
+
+    def parsed(self, first: int, start: int, stop: int) -> list[Doc]:
+        """Documents ``start`` to ``stop - 1`` of these, as dicts, the first at index ``first``."""
+        found: list[Doc] = []
+        for n, doc in enumerate(self.docs[start:stop], first):
+            parsed = orjson.loads(doc)
+            parsed["_i"] = n
+            found.append(parsed)
+        return found
+
+    def rows_between(self, start: int, stop: int) -> Rows:
+        return self.rows[start * self.row_size : stop * self.row_size]
+
+    def segment_file(self, first: int, start: int, stop: int) -> bytes:
+        """The segment file of documents ``start`` to ``stop - 1``, the first at ``first``:
+        the bytes orjson writes for them as TinyDB stores a table (tested)."""
+        skip = len(PREFIX)
+        items = b",".join(
+            b'"%d":{"_i":%d,%s' % (n + 1, first + n, doc[skip:])
+            for n, doc in enumerate(self.docs[start:stop])
+        )
+        return b'{"%s":{%s}}' % (TABLE.encode(), items)
 
 
 @dataclass(frozen=True)
@@ -180,11 +266,10 @@ def _index_file(directory: Path, segment: SealedSegment, field: str) -> Path:
     return directory / f"{segment.name}.{field}.idx"
 
 
-def _write_index(path: Path, values: Sequence[float], dtype: str) -> None:
+def _write_index(path: Path, column: Any) -> None:
     """Written in place: the manifest written after it is what makes it part of the views.
 
     A stable sort, so equal values keep their positions in order."""
-    column = np.asarray(values, dtype=dtype)
     order = np.argsort(column, kind="stable")
     write_synced(path, column[order].tobytes() + order.astype(np.uint32).tobytes())
 
@@ -255,11 +340,10 @@ class TemplateSegments:
         self.template = template
         self.segment_records = segment_records
         self.caches = caches
-        self.fields = indexed_fields(template)
-        self.flatten = flattener(template)
+        self.form = DocumentForm(template)
+        self.fields = self.form.fields
+        self.flatten = self.form.flatten
         """A record (parsed from its canonical bytes) and its index as a document."""
-        self._kinds = {path: kind for path, kind in template.leaves()}
-        self._bools = {path for path, kind in self._kinds.items() if kind == Scalar("bool")}
         self._lock = threading.Lock()
         directory.mkdir(parents=True, exist_ok=True)
         self.sealed: list[SealedSegment] = self._open_manifest()
@@ -298,36 +382,55 @@ class TemplateSegments:
                 if doc["_i"] != self.size:
                     raise ValueError(f"document {doc['_i']} arrives at {self.size}")
                 self.tail.append(doc)
-            while len(self.tail) >= self.segment_records:
-                self._seal(self.tail[: self.segment_records])
-                self.tail = self.tail[self.segment_records :]
+            self._seal_full_tail()
 
-    def _seal(self, docs: list[Doc]) -> None:
-        first = docs[0]["_i"]
-        ranges: dict[str, tuple[float, float]] = {}
-        segment = SealedSegment(first, len(docs), ranges)
+    def add_prepared(self, first: int, documents: PreparedDocuments) -> None:
+        """Add records ``first``... as :class:`DocumentForm` prepared them where they were
+        staged: whole segments are written from the documents' bytes and rows, never parsed;
+        only records that join the tail (to complete it, or left over) are."""
+        with self._lock:
+            if first != self.size:
+                raise ValueError(f"document {first} arrives at {self.size}")
+            count, at = len(documents.docs), 0
+            if self.tail:
+                at = min(count, self.segment_records - len(self.tail))
+                self.tail += documents.parsed(first, 0, at)
+                self._seal_full_tail()
+            while count - at >= self.segment_records:
+                stop = at + self.segment_records
+                segment = SealedSegment(first + at, self.segment_records, {})
+                self._write_segment(
+                    segment,
+                    documents.segment_file(first + at, at, stop),
+                    documents.rows_between(at, stop),
+                )
+                at = stop
+            self.tail += documents.parsed(first + at, at, count)
+
+    def _seal_full_tail(self) -> None:
+        while len(self.tail) >= self.segment_records:
+            docs = self.tail[: self.segment_records]
+            segment = SealedSegment(docs[0]["_i"], len(docs), {})
+            content = orjson.dumps({TABLE: {str(n): doc for n, doc in enumerate(docs, 1)}})
+            rows = self.form.rows_of(docs)
+            self._write_segment(segment, content, rows)
+            self.caches.docs.put((str(self.directory), segment.name), docs)
+            self.tail = self.tail[self.segment_records :]
+
+    def _write_segment(self, segment: SealedSegment, content: bytes, rows: Rows) -> None:
+        """Write a sealed segment's file (TinyDB's, the one its ``insert_multiple`` writes into
+        a fresh database) and its indexes, then list it in the manifest."""
         path = self.directory / f"{segment.name}.json"
         tmp = path.with_name(f".{path.name}.tmp")
-        SegmentStorage(tmp).write({TABLE: {str(n): doc for n, doc in enumerate(docs, 1)}})
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        write_synced(tmp, content)
         os.replace(tmp, path)
-        for field in ("_t", *self.fields):
-            if field in self._bools:
-                values = [float(doc[field]) for doc in docs]
-            else:
-                values = [doc[field] for doc in docs]
-            dtype = "int64" if field == "_t" else "float64"
-            _write_index(_index_file(self.directory, segment, field), values, dtype)
-            ranges[field] = (min(values), max(values))
+        for field, column in zip(("_t", *self.fields), self.form.columns(rows), strict=True):
+            _write_index(_index_file(self.directory, segment, field), column)
+            segment.ranges[field] = (column.min().item(), column.max().item())
         fsync_dir(self.directory)
         sealed = [*self.sealed, segment]
         manifest = {"sealed": [item.to_json() for item in sealed]}
         atomic_write(self.directory / MANIFEST, json.dumps(manifest).encode())
-        self.caches.docs.put((str(self.directory), segment.name), docs)
         self.sealed = sealed
 
     def snapshot(self) -> tuple[list[SealedSegment], list[Doc]]:

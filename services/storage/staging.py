@@ -24,10 +24,12 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
-from itertools import chain
+from itertools import chain, islice
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import IO, Any
+
+import orjson
 
 from robocloud.templates import MAX_T, RecordInvalid, Template, check_envelope, parse_template
 from robocloud.unixfs import import_bytes
@@ -48,7 +50,8 @@ from services.storage.matcher import (
     compile_converter,
     record_topic,
 )
-from services.storage.recordstore import ArrayOffload, OffloadFailed
+from services.storage.recordstore import ArrayOffload, OffloadFailed, SpooledRecords
+from services.storage.segments import DocumentForm, PreparedDocuments
 
 PROGRESS_EVERY = 1000
 """Messages between two progress reports."""
@@ -82,16 +85,81 @@ class Staged:
             self.messages[key] = self.messages.get(key, 0) + count
 
 
-def spool_path(directory: Path, template_id: str, part: int) -> Path:
-    return directory / f"{template_id}.{part}.jsonl"
+def spool_path(directory: Path, template_id: str, part: int, kind: str = "records") -> Path:
+    """One of a spool part's files: ``records`` (canonical bytes, a line each), ``docs``
+    (documents as :class:`DocumentForm` prepares them, a line each), ``rows`` (their indexed
+    values, fixed width) and ``texts`` (keyword texts as JSON strings, a line each)."""
+    return directory / f"{template_id}.{part}.{kind}"
 
 
-@contextmanager
-def spooled_lines(directory: Path, template_id: str, parts: int) -> Iterator[Iterator[bytes]]:
-    """A template's spooled records, part after part: its records in the bag's order."""
-    paths = [spool_path(directory, template_id, part) for part in range(parts)]
-    with ExitStack() as files:
-        yield chain.from_iterable(files.enter_context(p.open("rb")) for p in paths if p.exists())
+class SpoolWriter:
+    """A template's spool part: each staged record with what its views will keep of it, so
+    that the commit writes segments without parsing a record."""
+
+    def __init__(self, directory: Path, template: Template, part: int) -> None:
+        self.form = DocumentForm(template)
+        self._files = ExitStack()
+        kinds = ("records", "docs", "rows") + (("texts",) if self.form.text_of else ())
+        opened = [
+            self._files.enter_context(spool_path(directory, template.id, part, kind).open("wb"))
+            for kind in kinds
+        ]
+        self._records, self._docs, self._rows = opened[:3]
+        self._texts = opened[3] if len(opened) > 3 else None
+
+    def write(self, canonical: bytes) -> None:
+        doc, row, text = self.form.prepared(canonical)
+        self._records.write(canonical + b"\n")
+        self._docs.write(doc + b"\n")
+        self._rows.write(row)
+        if self._texts is not None:
+            self._texts.write(orjson.dumps(text) + b"\n")
+
+    def close(self) -> None:
+        self._files.close()
+
+
+class SpoolReader:
+    """A template's spool, part after part: its records in the bag's order, in batches."""
+
+    def __init__(self, directory: Path, template: Template, parts: int) -> None:
+        self.form = DocumentForm(template)
+        self._files = ExitStack()
+        self._records = chain.from_iterable(
+            self._part(directory, template.id, part) for part in range(parts)
+        )
+
+    def _part(self, directory: Path, template_id: str, part: int) -> Iterator[tuple[Any, ...]]:
+        if not spool_path(directory, template_id, part).exists():
+            return iter(())
+
+        def opened(kind: str) -> IO[bytes]:
+            path = spool_path(directory, template_id, part, kind)
+            return self._files.enter_context(path.open("rb"))
+
+        rows = opened("rows")
+        row_size = self.form.row.size
+        files = [opened("records"), opened("docs"), iter(lambda: rows.read(row_size), b"")]
+        if self.form.text_of:
+            files.append(opened("texts"))
+        return zip(*files, strict=True)
+
+    def skip(self, count: int) -> None:
+        next(islice(self._records, count, count), None)
+
+    def batch(self, count: int) -> SpooledRecords:
+        """The next ``count`` records (fewer at the spool's end)."""
+        items = list(islice(self._records, count))
+        documents = PreparedDocuments(
+            [item[1][:-1] for item in items],
+            b"".join(item[2] for item in items),
+            self.form.row.size,
+        )
+        texts = [orjson.loads(item[3]) for item in items] if self.form.text_of else None
+        return SpooledRecords([item[0][:-1] for item in items], documents, texts)
+
+    def close(self) -> None:
+        self._files.close()
 
 
 def compile_plan(connection: BagConnection, template: Template) -> tuple[Template, Converter]:
@@ -208,7 +276,7 @@ def stage_window(
     }
     for each in makers_by_key.values():
         each.check()
-    spools: dict[str, IO[bytes]] = {}
+    spools: dict[str, SpoolWriter] = {}
     staged = Staged()
     records, messages = staged.records, staged.messages
     done = 0
@@ -222,8 +290,8 @@ def stage_window(
             template_id = maker.template.id
             spool = spools.get(template_id)
             if spool is None:
-                spool = spools[template_id] = spool_path(directory, template_id, part).open("wb")
-            spool.write(canonical + b"\n")
+                spool = spools[template_id] = SpoolWriter(directory, maker.template, part)
+            spool.write(canonical)
             records[template_id] = records.get(template_id, 0) + 1
             messages[key] = messages.get(key, 0) + 1
             done += 1

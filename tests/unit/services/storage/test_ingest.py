@@ -20,7 +20,7 @@ from services.storage.ingest import IngestJobs, Job, JobNotFound
 from services.storage.matcher import Bindings, draft_template
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore
-from services.storage.staging import CasBlobs, spool_path
+from services.storage.staging import CasBlobs, SpoolWriter
 from tests.bagfactory import (
     FRAME_BYTES,
     TOPICS,
@@ -37,12 +37,12 @@ START_NS = 1_700_000_000_000_000_000
 
 
 class Node:
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, segment_records: int = 4096) -> None:
         self.root = root
         self.author = Identity.generate().address
         self.catalog = Catalog(root / "catalog")
         self.logs = RecordLogs(root / "logs")
-        self.store = RecordStore(root, self.logs, self.catalog)
+        self.store = RecordStore(root, self.logs, self.catalog, segment_records=segment_records)
         self.bindings = Bindings(root / "bindings.json")
         self.blobs = MemoryBlobs()
         self.jobs = self.open_jobs()
@@ -174,6 +174,53 @@ def test_staging_in_processes_logs_what_one_pass_logs(tmp_path: Path, kind: str)
             node.close()
     assert [len(records) for records in logs[3].values()] == [240, 30]
     assert logs[3] == logs[1]
+
+
+def test_ingested_views_are_those_live_appends_build(tmp_path: Path) -> None:
+    """An ingest writes segments from the documents its staging prepared, never parsing a
+    record; the same records appended live (each parsed and flattened) give the same segment
+    files, indexes, manifest and tail, byte for byte. The second bag finds a tail left by the
+    first, which it completes before writing whole segments."""
+    author = authorship()
+    ingested = Node(tmp_path / "ingested", segment_records=64)
+    appended = Node(tmp_path / "appended", segment_records=64)
+    try:
+        imu = ingested.approve("sensor_msgs/msg/Imu")
+        assert appended.approve("sensor_msgs/msg/Imu") == imu
+        ingested.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+        for number, count in enumerate((125, 500)):
+            folder = tmp_path / f"bag-{number}"
+            folder.mkdir()
+            path = write_bag(folder / "b.bag", "ros1", count, start_ns=START_NS + number)
+            job = ingested.jobs.wait(ingested.jobs.submit(path, "upload:v", author).id, 60)
+            assert job.status == "succeeded", job.error
+        size = ingested.logs.size(imu)
+        assert size == 500
+        canonicals = [entry.record for entry in ingested.logs.entries(imu, 0, size)]
+        for start in range(0, size, 50):
+            records = [json.loads(record) for record in canonicals[start : start + 50]]
+            appended.store.append(records, author=author)
+        assert [e.record for e in appended.logs.entries(imu, 0, size)] == canonicals
+        ingested.store.index_keywords()
+        appended.store.index_keywords()
+        for name in ("ingested", "appended"):
+            views = tmp_path / name / "views" / imu
+            assert len(list(views.glob("seg-*.json"))) == 7
+        files = sorted(p.name for p in (tmp_path / "ingested" / "views" / imu).iterdir())
+        assert files == sorted(p.name for p in (tmp_path / "appended" / "views" / imu).iterdir())
+        for name in files:
+            assert (tmp_path / "ingested" / "views" / imu / name).read_bytes() == (
+                tmp_path / "appended" / "views" / imu / name
+            ).read_bytes(), name
+        mine, theirs = ingested.store.views(imu), appended.store.views(imu)
+        assert mine is not None
+        assert theirs is not None
+        assert mine.snapshot() == theirs.snapshot()
+        assert ingested.store.keywords.search(["imu_link"], imu) == {imu: set(range(size))}
+        assert appended.store.keywords.search(["imu_link"], imu) == {imu: set(range(size))}
+    finally:
+        ingested.close()
+        appended.close()
 
 
 class RefusingBlobs:
@@ -323,8 +370,15 @@ def test_an_interrupted_commit_is_settled_exactly_once(node: Node, tmp_path: Pat
     )
     staged = node.root / "jobs" / job.id / "staged"
     staged.mkdir()
-    lines = [json.dumps(node.store.get(f"imu-1-{index}").record).encode() for index in range(80)]
-    spool_path(staged, imu, 0).write_bytes(b"\n".join(lines) + b"\n")
+    canonicals = [entry.record for entry in node.logs.entries(imu, 0, 80)]
+
+    def spool() -> None:
+        writer = SpoolWriter(staged, node.catalog.approved(imu), 0)
+        for canonical in canonicals:
+            writer.write(canonical)
+        writer.close()
+
+    spool()
     job_file.write_text(json.dumps(state))
     node.jobs = node.open_jobs()
     resumed = node.jobs.wait(job.id, 60)
@@ -337,7 +391,7 @@ def test_an_interrupted_commit_is_settled_exactly_once(node: Node, tmp_path: Pat
     state.update(intent={"template": imu, "start": 50, "count": 30, "log_size": 80})
     job_file.write_text(json.dumps(state))
     staged.mkdir(exist_ok=True)
-    spool_path(staged, imu, 0).write_bytes(b"\n".join(lines) + b"\n")
+    spool()
     node.jobs = node.open_jobs()
     again = node.jobs.wait(job.id, 60)
     assert again.status == "succeeded"

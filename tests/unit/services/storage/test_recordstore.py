@@ -9,13 +9,13 @@ import pytest
 from tinydb import TinyDB
 
 from robocloud.proofs import RecordIdError
-from robocloud.templates import canonical_record
+from robocloud.templates import canonical_record, parse_template
 from services.storage.recordstore import (
     OffloadFailed,
     RecordNotFound,
     RecordRejected,
 )
-from services.storage.segments import MANIFEST, TABLE, SegmentStorage
+from services.storage.segments import MANIFEST, TABLE, DocumentForm, SegmentStorage
 from tests.unit.services.storage.conftest import AUTHOR, ROBOT_A, StoreFactory, state_record
 
 
@@ -146,3 +146,22 @@ def test_a_sealed_segment_is_the_file_tinydb_itself_writes(
         order = sorted(range(16), key=lambda n: docs[n][field])
         assert list(index.positions) == order
         assert list(index.values) == [docs[n][field] for n in order]
+
+
+def test_a_template_without_numbers_prepares_rows_of_its_time_alone() -> None:
+    """A record of strings only is indexed by its time alone: its row is ``_t``."""
+    form = DocumentForm(
+        parse_template({"name": "note", "version": 1, "fields": {"text": "string"}})
+    )
+    record = {"template": "note@1", "topic": "/notes", "robot": ROBOT_A, "t": 7, "data": {}}
+    record["data"] = {"text": "docked at 3"}
+    doc, row, text = form.prepared(canonical_record(record))
+    assert json.loads(doc) == {
+        "_i": 0,
+        "_t": 7,
+        "_topic": "/notes",
+        "_robot": ROBOT_A,
+        "text": "docked at 3",
+    }
+    assert text == "docked at 3"
+    assert [column.tolist() for column in form.columns(row + row)] == [[7, 7]]
