@@ -397,11 +397,16 @@ def _context() -> Any:
     return context
 
 
-def start_workers_server() -> None:
+def start_workers_server(*, wait: bool = False) -> None:
     """Start the server that staging processes fork from, if it is not running: with the
-    service, so that it has loaded its modules (about half a second) before a job needs it."""
-    _context()
+    service, so that it has loaded its modules (about half a second) before a job needs it.
+    With ``wait``, return once it has (a process that does nothing started and ended)."""
+    context = _context()
     multiprocessing.forkserver.ensure_running()
+    if wait:
+        process = context.Process(target=int, name="stage-warm-up")
+        process.start()
+        process.join()
 
 
 def _store_blob(blobs: BlobSink, cid: str, data: bytes) -> None:
