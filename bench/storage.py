@@ -69,13 +69,7 @@ from tinydb import Query, TinyDB  # noqa: E402
 from tinydb.storages import JSONStorage  # noqa: E402
 
 from robocloud import jcs  # noqa: E402
-from robocloud.identity import Identity  # noqa: E402
-from robocloud.ledger import JsonRpcClient, LedgerService  # noqa: E402
-from robocloud.proofs import RecordId, anchored_root, verify_record_proof  # noqa: E402
-from services.storage.anchoring import NotAnchored  # noqa: E402
-from services.storage.app import _open_node  # noqa: E402
 from services.storage.catalog import Catalog  # noqa: E402
-from services.storage.identity import load_or_create  # noqa: E402
 from services.storage.queries import QueryEngine, RecordQuery  # noqa: E402
 from services.storage.recordlog import LogEntry, RecordLogs  # noqa: E402
 from services.storage.recordstore import Authorship, RecordStore  # noqa: E402
@@ -115,6 +109,12 @@ open the logs the bench appended to."""
 
 
 def bench_proofs(work: Path, records: int, batches: int, proofs: int) -> None:
+    from robocloud.ledger import JsonRpcClient, LedgerService
+    from robocloud.proofs import RecordId, anchored_root, verify_record_proof
+    from services.storage.anchoring import NotAnchored
+    from services.storage.app import _open_node
+    from services.storage.identity import load_or_create
+
     storage_port = free_port()
     catalog = Catalog(work / "storage" / "catalog")
     version = catalog.create(PROOF_IMU, author=ROBOT)
@@ -290,7 +290,11 @@ def bench_live(work: Path, robots: int, batches: int) -> None:
     (a prover thread fetches and verifies while the robots write), p50 and p99. One record
     is proved first, so that the node's role is granted and its anchorer running before the
     clock starts."""
+    from robocloud.identity import Identity
+    from robocloud.ledger import JsonRpcClient, LedgerService
+    from robocloud.proofs import verify_record_proof
     from robocloud.storage import Storage
+    from services.storage.identity import load_or_create
 
     keys = [Identity.generate() for _ in range(robots)]
     payloads = [
@@ -551,6 +555,7 @@ def _ingest(
     The node is opened first, as a running service has it: templates approved and bound, the
     server its staging processes fork from loaded. Image bytes go through ``add_blob`` (a cas
     client's ``add_bytes``), or are only hashed into their CID when it is None."""
+    from robocloud.identity import Identity
     from robocloud.unixfs import import_bytes
     from services.storage.catalog import Catalog
     from services.storage.ingest import IngestJobs
@@ -617,6 +622,9 @@ def bench_ingest(bag: Path, work: Path) -> Result:
 def bench_ingest_anchored(bag: Path, work: Path) -> Result:
     """The same ingest into a storage node that cuts epochs and anchors them on a ledger
     started here (the node's role granted by the ledger at its start)."""
+    from services.storage.app import _open_node
+    from services.storage.identity import load_or_create
+
     address = load_or_create(work / "storage", None).address
     grants = {"ROBOCLOUD_LEDGER_GRANT_ROLES": f"storage_node:{address}"}
     ledger = ServiceProcess("ledger", work / "ledger", {**QUIET, **grants}).start()
@@ -708,6 +716,7 @@ def _vm_hwm_mib(pid: int) -> float:
 def bench_bigbag_ingest(bag: Path, work: Path) -> Result:
     """An ingest job into a fresh record store, image bytes stored in a cas started here."""
     from robocloud.cas import Cas
+    from robocloud.identity import Identity
     from services.storage.recordlog import RecordLogs
 
     cas = ServiceProcess("cas", work / "cas", QUIET).start()

@@ -43,13 +43,12 @@ from services.storage.staging import (
     IngestFailed,
     Plans,
     SpoolReader,
+    StagingProcesses,
     bag_failures,
     check_complete,
     compile_plan,
-    stage_in_processes,
     stage_window,
     start_workers_server,
-    window_tasks,
 )
 
 log = logging.getLogger("robocloud.storage.ingest")
@@ -355,22 +354,33 @@ class IngestJobs:
             # Not saved: staging restarts from the first message after a crash.
             self._update(job, save=False, messages_done=done)
 
-        with bag_failures(), Bag.open(_bag_in(directory)) as bag:
-            reports, plans = self._plan(bag)
-            total = sum(r.messages for r in reports if r.template is not None)
-            self._update(
-                job, status="staging", topics=reports, messages_total=total, messages_done=0
-            )
-            workers = self.staging_workers if total >= self.parallel_from_messages else 1
-            if workers > 1:
-                tasks = window_tasks(bag, plans, workers, staged_dir, robot, self.store.arrays)
-                staged = stage_in_processes(tasks, blobs, progress)
-                check_complete(bag, plans, staged)
-            else:
-                arrays = self.store.arrays
-                staged = stage_window(
-                    bag, plans, None, staged_dir, 0, robot, arrays, blobs, progress
+        workers = None
+        try:
+            if self.staging_workers > 1:
+                workers = StagingProcesses.start(
+                    _bag_in(directory), self.staging_workers, staged_dir, robot, self.store.arrays
                 )
+            with bag_failures(), Bag.open(_bag_in(directory)) as bag:
+                reports, plans = self._plan(bag)
+                total = sum(r.messages for r in reports if r.template is not None)
+                self._update(
+                    job, status="staging", topics=reports, messages_total=total, messages_done=0
+                )
+                if workers is not None and total >= self.parallel_from_messages:
+                    staged = workers.stage(plans, blobs, progress)
+                    check_complete(bag, plans, staged)
+                    parts = workers.count
+                else:
+                    if workers is not None:
+                        workers.close()
+                    arrays = self.store.arrays
+                    staged = stage_window(
+                        bag, plans, None, staged_dir, 0, robot, arrays, blobs, progress
+                    )
+                    parts = 1
+        finally:
+            if workers is not None:
+                workers.close()
         counts = staged.records
         self._update(
             job,
@@ -378,7 +388,7 @@ class IngestJobs:
             messages_done=done,
             records_staged=sum(counts.values()),
             staged=counts,
-            spool_parts=workers,
+            spool_parts=parts,
             committed={template_id: 0 for template_id in counts},
         )
 
