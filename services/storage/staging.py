@@ -85,10 +85,10 @@ class Staged:
             self.messages[key] = self.messages.get(key, 0) + count
 
 
-def spool_path(directory: Path, template_id: str, part: int, kind: str = "records") -> Path:
-    """One of a spool part's files: ``records`` (canonical bytes, a line each), ``docs``
-    (documents as :class:`DocumentForm` prepares them, a line each), ``rows`` (their indexed
-    values, fixed width) and ``texts`` (keyword texts as JSON strings, a line each)."""
+def spool_path(directory: Path, template_id: str, part: int, kind: str = "lines") -> Path:
+    """One of a spool part's two files: ``lines`` holds, for each record, its canonical bytes,
+    its document as :class:`DocumentForm` prepares it and, for a template with strings, its
+    keyword text (a JSON string), a line each; ``rows`` its indexed values, fixed width."""
     return directory / f"{template_id}.{part}.{kind}"
 
 
@@ -98,25 +98,20 @@ class SpoolWriter:
 
     def __init__(self, directory: Path, template: Template, part: int) -> None:
         self.form = DocumentForm(template)
-        self._files = ExitStack()
-        kinds = ("records", "docs", "rows") + (("texts",) if self.form.text_of else ())
-        opened = [
-            self._files.enter_context(spool_path(directory, template.id, part, kind).open("wb"))
-            for kind in kinds
-        ]
-        self._records, self._docs, self._rows = opened[:3]
-        self._texts = opened[3] if len(opened) > 3 else None
+        self._lines = spool_path(directory, template.id, part).open("wb")
+        self._rows = spool_path(directory, template.id, part, "rows").open("wb")
 
     def write(self, canonical: bytes) -> None:
         doc, row, text = self.form.prepared(canonical)
-        self._records.write(canonical + b"\n")
-        self._docs.write(doc + b"\n")
+        if text is None:
+            self._lines.write(b"%s\n%s\n" % (canonical, doc))
+        else:
+            self._lines.write(b"%s\n%s\n%s\n" % (canonical, doc, orjson.dumps(text)))
         self._rows.write(row)
-        if self._texts is not None:
-            self._texts.write(orjson.dumps(text) + b"\n")
 
     def close(self) -> None:
-        self._files.close()
+        self._lines.close()
+        self._rows.close()
 
 
 class SpoolReader:
@@ -129,20 +124,20 @@ class SpoolReader:
             self._part(directory, template.id, part) for part in range(parts)
         )
 
-    def _part(self, directory: Path, template_id: str, part: int) -> Iterator[tuple[Any, ...]]:
+    def _part(self, directory: Path, template_id: str, part: int) -> Iterator[tuple[bytes, ...]]:
+        """(canonical line, document line, row[, text line]) for each record of a part."""
         if not spool_path(directory, template_id, part).exists():
             return iter(())
-
-        def opened(kind: str) -> IO[bytes]:
-            path = spool_path(directory, template_id, part, kind)
-            return self._files.enter_context(path.open("rb"))
-
-        rows = opened("rows")
+        lines = iter(self._opened(spool_path(directory, template_id, part)))
+        rows = self._opened(spool_path(directory, template_id, part, "rows"))
         row_size = self.form.row.size
-        files = [opened("records"), opened("docs"), iter(lambda: rows.read(row_size), b"")]
+        each_row = iter(lambda: rows.read(row_size), b"")
         if self.form.text_of:
-            files.append(opened("texts"))
-        return zip(*files, strict=True)
+            return zip(lines, lines, each_row, lines, strict=True)
+        return zip(lines, lines, each_row, strict=True)
+
+    def _opened(self, path: Path) -> IO[bytes]:
+        return self._files.enter_context(path.open("rb"))
 
     def skip(self, count: int) -> None:
         next(islice(self._records, count, count), None)

@@ -7,6 +7,7 @@ import io
 import json
 import os
 import signal
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -209,6 +210,23 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
     ]
 
 
+def _ingest_imu_until(
+    storage: ServiceProcess,
+    identity: Identity,
+    bag: Path,
+    until: Callable[[dict[str, Any]], bool],
+    what: str,
+) -> tuple[str, str]:
+    """Upload ``bag`` with its IMU topic bound and wait until its job is as ``until`` says:
+    the template id and the job id."""
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        imu = approve(records, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        job_id: str = ingest.upload(bag)["id"]
+        wait_for(lambda: until(ingest.job(job_id)), what)
+    return imu, job_id
+
+
 def test_kill_9_while_committing_a_bag_ingests_it_exactly_once(
     service_factory: ServiceFactory, identity: Identity, tmp_path: Path
 ) -> None:
@@ -223,14 +241,13 @@ def test_kill_9_while_committing_a_bag_ingests_it_exactly_once(
         },
     )
     bag = write_bag(tmp_path / "run.bag", "ros1", 12_000, start_ns=START_NS)
-    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
-        imu = approve(records, "sensor_msgs/msg/Imu")
-        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
-        job_id = ingest.upload(bag)["id"]
-        wait_for(
-            lambda: ingest.job(job_id)["records"]["committed"] > 0,
-            "the job to commit its first batch",
-        )
+    imu, job_id = _ingest_imu_until(
+        storage,
+        identity,
+        bag,
+        lambda job: job["records"]["committed"] > 0,
+        "the job to commit its first batch",
+    )
     assert storage.process is not None
     os.kill(storage.process.pid, signal.SIGKILL)
     storage.process.wait()
@@ -313,17 +330,13 @@ def test_kill_9_while_worker_processes_stage_a_bag(
     next start the job stages again and ingests every message exactly once."""
     storage = service_factory("storage", {**PARALLEL, **QUIET_NODE})
     bag = write_bag(tmp_path / "run.bag", "ros1", 60_000, start_ns=START_NS)
-    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
-        imu = approve(records, "sensor_msgs/msg/Imu")
-        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
-        job_id = ingest.upload(bag)["id"]
-        wait_for(
-            lambda: (
-                ingest.job(job_id)["status"] == "staging"
-                and ingest.job(job_id)["messages"]["done"] > 0
-            ),
-            "the workers to stage their first messages",
-        )
+    imu, job_id = _ingest_imu_until(
+        storage,
+        identity,
+        bag,
+        lambda job: job["status"] == "staging" and job["messages"]["done"] > 0,
+        "the workers to stage their first messages",
+    )
     assert storage.process is not None
     helpers = _descendants(storage.process.pid)
     assert len(helpers) >= 3, "a forkserver and two staging processes"
