@@ -418,21 +418,25 @@ class Bag:
                     path=path,
                 )
 
-    def decode(self, connection: BagConnection, t_ns: int, raw: bytes) -> dict[str, Any]:
-        """One message as plain Python: dicts, lists, str, int, float; ``bytes`` for uint8[]."""
-        store, to_plain = connection.typestore, connection.to_plain
-        if store is None or to_plain is None:
+    def deserialize(self, connection: BagConnection, t_ns: int, raw: bytes) -> Any:
+        """One message as rosbags deserializes it (a dataclass per message type)."""
+        store = connection.typestore
+        if store is None:
             raise MissingDefinition(connection.topic, connection.msgtype, connection.problem or "")
         try:
             if self._is_ros1:
-                message = store.deserialize_ros1(raw, connection.msgtype)
-            else:
-                message = store.deserialize_cdr(raw, connection.msgtype)
+                return store.deserialize_ros1(raw, connection.msgtype)
+            return store.deserialize_cdr(raw, connection.msgtype)
         except Exception as exc:  # rosbags' serde raises anything, from struct to numpy
             raise MessageUndecodable(
                 connection.topic, connection.msgtype, t_ns, _reason(exc)
             ) from None
-        plain: dict[str, Any] = to_plain(message)
+
+    def decode(self, connection: BagConnection, t_ns: int, raw: bytes) -> dict[str, Any]:
+        """One message as plain Python: dicts, lists, str, int, float; ``bytes`` for uint8[]."""
+        message = self.deserialize(connection, t_ns, raw)
+        assert connection.to_plain is not None
+        plain: dict[str, Any] = connection.to_plain(message)
         return plain
 
     def messages(self, topics: Collection[str] | None = None) -> Iterator[BagMessage]:

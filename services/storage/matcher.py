@@ -182,23 +182,24 @@ Convert = Callable[[Any], Any]
 
 @dataclass(frozen=True)
 class Converter:
-    """Record data and time from one plain message (see :mod:`services.storage.bags`)."""
+    """Record data and time from one message as rosbags deserializes it: attributes read
+    straight into the template's shape, with no plain copy of the message in between."""
 
     template_id: str
     msgtype: str
     header: bool
-    convert: Callable[[dict[str, Any], BlobSink], dict[str, Any]]
+    convert: Callable[[Any, BlobSink], dict[str, Any]]
 
-    def record_time(self, message: dict[str, Any], received_ns: int) -> int:
+    def record_time(self, message: Any, received_ns: int) -> int:
         """The header stamp in nanoseconds, or the receive time when there is none (or 0)."""
         if self.header:
-            stamp = message["header"]["stamp"]
-            t = int(stamp["sec"]) * NS + int(stamp["nanosec"])
+            stamp = message.header.stamp
+            t = int(stamp.sec) * NS + int(stamp.nanosec)
             if t > 0:
                 return t
         return received_ns
 
-    def data(self, message: dict[str, Any], blobs: BlobSink) -> dict[str, Any]:
+    def data(self, message: Any, blobs: BlobSink) -> dict[str, Any]:
         return self.convert(message, blobs)
 
 
@@ -219,8 +220,8 @@ def compile_converter(template: Template, store: Typestore, msgtype: str) -> Con
             raise BindingInvalid(template.id, msgtype, name, "no field of the message fills it")
         readers.append((name, ros_name, compiler.field(kind, sources[ros_name], name)))
 
-    def convert(message: dict[str, Any], blobs: BlobSink) -> dict[str, Any]:
-        return {name: read(message[key], blobs) for name, key, read in readers}
+    def convert(message: Any, blobs: BlobSink) -> dict[str, Any]:
+        return {name: read(getattr(message, key), blobs) for name, key, read in readers}
 
     return Converter(template.id, msgtype, header, convert)
 
@@ -229,8 +230,8 @@ def _frame_source(sources: Mapping[str, Any], name: str) -> bool:
     return name == FRAME_ID or FRAME_ID in sources
 
 
-def _frame_reader(header: dict[str, Any], blobs: BlobSink) -> Any:
-    return header["frame_id"]
+def _frame_reader(header: Any, blobs: BlobSink) -> Any:
+    return header.frame_id
 
 
 def _source_name(sources: Mapping[str, Any], name: str, *, skip_header: bool) -> str | None:
@@ -282,7 +283,7 @@ class _Compiler:
             raise self.fail(path, "the message holds an array here")
         item = self.field(kind.item, element, f"{path}[]")
         if is_bytes and isinstance(kind.item, Scalar) and kind.item.kind == "int":
-            return lambda value, blobs: list(value)
+            return lambda value, blobs: _plain_list(value)
         if isinstance(kind.item, Scalar) and kind.item.kind == "float":
             return _floats_reader(item)
         return lambda values, blobs: [item(value, blobs) for value in values]
@@ -297,7 +298,7 @@ class _Compiler:
             readers.append((name, ros_name, self.field(inner, sources[ros_name], f"{path}.{name}")))
 
         def convert(value: Any, blobs: BlobSink) -> dict[str, Any]:
-            return {name: read(value[key], blobs) for name, key, read in readers}
+            return {name: read(getattr(value, key), blobs) for name, key, read in readers}
 
         return convert
 
@@ -335,16 +336,25 @@ def _float_reader(path: str) -> Callable[[Any, BlobSink], float]:
 
 
 def _floats_reader(item: Callable[[Any, BlobSink], float]) -> Callable[[Any, BlobSink], Any]:
-    """An array of floats (covariances, ranges) as it comes, when every item is a finite
-    float (their sum is finite), without a call per item; else item by item, which converts
-    integers and names the first NaN."""
+    """An array of floats (covariances, ranges; a numpy array as rosbags gives it) as a list,
+    when every item is a finite float (their sum is finite), without a call per item; else
+    item by item, which converts integers and names the first NaN."""
 
     def read(values: Any, blobs: BlobSink) -> list[Any]:
-        if type(values) is list and finite_floats(values):
-            return values
-        return [item(value, blobs) for value in values]
+        plain = _plain_list(values)
+        if finite_floats(plain):
+            return plain
+        return [item(value, blobs) for value in plain]
 
     return read
+
+
+def _plain_list(values: Any) -> list[Any]:
+    """A numpy array (rosbags' numeric arrays) or a sequence as a list of Python values."""
+    if hasattr(values, "tolist"):
+        result: list[Any] = values.tolist()
+        return result
+    return list(values)
 
 
 def _int_reader(path: str) -> Callable[[Any, BlobSink], int]:
@@ -359,7 +369,7 @@ def _int_reader(path: str) -> Callable[[Any, BlobSink], int]:
 
 def _duration_reader(path: str) -> Callable[[Any, BlobSink], int]:
     check = _int_reader(path)
-    return lambda value, blobs: check(int(value["sec"]) * NS + int(value["nanosec"]), blobs)
+    return lambda value, blobs: check(int(value.sec) * NS + int(value.nanosec), blobs)
 
 
 def _time_reader(path: str) -> Callable[[Any, BlobSink], int]:

@@ -225,7 +225,7 @@ class RecordMaker:
         except RecordInvalid as exc:
             raise self._invalid(0, exc) from exc
 
-    def encoded(self, message: dict[str, Any], t_ns: int) -> bytes:
+    def encoded(self, message: Any, t_ns: int) -> bytes:
         """The canonical bytes of one message's record, as its log will hold them."""
         try:
             t = self.converter.record_time(message, t_ns)
@@ -281,7 +281,7 @@ def stage_window(
             maker = makers_by_key.get(key)
             if maker is None:
                 continue
-            canonical = maker.encoded(bag.decode(connection, t_ns, raw), t_ns)
+            canonical = maker.encoded(bag.deserialize(connection, t_ns, raw), t_ns)
             template_id = maker.template.id
             spool = spools.get(template_id)
             if spool is None:

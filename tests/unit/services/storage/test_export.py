@@ -36,14 +36,15 @@ def bag_records(tmp_path: Path, count: int) -> tuple[list[dict[str, Any]], dict[
                 template,
                 compile_converter(template, connection.typestore, connection.msgtype),
             )
-        for message in bag.messages():
-            template, converter = converters[message.topic]
+        for connection, t_ns, raw in bag.raw_messages():
+            template, converter = converters[connection.topic]
+            message = bag.deserialize(connection, t_ns, raw)
             record = {
                 "template": template.id,
-                "topic": record_topic(message.topic),
+                "topic": record_topic(connection.topic),
                 "robot": robot,
-                "t": converter.record_time(message.data, message.t_ns),
-                "data": converter.data(message.data, blobs),
+                "t": converter.record_time(message, t_ns),
+                "data": converter.data(message, blobs),
             }
             validate_record(template, record)
             records.append(record)

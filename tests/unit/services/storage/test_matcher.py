@@ -4,7 +4,9 @@ deserialisation and the template validator, bindings."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -126,6 +128,12 @@ def _stamp_ns(message: Any) -> int:
     return int(message.header.stamp.sec) * 1_000_000_000 + int(message.header.stamp.nanosec)
 
 
+def deserialized(bag: Bag) -> Iterator[tuple[str, int, Any]]:
+    """Every message of ``bag`` as rosbags deserializes it, with its topic and time."""
+    for connection, t_ns, raw in bag.raw_messages():
+        yield connection.topic, t_ns, bag.deserialize(connection, t_ns, raw)
+
+
 def draft_converters(bag: Bag) -> dict[str, tuple[Template, Converter]]:
     """Each topic's draft template, approved as it is, and its converter."""
     converters = {}
@@ -146,13 +154,11 @@ def test_records_from_generated_bags_match_rosbags(tmp_path: Path, kind: BagKind
     produced = []
     with Bag.open(path) as bag:
         converters = draft_converters(bag)
-        for message in bag.messages():
-            template, converter = converters[message.topic]
-            data = converter.data(message.data, blobs)
+        for topic, t_ns, message in deserialized(bag):
+            template, converter = converters[topic]
+            data = converter.data(message, blobs)
             validate_data(template, data)
-            produced.append(
-                (message.topic, converter.record_time(message.data, message.t_ns), data)
-            )
+            produced.append((topic, converter.record_time(message, t_ns), data))
     with AnyReader([path]) as reader:
         originals = [
             (c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()
@@ -194,10 +200,10 @@ def test_edited_template_keeps_only_its_fields_and_widens_types() -> None:
         }
     )
     converter = compile_converter(template, HUMBLE, "sensor_msgs/msg/Imu")
-    message = {
-        "header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": "base"},
-        "angular_velocity": {"x": 1.0, "y": 2.0, "z": 3},
-    }
+    message = SimpleNamespace(
+        header=SimpleNamespace(stamp=SimpleNamespace(sec=0, nanosec=0), frame_id="base"),
+        angular_velocity=SimpleNamespace(x=1.0, y=2.0, z=3),
+    )
     assert converter.data(message, MemoryBlobs()) == {
         "angular_velocity": {"z": 3.0},
         "frame_id": "base",
@@ -231,15 +237,15 @@ def test_values_json_cannot_hold_are_refused_with_their_path() -> None:
     template = imu_template({"orientation": {"container": {"w": "float"}}})
     converter = compile_converter(template, HUMBLE, "sensor_msgs/msg/Imu")
     with pytest.raises(ConversionError) as caught:
-        converter.data({"orientation": {"w": math.nan}}, MemoryBlobs())
+        converter.data(SimpleNamespace(orientation=SimpleNamespace(w=math.nan)), MemoryBlobs())
     assert caught.value.path == "orientation.w"
     store = get_typestore(Stores.EMPTY)
     store.register(get_types_from_msg("uint64 big", "my_msgs/msg/Big"))
     template = parse_template({"name": "big", "version": 1, "fields": {"big": "int"}})
     converter = compile_converter(template, store, "my_msgs/msg/Big")
-    assert converter.data({"big": 2**53 - 1}, MemoryBlobs()) == {"big": 2**53 - 1}
+    assert converter.data(SimpleNamespace(big=2**53 - 1), MemoryBlobs()) == {"big": 2**53 - 1}
     with pytest.raises(ConversionError, match=r"2\*\*53") as too_big:
-        converter.data({"big": 2**64 - 1}, MemoryBlobs())
+        converter.data(SimpleNamespace(big=2**64 - 1), MemoryBlobs())
     assert too_big.value.path == "big"
 
 
@@ -248,15 +254,15 @@ def test_real_recording_records_validate_or_are_refused_by_path() -> None:
     validated, refused = [], []
     with Bag.open(DATA / "rosbag2/rosbag2_cdr_test_sqlite3") as bag:
         converters = draft_converters(bag)
-        for message in bag.messages():
-            template, converter = converters[message.topic]
+        for topic, _, message in deserialized(bag):
+            template, converter = converters[topic]
             try:
-                data = converter.data(message.data, MemoryBlobs())
+                data = converter.data(message, MemoryBlobs())
             except ConversionError as exc:
-                refused.append((message.topic, exc.path))
+                refused.append((topic, exc.path))
                 continue
             validate_data(template, data)
-            validated.append(message.topic)
+            validated.append(topic)
     assert validated == ["/test_topic"] * 3
     assert refused == [("/array_topic", "int64_values_default[]")] * 4
 
