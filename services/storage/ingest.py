@@ -413,9 +413,10 @@ class IngestJobs:
         spool.skip(job.committed[template_id])
         while job.committed[template_id] < staged:
             start = job.committed[template_id]
-            batch = spool.batch(min(self.batch_records, staged - start))
+            wanted = self.store.fitting(template_id, min(self.batch_records, staged - start))
+            batch = spool.batch(wanted)
             count = len(batch.canonicals)
-            if count != min(self.batch_records, staged - start):
+            if count != wanted:
                 raise IngestFailed(
                     "ingest_inconsistent",
                     f"{template_id}: the spool holds {start + count} of {staged} records",

@@ -379,6 +379,11 @@ class RecordStore:
             self.notify(len(records))
         return ids
 
+    def fitting(self, template_id: str, wanted: int) -> int:
+        """How many records of ``template_id`` to append next, at most ``wanted``, for its
+        views to write whole segments (see ``TemplateSegments.fitting``)."""
+        return self._open_views(template_id).fitting(wanted)
+
     def append_prepared(
         self, template_id: str, batch: SpooledRecords, *, author: Authorship
     ) -> int:

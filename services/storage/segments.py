@@ -384,6 +384,15 @@ class TemplateSegments:
                 self.tail.append(doc)
             self._seal_full_tail()
 
+    def fitting(self, wanted: int) -> int:
+        """How many of ``wanted`` records to add next so that the tail ends on a segment
+        boundary (whole segments are written from prepared documents; records left in the
+        tail are parsed): ``wanted`` itself when no boundary lies within it."""
+        room = self.segment_records - len(self.tail) % self.segment_records
+        if wanted < room:
+            return wanted
+        return room + (wanted - room) // self.segment_records * self.segment_records
+
     def add_prepared(self, first: int, documents: PreparedDocuments) -> None:
         """Add records ``first``... as :class:`DocumentForm` prepared them where they were
         staged: whole segments are written from the documents' bytes and rows, never parsed;

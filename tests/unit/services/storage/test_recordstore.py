@@ -165,3 +165,16 @@ def test_a_template_without_numbers_prepares_rows_of_its_time_alone() -> None:
     }
     assert text == "docked at 3"
     assert [column.tolist() for column in form.columns(row + row)] == [[7, 7]]
+
+
+def test_an_ingest_batch_fits_the_segments(open_store: StoreFactory) -> None:
+    """Segments of 16 records with 5 in the tail: a batch of up to 50 ends on a boundary, 43
+    records (11 to complete the tail, two whole segments); one too short for a boundary is
+    taken whole."""
+    store = open_store()
+    store.append([state_record(t) for t in range(5)], author=AUTHOR)
+    assert store.fitting("state@1", 50) == 43
+    assert store.fitting("state@1", 11) == 11
+    assert store.fitting("state@1", 10) == 10
+    store.append([state_record(t) for t in range(11)], author=AUTHOR)
+    assert store.fitting("state@1", 50) == 48
