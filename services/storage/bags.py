@@ -224,8 +224,11 @@ class Bag:
     one chunk at a time), never by the messages themselves.
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, check: bool = True) -> None:
         self.path = path
+        self.check = check
+        """Whether MCAP files are walked for damage at open (:func:`check_mcap`); without it
+        the caller checks them (:meth:`check_files`) before it trusts what it read."""
         self.format = detect_format(path)
         self._stack = ExitStack()
         self._is_ros1 = self.format is BagFormat.ROS1
@@ -238,8 +241,8 @@ class Bag:
         """Receive times of the first and the last message, as the bag's index has them."""
 
     @classmethod
-    def open(cls, path: Path) -> Self:
-        bag = cls(path)
+    def open(cls, path: Path, *, check: bool = True) -> Self:
+        bag = cls(path, check=check)
         try:
             bag._open()
         except BaseException:
@@ -285,11 +288,8 @@ class Bag:
         self._span = (reader.start_time, reader.end_time)
 
     def _open_ros2(self) -> None:
-        if self.format is BagFormat.MCAP:
-            check_mcap(self.path)
-        elif self.format is BagFormat.ROS2_DIRECTORY:
-            for storage_file in sorted(self.path.glob("*.mcap")):
-                check_mcap(storage_file)
+        if self.check:
+            self.check_files()
         reader = Rosbag2Reader(self._rosbags_path())
         try:
             reader.open()
@@ -308,6 +308,19 @@ class Bag:
 
             self._decompress = zstd.decompress
         self._sources = [(each, self._group(each.connections)) for each in storages]
+
+    def check_files(self) -> None:
+        """Walk the bag's MCAP files for damage (:func:`check_mcap`): what an open does
+        unless told not to, for a caller that reads the bag while the check runs."""
+        for storage_file in self._mcap_files():
+            check_mcap(storage_file)
+
+    def _mcap_files(self) -> list[Path]:
+        if self.format is BagFormat.MCAP:
+            return [self.path]
+        if self.format is BagFormat.ROS2_DIRECTORY:
+            return sorted(self.path.glob("*.mcap"))
+        return []
 
     def _rosbags_path(self) -> Path:
         """rosbags picks its storage plugin by suffix; a bare file must carry the right one."""

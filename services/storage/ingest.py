@@ -360,19 +360,21 @@ class IngestJobs:
                 workers = StagingProcesses.start(
                     _bag_in(directory), self.staging_workers, staged_dir, robot, self.store.arrays
                 )
-            with bag_failures(), Bag.open(_bag_in(directory)) as bag:
+            # With staging processes, the bag's files are checked while they stage.
+            with bag_failures(), Bag.open(_bag_in(directory), check=workers is None) as bag:
                 reports, plans = self._plan(bag)
                 total = sum(r.messages for r in reports if r.template is not None)
                 self._update(
                     job, status="staging", topics=reports, messages_total=total, messages_done=0
                 )
                 if workers is not None and total >= self.parallel_from_messages:
-                    staged = workers.stage(plans, blobs, progress)
+                    staged = workers.stage(plans, blobs, progress, alongside=bag.check_files)
                     check_complete(bag, plans, staged)
                     parts = workers.count
                 else:
                     if workers is not None:
                         workers.close()
+                        bag.check_files()
                     arrays = self.store.arrays
                     staged = stage_window(
                         bag, plans, None, staged_dir, 0, robot, arrays, blobs, progress

@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import multiprocessing
 import multiprocessing.forkserver
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack, contextmanager
@@ -353,7 +354,8 @@ def _forwarded(parent: Connection) -> Callable[[bytes], str]:
 def _stage_task(task: WindowTask, parent: Connection) -> None:
     """A worker process's body: every outcome is one message to the parent."""
     try:
-        with bag_failures(), Bag.open(task.bag) as bag:
+        # The job's own open checks the bag; it sends no plan unless the bag passed.
+        with bag_failures(), Bag.open(task.bag, check=False) as bag:
             window = bag.time_windows(task.windows)[task.part]
             order = parent.recv()
             if order[0] != "plan":
@@ -459,21 +461,36 @@ class StagingProcesses:
             ]
         )
 
-    def stage(self, plans: Plans, blobs: BlobSink, progress: Callable[[int], None]) -> Staged:
-        """Stage every window with ``plans``; the first failure stops them all."""
+    def stage(
+        self,
+        plans: Plans,
+        blobs: BlobSink,
+        progress: Callable[[int], None],
+        alongside: Callable[[], None],
+    ) -> Staged:
+        """Stage every window with ``plans`` while ``alongside`` (the check of the bag's
+        files) runs here; the first failure of either stops them all."""
         templates = {key: template.to_json() for key, (template, _) in plans.items()}
         for _, worker in self._workers:
             try:
                 worker.send(("plan", templates))
             except OSError:
                 continue  # it failed reading the bag: its message says why
+        check = _Alongside(alongside)
         staged = Staged()
         pending = {worker: part for part, (_, worker) in enumerate(self._workers)}
-        while pending:
-            for ready in wait(list(pending)):
-                assert isinstance(ready, Connection)
-                if _handle(ready, pending[ready], blobs, progress, staged):
-                    del pending[ready]
+        try:
+            while pending or not check.done():
+                check.raise_failure()
+                for ready in wait(list(pending), timeout=0.05):
+                    assert isinstance(ready, Connection)
+                    if _handle(ready, pending[ready], blobs, progress, staged):
+                        del pending[ready]
+        except IngestFailed:
+            check.join()  # a worker reading a damaged bag fails in its own words: the check's win
+            check.raise_failure()
+            raise
+        check.raise_failure()
         return staged
 
     def close(self) -> None:
@@ -483,6 +500,33 @@ class StagingProcesses:
                 process.terminate()
             process.join()
             worker.close()
+
+
+class _Alongside:
+    """A function run on its own thread; its exception raised where :meth:`raise_failure`
+    is called."""
+
+    def __init__(self, run: Callable[[], None]) -> None:
+        self._failure: BaseException | None = None
+        self._run = run
+        self._thread = threading.Thread(target=self._main, name="stage-check", daemon=True)
+        self._thread.start()
+
+    def _main(self) -> None:
+        try:
+            self._run()
+        except BaseException as exc:
+            self._failure = exc
+
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def join(self) -> None:
+        self._thread.join()
+
+    def raise_failure(self) -> None:
+        if self._failure is not None:
+            raise self._failure
 
 
 def _handle(

@@ -15,6 +15,7 @@ import pytest
 from robocloud.identity import Identity
 from robocloud.templates import parse_template
 from robocloud.unixfs import import_bytes
+from services.storage.bags import Bag
 from services.storage.catalog import Catalog
 from services.storage.ingest import IngestJobs, Job, JobNotFound
 from services.storage.matcher import Bindings, draft_template
@@ -292,6 +293,38 @@ def test_a_failing_bag_appends_nothing(
     else:
         assert job.error["details"]["topic"].startswith("/test_service")
     assert node.logs.size(imu) == 0
+    assert node.logs.template_ids() == []
+
+
+@WORKERS
+def test_a_damaged_mcap_chunk_fails_the_job_as_bag_corrupt(
+    node: Node, tmp_path: Path, workers: int
+) -> None:
+    """Staging processes read the bag while the job checks its MCAP files; the damage the
+    check finds is the job's error (whatever a worker made of the damaged bytes), with the
+    file and offset, and nothing is logged."""
+    node.stage_in(workers)
+    source = Path(__file__).resolve().parents[5] / "shared/data/mcap/rosbag2_wbag_mcap"
+    copy = tmp_path / "wbag"
+    shutil.copytree(source, copy)
+    with Bag.open(copy) as intact:
+        bound = {c.msgtype: c.typestore for c in intact.connections if c.typestore and c.count}
+    for msgtype, store in bound.items():
+        version = node.catalog.create(draft_template(store, msgtype), author=node.author)
+        node.catalog.submit(version.id, author=node.author)
+        node.catalog.review(version.id, "approve", reviewer=node.author)
+        node.bindings.bind(template_id=version.id, msgtype=msgtype)
+    storage = copy / "wbag_2.mcap"
+    damaged = bytearray(storage.read_bytes())
+    damaged[4000:4016] = bytes(16)
+    storage.write_bytes(bytes(damaged))
+    job = node.jobs.wait(node.jobs.submit(copy, "upload:w", authorship()).id, 60)
+    assert job.status == "failed"
+    assert job.error is not None
+    assert job.error["code"] == "bag_corrupt"
+    assert job.error["details"] == {"file": "wbag_2.mcap", "offset": 45}
+    assert bound
+    assert all(node.logs.size(report.template) == 0 for report in job.topics if report.template)
     assert node.logs.template_ids() == []
 
 
