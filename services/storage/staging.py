@@ -1,13 +1,13 @@
 """Staging a bag: its bound messages into checked records, spooled per template.
 
 Staging is pure Python for every message (rosbags' deserializer, conversion to the template,
-the template's check, canonical bytes), about 25 µs an IMU message, and a bag holds hundreds
-of thousands of them: one interpreter is the bottleneck of an ingest. So a large bag is cut
-into time windows, each staged by its own process (:func:`stage_in_processes`) into its own
-spool part. Windows follow each other in time and the bag is read in time order, so the
-parts of a template read in window order hold its records in exactly the order one pass
-would give, and every message lies in exactly one window. The bag's index counts are checked
-over all windows together.
+the template's check, canonical bytes, the document its views keep), about 25 µs an IMU
+message, and a bag holds hundreds of thousands of them: one interpreter is the bottleneck of an
+ingest. So a large bag is cut into time windows, each staged by its own process
+(:class:`StagingProcesses`) into its own spool part. Windows follow each other in time and the
+bag is read in time order, so the parts of a template read in window order hold its records in
+exactly the order one pass would give, and every message lies in exactly one window. The bag's
+index counts are checked over all windows together.
 
 Worker processes never talk to cas: a worker computes the CID of an image, a file or a large
 array itself (the UnixFS import the SDK checks cas's answer against) and hands the bytes to
