@@ -4,11 +4,13 @@ The record logs are append-only and anchored, so an ingest cannot be rolled back
 written; it is therefore built so that it either writes nothing or can always be finished:
 
 1. **stage**: the whole bag is read, every bound message converted and validated against its
-   approved template, image/file bytes stored in cas, and the records spooled to one file per
-   template in the job's directory. Any failure here (a truncated bag, an undecodable message,
-   a value a template refuses) fails the job with nothing appended; cas blobs are
-   content-addressed and harmless.
-2. **commit**: each template's spool is appended through ``RecordStore.append`` in batches.
+   approved template, image/file bytes stored in cas, and the records spooled per template in
+   the job's directory, with the documents their views keep (a large bag is staged by several
+   processes, a time window each: :mod:`services.storage.staging`). Any failure here (a
+   truncated bag, an undecodable message, a value a template refuses) fails the job with
+   nothing appended; cas blobs are content-addressed and harmless.
+2. **commit**: each template's spool is appended through ``RecordStore.append_prepared`` in
+   batches.
    Before a batch the job durably records its intent (template, spool offset, count, log size
    before); after it, the new offset. A job interrupted anywhere (kill -9 included) resumes at
    the next start: a pending intent is settled by looking in the template's log, past the
