@@ -2,7 +2,7 @@
 # Builds the wheelhouse the Dockerfile installs from, so the image builds with no registry:
 # every pinned dependency of the `services` extra (constraints.txt) as a wheel, plus the build
 # backend (setuptools, wheel) needed to install the project itself offline. It is rebuilt only
-# when constraints.txt or pyproject.toml change.
+# when constraints.txt, pyproject.toml or this script change.
 # Sourced by scripts/test-compose.sh; `bash scripts/docker/wheelhouse.sh` builds it alone.
 
 # shellcheck source=scripts/docker/common.sh
@@ -11,7 +11,8 @@ source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 WHEELHOUSE="${BUILD_DIR}/wheels"
 
 wheelhouse_key() {
-    cat "${REPO_ROOT}/constraints.txt" "${REPO_ROOT}/pyproject.toml" | sha256sum | cut -d ' ' -f 1
+    cat "${REPO_ROOT}/constraints.txt" "${REPO_ROOT}/pyproject.toml" \
+        "${REPO_ROOT}/scripts/docker/wheelhouse.sh" | sha256sum | cut -d ' ' -f 1
 }
 
 build_wheelhouse() {
@@ -28,8 +29,11 @@ build_wheelhouse() {
         --wheel-dir "${staging}" "${REPO_ROOT}[services]" || die "pip wheel failed"
     # The project is installed from the source copied into the image, not from this wheel.
     rm -f "${staging}"/robocloud-*.whl
+    # Constrained too: wheel depends on packaging, whose newest release would otherwise sit
+    # beside the pinned one and make the image's offline install unsolvable.
     "${python}" -m pip download --quiet --quiet --only-binary=:all: --dest "${staging}" \
-        "setuptools>=69" wheel || die "pip download of the build backend failed"
+        --constraint "${REPO_ROOT}/constraints.txt" "setuptools>=69" wheel \
+        || die "pip download of the build backend failed"
     rm -rf "${WHEELHOUSE}" && mv "${staging}" "${WHEELHOUSE}"
     printf '%s\n' "${key}" >"${stamp}"
     log "wheelhouse ready ($(find "${WHEELHOUSE}" -name '*.whl' | wc -l) wheels)"
