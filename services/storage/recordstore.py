@@ -127,7 +127,8 @@ class SpooledRecords:
 
     canonicals: list[bytes]
     documents: PreparedDocuments
-    texts: list[str] | None
+    texts: list[bytes] | None
+    """As JSON strings: the keyword thread decodes each distinct one once."""
 
 
 @dataclass(frozen=True)
@@ -255,7 +256,7 @@ class RecordStore:
         self.keywords = KeywordIndex(root / "keywords")
         self._wake = threading.Event()
         self._texts_lock = threading.Lock()
-        self._held_texts: dict[str, dict[int, list[str]]] = {}
+        self._held_texts: dict[str, dict[int, list[bytes]]] = {}
         """Keyword texts of records an ingest committed, by template and first index."""
         self._texts_held = 0
         self._keyword_lock = threading.Lock()
@@ -406,7 +407,7 @@ class RecordStore:
             self.notify(len(entries))
         return first
 
-    def _hold_texts(self, template_id: str, first: int, texts: list[str]) -> None:
+    def _hold_texts(self, template_id: str, first: int, texts: list[bytes]) -> None:
         with self._texts_lock:
             if self._texts_held + len(texts) <= KEYWORD_TEXTS_HELD:
                 self._held_texts.setdefault(template_id, {})[first] = texts
@@ -415,7 +416,7 @@ class RecordStore:
     def _take_texts(self, template_id: str, start: int) -> list[str]:
         """Held texts of records ``start``... (consecutive batches, up to a keyword batch),
         dropping those the keyword index has passed; empty when none are held from there."""
-        taken: list[str] = []
+        taken: list[bytes] = []
         with self._texts_lock:
             held = self._held_texts.get(template_id, {})
             for first in [first for first in held if first < start]:
@@ -424,7 +425,8 @@ class RecordStore:
                 texts = held.pop(start + len(taken))
                 self._texts_held -= len(texts)
                 taken += texts
-        return taken
+        decoded = {text: orjson.loads(text) for text in set(taken)}
+        return [decoded[text] for text in taken]
 
     def get(self, text: str) -> StoredRecord:
         """A record by id, exactly as its log holds it, with its authorship."""

@@ -180,6 +180,7 @@ class PreparedDocuments:
     """Consecutive records of a template as :class:`DocumentForm` prepared them."""
 
     docs: list[bytes]
+    """Each document's JSON as its spool line holds it, the newline kept."""
     rows: Rows
     row_size: int
 
@@ -203,7 +204,7 @@ class PreparedDocuments:
         the bytes orjson writes for them as TinyDB stores a table (tested)."""
         skip = len(PREFIX)
         items = b",".join(
-            b'"%d":{"_i":%d,%s' % (n + 1, first + n, doc[skip:])
+            b'"%d":{"_i":%d,%s' % (n + 1, first + n, doc[skip:-1])
             for n, doc in enumerate(self.docs[start:stop])
         )
         return b'{"%s":{%s}}' % (TABLE.encode(), items)

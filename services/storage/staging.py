@@ -23,9 +23,9 @@ import multiprocessing.forkserver
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import ExitStack, contextmanager
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from itertools import chain, islice
+from itertools import islice
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import IO, Any
@@ -116,46 +116,73 @@ class SpoolWriter:
 
 
 class SpoolReader:
-    """A template's spool, part after part: its records in the bag's order, in batches."""
+    """A template's spool, part after part: its records in the bag's order, in batches read
+    whole (a batch's lines in one C loop, its rows in one read)."""
 
     def __init__(self, directory: Path, template: Template, parts: int) -> None:
         self.form = DocumentForm(template)
-        self._files = ExitStack()
-        self._records = chain.from_iterable(
-            self._part(directory, template.id, part) for part in range(parts)
-        )
+        self._lines_per_record = 3 if self.form.text_of else 2
+        self._paths = [
+            (
+                spool_path(directory, template.id, part),
+                spool_path(directory, template.id, part, "rows"),
+            )
+            for part in range(parts)
+        ]
+        self._part: tuple[IO[bytes], IO[bytes]] | None = None
 
-    def _part(self, directory: Path, template_id: str, part: int) -> Iterator[tuple[bytes, ...]]:
-        """(canonical line, document line, row[, text line]) for each record of a part."""
-        if not spool_path(directory, template_id, part).exists():
-            return iter(())
-        lines = iter(self._opened(spool_path(directory, template_id, part)))
-        rows = self._opened(spool_path(directory, template_id, part, "rows"))
-        row_size = self.form.row.size
-        each_row = iter(lambda: rows.read(row_size), b"")
-        if self.form.text_of:
-            return zip(lines, lines, each_row, lines, strict=True)
-        return zip(lines, lines, each_row, strict=True)
+    def _take(self, count: int) -> tuple[list[bytes], bytes]:
+        """The lines and the rows of the next ``count`` records (fewer at the spool's end)."""
+        lines: list[bytes] = []
+        rows: list[bytes] = []
+        per_record, row_size = self._lines_per_record, self.form.row.size
+        while count and (self._part is not None or self._open_next()):
+            assert self._part is not None
+            text, table = self._part
+            taken = list(islice(text, count * per_record))
+            records = len(taken) // per_record
+            row_bytes = table.read(records * row_size)
+            if len(taken) % per_record or len(row_bytes) != records * row_size:
+                raise ValueError(f"{text.name}: its lines and rows do not hold the same records")
+            lines += taken
+            rows.append(row_bytes)
+            count -= records
+            if count:
+                self._close_part()
+        return lines, b"".join(rows)
 
-    def _opened(self, path: Path) -> IO[bytes]:
-        return self._files.enter_context(path.open("rb"))
+    def _open_next(self) -> bool:
+        while self._paths:
+            lines_path, rows_path = self._paths.pop(0)
+            if lines_path.exists():
+                self._part = (lines_path.open("rb"), rows_path.open("rb"))
+                return True
+        return False
+
+    def _close_part(self) -> None:
+        if self._part is not None:
+            for file in self._part:
+                file.close()
+            self._part = None
 
     def skip(self, count: int) -> None:
-        next(islice(self._records, count, count), None)
+        while count:
+            taken = len(self._take(min(count, 65_536))[0]) // self._lines_per_record
+            if not taken:
+                return
+            count -= taken
 
     def batch(self, count: int) -> SpooledRecords:
         """The next ``count`` records (fewer at the spool's end)."""
-        items = list(islice(self._records, count))
-        documents = PreparedDocuments(
-            [item[1][:-1] for item in items],
-            b"".join(item[2] for item in items),
-            self.form.row.size,
-        )
-        texts = [orjson.loads(item[3]) for item in items] if self.form.text_of else None
-        return SpooledRecords([item[0][:-1] for item in items], documents, texts)
+        lines, rows = self._take(count)
+        per_record = self._lines_per_record
+        documents = PreparedDocuments(lines[1::per_record], rows, self.form.row.size)
+        texts = lines[2::per_record] if per_record == 3 else None
+        return SpooledRecords([line[:-1] for line in lines[::per_record]], documents, texts)
 
     def close(self) -> None:
-        self._files.close()
+        self._close_part()
+        self._paths.clear()
 
 
 def compile_plan(connection: BagConnection, template: Template) -> tuple[Template, Converter]:
