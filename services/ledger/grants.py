@@ -70,10 +70,13 @@ def parse_grants(entries: list[str]) -> list[RoleGrant]:
     return [RoleGrant.parse(entry) for entry in entries]
 
 
-def published_address(url: str, *, timeout_s: float = 5.0) -> str | None:
+NODE_ANSWER_TIMEOUT_S = 5.0
+
+
+def published_address(client: httpx.Client, url: str) -> str | None:
     """The address a service publishes at ``{url}/v1/node``; None while it does not answer."""
     try:
-        with httpx.stream("GET", f"{url}/v1/node", timeout=timeout_s) as response:
+        with client.stream("GET", f"{url}/v1/node") as response:
             if response.status_code != 200:
                 return None
             body = b""
@@ -98,22 +101,22 @@ class RoleGranter:
 
     ``reader`` reads the chain; ``writer`` gives a client signing with the admin's key, asked
     for only when a transaction is needed (decrypting a keystore costs a second of scrypt).
+    URL targets are read with one HTTP client for the granter's life: a new client loads the
+    CA bundle (18 ms), and a node that is down is asked every poll interval for as long as
+    the ledger runs.
     """
 
     def __init__(
-        self,
-        reader: Ledger,
-        writer: Callable[[], Ledger],
-        grants: list[RoleGrant],
-        resolve: Callable[[str], str | None] = published_address,
+        self, reader: Ledger, writer: Callable[[], Ledger], grants: list[RoleGrant]
     ) -> None:
         self.reader = reader
         self.remaining = list(grants)
         self._writer = writer
         self._signing: Ledger | None = None
-        self._resolve = resolve
+        self._http = httpx.Client(timeout=NODE_ANSWER_TIMEOUT_S)
 
     def close(self) -> None:
+        self._http.close()
         self.reader.close()
 
     def attempt(self) -> bool:
@@ -131,7 +134,11 @@ class RoleGranter:
         return self._signing
 
     def _apply(self, grant: RoleGrant) -> bool:
-        address = grant.target if grant.target.startswith("0x") else self._resolve(grant.target)
+        address = (
+            grant.target
+            if grant.target.startswith("0x")
+            else published_address(self._http, grant.target)
+        )
         if address is None:
             return False
         if self.reader.has_role(address, grant.role, active=False):
