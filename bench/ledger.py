@@ -13,7 +13,10 @@
 3. Where a transaction's time goes: the embedded chain in this process, each stage timed
    (sender recovery, validity checks, execution, tries and block assembly, writing the
    block, the fsync of the commit, the event index), and HTTP as the rest of the time one
-   transaction takes through /rpc.
+   transaction takes through /rpc; and the ceiling this puts on the ratio: what it would be
+   if the ledger's HTTP cost no more than anvil's whole cycle, the chain's work being added.
+4. External-node mode: the same rounds with the ledger forwarding ``/rpc`` to its own anvil,
+   against a second anvil: what the service costs as a forwarder, with no chain work.
 
 ``calls`` answers the eth_call latency that storage's proof verification pays: the p50 of one
 ``AnchorLog.rootAt`` view call at ``latest`` through ``/rpc`` (the SDK's JSON-RPC client, as
@@ -58,6 +61,7 @@ from services.ledger.chain import CallRequest, EmbeddedChain  # noqa: E402
 from services.ledger.contracts import artifact  # noqa: E402
 from services.ledger.encoding import LogEntry  # noqa: E402
 from services.ledger.index import EventIndex, LogFilter  # noqa: E402
+from tests.integration.robocloud.ledger.nodes import ethereum_node  # noqa: E402
 from tests.procs import ServiceProcess  # noqa: E402
 
 REGISTRY = ContractAbi.load("Registry")
@@ -460,8 +464,6 @@ def breakdown(count: int) -> dict[str, float]:
 
 
 def transfers_part(args: argparse.Namespace) -> None:
-    from tests.integration.robocloud.ledger.nodes import ethereum_node
-
     with tempfile.TemporaryDirectory() as tmp:
         env = {
             "ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": "bench",
@@ -514,8 +516,10 @@ def transfers_part(args: argparse.Namespace) -> None:
                         f"{accepted:5.2f} / {mined:5.2f}"
                     )
                 http_ms = 1000 / statistics.median(ours)
+                anvil_ms = 1000 / statistics.median(theirs)
         finally:
             process.stop()
+    external_node_part(args)
     stages = breakdown(args.transactions)
     print("where a transaction's time goes (ms per transaction)")
     for stage, ms in stages.items():
@@ -529,6 +533,52 @@ def transfers_part(args: argparse.Namespace) -> None:
     print(f"  {'signing (the client, eth-account)':32s} {signing_ms:6.3f}")
     print(f"  {'through /rpc (median round)':32s} {http_ms:6.3f}")
     print(f"  {'HTTP and JSON, both requests':32s} {rest:6.3f}   (the difference)")
+    chain_ms = stages["in-process total"]
+    print(
+        f"ceiling on py-evm: with HTTP as cheap as anvil's whole cycle ({anvil_ms:.3f} ms), the "
+        f"chain's {chain_ms:.3f} ms alone caps the ratio at "
+        f"{anvil_ms / (anvil_ms + chain_ms):.2f}x; 0.5x needs the chain within anvil's cycle"
+    )
+
+
+def external_node_part(args: argparse.Namespace) -> None:
+    """The same sequential rounds with the ledger in external-node mode over its own anvil,
+    against a second, fresh anvil: what ``/rpc`` costs as a forwarder, chain work aside."""
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        with (
+            ethereum_node(work / "behind.log") as behind_url,
+            ethereum_node(work / "direct.log") as direct_url,
+        ):
+            behind, direct = Node("behind", behind_url), Node("anvil", direct_url)
+            admin = Identity.generate()
+            admin.save(work / "ledger" / "keys" / "admin.json", "bench", scrypt_n=2**14)
+            robots = [Identity.generate() for _ in range(2 * args.rounds)]
+            for identity in (admin, *robots):
+                for node in (behind, direct):
+                    node.call("anvil_setBalance", [identity.address, hex(10**21)])
+            env = {
+                "ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": "bench",
+                "ROBOCLOUD_LEDGER_RPC_URL": behind_url,
+            }
+            process = ServiceProcess("ledger", work / "ledger", env).start()
+            try:
+                ledger = Node("ledger", f"{process.url}/rpc")
+                ratios = []
+                for round_ in range(args.rounds):
+                    pair = (ledger, direct) if round_ % 2 == 0 else (direct, ledger)
+                    rates = {
+                        node.name: sequential_rate(node, robots[2 * round_ + i], args.transactions)
+                        for i, node in enumerate(pair)
+                    }
+                    ratios.append(rates["ledger"] / rates["anvil"])
+                print(
+                    "external-node mode (the ledger forwarding to its own anvil) against anvil: "
+                    f"median ratio {statistics.median(ratios):.2f}x "
+                    f"(rounds {min(ratios):.2f}-{max(ratios):.2f}x)"
+                )
+            finally:
+                process.stop()
 
 
 def calls_part(args: argparse.Namespace) -> None:
