@@ -349,24 +349,28 @@ class Anchorer:
                 self._stop.wait(self._retry_s)
 
     def _anchor_loop(self) -> None:
-        delay = self._retry_s
+        failures = 0
         while not self._stop.is_set():
             self._cut_done.wait(self._epoch_s)
             self._cut_done.clear()
             try:
                 while not self._stop.is_set() and self.anchor_next():
                     pass
-                delay = self._retry_s
+                failures = 0
             except AnchorConflict as exc:
                 self.conflict = str(exc)
                 log.error("anchoring stopped", extra={"reason": str(exc)})
                 return
             except Exception as exc:
-                self.last_error = f"{type(exc).__name__}: {exc}"
-                log.warning("anchoring failed; retrying", extra={"error": self.last_error})
-                self._drop_chain()
-                self._stop.wait(delay)
-                delay = min(delay * 2, MAX_RETRY_S)
+                error = f"{type(exc).__name__}: {exc}"
+                if error != self.last_error:
+                    log.warning("anchoring failed; retrying", extra={"error": error})
+                self.last_error = error
+                waiting_for_role = isinstance(exc, NotYetAnchoring)
+                if not waiting_for_role:
+                    self._drop_chain()
+                self._stop.wait(retry_wait(self._retry_s, failures, exc))
+                failures = 0 if waiting_for_role else failures + 1
                 self._cut_done.set()
 
     def _drop_chain(self) -> None:
@@ -431,6 +435,21 @@ class Anchorer:
                 "storage_node role; grant it with `robocloud admin grant "
                 f"{self.node.address} storage_node`"
             )
+
+
+def retry_wait(base: float, failures: int, error: Exception) -> float:
+    """Seconds to wait before the next attempt after ``error``, which followed ``failures``
+    failed attempts in a row.
+
+    A peer that failed (the ledger or cas down, a transaction refused) is asked half as
+    often each time, down to once every ``MAX_RETRY_S``. A node waiting for its role faces
+    no failure but an admin's action, which a deployment's granter takes within a second of
+    seeing the node: asking the chain again every ``base`` seconds (three view calls) anchors
+    the first epoch right after the grant, where the doubling made it wait up to 30 s.
+    """
+    if isinstance(error, NotYetAnchoring):
+        return base
+    return float(min(base * 2**failures, MAX_RETRY_S))
 
 
 class ProofService:

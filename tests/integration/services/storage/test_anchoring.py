@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,7 @@ from robocloud.ledger import JsonRpcClient, Ledger, LedgerService, Role
 from robocloud.proofs import ProofVerificationError, verify_record_proof
 from robocloud.templates import canonical_record
 from tests.conftest import ServiceFactory
+from tests.integration.services.ledger.conftest import LEDGER_ENV, admin_of
 from tests.integration.services.storage.counter import counter_record, write_counter_records
 from tests.procs import ServiceProcess, free_port
 from tests.waiting import wait_for
@@ -142,3 +144,40 @@ def test_epochs_cut_while_the_ledger_is_down_are_anchored_in_order_when_it_retur
         merkle.leaf_hash(canonical_record(counter_record(identity.address, i))) for i in range(20)
     ]
     assert root == merkle.root(leaves)
+
+
+def test_a_node_waiting_for_its_role_anchors_once_granted_and_says_so_once(
+    service_factory: ServiceFactory, identity: Identity
+) -> None:
+    ledger = service_factory("ledger", LEDGER_ENV)  # no storage URL: nothing grants the role
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_LEDGER_URL": ledger.url,
+            "ROBOCLOUD_CAS_URL": service_factory("cas").url,
+            "ROBOCLOUD_STORAGE_EPOCH_S": "0.2",
+            "ROBOCLOUD_STORAGE_ANCHOR_RETRY_S": "0.1",
+        },
+    )
+    write_counter_records(storage, identity, 0, 10)
+    refused = wait_for(
+        lambda: (s := node_state(storage))["standing"] == "registered" and s, "the node registered"
+    )
+    assert "lacks the storage_node role" in refused["anchor_error"]
+    assert refused["last_anchored_epoch"] == 0
+    time.sleep(1)  # ten more refused attempts at the base interval
+    assert anchoring_warnings(storage) == 1, storage.log()
+
+    with Ledger.connect(ledger.url, admin_of(ledger)) as admin:
+        admin.grant_role(refused["address"], Role.STORAGE_NODE)
+    state = wait_for(
+        lambda: (s := node_state(storage))["last_anchored_epoch"] == 1 and s, "epoch 1 anchored"
+    )
+    assert state["standing"] == "anchoring"
+    assert state["anchor_error"] is None
+
+
+def anchoring_warnings(storage: ServiceProcess) -> int:
+    """The log lines saying anchoring failed: one per distinct error, not one per attempt."""
+    lines = [json.loads(line) for line in storage.log().splitlines() if line.startswith("{")]
+    return sum(line.get("msg") == "anchoring failed; retrying" for line in lines)
