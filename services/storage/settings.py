@@ -25,7 +25,10 @@ class StorageSettings(ServiceSettings):
         default=True, description="anchor each epoch's TMT root through AnchorLog"
     )
     storage_anchor_retry_s: float = Field(
-        default=1.0, gt=0, description="wait before retrying a failed anchor (doubles to 30 s)"
+        default=1.0,
+        gt=0,
+        description="wait before retrying a failed anchor (doubles to 30 s; not while the "
+        "node only waits for its role)",
     )
     storage_node_passphrase: SecretStr | None = Field(
         default=None, description="encrypts the node's keystore; generated when unset"
