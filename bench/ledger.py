@@ -341,6 +341,23 @@ def sequential_rate(node: Node, robot: Identity, count: int) -> float:
     return count / (time.perf_counter() - started)
 
 
+def alternating_rates(
+    ledger: Node, anvil: Node, robots: list[Identity], args: argparse.Namespace
+) -> tuple[list[float], list[float]]:
+    """Each node's sequential rate per round, the two taking turns at going first so that
+    both see the same machine load; round ``r`` uses ``robots[2r]`` and ``robots[2r + 1]``."""
+    ours, theirs = [], []
+    for round_ in range(args.rounds):
+        pair = (ledger, anvil) if round_ % 2 == 0 else (anvil, ledger)
+        rates = {
+            node.name: sequential_rate(node, robots[2 * round_ + i], args.transactions)
+            for i, node in enumerate(pair)
+        }
+        ours.append(rates[ledger.name])
+        theirs.append(rates[anvil.name])
+    return ours, theirs
+
+
 def concurrent_seconds(url: str, raws: list[str]) -> tuple[float, float]:
     """Send ``raws`` at once, one connection each; seconds until all were accepted, and
     until all were mined."""
@@ -475,20 +492,12 @@ def transfers_part(args: argparse.Namespace) -> None:
                 ledger = Node("ledger", f"{process.url}/rpc")
                 anvil = Node("anvil", anvil_url)
                 robots = funded_robots(process.url, anvil, 2 + 2 * args.rounds)
-                ours, theirs = [], []
                 print(f"sequential sign-send-receipt transfers, {args.transactions} per round")
-                for round_ in range(args.rounds):
-                    first, second = (ledger, anvil) if round_ % 2 == 0 else (anvil, ledger)
-                    rates = {
-                        node.name: sequential_rate(node, robots[2 * round_ + i], args.transactions)
-                        for i, node in enumerate((first, second))
-                    }
-                    ours.append(rates["ledger"])
-                    theirs.append(rates["anvil"])
+                ours, theirs = alternating_rates(ledger, anvil, robots, args)
+                for round_, (mine, its) in enumerate(zip(ours, theirs, strict=True)):
                     print(
-                        f"  round {round_ + 1}: ledger {rates['ledger']:6.1f} tx/s, "
-                        f"anvil {rates['anvil']:6.1f} tx/s, "
-                        f"ratio {rates['ledger'] / rates['anvil']:.2f}x"
+                        f"  round {round_ + 1}: ledger {mine:6.1f} tx/s, "
+                        f"anvil {its:6.1f} tx/s, ratio {mine / its:.2f}x"
                     )
                 ratio = statistics.median(o / t for o, t in zip(ours, theirs, strict=True))
                 print(
@@ -564,14 +573,8 @@ def external_node_part(args: argparse.Namespace) -> None:
             process = ServiceProcess("ledger", work / "ledger", env).start()
             try:
                 ledger = Node("ledger", f"{process.url}/rpc")
-                ratios = []
-                for round_ in range(args.rounds):
-                    pair = (ledger, direct) if round_ % 2 == 0 else (direct, ledger)
-                    rates = {
-                        node.name: sequential_rate(node, robots[2 * round_ + i], args.transactions)
-                        for i, node in enumerate(pair)
-                    }
-                    ratios.append(rates["ledger"] / rates["anvil"])
+                ours, theirs = alternating_rates(ledger, direct, robots, args)
+                ratios = [mine / its for mine, its in zip(ours, theirs, strict=True)]
                 print(
                     "external-node mode (the ledger forwarding to its own anvil) against anvil: "
                     f"median ratio {statistics.median(ratios):.2f}x "
