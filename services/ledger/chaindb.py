@@ -44,6 +44,8 @@ from eth_tester.backends.pyevm.main import (
 from services.common.durable import open_sqlite
 
 CHAIN_ID = 1337
+GENESIS_TIMESTAMP = 0
+"""As Ethereum mainnet's genesis; every later block is stamped with the time it is mined."""
 
 
 class SqliteKeyValue(BaseDB):
@@ -177,7 +179,9 @@ def open_chain(
     """Reopen the chain stored at ``path``, or create it with ``genesis_state``.
 
     The canonical head is written last when a genesis is persisted, so a store without one
-    (new, or cut short by a crash) simply gets a genesis again. ``genesis_state`` maps
+    (new, or cut short by a crash) simply gets the same genesis again: the genesis depends on
+    ``genesis_state`` alone (its time is ``GENESIS_TIMESTAMP``, not eth-tester's clock, which
+    gave two chains created a second apart two genesis hashes). ``genesis_state`` maps
     canonical addresses to eth-tester account states (balance, nonce, code, storage).
     """
     db = DurableAtomicDB(path)
@@ -186,5 +190,6 @@ def open_chain(
     except CanonicalHeadNotFound:
         pass
     state = dict(genesis_state) if genesis_state is not None else default_genesis_state()
-    chain = DevChain.from_genesis(db, get_default_genesis_params(), cast(AccountState, state))
+    params = get_default_genesis_params({"timestamp": GENESIS_TIMESTAMP})
+    chain = DevChain.from_genesis(db, params, cast(AccountState, state))
     return cast(DevChain, chain), db
