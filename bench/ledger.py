@@ -23,11 +23,15 @@
 ``robocloud verify`` sends it), beside ``eth_chainId`` through the same client (the HTTP
 floor: an answer with no chain work) and the same call on the embedded chain in this process.
 
+``flood`` answers what strangers' free calls cost an honest robot: the p50 of a transfer and of a
+balance read, quiet and while ``--flooders`` clients each send a looping ``eth_call`` again and
+again (each runs to the EVM timeout), and how the flooding calls were answered.
+
 ``index`` is the earlier benchmark: registration + advertisement throughput against raw
 eth-tester, the event index over 10,000 events against eth-tester's ``get_logs``, restart.
 
-    python bench/ledger.py [transfers|calls|index] [--rounds 5] [--transactions 100]
-        [--calls 1000]
+    python bench/ledger.py [transfers|calls|index|flood] [--rounds 5] [--transactions 100]
+        [--calls 1000] [--flooders 60]
 """
 
 from __future__ import annotations
@@ -377,12 +381,14 @@ def concurrent_seconds(url: str, raws: list[str]) -> tuple[float, float]:
     return accepted, time.perf_counter() - started
 
 
-def funded_robots(ledger_url: str, anvil: Node, count: int) -> list[Identity]:
+def funded_robots(ledger_url: str, anvil: Node | None, count: int) -> list[Identity]:
+    """Robots funded by the ledger's faucet, and on ``anvil`` too when there is one."""
     robots = [Identity.generate() for _ in range(count)]
     for robot in robots:
         with ServiceClient(ledger_url, robot) as client:
             client.post_json("/v1/faucet", {"address": robot.address})
-        anvil.call("anvil_setBalance", [robot.address, hex(10**20)])
+        if anvil is not None:
+            anvil.call("anvil_setBalance", [robot.address, hex(10**20)])
     return robots
 
 
@@ -619,10 +625,84 @@ def calls_part(args: argparse.Namespace) -> None:
     print(f"  EmbeddedChain.call in process    {in_process:6.3f}")
 
 
+# ----- flood: transactions and reads while strangers' calls loop -----
+
+LOOPING_CALL = {"data": "0x5b600056"}
+"""Init code that loops forever (JUMPDEST PUSH1 0 JUMP): every such eth_call runs until the
+EVM timeout."""
+
+
+def latencies_ms(node: Node, robot: Identity, count: int) -> tuple[float, float]:
+    """p50 of a sign-send-receipt transfer and of an ``eth_getBalance``, in ms."""
+    nonce = int(node.call("eth_getTransactionCount", [robot.address, "latest"]), 16)
+    sends, reads = [], []
+    for offset in range(count):
+        started = time.perf_counter()
+        node.receipt(node.call("eth_sendRawTransaction", [transfer(robot, nonce + offset)]))
+        sends.append(time.perf_counter() - started)
+        started = time.perf_counter()
+        node.call("eth_getBalance", [robot.address, "latest"])
+        reads.append(time.perf_counter() - started)
+    return statistics.median(sends) * 1000, statistics.median(reads) * 1000
+
+
+def flood_part(args: argparse.Namespace) -> None:
+    """Transfers and reads with no calls running, then while ``--flooders`` clients each send
+    a looping ``eth_call`` over and over; the ratio is what the flood costs an honest robot."""
+    import threading
+
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {
+            "ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": "bench",
+            "ROBOCLOUD_LEDGER_FAUCET_PER_MINUTE": "100000",
+            "ROBOCLOUD_LEDGER_GRANT_ROLES": "",
+        }
+        process = ServiceProcess("ledger", Path(tmp) / "ledger", env).start()
+        stop = threading.Event()
+        answers: dict[str, int] = {}
+        rpc_url = f"{process.url}/rpc"
+
+        def flood() -> None:
+            payload = {"jsonrpc": "2.0", "id": 1, "method": "eth_call", "params": [LOOPING_CALL]}
+            with httpx.Client(timeout=120) as client:
+                while not stop.is_set():
+                    error = client.post(rpc_url, json=payload).json().get("error", {})
+                    key = f"{error.get('code')} {error.get('message', '')[:40]}"
+                    answers[key] = answers.get(key, 0) + 1
+
+        flooders = [threading.Thread(target=flood) for _ in range(args.flooders)]
+        try:
+            node = Node("ledger", rpc_url)
+            quiet_robot, flood_robot = funded_robots(process.url, None, 2)
+            quiet = latencies_ms(node, quiet_robot, args.transactions)
+            for flooder in flooders:
+                flooder.start()
+            time.sleep(1)
+            flooded = latencies_ms(node, flood_robot, args.transactions)
+        finally:
+            stop.set()
+            for flooder in flooders:
+                flooder.join()
+            process.stop()
+    print(
+        f"{args.transactions} transfers and balance reads, p50 ms: quiet / during a flood of "
+        f"{args.flooders} clients looping eth_call"
+    )
+    print(
+        f"  transfer (sign, send, receipt)  {quiet[0]:7.2f} / {flooded[0]:7.2f}   "
+        f"{flooded[0] / quiet[0]:5.1f}x"
+    )
+    print(
+        f"  eth_getBalance                  {quiet[1]:7.2f} / {flooded[1]:7.2f}   "
+        f"{flooded[1] / quiet[1]:5.1f}x"
+    )
+    print("  the flooding calls' answers: " + ", ".join(f"{n} x {k}" for k, n in answers.items()))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument(
-        "part", nargs="?", choices=("transfers", "calls", "index"), default="transfers"
+        "part", nargs="?", choices=("transfers", "calls", "index", "flood"), default="transfers"
     )
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--transactions", type=int, default=100)
@@ -630,11 +710,14 @@ def main() -> None:
     parser.add_argument("--events", type=int, default=10_000)
     parser.add_argument("--queries", type=int, default=200)
     parser.add_argument("--calls", type=int, default=1000)
+    parser.add_argument("--flooders", type=int, default=60)
     args = parser.parse_args()
     if args.part == "transfers":
         transfers_part(args)
     elif args.part == "calls":
         calls_part(args)
+    elif args.part == "flood":
+        flood_part(args)
     else:
         index_part(args)
 

@@ -21,6 +21,9 @@ import, and py-evm to 12,288: deep recursion in C code (the JSON decoder, ``repr
 comparison of nested containers) then overflows the C stack and kills the process with a
 segfault instead of raising RecursionError."""
 
+DEFAULT_SWITCH_INTERVAL_S = 0.005
+"""CPython's own default: how long a thread may hold the GIL while another waits for it."""
+
 
 def serve(app: FastAPI, settings: ServiceSettings) -> None:
     """Serve until SIGINT or SIGTERM, then drain in-flight requests for a few seconds."""
@@ -45,19 +48,25 @@ def run_service(
     settings_cls: type[S] = ServiceSettings,  # type: ignore[assignment]
     *,
     recursion_limit: int = DEFAULT_RECURSION_LIMIT,
+    switch_interval_s: float = DEFAULT_SWITCH_INTERVAL_S,
 ) -> None:
     """Load the service's settings from the environment, build its app and serve it.
 
     The recursion limit is set once everything is imported (importing is what raises it); a
-    service whose own code needs more (the ledger's EVM) declares it here.
+    service whose own code needs more (the ledger's EVM) declares it here. So does a service
+    whose worker threads run long pure-Python work beside its event loop (the ledger's
+    calls): every time the loop gives up the GIL for I/O it waits up to the switch interval
+    per busy thread to take it back, many times a request.
     """
     settings = load_settings(service, settings_cls)
     app = build_app(settings)
     sys.setrecursionlimit(recursion_limit)
+    sys.setswitchinterval(switch_interval_s)
     log.info(
         "serving",
         extra={
             "recursion_limit": sys.getrecursionlimit(),
+            "switch_interval_s": sys.getswitchinterval(),
             "max_request_line_bytes": settings.max_request_line_bytes,
             "max_header_bytes": settings.max_header_bytes,
             "header_timeout_s": settings.header_timeout_s,

@@ -27,10 +27,10 @@ from services.common.bodies import read_json
 from services.common.errors import Forbidden, Unavailable
 from services.ledger import views
 from services.ledger.backend import open_ledger
+from services.ledger.endpoint import RpcEndpoint
 from services.ledger.errors import ERRORS
 from services.ledger.grants import RoleGrant, open_granter
 from services.ledger.node import Ledger
-from services.ledger.rpc import NOT_INLINE
 from services.ledger.settings import LedgerSettings
 
 log = logging.getLogger("robocloud.ledger")
@@ -49,17 +49,21 @@ def _ledger(request: Request) -> Ledger:
     return ledger
 
 
+def _rpc(request: Request) -> RpcEndpoint:
+    endpoint: RpcEndpoint | None = getattr(request.app.state, "rpc", None)
+    if endpoint is None:
+        raise Unavailable("the ledger is starting")
+    return endpoint
+
+
 def _router() -> APIRouter:
     router = APIRouter(tags=["ledger"])
 
     @router.post("/rpc")
     async def rpc(request: Request) -> Response:
         """Ethereum JSON-RPC 2.0: single calls and batches."""
-        ledger = _ledger(request)
-        body = await request.body()
-        answer = ledger.dispatcher.handle_inline(body)
-        if answer is NOT_INLINE:
-            answer = await anyio.to_thread.run_sync(ledger.dispatcher.handle, body)
+        endpoint = _rpc(request)
+        answer = await endpoint.answer(await request.body())
         if answer is None:
             return Response(status_code=204)
         return JSONResponse(answer)
@@ -155,6 +159,9 @@ def build_app(settings: LedgerSettings) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         ledger = await anyio.to_thread.run_sync(open_ledger, settings)
         app.state.ledger = ledger
+        app.state.rpc = RpcEndpoint(
+            ledger.dispatcher, settings.ledger_rpc_max_calls, settings.ledger_rpc_evm_timeout_s
+        )
         app.state.audience.learn(chain_deployment_id(ledger.chain_id, ledger.deployment.registry))
         try:
             async with anyio.create_task_group() as tasks:
@@ -167,6 +174,7 @@ def build_app(settings: LedgerSettings) -> FastAPI:
                 tasks.cancel_scope.cancel()
         finally:
             app.state.ledger = None
+            app.state.rpc = None
             await anyio.to_thread.run_sync(ledger.close)
 
     async def chain_answers() -> None:

@@ -195,6 +195,18 @@ class EmbeddedChain:
                 raise
             return self._chain.get_block_by_header(header)
 
+    def canonical_hashes(self, first: int, last: int) -> list[bytes]:
+        """The hashes of the mined blocks from ``first`` to ``last``: one key lookup each, not
+        a block read (a block filter's poll may span ten thousand blocks)."""
+        hashes = []
+        with self._lock:
+            for number in range(first, last + 1):
+                try:
+                    hashes.append(bytes(self._chain.chaindb.get_canonical_block_hash(number)))  # type: ignore[arg-type]
+                except HeaderNotFound:
+                    break
+        return hashes
+
     def block_by_hash(self, block_hash: bytes) -> BlockAPI | None:
         with self._lock:
             try:

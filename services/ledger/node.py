@@ -21,7 +21,7 @@ from services.ledger.filters import Filters
 from services.ledger.index import EventIndex
 from services.ledger.operator import OperatorKeys, load_or_create, passphrase
 from services.ledger.pool import PoolLimits
-from services.ledger.rpc import Dispatcher, EmbeddedMethods
+from services.ledger.rpc import COSTLY_METHODS, Dispatcher, EmbeddedMethods
 
 log = logging.getLogger("robocloud.ledger")
 
@@ -74,7 +74,12 @@ class EmbeddedLedger:
         self.catch_up()
         self.chain.on_block(self._index_block)
         methods = EmbeddedMethods(self.chain, self.index, filters)
-        self.dispatcher = Dispatcher(methods.table(), inline=methods.inline_table())
+        self.dispatcher = Dispatcher(
+            methods.table(),
+            inline=methods.inline_table(),
+            costly=COSTLY_METHODS,
+            batch_timeout_s=call_limits.timeout_s,
+        )
         log.info(
             "embedded chain ready",
             extra={

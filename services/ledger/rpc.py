@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Mapping
+import time
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import replace
 from typing import Any
 
@@ -79,6 +80,14 @@ NOT_INLINE = object()
 INLINE_MAX_BYTES = 4096
 INLINE_CALL_BUDGET_S = 0.005
 """How long an ``eth_call`` may hold the event loop before it is handed to a worker thread."""
+REQUEST_TIMED_OUT = -32002
+LIMIT_EXCEEDED = -32005
+COSTLY_METHODS = frozenset(
+    {"eth_call", "eth_estimateGas", "eth_createAccessList", "eth_feeHistory"}
+)
+"""Methods a caller does not pay for that may take much CPU: the three run EVM code (up to the
+EVM timeout each); ``eth_feeHistory`` with reward percentiles reads the receipts of up to 1,024
+blocks (0.56 s on the development machine)."""
 
 
 class Dispatcher:
@@ -89,25 +98,41 @@ class Dispatcher:
         methods: Mapping[str, Method],
         fallback: Callable[[str, list[Any]], Any] | None = None,
         inline: Mapping[str, Method] | None = None,
+        costly: Iterable[str] = (),
+        batch_timeout_s: float | None = None,
     ) -> None:
         """``fallback`` answers methods not in the table (a proxy to an external node);
         ``inline`` are versions of some methods that never block (no lock, no disk, no
-        unbounded work), which may raise ``NotInline`` to hand the request to a thread."""
+        unbounded work), which may raise ``NotInline`` to hand the request to a thread;
+        ``costly`` names the methods whose requests the caller must admit sparingly (see
+        ``endpoint``); a batch starts no call after ``batch_timeout_s``, as geth's batches
+        answer the calls left when its timeout fires with ``request timed out``."""
         self.methods = dict(methods)
         self.fallback = fallback
         self.inline = dict(inline or {})
+        self.costly_methods = frozenset(costly)
+        self.batch_timeout_s = batch_timeout_s
 
-    def handle_inline(self, body: bytes) -> Any:
-        """The answer to a small single call of an inline method, computed on the caller's
-        thread (the event loop: a worker thread costs a quarter of a millisecond per
-        request); ``NOT_INLINE`` for everything else, which ``handle`` then answers."""
-        if len(body) > INLINE_MAX_BYTES:
-            return NOT_INLINE
+    def parse(self, body: bytes) -> Any:
+        """The request document of ``body``; ``RpcFailure`` when it is none (answered with a
+        null id: there is no request to take an id from)."""
         try:
-            document = bounded_json.loads(body, max_depth=MAX_DEPTH)
-        except bounded_json.JsonError:
-            return NOT_INLINE
-        if not isinstance(document, dict) or document.get("method") not in self.inline:
+            return bounded_json.loads(body, max_depth=MAX_DEPTH)
+        except (bounded_json.JsonNumberError, bounded_json.JsonDepthError) as exc:
+            raise RpcFailure(INVALID_REQUEST, f"invalid request: {exc}") from exc
+        except bounded_json.JsonError as exc:
+            raise RpcFailure(PARSE_ERROR, f"parse error: {exc}") from exc
+
+    def costly(self, document: Any) -> bool:
+        """Whether ``document`` (one call or a batch) asks for any costly method."""
+        requests = document if isinstance(document, list) else [document]
+        return any(_method(request) in self.costly_methods for request in requests)
+
+    def answer_inline(self, document: Any) -> Any:
+        """The answer to a single call of an inline method, computed on the caller's thread
+        (the event loop: a worker thread costs a quarter of a millisecond per request);
+        ``NOT_INLINE`` for everything else, which ``answer`` then answers."""
+        if _method(document) not in self.inline:
             return NOT_INLINE
         try:
             return self._one(document, self.inline)
@@ -117,46 +142,56 @@ class Dispatcher:
     def handle(self, body: bytes) -> Any:
         """The response document for a request body; None when nothing is to be answered."""
         try:
-            document = bounded_json.loads(body, max_depth=MAX_DEPTH)
-        except (bounded_json.JsonNumberError, bounded_json.JsonDepthError) as exc:
-            return _error(None, RpcFailure(INVALID_REQUEST, f"invalid request: {exc}"))
-        except bounded_json.JsonError as exc:
-            return _error(None, RpcFailure(PARSE_ERROR, f"parse error: {exc}"))
-        if isinstance(document, list):
-            if not document:
-                return _error(None, RpcFailure(INVALID_REQUEST, "empty batch"))
-            if len(document) > MAX_BATCH:
-                failure = RpcFailure(INVALID_REQUEST, f"batch of more than {MAX_BATCH} calls")
-                return _error(None, failure)
-            answers = [self._one(item) for item in document]
-            return [answer for answer in answers if answer is not None] or None
-        return self._one(document)
+            document = self.parse(body)
+        except RpcFailure as failure:
+            return error_answer(None, failure)
+        return self.answer(document)
+
+    def answer(self, document: Any) -> Any:
+        """The response document for a parsed request; None when nothing is to be answered."""
+        if not isinstance(document, list):
+            return self._one(document)
+        if not document:
+            return error_answer(None, RpcFailure(INVALID_REQUEST, "empty batch"))
+        if len(document) > MAX_BATCH:
+            failure = RpcFailure(INVALID_REQUEST, f"batch of more than {MAX_BATCH} calls")
+            return error_answer(None, failure)
+        deadline = None if self.batch_timeout_s is None else time.monotonic() + self.batch_timeout_s
+        answers = [
+            self._one(item, expired=deadline is not None and time.monotonic() > deadline)
+            for item in document
+        ]
+        return [answer for answer in answers if answer is not None] or None
 
     def _one(
-        self, request: Any, table: Mapping[str, Method] | None = None
+        self, request: Any, table: Mapping[str, Method] | None = None, *, expired: bool = False
     ) -> dict[str, Any] | None:
+        """The answer to one request; an ``expired`` one (its batch's deadline passed) is
+        framed as any other but answered ``request timed out`` instead of being called."""
         if not isinstance(request, dict) or request.get("jsonrpc") != "2.0":
-            return _error(None, RpcFailure(INVALID_REQUEST, "not a JSON-RPC 2.0 request"))
+            return error_answer(None, RpcFailure(INVALID_REQUEST, "not a JSON-RPC 2.0 request"))
         request_id = request.get("id")
         if not _valid_id(request_id):
-            return _error(
+            return error_answer(
                 None, RpcFailure(INVALID_REQUEST, "id must be a string, a number or null")
             )
         method, params = request.get("method"), request.get("params", [])
         if not isinstance(method, str) or not isinstance(params, list | dict | type(None)):
             failure = RpcFailure(INVALID_REQUEST, "method must be a string, params an array")
-            return _error(request_id, failure)
+            return error_answer(request_id, failure)
         if isinstance(params, dict):
             # Ethereum methods take positional parameters only: by-name parameters are a
             # valid request with invalid parameters (-32602), as geth and anvil answer them.
             failure = RpcFailure(
                 INVALID_PARAMS, "invalid params: expected an array of positional parameters"
             )
-            return _error(request_id, failure) if "id" in request else None
+            return error_answer(request_id, failure) if "id" in request else None
         try:
+            if expired:
+                raise RpcFailure(REQUEST_TIMED_OUT, "request timed out")
             result = self.call(method, params or [], table)
         except RpcFailure as failure:
-            return _error(request_id, failure) if "id" in request else None
+            return error_answer(request_id, failure) if "id" in request else None
         if "id" not in request:
             return None
         return {"jsonrpc": "2.0", "id": request_id, "result": result}
@@ -178,10 +213,17 @@ class Dispatcher:
         except ChainError as exc:
             raise RpcFailure(exc.code, exc.message, exc.data) from exc
         except IndexLimitError as exc:
-            raise RpcFailure(-32005, str(exc)) from exc
+            raise RpcFailure(LIMIT_EXCEEDED, str(exc)) from exc
         except Exception as exc:
             log.exception("JSON-RPC method failed", extra={"method": method})
             raise RpcFailure(INTERNAL_ERROR, f"internal error in {method}") from exc
+
+
+def _method(request: Any) -> str | None:
+    """The method a request names, if it is a request naming one (a hostile one may name a
+    list, which no table can be searched for)."""
+    method = request.get("method") if isinstance(request, dict) else None
+    return method if isinstance(method, str) else None
 
 
 def _valid_id(value: Any) -> bool:
@@ -197,7 +239,7 @@ def _valid_id(value: Any) -> bool:
     return isinstance(value, str) and len(value) <= MAX_ID_LENGTH
 
 
-def _error(request_id: Any, failure: RpcFailure) -> dict[str, Any]:
+def error_answer(request_id: Any, failure: RpcFailure) -> dict[str, Any]:
     return {"jsonrpc": "2.0", "id": request_id, "error": failure.to_json()}
 
 
@@ -599,11 +641,8 @@ class EmbeddedMethods:
         filter_id = _filter_id(param(params, 0))
         changes = self.filters.changes(filter_id, self.chain.head().block_number)
         if changes.criteria is None:
-            answer: list[Any] = []
-            for number in range(changes.first, changes.last + 1):
-                block = self.chain.block_by_number(number)
-                if block is not None:
-                    answer.append(encoding.data(block.hash))
+            hashes = self.chain.canonical_hashes(changes.first, changes.last)
+            answer: list[Any] = [encoding.data(block_hash) for block_hash in hashes]
         elif changes.first > changes.last:
             answer = []
         else:

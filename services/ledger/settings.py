@@ -33,6 +33,13 @@ class LedgerSettings(ServiceSettings):
     ledger_rpc_evm_timeout_s: float = Field(
         default=5.0, gt=0, description="wall-clock limit of one eth_call or eth_estimateGas"
     )
+    ledger_rpc_max_calls: int = Field(
+        default=2,
+        gt=0,
+        description="eth_call, eth_estimateGas, eth_createAccessList and eth_feeHistory "
+        "executing at once; "
+        "more wait up to the EVM timeout for a turn, then are refused (limit exceeded)",
+    )
     ledger_max_filters: int = Field(
         default=1000, gt=0, description="filters (eth_newFilter, eth_newBlockFilter) at once"
     )

@@ -114,6 +114,82 @@ def test_reads_transactions_and_readiness_go_on_while_the_loop_runs(
     assert int(balance, 16) > 0
 
 
+FLOODERS = 48
+"""More than the service's 40 worker threads: before calls took turns in slots, a flood this
+size left a transaction and a balance read waiting past 30 s."""
+
+
+def test_a_flood_of_looping_calls_starves_no_transaction_or_read(
+    ledger: ServiceProcess, loop_address: str
+) -> None:
+    stop = threading.Event()
+    flood_answers: list[dict[str, Any]] = []
+    payload = {"jsonrpc": "2.0", "id": 1, "method": "eth_call", "params": [{"to": loop_address}]}
+
+    def flood() -> None:
+        with httpx.Client(timeout=60) as client:
+            while not stop.is_set():
+                flood_answers.append(client.post(f"{ledger.url}/rpc", json=payload).json())
+
+    flooders = [threading.Thread(target=flood) for _ in range(FLOODERS)]
+    for flooder in flooders:
+        flooder.start()
+    try:
+        robot = Identity.generate()
+        funded = faucet(ledger.url, robot)
+        w3 = Web3(HTTPProvider(f"{ledger.url}/rpc", request_kwargs={"timeout": 15}))
+        signed = robot.account.sign_transaction(
+            {
+                "chainId": 1337,
+                "nonce": 0,
+                "gas": 21_000,
+                "maxFeePerGas": 10**10,
+                "maxPriorityFeePerGas": 10**9,
+                "to": "0x" + "22" * 20,
+                "value": 5,
+            }
+        )
+        receipt = w3.eth.wait_for_transaction_receipt(
+            w3.eth.send_raw_transaction(signed.raw_transaction), timeout=15
+        )
+        recipient_balance = w3.eth.get_balance(Web3.to_checksum_address("0x" + "22" * 20))
+        ready = httpx.get(f"{ledger.url}/readyz", timeout=15)
+        still_flooding = all(flooder.is_alive() for flooder in flooders)
+    finally:
+        stop.set()
+        for flooder in flooders:
+            flooder.join()
+    assert funded.status_code == 200
+    assert receipt["status"] == 1
+    assert recipient_balance >= 5
+    assert ready.json()["status"] == "ready"
+    assert still_flooding
+    aborted = {"code": -32000, "message": f"execution aborted (timeout = {TIMEOUT_S}s)"}
+    refused = {
+        "code": -32005,
+        "message": f"limit exceeded: all 2 call slots stayed busy for {TIMEOUT_S} s; retry later",
+    }
+    errors = [answer["error"] for answer in flood_answers]
+    assert aborted in errors
+    assert refused in errors
+    assert all(error in (aborted, refused) for error in errors), errors
+
+
+def test_a_batch_of_looping_calls_starts_none_after_its_deadline_as_geth_does(
+    ledger: ServiceProcess, loop_address: str
+) -> None:
+    """Calls one after another in a batch used to run ten times the EVM timeout."""
+    call = {"to": loop_address}
+    batch = [{"jsonrpc": "2.0", "id": n, "method": "eth_call", "params": [call]} for n in range(10)]
+    answers = httpx.post(f"{ledger.url}/rpc", json=batch, timeout=60).json()
+    aborted = {"code": -32000, "message": f"execution aborted (timeout = {TIMEOUT_S}s)"}
+    timed_out = {"code": -32002, "message": "request timed out"}
+    assert answers == [
+        {"jsonrpc": "2.0", "id": 0, "error": aborted},
+        *({"jsonrpc": "2.0", "id": n, "error": timed_out} for n in range(1, 10)),
+    ]
+
+
 def test_sigterm_stops_the_service_while_a_call_runs(tmp_path: Path) -> None:
     # Gas for hours of looping: with a block's worth, the loop runs out of gas within the
     # shutdown's grace period on a fast machine, and is answered before the service stops.

@@ -7,6 +7,7 @@ Python cannot turn into an int, or that JSON does not allow at all, used to answ
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import httpx
@@ -77,3 +78,24 @@ def test_every_valid_id_is_echoed(service: Service, request_id: Any) -> None:
     payload = {"jsonrpc": "2.0", "id": request_id, "method": "eth_chainId", "params": []}
     answer = httpx.post(f"{service.url}/rpc", json=payload, timeout=30).json()
     assert answer == {"jsonrpc": "2.0", "id": request_id, "result": "0x539"}
+
+
+@pytest.mark.parametrize(
+    "method",
+    [["eth_call"], {"name": "eth_chainId"}, 7, None],
+    ids=["list", "object", "number", "null"],
+)
+def test_a_method_that_is_not_a_string_is_an_invalid_request(service: Service, method: Any) -> None:
+    """A list as the method used to answer 500: the inline path looked it up in a dict."""
+    before = head(service.url)
+    payload = {"jsonrpc": "2.0", "id": 1, "method": method, "params": []}
+    status, answer = post_rpc(service, json.dumps(payload).encode())
+    assert (status, answer) == (
+        200,
+        {
+            "jsonrpc": "2.0",
+            "id": 1,
+            "error": {"code": -32600, "message": "method must be a string, params an array"},
+        },
+    )
+    assert head(service.url) == before

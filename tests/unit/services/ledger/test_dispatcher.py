@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from typing import Any
 
 import pytest
@@ -16,6 +17,7 @@ from services.ledger.rpc import (
     METHOD_NOT_FOUND,
     NOT_INLINE,
     PARSE_ERROR,
+    REQUEST_TIMED_OUT,
     Dispatcher,
     NotInline,
     RpcFailure,
@@ -48,8 +50,12 @@ def call(method: str, params: Any = None, request_id: Any = 1) -> dict[str, Any]
     return request
 
 
+def body(document: Any) -> bytes:
+    return json.dumps(document).encode()
+
+
 def handle(document: Any) -> Any:
-    return DISPATCHER.handle(json.dumps(document).encode())
+    return DISPATCHER.handle(body(document))
 
 
 def test_a_call_is_answered_with_its_id() -> None:
@@ -142,17 +148,9 @@ INLINE = Dispatcher(
 )
 
 
-def body(document: Any) -> bytes:
-    return json.dumps(document).encode()
-
-
 def test_inline_methods_answer_on_the_callers_thread() -> None:
     request = {"jsonrpc": "2.0", "id": 3, "method": "echo", "params": [1]}
-    assert INLINE.handle_inline(body(request)) == {
-        "jsonrpc": "2.0",
-        "id": 3,
-        "result": ["inline", 1],
-    }
+    assert INLINE.answer_inline(request) == {"jsonrpc": "2.0", "id": 3, "result": ["inline", 1]}
 
 
 @pytest.mark.parametrize(
@@ -161,16 +159,45 @@ def test_inline_methods_answer_on_the_callers_thread() -> None:
         {"jsonrpc": "2.0", "id": 1, "method": "slow", "params": []},
         {"jsonrpc": "2.0", "id": 1, "method": "unknown", "params": []},
         [{"jsonrpc": "2.0", "id": 1, "method": "echo", "params": []}],
-        {"jsonrpc": "2.0", "id": 1, "method": "echo", "params": ["x" * 5000]},
+        "not a request",
     ],
-    ids=["raises-not-inline", "not-an-inline-method", "batch", "large-body"],
+    ids=["raises-not-inline", "not-an-inline-method", "batch", "malformed"],
 )
 def test_everything_else_goes_to_a_thread(document: Any) -> None:
-    assert INLINE.handle_inline(body(document)) is NOT_INLINE
-    answer = INLINE.handle(body(document))
-    assert answer is not None
+    assert INLINE.answer_inline(document) is NOT_INLINE
+    assert INLINE.answer(document) is not None
 
 
-def test_malformed_bodies_are_left_to_the_threaded_path() -> None:
-    assert INLINE.handle_inline(b"{not json") is NOT_INLINE
-    assert INLINE.handle(b"{not json")["error"]["code"] == PARSE_ERROR
+def test_costly_requests_are_those_naming_a_costly_method() -> None:
+    dispatcher = Dispatcher({"cheap": lambda _: 1, "costly": lambda _: 2}, costly=["costly"])
+    assert dispatcher.costly(call("costly", []))
+    assert dispatcher.costly([call("cheap", []), call("costly", [], 2)])
+    assert not dispatcher.costly(call("cheap", []))
+    assert not dispatcher.costly([call("cheap", []), "junk", {"method": ["costly"]}])
+    assert not dispatcher.costly("junk")
+
+
+def test_a_batch_starts_no_call_after_its_deadline_as_geth_answers_them() -> None:
+    started: list[int] = []
+
+    def slow(params: list[Any]) -> Any:
+        started.append(params[0])
+        time.sleep(0.06)
+        return params[0]
+
+    dispatcher = Dispatcher({"slow": slow}, batch_timeout_s=0.1)
+    answers = dispatcher.handle(
+        body(
+            [
+                *(call("slow", [n], n) for n in range(5)),
+                {"jsonrpc": "2.0", "method": "slow", "params": [99]},
+                {"jsonrpc": "1.0", "id": 7},
+            ]
+        )
+    )
+    assert started == [0, 1]
+    assert answers[:2] == [{"jsonrpc": "2.0", "id": n, "result": n} for n in range(2)]
+    timed_out = {"code": REQUEST_TIMED_OUT, "message": "request timed out"}
+    assert answers[2:5] == [{"jsonrpc": "2.0", "id": n, "error": timed_out} for n in range(2, 5)]
+    assert answers[5]["error"]["code"] == INVALID_REQUEST  # framing is still checked
+    assert len(answers) == 6  # and the notification left unstarted gets no answer either
