@@ -67,14 +67,10 @@ class RpcEndpoint:
             self._slots.release()
 
     def _refusal(self, document: Any) -> Any:
-        """``limit exceeded`` for a request that found no slot: to a single call with its
-        id (none to a notification), to a batch as one error, as a batch too large is."""
         slots = int(self._slots.total_tokens)
         failure = RpcFailure(
             LIMIT_EXCEEDED,
             f"limit exceeded: all {slots} call slots stayed busy for {self.slot_wait_s:g} s; "
             "retry later",
         )
-        if isinstance(document, dict):
-            return error_answer(document.get("id"), failure) if "id" in document else None
-        return error_answer(None, failure)
+        return self.dispatcher.refusal(document, failure)

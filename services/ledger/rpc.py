@@ -163,6 +163,15 @@ class Dispatcher:
         ]
         return [answer for answer in answers if answer is not None] or None
 
+    def refusal(self, document: Any, failure: RpcFailure) -> Any:
+        """``failure`` as the answer to a whole request left unrun: to a single call with its
+        id (none to a notification), to a batch as one error, as a batch too large is."""
+        if not isinstance(document, dict):
+            return error_answer(None, failure)
+        if "id" not in document:
+            return None
+        return error_answer(document["id"] if _valid_id(document["id"]) else None, failure)
+
     def _one(
         self, request: Any, table: Mapping[str, Method] | None = None, *, expired: bool = False
     ) -> dict[str, Any] | None:

@@ -201,3 +201,20 @@ def test_a_batch_starts_no_call_after_its_deadline_as_geth_answers_them() -> Non
     assert answers[2:5] == [{"jsonrpc": "2.0", "id": n, "error": timed_out} for n in range(2, 5)]
     assert answers[5]["error"]["code"] == INVALID_REQUEST  # framing is still checked
     assert len(answers) == 6  # and the notification left unstarted gets no answer either
+
+
+def test_a_refusal_answers_a_whole_request_as_its_framing_allows() -> None:
+    failure = RpcFailure(-32005, "limit exceeded")
+    error = {"code": -32005, "message": "limit exceeded"}
+    assert DISPATCHER.refusal(call("echo", [], 9), failure) == {
+        "jsonrpc": "2.0",
+        "id": 9,
+        "error": error,
+    }
+    assert DISPATCHER.refusal(call("echo", [], [1]), failure)["id"] is None  # not a valid id
+    assert DISPATCHER.refusal({"jsonrpc": "2.0", "method": "echo"}, failure) is None
+    assert DISPATCHER.refusal([call("echo", [], 1)], failure) == {
+        "jsonrpc": "2.0",
+        "id": None,
+        "error": error,
+    }
