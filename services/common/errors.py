@@ -15,6 +15,7 @@ from typing import Any
 
 from robocloud.bounded_json import JsonDepthError, JsonError
 from robocloud.cid import CIDError
+from services.common.slots import SlotsBusy
 
 
 class ServiceError(Exception):
@@ -166,6 +167,12 @@ COMMON_ERRORS = ErrorMap(
         CIDError: ErrorRule(400, "invalid_cid", lambda exc: {"field": exc.field, "cid": exc.text}),
         JsonError: ErrorRule(400, "invalid_json"),
         JsonDepthError: ErrorRule(400, "json_too_deep", lambda exc: {"max_depth": exc.max_depth}),
+        SlotsBusy: ErrorRule(
+            503,
+            "busy",
+            lambda exc: {"slots": exc.count, "wait_s": exc.wait_s},
+            headers=lambda _: {"Retry-After": "1"},
+        ),
     }
 )
 """Errors of the SDK's wire formats, answered alike by every service."""

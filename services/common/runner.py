@@ -23,6 +23,10 @@ segfault instead of raising RecursionError."""
 
 DEFAULT_SWITCH_INTERVAL_S = 0.005
 """CPython's own default: how long a thread may hold the GIL while another waits for it."""
+BUSY_THREADS_SWITCH_INTERVAL_S = 0.0005
+"""For a service whose worker threads run long pure-Python work beside the event loop (the
+ledger's calls, storage's queries). Under a flood of looping calls a ledger transfer took
+0.6-0.9 s at the default, 0.03-0.09 s at this; with nothing running beside it, unchanged."""
 
 
 def serve(app: FastAPI, settings: ServiceSettings) -> None:

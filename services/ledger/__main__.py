@@ -9,17 +9,16 @@ os.environ.setdefault("ETH_HASH_BACKEND", "pysha3")
 
 from eth import EVM_RECURSION_LIMIT
 
-from services.common.runner import run_service
+from services.common.runner import BUSY_THREADS_SWITCH_INTERVAL_S, run_service
 from services.ledger.app import build_app
 from services.ledger.settings import LedgerSettings
 
-# py-evm recurses in Python once per nested EVM call (depth up to 1024). While calls run EVM
-# code on worker threads, a transaction or a read waited some 5 ms for the GIL at each of its
-# dozens of I/O steps (0.6-0.9 s a transaction under a flood of calls, 0.03-0.09 s at 0.5 ms).
+# py-evm recurses in Python once per nested EVM call (depth up to 1024); calls run EVM code
+# on worker threads for seconds.
 run_service(
     "ledger",
     build_app,
     LedgerSettings,
     recursion_limit=EVM_RECURSION_LIMIT,
-    switch_interval_s=0.0005,
+    switch_interval_s=BUSY_THREADS_SWITCH_INTERVAL_S,
 )

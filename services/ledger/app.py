@@ -25,6 +25,7 @@ from services.common.app import create_app
 from services.common.auth import SignedAddress
 from services.common.bodies import read_json
 from services.common.errors import Forbidden, Unavailable
+from services.common.slots import Slots
 from services.ledger import views
 from services.ledger.backend import open_ledger
 from services.ledger.endpoint import RpcEndpoint
@@ -160,7 +161,8 @@ def build_app(settings: LedgerSettings) -> FastAPI:
         ledger = await anyio.to_thread.run_sync(open_ledger, settings)
         app.state.ledger = ledger
         app.state.rpc = RpcEndpoint(
-            ledger.dispatcher, settings.ledger_rpc_max_calls, settings.ledger_rpc_evm_timeout_s
+            ledger.dispatcher,
+            Slots("call", settings.ledger_rpc_max_calls, settings.ledger_rpc_evm_timeout_s),
         )
         app.state.audience.learn(chain_deployment_id(ledger.chain_id, ledger.deployment.registry))
         try:

@@ -1,18 +1,12 @@
 """Where each ``/rpc`` request runs: on the event loop, on a worker thread, or in a call slot.
 
-A call (``eth_call``, ``eth_estimateGas``, ``eth_createAccessList``) runs EVM code for free,
-up to the EVM timeout of CPU each (``rpc.COSTLY_METHODS`` also counts ``eth_feeHistory``).
-Under the GIL every such call on a worker thread takes its share of the one core that also
-serves HTTP and mines, and the worker threads are shared with transactions. Sixty looping
-calls at once used to take all forty worker threads and so much of the GIL that a transaction
-or a balance read waited past thirty seconds.
-
-So calls run in a few slots (``ledger_rpc_max_calls``), waited for on the event loop, where
-waiting costs no thread; a call that finds no slot within the EVM timeout is refused with
-``limit exceeded`` (-32005), and the threads stay free for everything else. The inline
-``eth_call`` at the head (see ``rpc.EmbeddedMethods.head_call``) is tried on the event loop
-only while no call holds a slot: under a flood of slow calls each would hold the loop for
-its budget first.
+The costly methods (``rpc.COSTLY_METHODS``: calls that run EVM code up to the EVM timeout,
+``eth_feeHistory``) take turns in ``ledger_rpc_max_calls`` slots (``services.common.slots``);
+one finding none within the EVM timeout is refused ``limit exceeded`` (-32005), as a node
+refuses what is over its limits. Sixty clients looping ``eth_call`` used to take all forty
+worker threads and so much of the GIL that a transaction waited 20 s. The inline ``eth_call``
+at the head (``rpc.EmbeddedMethods.head_call``) is tried on the event loop only while no slot
+is busy: under a flood of slow calls each would first hold the loop for its budget.
 """
 
 from __future__ import annotations
@@ -21,6 +15,7 @@ from typing import Any
 
 import anyio
 
+from services.common.slots import Slots, SlotsBusy
 from services.ledger.rpc import (
     INLINE_MAX_BYTES,
     LIMIT_EXCEEDED,
@@ -32,12 +27,11 @@ from services.ledger.rpc import (
 
 
 class RpcEndpoint:
-    """Answers ``/rpc`` bodies with ``dispatcher``, its costly requests ``slots`` at a time."""
+    """Answers ``/rpc`` bodies with ``dispatcher``, its costly requests in ``slots``."""
 
-    def __init__(self, dispatcher: Dispatcher, slots: int, slot_wait_s: float) -> None:
+    def __init__(self, dispatcher: Dispatcher, slots: Slots) -> None:
         self.dispatcher = dispatcher
-        self.slot_wait_s = slot_wait_s
-        self._slots = anyio.CapacityLimiter(slots)
+        self.slots = slots
 
     async def answer(self, body: bytes) -> Any:
         """The response document for ``body``; None when nothing is to be answered."""
@@ -50,27 +44,15 @@ class RpcEndpoint:
         except RpcFailure as failure:
             return error_answer(None, failure)
         costly = self.dispatcher.costly(document)
-        if small and (not costly or self._slots.borrowed_tokens == 0):
+        if small and (not costly or self.slots.idle):
             answer = self.dispatcher.answer_inline(document)
             if answer is not NOT_INLINE:
                 return answer
         if not costly:
             return await anyio.to_thread.run_sync(self.dispatcher.answer, document)
         try:
-            with anyio.fail_after(self.slot_wait_s):
-                await self._slots.acquire()
-        except TimeoutError:
-            return self._refusal(document)
-        try:
-            return await anyio.to_thread.run_sync(self.dispatcher.answer, document)
-        finally:
-            self._slots.release()
-
-    def _refusal(self, document: Any) -> Any:
-        slots = int(self._slots.total_tokens)
-        failure = RpcFailure(
-            LIMIT_EXCEEDED,
-            f"limit exceeded: all {slots} call slots stayed busy for {self.slot_wait_s:g} s; "
-            "retry later",
-        )
-        return self.dispatcher.refusal(document, failure)
+            async with self.slots.turn():
+                return await anyio.to_thread.run_sync(self.dispatcher.answer, document)
+        except SlotsBusy as busy:
+            refusal = RpcFailure(LIMIT_EXCEEDED, f"limit exceeded: {busy}")
+            return self.dispatcher.refusal(document, refusal)

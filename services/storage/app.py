@@ -24,6 +24,7 @@ from services.common.app import create_app
 from services.common.auth import SignedAddress
 from services.common.bodies import media_type, read_json
 from services.common.errors import BadRequest, UnsupportedMediaType
+from services.common.slots import Slots
 from services.storage import bags_api, identity, records_api
 from services.storage.anchoring import LedgerAndCas, StorageNode
 from services.storage.catalog import Catalog
@@ -321,6 +322,9 @@ def _open_records(app: FastAPI, settings: StorageSettings, node: StorageNode) ->
         notify=node.notify,
     )
     app.state.queries = QueryEngine(app.state.records)
+    app.state.query_slots = Slots(
+        "query", settings.storage_max_queries, settings.storage_query_wait_s
+    )
 
 
 def _close_records(app: FastAPI) -> None:

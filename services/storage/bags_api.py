@@ -17,13 +17,14 @@ from pydantic import BaseModel, Field
 from robocloud.cid import parse_cid
 from services.common.bodies import json_body, media_type
 from services.common.errors import PayloadTooLarge, UnsupportedMediaType
+from services.common.slots import Slots
 from services.storage.bags import SUFFIXES, detect_format
 from services.storage.casbags import BagBounds, fetch_bag
 from services.storage.export import jsonl_stream, mcap_stream
 from services.storage.ingest import IngestJobs
 from services.storage.matcher import Bindings
 from services.storage.queries import QueryEngine
-from services.storage.records_api import RecordFilters, authorship_of
+from services.storage.records_api import RecordFilters, authorship_of, in_query_slot
 
 router = APIRouter(tags=["ingest"])
 EXPORT_PAGE = 1000
@@ -142,11 +143,14 @@ def _pages(engine: QueryEngine, filters: RecordFilters, first: Any, limit: int) 
         page = engine.records(filters.query(EXPORT_PAGE, page.next))
 
 
-async def _in_thread(chunks: Iterator[bytes]) -> AsyncIterator[bytes]:
-    """Pull a blocking generator off the event loop, one chunk at a time."""
+async def _in_query_slots(chunks: Iterator[bytes], slots: Slots) -> AsyncIterator[bytes]:
+    """Pull a blocking generator off the event loop, each chunk (a page read, encoded) in a
+    query slot as ``GET /v1/records`` takes; an export that finds none in time breaks off,
+    which the client sees as a cut stream, never as a shorter complete one."""
     done = object()
     while True:
-        chunk = await anyio.to_thread.run_sync(next, chunks, done)
+        async with slots.turn():
+            chunk = await anyio.to_thread.run_sync(next, chunks, done)
         if chunk is done:
             return
         assert isinstance(chunk, bytes)
@@ -163,7 +167,7 @@ async def export(
     """A query's records (filters as ``GET /v1/records``) as MCAP or JSON lines, streamed."""
     query = filters.query(EXPORT_PAGE)
     engine: QueryEngine = request.app.state.queries
-    first = await anyio.to_thread.run_sync(engine.records, query)
+    first = await in_query_slot(request, lambda: engine.records(query))
     records = _pages(engine, filters, first, limit)
     if format == "mcap":
         catalog = request.app.state.catalog
@@ -173,7 +177,7 @@ async def export(
         chunks = jsonl_stream(records)
         media, name = "application/x-ndjson", "export.jsonl"
     return StreamingResponse(
-        _in_thread(chunks),
+        _in_query_slots(chunks, request.app.state.query_slots),
         media_type=media,
         headers={"Content-Disposition": f'attachment; filename="{name}"'},
     )

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import time
-from collections.abc import AsyncIterator
-from typing import Annotated, Any, Literal
+from collections.abc import AsyncIterator, Callable
+from typing import Annotated, Any, Literal, TypeVar
 
 import anyio
 from eth_utils.address import is_address, to_checksum_address
@@ -20,12 +20,15 @@ from robocloud.templates import load_template_document
 from services.common.auth import SignedAddress, require_role, verified_request
 from services.common.bodies import json_body, media_type
 from services.common.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
+from services.common.slots import Slots
 from services.storage.catalog import Catalog, Status, TemplateVersion
 from services.storage.queries import QueryEngine, QueryInvalid, RecordQuery
 from services.storage.recordstore import Authorship, RecordRejected, RecordStore, StoredRecord
 from services.storage.settings import StorageSettings
 
 router = APIRouter(tags=["records"])
+
+T = TypeVar("T")
 
 TEMPLATE_BODY_LIMIT = 256 * 1024
 RECORD_DEPTH = 24
@@ -294,6 +297,15 @@ class RecordFilters:
         )
 
 
+async def in_query_slot(request: Request, work: Callable[[], T]) -> T:
+    """``work`` (a query: up to a million documents scanned, free for a stranger) on a worker
+    thread in one of the few query slots (``services.common.slots``); 503 ``busy`` when
+    none frees in time."""
+    slots: Slots = request.app.state.query_slots
+    async with slots.turn():
+        return await anyio.to_thread.run_sync(work)
+
+
 @router.get("/v1/records")
 async def query_records(
     request: Request,
@@ -304,7 +316,7 @@ async def query_records(
     """Records matching every filter, in log order; ``next`` is the cursor of the next page."""
     query = filters.query(limit, cursor)
     engine: QueryEngine = request.app.state.queries
-    page = await anyio.to_thread.run_sync(engine.records, query)
+    page = await in_query_slot(request, lambda: engine.records(query))
     return {
         "records": [_rendered(stored) for stored in page.records],
         "next": page.next,
@@ -331,10 +343,11 @@ async def state_intervals(
 ) -> dict[str, Any]:
     """When each robot entered and left the state ``field == value`` (exit null: still in)."""
     engine: QueryEngine = request.app.state.queries
-    intervals = await anyio.to_thread.run_sync(
+    intervals = await in_query_slot(
+        request,
         lambda: engine.intervals(
             template, field, value, robot=robot_filter(robot), start=start, end=end
-        )
+        ),
     )
     return {
         "template": template,

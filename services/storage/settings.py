@@ -90,6 +90,15 @@ class StorageSettings(ServiceSettings):
     storage_max_line_bytes: int = Field(
         default=1024 * 1024, gt=0, description="bytes of one record (NDJSON line or array item)"
     )
+    storage_max_queries: int = Field(
+        default=2,
+        gt=0,
+        description="record queries, state intervals and export pages running at once; more "
+        "wait up to storage_query_wait_s, then are refused (503 busy)",
+    )
+    storage_query_wait_s: float = Field(
+        default=5.0, gt=0, description="how long a query waits for its turn before the 503"
+    )
     storage_max_templates: int = Field(
         default=100_000, gt=0, description="template versions the catalog holds at most"
     )

@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -247,3 +248,63 @@ def test_kill_9_keeps_every_acknowledged_record_once(
             time.sleep(0.05)
             keyword = client.query(template="state@1", keywords="m3")
         assert [item.record["t"] for item in keyword.records] == list(range(300, 400))
+
+
+FLOODERS = 48
+"""More than the service's 40 worker threads: each flooding query scans every record for a
+robot that never wrote one. Before queries took turns, 40 such clients over 200,000 records
+made a read of one record wait 15-23 s (``bench``-like probe, not run here: too slow)."""
+
+
+def test_a_flood_of_unselective_queries_starves_no_read_or_write(
+    service_factory: ServiceFactory, identity: Identity
+) -> None:
+    storage = service_factory(
+        "storage",
+        {"ROBOCLOUD_STORAGE_MAX_QUERIES": "1", "ROBOCLOUD_STORAGE_QUERY_WAIT_S": "0.5"},
+    )
+    with Storage(storage.url, identity) as client:
+        _approved(client)
+        for first in range(0, 100_000, 10_000):
+            client.append([_record(identity.address, t) for t in range(first, first + 10_000)])
+        unselective = {"template": "state@1", "robot": "0x" + "11" * 20}
+        stop = threading.Event()
+        flood_answers: list[httpx.Response] = []
+
+        def flood() -> None:
+            with httpx.Client(timeout=120) as flooder:
+                while not stop.is_set():
+                    flood_answers.append(
+                        flooder.get(f"{storage.url}/v1/records", params=unselective)
+                    )
+
+        flooders = [threading.Thread(target=flood) for _ in range(FLOODERS)]
+        for flooder in flooders:
+            flooder.start()
+        try:
+            time.sleep(1)
+            with httpx.Client(timeout=10) as honest:
+                record = honest.get(f"{storage.url}/v1/records/state-1-5")
+                ready = honest.get(f"{storage.url}/readyz")
+            appended = client.append([_record(identity.address, 200_000)])
+            still_flooding = all(flooder.is_alive() for flooder in flooders)
+        finally:
+            stop.set()
+            for flooder in flooders:
+                flooder.join()
+    assert record.json()["record"]["t"] == 5
+    assert ready.json()["status"] == "ready"
+    assert appended == ["state-1-100000"]
+    assert still_flooding
+    pages = [answer.json() for answer in flood_answers if answer.status_code == 200]
+    busy = [answer for answer in flood_answers if answer.status_code == 503]
+    assert len(pages) + len(busy) == len(flood_answers)
+    assert pages
+    assert all(page["records"] == [] for page in pages)
+    assert busy
+    for answer in busy:
+        error = answer.json()["error"]
+        assert error["code"] == "busy"
+        assert error["message"] == "all 1 query slots stayed busy for 0.5 s; retry later"
+        assert error["details"] == {"slots": 1, "wait_s": 0.5}
+        assert answer.headers["Retry-After"] == "1"

@@ -8,6 +8,7 @@ from typing import Any
 
 import anyio
 
+from services.common.slots import Slots
 from services.ledger.endpoint import RpcEndpoint
 from services.ledger.rpc import LIMIT_EXCEEDED, Dispatcher, NotInline
 
@@ -38,7 +39,7 @@ class Methods:
             inline={"call": self.inline_call},
             costly=["call"],
         )
-        return RpcEndpoint(dispatcher, slots=1, slot_wait_s=0.2)
+        return RpcEndpoint(dispatcher, Slots("call", 1, 0.2))
 
 
 def body(method: str, request_id: int | None = 1) -> bytes:
