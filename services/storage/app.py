@@ -119,6 +119,9 @@ def _sparql_answer(media: str, body: bytes) -> Response:
 
 def _knowledge_router(settings: StorageSettings) -> APIRouter:
     router = APIRouter(tags=["knowledge"])
+    # One turn per worker process: a query waiting for a free worker waits on the event loop,
+    # not on one of the threads every other route needs.
+    worker_turns = Slots("SPARQL", settings.knowledge_workers, settings.knowledge_query_timeout_s)
 
     async def run_query(
         request: Request, query: str | None, update: str | None, format_hint: str | None
@@ -135,9 +138,10 @@ def _knowledge_router(settings: StorageSettings) -> APIRouter:
         if size > settings.knowledge_max_query_bytes:
             raise QueryTooLargeError(size, settings.knowledge_max_query_bytes)
         accept = request.headers.get("accept")
-        media, body = await anyio.to_thread.run_sync(
-            _knowledge(request).workers.query, query, accept, format_hint
-        )
+        async with worker_turns.turn():
+            media, body = await anyio.to_thread.run_sync(
+                _knowledge(request).workers.query, query, accept, format_hint
+            )
         return _sparql_answer(media, body)
 
     def dataset_refused(parameters: list[tuple[str, str]]) -> None:
@@ -225,9 +229,10 @@ def _knowledge_router(settings: StorageSettings) -> APIRouter:
         limit: int = Query(default=100, ge=1, le=1000),
     ) -> dict[str, Any]:
         """Applications with an input of type ``consumes`` (and an output of ``produces``)."""
-        found = await anyio.to_thread.run_sync(
-            _knowledge(request).applications, consumes, produces, limit
-        )
+        async with worker_turns.turn():
+            found = await anyio.to_thread.run_sync(
+                _knowledge(request).applications, consumes, produces, limit
+            )
         return {"applications": found}
 
     return router
@@ -390,7 +395,7 @@ def build_app(settings: StorageSettings) -> FastAPI:
 
     async def knowledge_loaded() -> None:
         """Ready once a SPARQL worker has loaded the graph and warmed rdflib's parser."""
-        if not app.state.knowledge.workers.ready():
+        if not app.state.knowledge.workers.loaded():
             raise RuntimeError("the knowledge base's query workers are still starting")
 
     app = create_app(

@@ -466,6 +466,7 @@ class SparqlWorkers:
         self._children: list[_Child] = []
         self._idle: queue.Queue[_Child] = queue.Queue()
         self._closed = False
+        self._loaded = False
         self.replaced = 0
 
     def start(self) -> None:
@@ -473,9 +474,13 @@ class SparqlWorkers:
         for _ in range(self.count):
             self._spawn()
 
-    def ready(self) -> bool:
+    def loaded(self) -> bool:
+        """Whether a worker has loaded the graph, ever: the knowledge base answers queries from
+        then on. A worker replaced later (a query past its time is stopped by killing its
+        worker) does not undo it: while every worker reloads, queries get 503
+        ``knowledge_loading``; readiness flapped with each replacement a slow query caused."""
         with self._lock:
-            return any(child.ready for child in self._children)
+            return self._loaded
 
     def describe(self) -> dict[str, int]:
         with self._lock:
@@ -608,6 +613,7 @@ class SparqlWorkers:
             return
         with self._lock:
             child.ready = True
+            self._loaded = True
         log.info("SPARQL worker %d ready with %d descriptions", child.process.pid, answer[1])
         self._idle.put(child)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -375,6 +376,45 @@ def test_a_query_past_its_time_is_stopped_while_other_queries_are_answered(
     assert services.state()["workers"]["replaced"] == replaced + 1
     again = httpx.get(services.sparql, params={"query": FILES_QUERY}, timeout=60)
     assert again.json()["results"]["bindings"][0]["width"]["value"] == "640"
+
+
+def test_a_flood_of_slow_queries_keeps_the_service_ready(services: Services) -> None:
+    """Each slow query's worker is stopped at the timeout and reloads the graph. Readiness
+    used to follow the workers, so a flood of slow queries flapped the whole service (its
+    records, ingest and proofs included) to 503 with every replacement; and each query
+    waiting for a free worker held one of the threads every other route needs."""
+    stop = threading.Event()
+    answers: list[httpx.Response] = []
+
+    def flood() -> None:
+        with httpx.Client(timeout=60) as client:
+            while not stop.is_set():
+                answers.append(client.get(services.sparql, params={"query": SLOW}))
+
+    flooders = [threading.Thread(target=flood) for _ in range(12)]
+    for flooder in flooders:
+        flooder.start()
+    readiness: list[int] = []
+    try:
+        with httpx.Client(timeout=10) as probe:
+            deadline = time.monotonic() + 3 * TIMEOUT_S
+            while time.monotonic() < deadline:
+                readiness.append(probe.get(f"{services.storage.url}/readyz").status_code)
+                time.sleep(0.05)
+            node = probe.get(f"{services.storage.url}/v1/node")
+    finally:
+        stop.set()
+        for flooder in flooders:
+            flooder.join()
+    assert set(readiness) == {200}
+    assert node.status_code == 200
+    codes = {answer.json()["error"]["code"] for answer in answers}
+    assert "query_timeout" in codes
+    assert codes <= {"query_timeout", "knowledge_loading", "busy"}
+    for answer in answers:
+        assert answer.status_code == 503
+        assert answer.headers["retry-after"] == "1"
+    wait_for(lambda: services.state()["workers"]["ready"] == 2, "the workers to be replaced")
 
 
 # ----- application discovery -----
