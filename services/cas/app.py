@@ -18,6 +18,7 @@ from services.cas.errors import ERRORS
 from services.cas.settings import CasSettings
 from services.cas.store import ContentStore
 from services.common.app import create_app
+from services.common.slots import Slots
 
 log = logging.getLogger("robocloud.cas")
 
@@ -92,4 +93,5 @@ def build_app(settings: CasSettings) -> FastAPI:
         description=services.cas.__doc__ or "",
     )
     app.state.store = _open_store(settings, app)
+    app.state.listing_slots = Slots("listing", gateway.LISTING_TURNS, gateway.LISTING_WAIT_S)
     return app
