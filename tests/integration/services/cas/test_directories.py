@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -16,6 +15,7 @@ from robocloud.client import ServiceClient
 from robocloud.errors import ApiError
 from robocloud.identity import Identity
 from tests.conftest import ServiceFactory
+from tests.flood import flooding
 from tests.integration.services.cas.conftest import (
     QUIET_GC,
     error_of,
@@ -170,31 +170,20 @@ def test_a_flood_of_big_listings_starves_no_other_read(
         (source / f"file-{index:06d}.txt").write_bytes(str(index).encode())
     listing_url = f"{cas_service.url}/ipfs/{cas.add_directory(source)}/"
     small = cas.add_bytes(b"hello")
-    stop = threading.Event()
-    flood_answers: list[httpx.Response] = []
 
-    def flood() -> None:
-        with httpx.Client(timeout=120) as client:
-            while not stop.is_set():
-                flood_answers.append(client.get(listing_url, headers={"Accept": "text/html"}))
+    def listing(client: httpx.Client) -> httpx.Response:
+        return client.get(listing_url, headers={"Accept": "text/html"})
 
-    flooders = [threading.Thread(target=flood) for _ in range(FLOODERS)]
-    for flooder in flooders:
-        flooder.start()
-    try:
+    with flooding(listing, FLOODERS) as flood:
         time.sleep(2)
         with httpx.Client(timeout=5) as honest:
             read = honest.get(f"{cas_service.url}/ipfs/{small}")
             ready = honest.get(f"{cas_service.url}/readyz")
-        still_flooding = all(flooder.is_alive() for flooder in flooders)
-    finally:
-        stop.set()
-        for flooder in flooders:
-            flooder.join()
+        still_flooding = flood.running()
     assert read.content == b"hello"
     assert ready.json()["status"] == "ready"
     assert still_flooding
-    for answer in flood_answers:
+    for answer in flood.answers:
         if answer.status_code == 200:
             assert answer.text.count("<tr><td>") == 20_000
         else:

@@ -14,6 +14,7 @@ from web3 import HTTPProvider, Web3
 
 from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient
+from tests.flood import flooding
 from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
 from tests.integration.services.ledger.conftest import faucet, rpc, start_ledger
 from tests.procs import ServiceProcess
@@ -122,19 +123,13 @@ size left a transaction and a balance read waiting past 30 s."""
 def test_a_flood_of_looping_calls_starves_no_transaction_or_read(
     ledger: ServiceProcess, loop_address: str
 ) -> None:
-    stop = threading.Event()
-    flood_answers: list[dict[str, Any]] = []
     payload = {"jsonrpc": "2.0", "id": 1, "method": "eth_call", "params": [{"to": loop_address}]}
 
-    def flood() -> None:
-        with httpx.Client(timeout=60) as client:
-            while not stop.is_set():
-                flood_answers.append(client.post(f"{ledger.url}/rpc", json=payload).json())
+    def looping_call(client: httpx.Client) -> dict[str, Any]:
+        answer: dict[str, Any] = client.post(f"{ledger.url}/rpc", json=payload).json()
+        return answer
 
-    flooders = [threading.Thread(target=flood) for _ in range(FLOODERS)]
-    for flooder in flooders:
-        flooder.start()
-    try:
+    with flooding(looping_call, FLOODERS) as flood:
         robot = Identity.generate()
         funded = faucet(ledger.url, robot)
         w3 = Web3(HTTPProvider(f"{ledger.url}/rpc", request_kwargs={"timeout": 15}))
@@ -154,11 +149,7 @@ def test_a_flood_of_looping_calls_starves_no_transaction_or_read(
         )
         recipient_balance = w3.eth.get_balance(Web3.to_checksum_address("0x" + "22" * 20))
         ready = httpx.get(f"{ledger.url}/readyz", timeout=15)
-        still_flooding = all(flooder.is_alive() for flooder in flooders)
-    finally:
-        stop.set()
-        for flooder in flooders:
-            flooder.join()
+        still_flooding = flood.running()
     assert funded.status_code == 200
     assert receipt["status"] == 1
     assert recipient_balance >= 5
@@ -169,7 +160,7 @@ def test_a_flood_of_looping_calls_starves_no_transaction_or_read(
         "code": -32005,
         "message": f"limit exceeded: all 2 call slots stayed busy for {TIMEOUT_S} s; retry later",
     }
-    errors = [answer["error"] for answer in flood_answers]
+    errors = [answer["error"] for answer in flood.answers]
     assert aborted in errors
     assert refused in errors
     assert all(error in (aborted, refused) for error in errors), errors

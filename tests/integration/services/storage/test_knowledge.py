@@ -26,6 +26,7 @@ from robocloud.errors import ApiError
 from robocloud.identity import Identity
 from robocloud.knowledge import Knowledge
 from robocloud.semantic import Description
+from tests.flood import flooding
 from tests.procs import REPO, ServiceProcess
 from tests.waiting import wait_for
 
@@ -383,35 +384,23 @@ def test_a_flood_of_slow_queries_keeps_the_service_ready(services: Services) -> 
     used to follow the workers, so a flood of slow queries flapped the whole service (its
     records, ingest and proofs included) to 503 with every replacement; and each query
     waiting for a free worker held one of the threads every other route needs."""
-    stop = threading.Event()
-    answers: list[httpx.Response] = []
 
-    def flood() -> None:
-        with httpx.Client(timeout=60) as client:
-            while not stop.is_set():
-                answers.append(client.get(services.sparql, params={"query": SLOW}))
+    def slow_query(client: httpx.Client) -> httpx.Response:
+        return client.get(services.sparql, params={"query": SLOW})
 
-    flooders = [threading.Thread(target=flood) for _ in range(12)]
-    for flooder in flooders:
-        flooder.start()
     readiness: list[int] = []
-    try:
-        with httpx.Client(timeout=10) as probe:
-            deadline = time.monotonic() + 3 * TIMEOUT_S
-            while time.monotonic() < deadline:
-                readiness.append(probe.get(f"{services.storage.url}/readyz").status_code)
-                time.sleep(0.05)
-            node = probe.get(f"{services.storage.url}/v1/node")
-    finally:
-        stop.set()
-        for flooder in flooders:
-            flooder.join()
+    with flooding(slow_query, 12) as flood, httpx.Client(timeout=10) as probe:
+        deadline = time.monotonic() + 3 * TIMEOUT_S
+        while time.monotonic() < deadline:
+            readiness.append(probe.get(f"{services.storage.url}/readyz").status_code)
+            time.sleep(0.05)
+        node = probe.get(f"{services.storage.url}/v1/node")
     assert set(readiness) == {200}
     assert node.status_code == 200
-    codes = {answer.json()["error"]["code"] for answer in answers}
+    codes = {answer.json()["error"]["code"] for answer in flood.answers}
     assert "query_timeout" in codes
     assert codes <= {"query_timeout", "knowledge_loading", "busy"}
-    for answer in answers:
+    for answer in flood.answers:
         assert answer.status_code == 503
         assert answer.headers["retry-after"] == "1"
     wait_for(lambda: services.state()["workers"]["ready"] == 2, "the workers to be replaced")

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from robocloud.identity import Identity
 from robocloud.storage import Storage
 from robocloud.templates import RecordInvalid
 from tests.conftest import ServiceFactory
+from tests.flood import flooding
 from tests.procs import REPO, ServiceProcess
 
 STATE = {
@@ -268,37 +268,24 @@ def test_a_flood_of_unselective_queries_starves_no_read_or_write(
         for first in range(0, 100_000, 10_000):
             client.append([_record(identity.address, t) for t in range(first, first + 10_000)])
         unselective = {"template": "state@1", "robot": "0x" + "11" * 20}
-        stop = threading.Event()
-        flood_answers: list[httpx.Response] = []
 
-        def flood() -> None:
-            with httpx.Client(timeout=120) as flooder:
-                while not stop.is_set():
-                    flood_answers.append(
-                        flooder.get(f"{storage.url}/v1/records", params=unselective)
-                    )
+        def unselective_query(flooder: httpx.Client) -> httpx.Response:
+            return flooder.get(f"{storage.url}/v1/records", params=unselective)
 
-        flooders = [threading.Thread(target=flood) for _ in range(FLOODERS)]
-        for flooder in flooders:
-            flooder.start()
-        try:
+        with flooding(unselective_query, FLOODERS) as flood:
             time.sleep(1)
             with httpx.Client(timeout=10) as honest:
                 record = honest.get(f"{storage.url}/v1/records/state-1-5")
                 ready = honest.get(f"{storage.url}/readyz")
             appended = client.append([_record(identity.address, 200_000)])
-            still_flooding = all(flooder.is_alive() for flooder in flooders)
-        finally:
-            stop.set()
-            for flooder in flooders:
-                flooder.join()
+            still_flooding = flood.running()
     assert record.json()["record"]["t"] == 5
     assert ready.json()["status"] == "ready"
     assert appended == ["state-1-100000"]
     assert still_flooding
-    pages = [answer.json() for answer in flood_answers if answer.status_code == 200]
-    busy = [answer for answer in flood_answers if answer.status_code == 503]
-    assert len(pages) + len(busy) == len(flood_answers)
+    pages = [answer.json() for answer in flood.answers if answer.status_code == 200]
+    busy = [answer for answer in flood.answers if answer.status_code == 503]
+    assert len(pages) + len(busy) == len(flood.answers)
     assert pages
     assert all(page["records"] == [] for page in pages)
     assert busy
