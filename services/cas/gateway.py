@@ -36,8 +36,9 @@ FORMATS = {"raw": RAW_MEDIA_TYPE, "car": CAR_MEDIA_TYPE, "dag-json": DAG_JSON_ME
 MAX_PATH_SEGMENTS = 256
 LISTING_TURNS = 2
 LISTING_WAIT_S = 5.0
-"""Directory listings take turns (``services.common.slots``): a directory of 20,000 entries
-is 0.4-0.6 s of CPU and 5.7 MB of HTML, free for anyone to ask again and again."""
+"""Directory listings (the gateway's HTML, kubo's ``ls``) take turns
+(``services.common.slots``): a directory of 20,000 entries is 0.4-0.6 s of CPU and 5.7 MB of
+HTML, free for anyone to ask again and again."""
 
 router = APIRouter(tags=["gateway"])
 

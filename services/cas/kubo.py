@@ -13,7 +13,7 @@ from typing import Annotated, Any
 
 import anyio
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import Response, StreamingResponse
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 import robocloud
 from robocloud.cid import CODEC_NAMES, parse_cid
@@ -24,6 +24,7 @@ from services.cas.streams import threaded_stream
 from services.cas.uploads import BlockCollector, CarImport, FileAdder, upload
 from services.common.auth import SignedAddress
 from services.common.errors import BadRequest
+from services.common.slots import Slots
 
 READ_PATHS = (
     "/api/v0/cat",
@@ -175,8 +176,12 @@ async def ls(
     arg: Annotated[list[str], Query(description="directories: CID or CID/path")],
     resolve_type: Annotated[bool, Query(alias="resolve-type")] = True,
     size: bool = True,
-) -> dict[str, Any]:
-    """A directory's entries, kubo's answer shape; ``Type`` 1 is a directory, 2 a file."""
+) -> Response:
+    """A directory's entries, kubo's answer shape; ``Type`` 1 is a directory, 2 a file.
+
+    Read (a block per entry for its type and size) and encoded on a worker thread, in the
+    gateway's listing turns: a directory of 20,000 entries is free to ask for again and again.
+    """
     store = _store(request)
 
     def listing(path: str) -> dict[str, Any]:
@@ -195,8 +200,12 @@ async def ls(
             )
         return {"Hash": path, "Links": links}
 
-    objects = [await anyio.to_thread.run_sync(listing, path) for path in arg]
-    return {"Objects": objects}
+    def answer() -> Response:
+        return JSONResponse({"Objects": [listing(path) for path in arg]})
+
+    slots: Slots = request.app.state.listing_slots
+    async with slots.turn():
+        return await anyio.to_thread.run_sync(answer)
 
 
 _LS_TYPES: dict[int | None, int] = {DIRECTORY: 1, HAMT_SHARD: 1, FILE: 2}
