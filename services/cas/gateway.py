@@ -270,8 +270,7 @@ async def _listing(
         return directory_page(root, path, target, entries).encode()
 
     slots: Slots = request.app.state.listing_slots
-    async with slots.turn():
-        page = await anyio.to_thread.run_sync(render)
+    page = await slots.run_sync(render)
     headers["Content-Length"] = str(len(page))
     body = b"" if request.method == "HEAD" else page
     return Response(body, headers=headers, media_type="text/html; charset=utf-8")

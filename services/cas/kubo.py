@@ -204,8 +204,7 @@ async def ls(
         return JSONResponse({"Objects": [listing(path) for path in arg]})
 
     slots: Slots = request.app.state.listing_slots
-    async with slots.turn():
-        return await anyio.to_thread.run_sync(answer)
+    return await slots.run_sync(answer)
 
 
 _LS_TYPES: dict[int | None, int] = {DIRECTORY: 1, HAMT_SHARD: 1, FILE: 2}

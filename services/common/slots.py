@@ -13,10 +13,13 @@ request waits for its turn on the event loop, where waiting holds no thread, for
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from typing import TypeVar
 
 import anyio
+
+T = TypeVar("T")
 
 
 class SlotsBusy(Exception):
@@ -55,3 +58,8 @@ class Slots:
             yield
         finally:
             self._limiter.release()
+
+    async def run_sync(self, work: Callable[[], T]) -> T:
+        """``work`` on a worker thread, in a turn: how every route runs its costly work."""
+        async with self.turn():
+            return await anyio.to_thread.run_sync(work)

@@ -51,8 +51,7 @@ class RpcEndpoint:
         if not costly:
             return await anyio.to_thread.run_sync(self.dispatcher.answer, document)
         try:
-            async with self.slots.turn():
-                return await anyio.to_thread.run_sync(self.dispatcher.answer, document)
+            return await self.slots.run_sync(lambda: self.dispatcher.answer(document))
         except SlotsBusy as busy:
             refusal = RpcFailure(LIMIT_EXCEEDED, f"limit exceeded: {busy}")
             return self.dispatcher.refusal(document, refusal)

@@ -138,10 +138,8 @@ def _knowledge_router(settings: StorageSettings) -> APIRouter:
         if size > settings.knowledge_max_query_bytes:
             raise QueryTooLargeError(size, settings.knowledge_max_query_bytes)
         accept = request.headers.get("accept")
-        async with worker_turns.turn():
-            media, body = await anyio.to_thread.run_sync(
-                _knowledge(request).workers.query, query, accept, format_hint
-            )
+        workers = _knowledge(request).workers
+        media, body = await worker_turns.run_sync(lambda: workers.query(query, accept, format_hint))
         return _sparql_answer(media, body)
 
     def dataset_refused(parameters: list[tuple[str, str]]) -> None:
@@ -229,10 +227,10 @@ def _knowledge_router(settings: StorageSettings) -> APIRouter:
         limit: int = Query(default=100, ge=1, le=1000),
     ) -> dict[str, Any]:
         """Applications with an input of type ``consumes`` (and an output of ``produces``)."""
-        async with worker_turns.turn():
-            found = await anyio.to_thread.run_sync(
-                _knowledge(request).applications, consumes, produces, limit
-            )
+        knowledge = _knowledge(request)
+        found = await worker_turns.run_sync(
+            lambda: knowledge.applications(consumes, produces, limit)
+        )
         return {"applications": found}
 
     return router

@@ -149,8 +149,7 @@ async def _in_query_slots(chunks: Iterator[bytes], slots: Slots) -> AsyncIterato
     which the client sees as a cut stream, never as a shorter complete one."""
     done = object()
     while True:
-        async with slots.turn():
-            chunk = await anyio.to_thread.run_sync(next, chunks, done)
+        chunk = await slots.run_sync(lambda: next(chunks, done))
         if chunk is done:
             return
         assert isinstance(chunk, bytes)

@@ -302,8 +302,7 @@ async def in_query_slot(request: Request, work: Callable[[], T]) -> T:
     thread in one of the few query slots (``services.common.slots``); 503 ``busy`` when
     none frees in time."""
     slots: Slots = request.app.state.query_slots
-    async with slots.turn():
-        return await anyio.to_thread.run_sync(work)
+    return await slots.run_sync(work)
 
 
 @router.get("/v1/records")
