@@ -30,6 +30,7 @@ from services.ledger import views
 from services.ledger.backend import open_ledger
 from services.ledger.endpoint import RpcEndpoint
 from services.ledger.errors import ERRORS
+from services.ledger.forwarding import NodeForwarder
 from services.ledger.grants import RoleGrant, open_granter
 from services.ledger.node import Ledger
 from services.ledger.settings import LedgerSettings
@@ -160,9 +161,17 @@ def build_app(settings: LedgerSettings) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         ledger = await anyio.to_thread.run_sync(open_ledger, settings)
         app.state.ledger = ledger
+        forwarder = None
+        if settings.ledger_rpc_url:
+            forwarder = NodeForwarder(
+                settings.ledger_rpc_url,
+                settings.ledger_rpc_max_forwards,
+                settings.ledger_rpc_evm_timeout_s,
+            )
         app.state.rpc = RpcEndpoint(
             ledger.dispatcher,
             Slots("call", settings.ledger_rpc_max_calls, settings.ledger_rpc_evm_timeout_s),
+            forwarder,
         )
         app.state.audience.learn(chain_deployment_id(ledger.chain_id, ledger.deployment.registry))
         try:
@@ -177,6 +186,8 @@ def build_app(settings: LedgerSettings) -> FastAPI:
         finally:
             app.state.ledger = None
             app.state.rpc = None
+            if forwarder is not None:
+                await forwarder.aclose()
             await anyio.to_thread.run_sync(ledger.close)
 
     async def chain_answers() -> None:

@@ -7,6 +7,9 @@ refuses what is over its limits. Sixty clients looping ``eth_call`` used to take
 worker threads and so much of the GIL that a transaction waited 20 s. The inline ``eth_call``
 at the head (``rpc.EmbeddedMethods.head_call``) is tried on the event loop only while no slot
 is busy: under a flood of slow calls each would first hold the loop for its budget.
+
+In external-node mode a ``forwarding.NodeForwarder`` relays the calls instead, from the event
+loop; the costly ones still take turns in the slots.
 """
 
 from __future__ import annotations
@@ -16,22 +19,30 @@ from typing import Any
 import anyio
 
 from services.common.slots import Slots, SlotsBusy
+from services.ledger.forwarding import NodeForwarder
 from services.ledger.rpc import (
     INLINE_MAX_BYTES,
     LIMIT_EXCEEDED,
     NOT_INLINE,
+    Call,
     Dispatcher,
     RpcFailure,
+    batch_refusal,
+    collect,
     error_answer,
 )
 
 
 class RpcEndpoint:
-    """Answers ``/rpc`` bodies with ``dispatcher``, its costly requests in ``slots``."""
+    """Answers ``/rpc`` bodies with ``dispatcher``, or relays them with ``forwarder`` when
+    there is one; the costly requests in ``slots`` either way."""
 
-    def __init__(self, dispatcher: Dispatcher, slots: Slots) -> None:
+    def __init__(
+        self, dispatcher: Dispatcher, slots: Slots, forwarder: NodeForwarder | None = None
+    ) -> None:
         self.dispatcher = dispatcher
         self.slots = slots
+        self.forwarder = forwarder
 
     async def answer(self, body: bytes) -> Any:
         """The response document for ``body``; None when nothing is to be answered."""
@@ -44,6 +55,8 @@ class RpcEndpoint:
         except RpcFailure as failure:
             return error_answer(None, failure)
         costly = self.dispatcher.costly(document)
+        if self.forwarder is not None:
+            return await self._relayed(self.forwarder, document, costly)
         if small and (not costly or self.slots.idle):
             answer = self.dispatcher.answer_inline(document)
             if answer is not NOT_INLINE:
@@ -53,5 +66,37 @@ class RpcEndpoint:
         try:
             return await self.slots.run_sync(lambda: self.dispatcher.answer(document))
         except SlotsBusy as busy:
-            refusal = RpcFailure(LIMIT_EXCEEDED, f"limit exceeded: {busy}")
-            return self.dispatcher.refusal(document, refusal)
+            return self._refusal(document, busy)
+
+    async def _relayed(self, forwarder: NodeForwarder, document: Any, costly: bool) -> Any:
+        if isinstance(document, list) and (refused := batch_refusal(document)) is not None:
+            return refused
+        framed = [self.dispatcher.frame(item) for item in _requests(document)]
+        calls = [call for call in framed if isinstance(call, Call)]
+        try:
+            outcomes = iter((await self._relay(forwarder, calls, costly)) if calls else [])
+        except SlotsBusy as busy:
+            return self._refusal(document, busy)
+        answers = [
+            _answer(item, next(outcomes)) if isinstance(item, Call) else item for item in framed
+        ]
+        return collect(document, answers)
+
+    async def _relay(self, forwarder: NodeForwarder, calls: list[Call], costly: bool) -> list[Any]:
+        if not costly:
+            return await forwarder.relay(calls)
+        async with self.slots.turn():
+            return await forwarder.relay(calls, costly=True)
+
+    def _refusal(self, document: Any, busy: SlotsBusy) -> Any:
+        return self.dispatcher.refusal(
+            document, RpcFailure(LIMIT_EXCEEDED, f"limit exceeded: {busy}")
+        )
+
+
+def _requests(document: Any) -> list[Any]:
+    return document if isinstance(document, list) else [document]
+
+
+def _answer(call: Call, outcome: Any) -> dict[str, Any] | None:
+    return call.failed(outcome) if isinstance(outcome, RpcFailure) else call.answered(outcome)

@@ -7,7 +7,8 @@ remembers where in ``contracts.json``. ``ROBOCLOUD_LEDGER_REGISTRATION_MODE`` is
 every start where that key is the Registry's admin; otherwise a Registry in another mode stops
 the start (``contracts.must_switch_mode``). ``/rpc`` forwards the standard namespaces (``eth_``,
 ``net_``, ``web3_``) and nothing else, so a node's administrative or cheat methods
-(``anvil_*``, ``debug_*``, ``personal_*``) are never exposed through the service.
+(``anvil_*``, ``debug_*``, ``personal_*``) are never exposed through the service; it relays
+from the event loop (``forwarding``).
 
 The event index follows the node by polling ``eth_getLogs`` for the two contracts in bounded
 block ranges, ``confirmations`` blocks behind the head. Before each round it checks that the
@@ -37,15 +38,15 @@ from robocloud.ledger.transactions import quantity
 from services.common.durable import atomic_write
 from services.ledger.contracts import Deployment, artifact, must_switch_mode
 from services.ledger.encoding import LogEntry
+from services.ledger.forwarding import not_forwarded
 from services.ledger.index import EventIndex
 from services.ledger.node import FaucetUnavailable
 from services.ledger.operator import admin_keystore, load_or_create, passphrase
-from services.ledger.rpc import METHOD_NOT_FOUND, Dispatcher, RpcFailure
+from services.ledger.rpc import COSTLY_METHODS, Dispatcher, RpcFailure
 from services.ledger.settings import LedgerSettings
 
 log = logging.getLogger("robocloud.ledger.external")
 
-FORWARDED_PREFIXES = ("eth_", "net_", "web3_")
 REORG_DEPTH = 64
 DEPLOYMENT_FILE = "contracts.json"
 
@@ -63,7 +64,7 @@ class ExternalLedger:
         self.index = EventIndex(
             data_dir / "index.sqlite", self.deployment.registry, self.deployment.anchor_log
         )
-        self.dispatcher = Dispatcher({}, fallback=self.forward)
+        self.dispatcher = Dispatcher({}, fallback=self.forward, costly=COSTLY_METHODS)
         self.poll_once()
         log.info(
             "following external node",
@@ -140,11 +141,11 @@ class ExternalLedger:
     # ----- JSON-RPC -----
 
     def forward(self, method: str, params: list[Any]) -> Any:
-        """Relay a standard method to the node, its errors unchanged."""
-        if not method.startswith(FORWARDED_PREFIXES):
-            raise RpcFailure(
-                METHOD_NOT_FOUND, f"the method {method} does not exist/is not available"
-            )
+        """Relay a standard method to the node, its errors unchanged: the service's own
+        transactions (role grants) go this way; ``/rpc`` relays with ``NodeForwarder``."""
+        refusal = not_forwarded(method)
+        if refusal is not None:
+            raise refusal
         try:
             return self.rpc.request(method, params)
         except RpcError as exc:

@@ -13,7 +13,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 from eth.abc import BlockAPI
@@ -90,6 +90,25 @@ EVM timeout each); ``eth_feeHistory`` with reward percentiles reads the receipts
 blocks (0.56 s on the development machine)."""
 
 
+@dataclass(frozen=True)
+class Call:
+    """One well-framed request: the method to run and how to answer it."""
+
+    request_id: Any
+    method: str
+    params: list[Any]
+    notification: bool
+    """Sent without an id: run, but never answered."""
+
+    def answered(self, result: Any) -> dict[str, Any] | None:
+        if self.notification:
+            return None
+        return {"jsonrpc": "2.0", "id": self.request_id, "result": result}
+
+    def failed(self, failure: RpcFailure) -> dict[str, Any] | None:
+        return None if self.notification else error_answer(self.request_id, failure)
+
+
 class Dispatcher:
     """JSON-RPC 2.0 framing over a table of methods taking positional parameters."""
 
@@ -151,17 +170,15 @@ class Dispatcher:
         """The response document for a parsed request; None when nothing is to be answered."""
         if not isinstance(document, list):
             return self._one(document)
-        if not document:
-            return error_answer(None, RpcFailure(INVALID_REQUEST, "empty batch"))
-        if len(document) > MAX_BATCH:
-            failure = RpcFailure(INVALID_REQUEST, f"batch of more than {MAX_BATCH} calls")
-            return error_answer(None, failure)
+        refused = batch_refusal(document)
+        if refused is not None:
+            return refused
         deadline = None if self.batch_timeout_s is None else time.monotonic() + self.batch_timeout_s
         answers = [
             self._one(item, expired=deadline is not None and time.monotonic() > deadline)
             for item in document
         ]
-        return [answer for answer in answers if answer is not None] or None
+        return collect(document, answers)
 
     def refusal(self, document: Any, failure: RpcFailure) -> Any:
         """``failure`` as the answer to a whole request left unrun: to a single call with its
@@ -172,11 +189,8 @@ class Dispatcher:
             return None
         return error_answer(document["id"] if _valid_id(document["id"]) else None, failure)
 
-    def _one(
-        self, request: Any, table: Mapping[str, Method] | None = None, *, expired: bool = False
-    ) -> dict[str, Any] | None:
-        """The answer to one request; an ``expired`` one (its batch's deadline passed) is
-        framed as any other but answered ``request timed out`` instead of being called."""
+    def frame(self, request: Any) -> Call | dict[str, Any] | None:
+        """``request`` as a ``Call`` to run, or, when it is malformed, the answer to it."""
         if not isinstance(request, dict) or request.get("jsonrpc") != "2.0":
             return error_answer(None, RpcFailure(INVALID_REQUEST, "not a JSON-RPC 2.0 request"))
         request_id = request.get("id")
@@ -188,22 +202,30 @@ class Dispatcher:
         if not isinstance(method, str) or not isinstance(params, list | dict | type(None)):
             failure = RpcFailure(INVALID_REQUEST, "method must be a string, params an array")
             return error_answer(request_id, failure)
+        notification = "id" not in request
         if isinstance(params, dict):
             # Ethereum methods take positional parameters only: by-name parameters are a
             # valid request with invalid parameters (-32602), as geth and anvil answer them.
             failure = RpcFailure(
                 INVALID_PARAMS, "invalid params: expected an array of positional parameters"
             )
-            return error_answer(request_id, failure) if "id" in request else None
+            return Call(request_id, method, [], notification).failed(failure)
+        return Call(request_id, method, params or [], notification)
+
+    def _one(
+        self, request: Any, table: Mapping[str, Method] | None = None, *, expired: bool = False
+    ) -> dict[str, Any] | None:
+        """The answer to one request; an ``expired`` one (its batch's deadline passed) is
+        framed as any other but answered ``request timed out`` instead of being called."""
+        call = self.frame(request)
+        if not isinstance(call, Call):
+            return call
         try:
             if expired:
                 raise RpcFailure(REQUEST_TIMED_OUT, "request timed out")
-            result = self.call(method, params or [], table)
+            return call.answered(self.call(call.method, call.params, table))
         except RpcFailure as failure:
-            return error_answer(request_id, failure) if "id" in request else None
-        if "id" not in request:
-            return None
-        return {"jsonrpc": "2.0", "id": request_id, "result": result}
+            return call.failed(failure)
 
     def call(
         self, method: str, params: list[Any], table: Mapping[str, Method] | None = None
@@ -250,6 +272,25 @@ def _valid_id(value: Any) -> bool:
 
 def error_answer(request_id: Any, failure: RpcFailure) -> dict[str, Any]:
     return {"jsonrpc": "2.0", "id": request_id, "error": failure.to_json()}
+
+
+def batch_refusal(batch: list[Any]) -> dict[str, Any] | None:
+    """The answer to a batch too small or too large to run, as one error; None to run it."""
+    if not batch:
+        return error_answer(None, RpcFailure(INVALID_REQUEST, "empty batch"))
+    if len(batch) > MAX_BATCH:
+        return error_answer(
+            None, RpcFailure(INVALID_REQUEST, f"batch of more than {MAX_BATCH} calls")
+        )
+    return None
+
+
+def collect(document: Any, answers: list[dict[str, Any] | None]) -> Any:
+    """The response document for ``document`` given one answer per request in it: a batch's
+    answers without the notifications' (None when only notifications were sent)."""
+    if not isinstance(document, list):
+        return answers[0]
+    return [answer for answer in answers if answer is not None] or None
 
 
 # ----- parameters -----

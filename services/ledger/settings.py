@@ -40,6 +40,12 @@ class LedgerSettings(ServiceSettings):
         "executing at once; "
         "more wait up to the EVM timeout for a turn, then are refused (limit exceeded)",
     )
+    ledger_rpc_max_forwards: int = Field(
+        default=64,
+        gt=0,
+        description="external-node mode: requests relayed to the node at once (its "
+        "connections); more wait up to 5 s, then are refused (limit exceeded)",
+    )
     ledger_max_filters: int = Field(
         default=1000, gt=0, description="filters (eth_newFilter, eth_newBlockFilter) at once"
     )

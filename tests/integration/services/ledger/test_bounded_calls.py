@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient
 from tests.flood import flooding
 from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
-from tests.integration.services.ledger.conftest import faucet, rpc, start_ledger
+from tests.integration.services.ledger.conftest import PASSPHRASE, faucet, rpc, start_ledger
 from tests.procs import ServiceProcess
 
 TIMEOUT_S = 3
@@ -115,6 +116,28 @@ def test_reads_transactions_and_readiness_go_on_while_the_loop_runs(
     assert int(balance, 16) > 0
 
 
+RECIPIENT = Web3.to_checksum_address("0x" + "22" * 20)
+
+
+def transfer(rpc_url: str, robot: Identity, nonce: int) -> Any:
+    """Five wei from ``robot`` to ``RECIPIENT`` through ``rpc_url``; the receipt."""
+    w3 = Web3(HTTPProvider(rpc_url, request_kwargs={"timeout": 15}))
+    signed = robot.account.sign_transaction(
+        {
+            "chainId": 1337,
+            "nonce": nonce,
+            "gas": 21_000,
+            "maxFeePerGas": 10**10,
+            "maxPriorityFeePerGas": 10**9,
+            "to": RECIPIENT,
+            "value": 5,
+        }
+    )
+    return w3.eth.wait_for_transaction_receipt(
+        w3.eth.send_raw_transaction(signed.raw_transaction), timeout=15
+    )
+
+
 FLOODERS = 48
 """More than the service's 40 worker threads: before calls took turns in slots, a flood this
 size left a transaction and a balance read waiting past 30 s."""
@@ -132,22 +155,9 @@ def test_a_flood_of_looping_calls_starves_no_transaction_or_read(
     with flooding(looping_call, FLOODERS) as flood:
         robot = Identity.generate()
         funded = faucet(ledger.url, robot)
+        receipt = transfer(f"{ledger.url}/rpc", robot, nonce=0)
         w3 = Web3(HTTPProvider(f"{ledger.url}/rpc", request_kwargs={"timeout": 15}))
-        signed = robot.account.sign_transaction(
-            {
-                "chainId": 1337,
-                "nonce": 0,
-                "gas": 21_000,
-                "maxFeePerGas": 10**10,
-                "maxPriorityFeePerGas": 10**9,
-                "to": "0x" + "22" * 20,
-                "value": 5,
-            }
-        )
-        receipt = w3.eth.wait_for_transaction_receipt(
-            w3.eth.send_raw_transaction(signed.raw_transaction), timeout=15
-        )
-        recipient_balance = w3.eth.get_balance(Web3.to_checksum_address("0x" + "22" * 20))
+        recipient_balance = w3.eth.get_balance(RECIPIENT)
         ready = httpx.get(f"{ledger.url}/readyz", timeout=15)
         still_flooding = flood.running()
     assert funded.status_code == 200
@@ -164,6 +174,57 @@ def test_a_flood_of_looping_calls_starves_no_transaction_or_read(
     assert aborted in errors
     assert refused in errors
     assert all(error in (aborted, refused) for error in errors), errors
+
+
+def test_a_flood_of_looping_calls_relayed_to_a_node_starves_nothing(tmp_path: Path) -> None:
+    """External-node mode relayed each call from a worker thread: a flood held all forty, a
+    transfer behind it timed out after 15 s, ``/readyz`` answered 503 and the flooders waited
+    past 120 s."""
+    with (
+        ethereum_node(tmp_path / "anvil.log", "anvil", ["--disable-block-gas-limit"]) as node,
+        JsonRpcClient(node) as chain,
+    ):
+        admin = Identity.generate()
+        admin.save(tmp_path / "data" / "keys" / "admin.json", PASSPHRASE, scrypt_n=2**14)
+        fund(chain, admin)
+        env = {
+            "ROBOCLOUD_LEDGER_RPC_URL": node,
+            "ROBOCLOUD_LEDGER_RPC_EVM_TIMEOUT_S": str(TIMEOUT_S),
+            "ROBOCLOUD_LEDGER_RPC_MAX_CALLS": "1",
+        }
+        process = start_ledger(tmp_path / "data", env)
+        try:
+            loop = deploy_code(node, fund(chain, Identity.generate()), DEPLOY_LOOP, LOOP_RUNTIME)
+            # a second or two of looping in anvil, which stops a call only when its gas is spent
+            call = {"to": loop, "gas": hex(2 * 10**9)}
+            payload = {"jsonrpc": "2.0", "id": 1, "method": "eth_call", "params": [call, "latest"]}
+
+            def looping_call(client: httpx.Client) -> dict[str, Any]:
+                answer: dict[str, Any] = client.post(f"{process.url}/rpc", json=payload).json()
+                return answer
+
+            robot = fund(chain, Identity.generate())
+            with flooding(looping_call, FLOODERS) as flood:
+                time.sleep(1)
+                receipt = transfer(f"{process.url}/rpc", robot, nonce=0)
+                ready = httpx.get(f"{process.url}/readyz", timeout=15)
+                contracts = httpx.get(f"{process.url}/v1/contracts", timeout=15)
+                still_flooding = flood.running()
+        finally:
+            process.stop()
+    assert receipt["status"] == 1
+    assert ready.json()["status"] == "ready"
+    assert set(contracts.json()["contracts"]) == {"Registry", "AnchorLog"}
+    assert still_flooding
+    out_of_gas = {"code": -32603, "message": "EVM error OutOfGas"}
+    refused = {
+        "code": -32005,
+        "message": f"limit exceeded: all 1 call slots stayed busy for {TIMEOUT_S} s; retry later",
+    }
+    timed_out = {"code": -32002, "message": "request timed out"}
+    errors = [answer["error"] for answer in flood.answers]
+    assert refused in errors
+    assert all(error in (out_of_gas, refused, timed_out) for error in errors), errors
 
 
 def test_a_batch_of_looping_calls_starts_none_after_its_deadline_as_geth_does(
