@@ -16,7 +16,8 @@
    transaction takes through /rpc; and the ceiling this puts on the ratio: what it would be
    if the ledger's HTTP cost no more than anvil's whole cycle, the chain's work being added.
 4. External-node mode: the same rounds with the ledger forwarding ``/rpc`` to its own anvil,
-   against a second anvil: what the service costs as a forwarder, with no chain work.
+   against a second anvil: what the service costs as a forwarder, with no chain work
+   (``external`` runs this step alone).
 
 ``calls`` answers the eth_call latency that storage's proof verification pays: the p50 of one
 ``AnchorLog.rootAt`` view call at ``latest`` through ``/rpc`` (the SDK's JSON-RPC client, as
@@ -30,7 +31,7 @@ again (each runs to the EVM timeout), and how the flooding calls were answered.
 ``index`` is the earlier benchmark: registration + advertisement throughput against raw
 eth-tester, the event index over 10,000 events against eth-tester's ``get_logs``, restart.
 
-    python bench/ledger.py [transfers|calls|index|flood] [--rounds 5] [--transactions 100]
+    python bench/ledger.py [transfers|external|calls|index|flood] [--rounds 5] [--transactions 100]
         [--calls 1000] [--flooders 60]
 """
 
@@ -702,7 +703,10 @@ def flood_part(args: argparse.Namespace) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument(
-        "part", nargs="?", choices=("transfers", "calls", "index", "flood"), default="transfers"
+        "part",
+        nargs="?",
+        choices=("transfers", "external", "calls", "index", "flood"),
+        default="transfers",
     )
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--transactions", type=int, default=100)
@@ -714,6 +718,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.part == "transfers":
         transfers_part(args)
+    elif args.part == "external":
+        external_node_part(args)
     elif args.part == "calls":
         calls_part(args)
     elif args.part == "flood":
