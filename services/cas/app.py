@@ -17,6 +17,7 @@ from services.cas import gateway, kubo
 from services.cas.errors import ERRORS
 from services.cas.settings import CasSettings
 from services.cas.store import ContentStore
+from services.cas.streams import STREAM_WAIT_S
 from services.common.app import create_app
 from services.common.slots import Slots
 
@@ -94,4 +95,5 @@ def build_app(settings: CasSettings) -> FastAPI:
     )
     app.state.store = _open_store(settings, app)
     app.state.listing_slots = Slots("listing", gateway.LISTING_TURNS, gateway.LISTING_WAIT_S)
+    app.state.stream_slots = Slots("stream", settings.cas_max_streams, STREAM_WAIT_S)
     return app

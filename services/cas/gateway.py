@@ -15,7 +15,7 @@ from urllib.parse import unquote
 
 import anyio
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import RedirectResponse, Response, StreamingResponse
+from fastapi.responses import RedirectResponse, Response
 
 from robocloud.cid import CID, DAG_PB, parse_cid
 from robocloud.dagpb import PBNode, to_dag_json
@@ -24,7 +24,7 @@ from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD
 from services.cas.listing import directory_page
 from services.cas.ranges import byte_range, entity_bytes
 from services.cas.store import BlockUnavailable, ContentStore
-from services.cas.streams import threaded_stream
+from services.cas.streams import streamed, threaded_stream
 from services.common.errors import BadRequest, ServiceError
 from services.common.slots import Slots
 
@@ -198,11 +198,11 @@ async def _car(
     if _not_modified(request, etag):
         return Response(status_code=304, headers=headers)
     blocks = store.export_path_car(root, resolved, scope, span, use_peers=use_peers)
-    body = await threaded_stream(blocks)
     if request.method == "HEAD":
+        body = await threaded_stream(blocks)
         await body.aclose()
         return Response(status_code=200, headers=headers, media_type=media_type)
-    return StreamingResponse(body, headers=headers, media_type=media_type)
+    return await streamed(request, blocks, headers=headers, media_type=media_type)
 
 
 async def _dag_json(
@@ -294,5 +294,7 @@ async def _file(
     media_type = "application/octet-stream"
     if request.method == "HEAD":
         return Response(status_code=status, headers=headers, media_type=media_type)
-    body = await threaded_stream(store.read(target, start, end - start, use_peers=use_peers))
-    return StreamingResponse(body, status_code=status, headers=headers, media_type=media_type)
+    chunks = store.read(target, start, end - start, use_peers=use_peers)
+    return await streamed(
+        request, chunks, status_code=status, headers=headers, media_type=media_type
+    )

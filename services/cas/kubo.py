@@ -13,14 +13,14 @@ from typing import Annotated, Any
 
 import anyio
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.responses import JSONResponse, Response
 
 import robocloud
 from robocloud.cid import CODEC_NAMES, parse_cid
 from robocloud.directory import Resolved
 from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD, ImportParams, UnixfsError
 from services.cas.store import ContentStore
-from services.cas.streams import threaded_stream
+from services.cas.streams import streamed
 from services.cas.uploads import BlockCollector, CarImport, FileAdder, upload
 from services.common.auth import SignedAddress
 from services.common.errors import BadRequest
@@ -166,8 +166,8 @@ async def cat(
     """A file's bytes (or ``length`` of them from ``offset``), every block verified on read."""
     store = _store(request)
     resolved = await anyio.to_thread.run_sync(_content_path, store, arg)
-    body = await threaded_stream(store.read(resolved.cid, offset, length))
-    return StreamingResponse(body, media_type="application/octet-stream")
+    chunks = store.read(resolved.cid, offset, length)
+    return await streamed(request, chunks, media_type="application/octet-stream")
 
 
 @router.post("/ls")
@@ -297,8 +297,8 @@ async def pin_ls(
 async def dag_export(request: Request, arg: Arg) -> Response:
     """The whole DAG under a root as a CARv1 stream."""
     root = parse_cid(arg, "arg")
-    body = await threaded_stream(_store(request).export_car(root, "all"))
-    return StreamingResponse(body, media_type="application/vnd.ipld.car")
+    chunks = _store(request).export_car(root, "all")
+    return await streamed(request, chunks, media_type="application/vnd.ipld.car")
 
 
 @router.post("/dag/import")

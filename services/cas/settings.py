@@ -17,4 +17,10 @@ class CasSettings(ServiceSettings):
         default=250_000, gt=0, description="files and directories one add may hold"
     )
     cas_gc_grace_s: float = Field(default=3600.0, ge=0)
+    cas_max_streams: int = Field(
+        default=64,
+        gt=0,
+        description="file, cat and CAR answers streaming at once; more wait up to 5 s, "
+        "then are refused (503 busy)",
+    )
     cas_gc_interval_s: float = Field(default=3600.0, ge=0, description="0 disables periodic GC")

@@ -52,6 +52,9 @@ class ServiceSettings(BaseSettings):
     max_request_line_bytes: int = Field(default=8 * 1024, ge=64)
     max_header_bytes: int = Field(default=64 * 1024, ge=256)
     header_timeout_s: float = Field(default=30.0, gt=0)
+    send_timeout_s: float = Field(
+        default=30.0, gt=0, description="a client must take each piece of an answer within this"
+    )
     max_clock_skew_s: int = Field(default=300, gt=0)
     log_level: str = "INFO"
     cas_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['cas']}"

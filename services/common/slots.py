@@ -49,15 +49,29 @@ class Slots:
     @asynccontextmanager
     async def turn(self) -> AsyncIterator[None]:
         """Hold one slot for the body of the ``async with``; ``SlotsBusy`` if none came."""
-        try:
-            with anyio.fail_after(self.wait_s):
-                await self._limiter.acquire()
-        except TimeoutError:
-            raise SlotsBusy(self.kind, self.count, self.wait_s) from None
+        release = await self.hold()
         try:
             yield
         finally:
-            self._limiter.release()
+            release()
+
+    async def hold(self) -> Callable[[], None]:
+        """Take one slot for work that outlives the calling task (a streamed answer, which
+        the server sends after the route returned); the function returned gives it back,
+        once, whoever calls it. ``SlotsBusy`` if no slot came."""
+        holder = object()
+        try:
+            with anyio.fail_after(self.wait_s):
+                await self._limiter.acquire_on_behalf_of(holder)
+        except TimeoutError:
+            raise SlotsBusy(self.kind, self.count, self.wait_s) from None
+        held = [holder]
+
+        def release() -> None:
+            if held:
+                self._limiter.release_on_behalf_of(held.pop())
+
+        return release
 
     async def run_sync(self, work: Callable[[], T]) -> T:
         """``work`` on a worker thread, in a turn: how every route runs its costly work."""

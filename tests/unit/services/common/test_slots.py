@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import anyio
 import pytest
 
@@ -66,3 +68,28 @@ def test_a_turn_freed_in_time_is_taken_and_freed_even_by_a_failure() -> None:
 
     anyio.run(scenario)
     assert order == ["first", "second", "third"]
+
+
+def test_a_held_slot_is_given_back_once_by_whichever_task_ends_the_work() -> None:
+    """A streamed answer takes its slot in the route and gives it back when the server has
+    sent it, from another task; a second release must not free someone else's slot."""
+    slots = Slots("stream", 1, 0.1)
+
+    async def scenario() -> None:
+        release = await slots.hold()
+        with pytest.raises(SlotsBusy):
+            await slots.hold()
+        async with anyio.create_task_group() as tasks:
+            tasks.start_soon(_call, release)
+        assert slots.idle
+        again = await slots.hold()
+        release()
+        assert not slots.idle
+        again()
+        assert slots.idle
+
+    anyio.run(scenario)
+
+
+async def _call(release: Callable[[], None]) -> None:
+    release()

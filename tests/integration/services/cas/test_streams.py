@@ -1,0 +1,100 @@
+"""Streamed answers are bounded: in number (stream turns) and in how long a client that stops
+reading may hold one (the send timeout)."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+
+import httpx
+import pytest
+
+from robocloud.cas import Cas
+from robocloud.identity import Identity
+from tests.conftest import ServiceFactory
+from tests.integration.services.cas.conftest import QUIET_GC
+from tests.procs import ServiceProcess
+
+SEND_TIMEOUT_S = 8
+"""Longer than the 5 s a stream waits for a turn, so the refusal comes while both are held."""
+FILE_BYTES = 64 << 20
+"""Far more than loopback's socket buffers take in while nobody reads."""
+
+
+@pytest.fixture
+def cas_service(service_factory: ServiceFactory) -> ServiceProcess:
+    env = {
+        **QUIET_GC,
+        "ROBOCLOUD_CAS_MAX_STREAMS": "2",
+        "ROBOCLOUD_SEND_TIMEOUT_S": str(SEND_TIMEOUT_S),
+    }
+    return service_factory("cas", env)
+
+
+@contextmanager
+def stalled_reader(service: ServiceProcess, head: bytes) -> Iterator[socket.socket]:
+    """A connection that sends ``head`` and then reads nothing. (A tiny receive buffer would
+    leave the service's side waiting on TCP's zero-window probes once reading resumes.)"""
+    connection = socket.create_connection(("127.0.0.1", service.port))
+    try:
+        connection.sendall(head)
+        yield connection
+    finally:
+        connection.close()
+
+
+def drain(connection: socket.socket) -> bytes:
+    """Everything the service sent until it closed the connection."""
+    connection.settimeout(10)
+    received = bytearray()
+    while chunk := connection.recv(1 << 20):
+        received += chunk
+    return bytes(received)
+
+
+def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
+    cas_service: ServiceProcess,
+) -> None:
+    content = os.urandom(FILE_BYTES)
+    with Cas(cas_service.url, Identity.generate()) as cas:
+        cid = cas.add_bytes(content)
+    heads = [
+        f"GET /ipfs/{cid} HTTP/1.1\r\nHost: cas\r\nX-Request-Id: stalled-gateway\r\n\r\n",
+        f"POST /api/v0/dag/export?arg={cid} HTTP/1.1\r\nHost: cas\r\nContent-Length: 0\r\n"
+        "X-Request-Id: stalled-export\r\n\r\n",
+    ]
+    with ExitStack() as stack:
+        started = time.monotonic()
+        stalled = [stack.enter_context(stalled_reader(cas_service, h.encode())) for h in heads]
+        time.sleep(0.5)
+        busy = httpx.post(f"{cas_service.url}/api/v0/cat", params={"arg": str(cid)}, timeout=30)
+        refused_after = time.monotonic() - started
+        ready = httpx.get(f"{cas_service.url}/readyz", timeout=5)
+        # Reading again before the timeout would resume the streams; read after it.
+        time.sleep(max(0.0, started + SEND_TIMEOUT_S + 2 - time.monotonic()))
+        cut = [drain(connection) for connection in stalled]
+    assert busy.status_code == 503
+    assert busy.headers["retry-after"] == "1"
+    assert busy.json()["error"]["code"] == "busy"
+    assert busy.json()["error"]["message"] == (
+        "all 2 stream slots stayed busy for 5 s; retry later"
+    )
+    assert 5 <= refused_after < SEND_TIMEOUT_S
+    assert ready.json()["status"] == "ready"
+    # Each stalled client got a head and part of the body, then the connection closed.
+    for answer in cut:
+        assert answer.startswith(b"HTTP/1.1 200 OK\r\n")
+        assert len(answer) < FILE_BYTES
+
+    whole = httpx.get(f"{cas_service.url}/ipfs/{cid}", timeout=30)
+    assert hashlib.sha256(whole.content).digest() == hashlib.sha256(content).digest()
+    log = cas_service.log_path.read_text()
+    for request_id in ("stalled-gateway", "stalled-export"):
+        assert any(
+            "client stopped reading; connection dropped" in line and request_id in line
+            for line in log.splitlines()
+        ), request_id
