@@ -4,7 +4,7 @@ A streamed answer holds memory for as long as it lasts: the batch read ahead and
 connection has not taken yet, about 2.5 MiB in all when the client stops reading (100 such
 connections to ``dag/export`` held 250 MiB; with 4 MiB batches, which streamed no faster than
 1 MiB ones, 430 MiB). So every stream holds one of ``cas_max_streams`` turns (``streamed``),
-and a client that stops reading is dropped after the send timeout (``SendTimeoutLayer``).
+and a client that stops reading is dropped after the send timeout (``services.common.server``).
 """
 
 from __future__ import annotations

@@ -39,7 +39,6 @@ from services.common.middleware import (
     AccessLogLayer,
     BodyLimitLayer,
     RequestIdLayer,
-    SendTimeoutLayer,
     SignatureLayer,
 )
 from services.common.nonces import NonceStore
@@ -256,7 +255,6 @@ def create_app(
     )
     app.add_middleware(BodyLimitLayer, default_limit=settings.max_body_bytes, limits=body_limits)
     app.add_middleware(AccessLogLayer, metrics=metrics)
-    app.add_middleware(SendTimeoutLayer, timeout_s=settings.send_timeout_s)
     app.add_middleware(RequestIdLayer)
     return app
 

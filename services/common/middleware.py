@@ -1,12 +1,11 @@
-"""The request guard: five plain ASGI layers, each with one job, outermost first.
+"""The request guard: four plain ASGI layers, each with one job, outermost first.
 
 1. :class:`RequestIdLayer` gives every request an id (the log lines and the answer carry it)
    and answers whatever escapes the layers below with a 500 in the error model.
-2. :class:`SendTimeoutLayer` drops a client that stops taking its answer (``ClientStalled``).
-3. :class:`AccessLogLayer` records metrics by route template and writes one access-log line.
-4. :class:`BodyLimitLayer` refuses a body over the path's limit: 413 at once when
+2. :class:`AccessLogLayer` records metrics by route template and writes one access-log line.
+3. :class:`BodyLimitLayer` refuses a body over the path's limit: 413 at once when
    ``Content-Length`` says so, else as soon as the streamed body grows past it.
-5. :class:`SignatureLayer` checks the signature of a write before any body byte is read (401
+4. :class:`SignatureLayer` checks the signature of a write before any body byte is read (401
    at once), then the body's SHA-256 while it streams in.
 
 They are plain ASGI rather than Starlette's ``BaseHTTPMiddleware`` so that they act before the
@@ -28,7 +27,6 @@ import uuid
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-import anyio
 from starlette.datastructures import Headers
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -53,6 +51,8 @@ log = logging.getLogger("robocloud.http")
 UNSIGNED_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 CLIENT_CLOSED_REQUEST = 499
 INTERNAL_ERROR = ServiceError("internal error; see the service log")
+REQUEST_ID_SCOPE_KEY = "robocloud.request_id"
+"""Where the request id is also kept in the ASGI scope, for the server protocol's log lines."""
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{8,64}")
 
 
@@ -136,6 +136,7 @@ class RequestIdLayer:
         offered = Headers(scope=scope).get("x-request-id", "")
         request_id = offered if _REQUEST_ID.fullmatch(offered) else uuid.uuid4().hex
         token = request_id_var.set(request_id)
+        scope[REQUEST_ID_SCOPE_KEY] = request_id
 
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -152,10 +153,6 @@ class RequestIdLayer:
             # Nobody is left to answer; what the route staged was discarded on the way out,
             # and the access log's line (status 499) is the one record of it.
             pass
-        except ClientStalled as stalled:
-            # Returning with the answer unfinished makes the server close the connection, so
-            # the client sees a cut answer, never a shorter complete one.
-            log.warning("client stopped reading; connection dropped", extra=stalled.details())
         except Exception as exc:
             log.exception("unhandled error", exc_info=exc)
             if watch.status:
@@ -163,49 +160,6 @@ class RequestIdLayer:
             await send_error(watch, INTERNAL_ERROR)
         finally:
             request_id_var.reset(token)
-
-
-class ClientStalled(Exception):
-    """The client took no part of the answer for ``timeout_s`` (it stopped reading)."""
-
-    def __init__(self, timeout_s: float, sent_bytes: int) -> None:
-        super().__init__(f"the client took nothing for {timeout_s:g} s")
-        self.timeout_s = timeout_s
-        self.sent_bytes = sent_bytes
-
-    def details(self) -> dict[str, Any]:
-        return {"send_timeout_s": self.timeout_s, "sent_bytes": self.sent_bytes}
-
-
-class SendTimeoutLayer:
-    """Each piece of an answer must be taken by the client within ``timeout_s`` (nginx's
-    ``send_timeout``), else ``ClientStalled`` ends the request.
-
-    The server's ``send`` waits while the connection's write buffer is full, so a client that
-    asks for a large stream and never reads it held the stream open for ever, with the
-    read-ahead of a few MiB behind it: a hundred such connections held 430 MiB of the cas.
-    """
-
-    def __init__(self, app: ASGIApp, timeout_s: float) -> None:
-        self.app = app
-        self.timeout_s = timeout_s
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        sent = 0
-
-        async def send_in_time(message: Message) -> None:
-            nonlocal sent
-            try:
-                with anyio.fail_after(self.timeout_s):
-                    await send(message)
-            except TimeoutError:
-                raise ClientStalled(self.timeout_s, sent) from None
-            sent += len(message.get("body", b""))
-
-        await self.app(scope, receive, send_in_time)
 
 
 class AccessLogLayer:

@@ -36,7 +36,10 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
         host=settings.host,
         port=settings.resolved_port(),
         http=bounded_protocol(
-            settings.max_request_line_bytes, settings.max_header_bytes, settings.header_timeout_s
+            settings.max_request_line_bytes,
+            settings.max_header_bytes,
+            settings.header_timeout_s,
+            settings.send_timeout_s,
         ),
         h11_max_incomplete_event_size=settings.max_header_bytes,
         log_config=None,
@@ -74,6 +77,7 @@ def run_service(
             "max_request_line_bytes": settings.max_request_line_bytes,
             "max_header_bytes": settings.max_header_bytes,
             "header_timeout_s": settings.header_timeout_s,
+            "send_timeout_s": settings.send_timeout_s,
         },
     )
     serve(app, settings)

@@ -9,6 +9,11 @@ the bytes that break the limit arrive, and the connection is closed without read
 A head must also be complete within ``header_timeout_s`` of its first byte (408), so that
 connections dribbling a byte at a time cannot be held open until the process runs out of
 file descriptors: uvicorn times out only idle kept-alive connections.
+An answer must be taken too: a connection whose client reads nothing of it for
+``send_timeout_s`` (its write buffer stays above the high-water mark) is dropped, its buffer
+discarded, as nginx's ``send_timeout`` does. Before, a client that asked for a large stream
+and never read held the stream open for ever with the read-ahead behind it: a hundred such
+connections held 430 MiB of the cas.
 h11 buffers at most one head, and its own bound (``h11_max_incomplete_event_size``) is set to
 the same limit as a backstop for pipelined requests, whose bytes may arrive together with an
 earlier request's body.
@@ -30,6 +35,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from services.common.errors import error_body
 from services.common.logs import request_id_var
+from services.common.middleware import REQUEST_ID_SCOPE_KEY
 
 log = logging.getLogger("robocloud.http")
 
@@ -111,11 +117,13 @@ class BoundedH11Protocol(H11Protocol):
     max_request_line_bytes: ClassVar[int] = 8 * 1024
     max_header_bytes: ClassVar[int] = 64 * 1024
     header_timeout_s: ClassVar[float] = 30.0
+    send_timeout_s: ClassVar[float] = 30.0
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._head = HeadMeter(self.max_request_line_bytes, self.max_header_bytes)
         self._head_deadline: asyncio.TimerHandle | None = None
+        self._send_deadline: asyncio.TimerHandle | None = None
         self._refused = False
 
     def data_received(self, data: bytes) -> None:
@@ -139,7 +147,43 @@ class BoundedH11Protocol(H11Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_deadline()
+        self._cancel_send_deadline()
         super().connection_lost(exc)
+
+    def pause_writing(self) -> None:
+        """The client is not taking the answer as fast as it is written: it has
+        ``send_timeout_s`` to take some of it."""
+        super().pause_writing()
+        if self._send_deadline is None:
+            self._send_deadline = self.loop.call_later(self.send_timeout_s, self._not_reading)
+
+    def resume_writing(self) -> None:
+        self._cancel_send_deadline()
+        super().resume_writing()
+
+    def _cancel_send_deadline(self) -> None:
+        if self._send_deadline is not None:
+            self._send_deadline.cancel()
+            self._send_deadline = None
+
+    def _not_reading(self) -> None:
+        """Drop the connection and what is buffered for it; the answer's sender sees a
+        disconnected client, so a stream stops and gives back what it holds."""
+        self._send_deadline = None
+        scope = getattr(self, "scope", {})
+        token = request_id_var.set(scope.get(REQUEST_ID_SCOPE_KEY, "-"))
+        try:
+            log.warning(
+                "client stopped reading; connection dropped",
+                extra={
+                    "client": self.client,
+                    "path": scope.get("path"),
+                    "send_timeout_s": self.send_timeout_s,
+                },
+            )
+        finally:
+            request_id_var.reset(token)
+        self.transport.abort()
 
     def _cancel_deadline(self) -> None:
         if self._head_deadline is not None:
@@ -185,7 +229,10 @@ class BoundedH11Protocol(H11Protocol):
 
 
 def bounded_protocol(
-    max_request_line_bytes: int, max_header_bytes: int, header_timeout_s: float
+    max_request_line_bytes: int,
+    max_header_bytes: int,
+    header_timeout_s: float,
+    send_timeout_s: float,
 ) -> type[H11Protocol]:
     """The protocol class for uvicorn's ``http=`` with these limits."""
     return type(
@@ -195,5 +242,6 @@ def bounded_protocol(
             "max_request_line_bytes": max_request_line_bytes,
             "max_header_bytes": max_header_bytes,
             "header_timeout_s": header_timeout_s,
+            "send_timeout_s": send_timeout_s,
         },
     )

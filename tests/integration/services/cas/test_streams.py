@@ -4,6 +4,7 @@ reading may hold one (the send timeout)."""
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import socket
 import time
@@ -74,7 +75,7 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
         busy = httpx.post(f"{cas_service.url}/api/v0/cat", params={"arg": str(cid)}, timeout=30)
         refused_after = time.monotonic() - started
         ready = httpx.get(f"{cas_service.url}/readyz", timeout=5)
-        # Reading again before the timeout would resume the streams; read after it.
+        # Reading before the timeout would resume the streams; read after it.
         time.sleep(max(0.0, started + SEND_TIMEOUT_S + 2 - time.monotonic()))
         cut = [drain(connection) for connection in stalled]
     assert busy.status_code == 503
@@ -93,8 +94,13 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
     whole = httpx.get(f"{cas_service.url}/ipfs/{cid}", timeout=30)
     assert hashlib.sha256(whole.content).digest() == hashlib.sha256(content).digest()
     log = cas_service.log_path.read_text()
-    for request_id in ("stalled-gateway", "stalled-export"):
-        assert any(
-            "client stopped reading; connection dropped" in line and request_id in line
-            for line in log.splitlines()
-        ), request_id
+    dropped = [
+        json.loads(line)
+        for line in log.splitlines()
+        if "client stopped reading; connection dropped" in line
+    ]
+    assert sorted((line["request_id"], line["path"]) for line in dropped) == [
+        ("stalled-export", "/api/v0/dag/export"),
+        ("stalled-gateway", f"/ipfs/{cid}"),
+    ]
+    assert '"level": "error"' not in log
