@@ -39,6 +39,7 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
             settings.max_request_line_bytes,
             settings.max_header_bytes,
             settings.header_timeout_s,
+            settings.body_timeout_s,
             settings.send_timeout_s,
         ),
         h11_max_incomplete_event_size=settings.max_header_bytes,
@@ -77,6 +78,7 @@ def run_service(
             "max_request_line_bytes": settings.max_request_line_bytes,
             "max_header_bytes": settings.max_header_bytes,
             "header_timeout_s": settings.header_timeout_s,
+            "body_timeout_s": settings.body_timeout_s,
             "send_timeout_s": settings.send_timeout_s,
         },
     )

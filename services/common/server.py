@@ -9,11 +9,13 @@ the bytes that break the limit arrive, and the connection is closed without read
 A head must also be complete within ``header_timeout_s`` of its first byte (408), so that
 connections dribbling a byte at a time cannot be held open until the process runs out of
 file descriptors: uvicorn times out only idle kept-alive connections.
-An answer must be taken too: a connection whose client reads nothing of it for
-``send_timeout_s`` (its write buffer stays above the high-water mark) is dropped, its buffer
-discarded, as nginx's ``send_timeout`` does. Before, a client that asked for a large stream
-and never read held the stream open for ever with the read-ahead behind it: a hundred such
-connections held 430 MiB of the cas.
+A body must keep arriving, and an answer must be taken: a connection whose client sends
+nothing of its body for ``body_timeout_s`` (while the service is ready to read it), or reads
+nothing of the answer for ``send_timeout_s`` (its write buffer stays above the high-water
+mark), is dropped, what is buffered for it discarded, as nginx's ``client_body_timeout`` and
+``send_timeout`` do. Before, an upload that stopped half way held its staging file and its
+connection for ever, and a client that asked for a large stream and never read held the
+stream open with the read-ahead behind it: a hundred such connections held 430 MiB of the cas.
 h11 buffers at most one head, and its own bound (``h11_max_incomplete_event_size``) is set to
 the same limit as a backstop for pipelined requests, whose bytes may arrive together with an
 earlier request's body.
@@ -117,6 +119,7 @@ class BoundedH11Protocol(H11Protocol):
     max_request_line_bytes: ClassVar[int] = 8 * 1024
     max_header_bytes: ClassVar[int] = 64 * 1024
     header_timeout_s: ClassVar[float] = 30.0
+    body_timeout_s: ClassVar[float] = 30.0
     send_timeout_s: ClassVar[float] = 30.0
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -124,6 +127,8 @@ class BoundedH11Protocol(H11Protocol):
         self._head = HeadMeter(self.max_request_line_bytes, self.max_header_bytes)
         self._head_deadline: asyncio.TimerHandle | None = None
         self._send_deadline: asyncio.TimerHandle | None = None
+        self._body_deadline: asyncio.TimerHandle | None = None
+        self._body_seen = 0.0
         self._refused = False
 
     def data_received(self, data: bytes) -> None:
@@ -144,11 +149,43 @@ class BoundedH11Protocol(H11Protocol):
             elif not self._head.counting:
                 self._cancel_deadline()
         super().data_received(data)
+        self._watch_body()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_deadline()
         self._cancel_send_deadline()
+        self._cancel_body_deadline()
         super().connection_lost(exc)
+
+    def _watch_body(self) -> None:
+        """While a request body is arriving, each piece has ``body_timeout_s`` to come."""
+        if self.conn.their_state is not h11.SEND_BODY:
+            self._cancel_body_deadline()
+            return
+        self._body_seen = self.loop.time()
+        if self._body_deadline is None:
+            self._body_deadline = self.loop.call_later(self.body_timeout_s, self._body_overdue)
+
+    def _body_overdue(self) -> None:
+        self._body_deadline = None
+        if self.conn.their_state is not h11.SEND_BODY:
+            return
+        now = self.loop.time()
+        if self.flow.read_paused:
+            # The service stopped reading (the route is behind), not the client sending.
+            self._body_seen = now
+        idle = now - self._body_seen
+        if idle < self.body_timeout_s:
+            self._body_deadline = self.loop.call_later(
+                self.body_timeout_s - idle, self._body_overdue
+            )
+            return
+        self._drop("client stopped sending its body", {"body_timeout_s": self.body_timeout_s})
+
+    def _cancel_body_deadline(self) -> None:
+        if self._body_deadline is not None:
+            self._body_deadline.cancel()
+            self._body_deadline = None
 
     def pause_writing(self) -> None:
         """The client is not taking the answer as fast as it is written: it has
@@ -167,19 +204,18 @@ class BoundedH11Protocol(H11Protocol):
             self._send_deadline = None
 
     def _not_reading(self) -> None:
-        """Drop the connection and what is buffered for it; the answer's sender sees a
-        disconnected client, so a stream stops and gives back what it holds."""
         self._send_deadline = None
+        self._drop("client stopped reading", {"send_timeout_s": self.send_timeout_s})
+
+    def _drop(self, why: str, limit: dict[str, float]) -> None:
+        """Drop the connection and what is buffered for it. The route sees a disconnected
+        client: an upload discards what it staged, a stream stops and gives back its turn."""
         scope = getattr(self, "scope", {})
         token = request_id_var.set(scope.get(REQUEST_ID_SCOPE_KEY, "-"))
         try:
             log.warning(
-                "client stopped reading; connection dropped",
-                extra={
-                    "client": self.client,
-                    "path": scope.get("path"),
-                    "send_timeout_s": self.send_timeout_s,
-                },
+                f"{why}; connection dropped",
+                extra={"client": self.client, "path": scope.get("path"), **limit},
             )
         finally:
             request_id_var.reset(token)
@@ -232,6 +268,7 @@ def bounded_protocol(
     max_request_line_bytes: int,
     max_header_bytes: int,
     header_timeout_s: float,
+    body_timeout_s: float,
     send_timeout_s: float,
 ) -> type[H11Protocol]:
     """The protocol class for uvicorn's ``http=`` with these limits."""
@@ -242,6 +279,7 @@ def bounded_protocol(
             "max_request_line_bytes": max_request_line_bytes,
             "max_header_bytes": max_header_bytes,
             "header_timeout_s": header_timeout_s,
+            "body_timeout_s": body_timeout_s,
             "send_timeout_s": send_timeout_s,
         },
     )

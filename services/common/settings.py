@@ -52,6 +52,9 @@ class ServiceSettings(BaseSettings):
     max_request_line_bytes: int = Field(default=8 * 1024, ge=64)
     max_header_bytes: int = Field(default=64 * 1024, ge=256)
     header_timeout_s: float = Field(default=30.0, gt=0)
+    body_timeout_s: float = Field(
+        default=30.0, gt=0, description="a request body may pause at most this long"
+    )
     send_timeout_s: float = Field(
         default=30.0, gt=0, description="a client must take each piece of an answer within this"
     )

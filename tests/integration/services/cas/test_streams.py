@@ -1,5 +1,5 @@
-"""Streamed answers are bounded: in number (stream turns) and in how long a client that stops
-reading may hold one (the send timeout)."""
+"""Streams are bounded: answers in number (stream turns) and in how long a client that stops
+reading may hold one (the send timeout), bodies in how long one may pause (the body timeout)."""
 
 from __future__ import annotations
 
@@ -16,8 +16,9 @@ import pytest
 
 from robocloud.cas import Cas
 from robocloud.identity import Identity
+from robocloud.signing import sign_request
 from tests.conftest import ServiceFactory
-from tests.integration.services.cas.conftest import QUIET_GC
+from tests.integration.services.cas.conftest import QUIET_GC, multipart, store_unchanged
 from tests.procs import ServiceProcess
 
 SEND_TIMEOUT_S = 8
@@ -104,3 +105,45 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
         ("stalled-gateway", f"/ipfs/{cid}"),
     ]
     assert '"level": "error"' not in log
+
+
+def test_an_upload_that_stops_half_way_is_dropped_and_nothing_is_stored(
+    service_factory: ServiceFactory, identity: Identity
+) -> None:
+    service = service_factory("cas", {**QUIET_GC, "ROBOCLOUD_BODY_TIMEOUT_S": "1"})
+    body, content_type = multipart(("stalled.bin", os.urandom(1 << 20)))
+    digest = hashlib.sha256(body).hexdigest()
+    signed = sign_request(identity.account, service.audience, "POST", "/api/v0/add", "", digest)
+    head = "".join(f"{name}: {value}\r\n" for name, value in signed.items())
+    packs_before = packs(service)
+    with store_unchanged(service), socket.create_connection(("127.0.0.1", service.port)) as sock:
+        sock.sendall(
+            f"POST /api/v0/add HTTP/1.1\r\nHost: cas\r\nX-Request-Id: stalled-upload\r\n"
+            f"Content-Type: {content_type}\r\nContent-Length: {len(body)}\r\n{head}\r\n".encode()
+            + body[: len(body) // 2]
+        )
+        started = time.monotonic()
+        sock.settimeout(30)
+        try:
+            answer = sock.recv(65536)
+        except ConnectionResetError:
+            answer = b""
+        dropped_after = time.monotonic() - started
+    assert answer == b""
+    assert 1 <= dropped_after < 10
+    assert packs(service) == packs_before
+    (line,) = [
+        json.loads(entry)
+        for entry in service.log_path.read_text().splitlines()
+        if "client stopped sending its body; connection dropped" in entry
+    ]
+    assert (line["request_id"], line["path"], line["body_timeout_s"]) == (
+        "stalled-upload",
+        "/api/v0/add",
+        1.0,
+    )
+
+
+def packs(service: ServiceProcess) -> list[str]:
+    """The pack files on disk: an upload stages its blocks into a new one."""
+    return sorted(path.name for path in (service.data_dir / "packs").iterdir())
