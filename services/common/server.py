@@ -147,20 +147,20 @@ class BoundedH11Protocol(H11Protocol):
             if self._head.counting and self._head_deadline is None:
                 self._head_deadline = self.loop.call_later(self.header_timeout_s, self._too_slow)
             elif not self._head.counting:
-                self._cancel_deadline()
+                self._head_deadline = _cancelled(self._head_deadline)
         super().data_received(data)
         self._watch_body()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self._cancel_deadline()
-        self._cancel_send_deadline()
-        self._cancel_body_deadline()
+        self._head_deadline = _cancelled(self._head_deadline)
+        self._send_deadline = _cancelled(self._send_deadline)
+        self._body_deadline = _cancelled(self._body_deadline)
         super().connection_lost(exc)
 
     def _watch_body(self) -> None:
         """While a request body is arriving, each piece has ``body_timeout_s`` to come."""
         if self.conn.their_state is not h11.SEND_BODY:
-            self._cancel_body_deadline()
+            self._body_deadline = _cancelled(self._body_deadline)
             return
         self._body_seen = self.loop.time()
         if self._body_deadline is None:
@@ -182,11 +182,6 @@ class BoundedH11Protocol(H11Protocol):
             return
         self._drop("client stopped sending its body", {"body_timeout_s": self.body_timeout_s})
 
-    def _cancel_body_deadline(self) -> None:
-        if self._body_deadline is not None:
-            self._body_deadline.cancel()
-            self._body_deadline = None
-
     def pause_writing(self) -> None:
         """The client is not taking the answer as fast as it is written: it has
         ``send_timeout_s`` to take some of it."""
@@ -195,13 +190,8 @@ class BoundedH11Protocol(H11Protocol):
             self._send_deadline = self.loop.call_later(self.send_timeout_s, self._not_reading)
 
     def resume_writing(self) -> None:
-        self._cancel_send_deadline()
+        self._send_deadline = _cancelled(self._send_deadline)
         super().resume_writing()
-
-    def _cancel_send_deadline(self) -> None:
-        if self._send_deadline is not None:
-            self._send_deadline.cancel()
-            self._send_deadline = None
 
     def _not_reading(self) -> None:
         self._send_deadline = None
@@ -221,11 +211,6 @@ class BoundedH11Protocol(H11Protocol):
             request_id_var.reset(token)
         self.transport.abort()
 
-    def _cancel_deadline(self) -> None:
-        if self._head_deadline is not None:
-            self._head_deadline.cancel()
-            self._head_deadline = None
-
     def _too_slow(self) -> None:
         self._head_deadline = None
         if self._head.counting and self.conn.their_state is h11.IDLE and not self._refused:
@@ -241,7 +226,7 @@ class BoundedH11Protocol(H11Protocol):
     def _refuse(self, refusal: HeadRefusal) -> None:
         """Answer in the error model and close without reading the rest of the request."""
         self._refused = True
-        self._cancel_deadline()
+        self._head_deadline = _cancelled(self._head_deadline)
         request_id = uuid.uuid4().hex
         token = request_id_var.set(request_id)
         try:
@@ -262,6 +247,13 @@ class BoundedH11Protocol(H11Protocol):
         ).encode()
         self.transport.write(head + body)
         self.transport.close()
+
+
+def _cancelled(timer: asyncio.TimerHandle | None) -> asyncio.TimerHandle | None:
+    """Cancel ``timer`` if there is one; None, what the attribute that held it holds next."""
+    if timer is not None:
+        timer.cancel()
+    return None
 
 
 def bounded_protocol(
