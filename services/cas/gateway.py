@@ -10,7 +10,8 @@ alone (412 on a miss), which is what peers ask each other. A directory answers i
 
 from __future__ import annotations
 
-from typing import Annotated
+from collections.abc import Iterator
+from typing import Annotated, Any
 from urllib.parse import unquote
 
 import anyio
@@ -24,8 +25,9 @@ from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD
 from services.cas.listing import directory_page
 from services.cas.ranges import byte_range, entity_bytes
 from services.cas.store import BlockUnavailable, ContentStore
-from services.cas.streams import streamed, threaded_stream
+from services.cas.streams import threaded_stream
 from services.common.errors import BadRequest, ServiceError
+from services.common.responses import stream_in_turn
 from services.common.slots import Slots
 
 RAW_MEDIA_TYPE = "application/vnd.ipld.raw"
@@ -297,4 +299,12 @@ async def _file(
     chunks = store.read(target, start, end - start, use_peers=use_peers)
     return await streamed(
         request, chunks, status_code=status, headers=headers, media_type=media_type
+    )
+
+
+async def streamed(request: Request, chunks: Iterator[bytes], **response: Any) -> Response:
+    """The answer streaming ``chunks`` (``threaded_stream``) in one of the app's stream turns
+    (``stream_slots``); 503 ``busy`` when none came within its wait."""
+    return await stream_in_turn(
+        request.app.state.stream_slots, lambda: threaded_stream(chunks), **response
     )

@@ -19,8 +19,8 @@ import robocloud
 from robocloud.cid import CODEC_NAMES, parse_cid
 from robocloud.directory import Resolved
 from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD, ImportParams, UnixfsError
+from services.cas.gateway import streamed
 from services.cas.store import ContentStore
-from services.cas.streams import streamed
 from services.cas.uploads import BlockCollector, CarImport, FileAdder, upload
 from services.common.auth import SignedAddress
 from services.common.errors import BadRequest

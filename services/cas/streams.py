@@ -3,21 +3,15 @@
 A streamed answer holds memory for as long as it lasts: the batch read ahead and what the
 connection has not taken yet, about 2.5 MiB in all when the client stops reading (100 such
 connections to ``dag/export`` held 250 MiB; with 4 MiB batches, which streamed no faster than
-1 MiB ones, 430 MiB). So every stream holds one of ``cas_max_streams`` turns (``streamed``),
+1 MiB ones, 430 MiB). So every stream holds one of ``cas_max_streams`` turns (``gateway.streamed``),
 and a client that stops reading is dropped after the send timeout (``services.common.server``).
 """
 
 from __future__ import annotations
 
-from collections.abc import AsyncGenerator, Callable, Iterator
-from typing import Any
+from collections.abc import AsyncGenerator, Iterator
 
 import anyio
-from fastapi import Request
-from fastapi.responses import StreamingResponse
-from starlette.types import Receive, Scope, Send
-
-from services.common.slots import Slots
 
 BATCH_BYTES = 1 << 20
 STREAM_WAIT_S = 5.0
@@ -51,35 +45,6 @@ async def threaded_stream(chunks: Iterator[bytes]) -> AsyncGenerator[bytes, None
             batch = await anyio.to_thread.run_sync(_next_batch, chunks)
 
     return generate()
-
-
-class HeldStreamingResponse(StreamingResponse):
-    """A streamed answer that gives its stream turn back when it ends, however it ends."""
-
-    def __init__(
-        self, content: AsyncGenerator[bytes, None], release: Callable[[], None], **kwargs: Any
-    ) -> None:
-        super().__init__(content, **kwargs)
-        self._release = release
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        try:
-            await super().__call__(scope, receive, send)
-        finally:
-            self._release()
-
-
-async def streamed(request: Request, chunks: Iterator[bytes], **response: Any) -> StreamingResponse:
-    """The answer streaming ``chunks`` (as ``threaded_stream``) in one of the app's stream
-    turns (``app.state.stream_slots``); ``SlotsBusy`` (503) when none came within its wait."""
-    slots: Slots = request.app.state.stream_slots
-    release = await slots.hold()
-    try:
-        body = await threaded_stream(chunks)
-    except BaseException:
-        release()
-        raise
-    return HeldStreamingResponse(body, release, **response)
 
 
 def first_error(error: BaseException) -> BaseException:

@@ -22,7 +22,7 @@ ROOTS = {"robocloud": REPO / "clients" / "robocloud", "services": REPO / "servic
 WEB_FRAMEWORKS = ("fastapi", "starlette", "uvicorn")
 
 WEB_MODULES = {
-    "services.common": {"app", "auth", "bodies", "middleware", "runner", "server"},
+    "services.common": {"app", "auth", "bodies", "middleware", "responses", "runner", "server"},
     "services.cas": {"__main__", "app", "gateway", "kubo"},
     "services.ledger": {"__main__", "app"},
     "services.storage": {"__main__", "app", "records_api", "bags_api"},
