@@ -16,10 +16,10 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 import robocloud
-from robocloud.cid import CODEC_NAMES, parse_cid
+from robocloud.cid import CID, CODEC_NAMES, parse_cid
 from robocloud.directory import Resolved
 from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD, ImportParams, UnixfsError
-from services.cas.gateway import streamed
+from services.cas.gateway import file_answer, streamed
 from services.cas.store import ContentStore
 from services.cas.uploads import BlockCollector, CarImport, FileAdder, upload
 from services.common.auth import SignedAddress
@@ -165,9 +165,15 @@ async def cat(
 ) -> Response:
     """A file's bytes (or ``length`` of them from ``offset``), every block verified on read."""
     store = _store(request)
-    resolved = await anyio.to_thread.run_sync(_content_path, store, arg)
-    chunks = store.read(resolved.cid, offset, length)
-    return await streamed(request, chunks, media_type="application/octet-stream")
+    target, size = await anyio.to_thread.run_sync(_file_and_size, store, arg)
+    wanted = max(size - offset, 0) if length is None else min(length, max(size - offset, 0))
+    chunks = store.read(target, offset, length)
+    return await file_answer(request, chunks, wanted, media_type="application/octet-stream")
+
+
+def _file_and_size(store: ContentStore, arg: str) -> tuple[CID, int]:
+    target = _content_path(store, arg).cid
+    return target, store.file_size(target)
 
 
 @router.post("/ls")

@@ -64,6 +64,7 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
     content = os.urandom(FILE_BYTES)
     with Cas(cas_service.url, Identity.generate()) as cas:
         cid = cas.add_bytes(content)
+        small = cas.add_bytes(b"five!")
     heads = [
         f"GET /ipfs/{cid} HTTP/1.1\r\nHost: cas\r\nX-Request-Id: stalled-gateway\r\n\r\n",
         f"POST /api/v0/dag/export?arg={cid} HTTP/1.1\r\nHost: cas\r\nContent-Length: 0\r\n"
@@ -76,6 +77,9 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
         busy = httpx.post(f"{cas_service.url}/api/v0/cat", params={"arg": str(cid)}, timeout=30)
         refused_after = time.monotonic() - started
         ready = httpx.get(f"{cas_service.url}/readyz", timeout=5)
+        # A read that fits in one batch is answered whole and needs no turn.
+        small_read = httpx.get(f"{cas_service.url}/ipfs/{small}", timeout=5)
+        small_cat = httpx.post(f"{cas_service.url}/api/v0/cat", params={"arg": str(small)})
         # Reading before the timeout would resume the streams; read after it.
         time.sleep(max(0.0, started + SEND_TIMEOUT_S + 2 - time.monotonic()))
         cut = [drain(connection) for connection in stalled]
@@ -87,6 +91,8 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
     )
     assert 5 <= refused_after < SEND_TIMEOUT_S
     assert ready.json()["status"] == "ready"
+    assert (small_read.status_code, small_read.content) == (200, b"five!")
+    assert (small_cat.status_code, small_cat.content) == (200, b"five!")
     # Each stalled client got a head and part of the body, then the connection closed.
     for answer in cut:
         assert answer.startswith(b"HTTP/1.1 200 OK\r\n")
