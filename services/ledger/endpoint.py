@@ -30,6 +30,7 @@ from services.ledger.rpc import (
     batch_refusal,
     collect,
     error_answer,
+    requests_of,
 )
 
 
@@ -71,7 +72,7 @@ class RpcEndpoint:
     async def _relayed(self, forwarder: NodeForwarder, document: Any, costly: bool) -> Any:
         if isinstance(document, list) and (refused := batch_refusal(document)) is not None:
             return refused
-        framed = [self.dispatcher.frame(item) for item in _requests(document)]
+        framed = [self.dispatcher.frame(item) for item in requests_of(document)]
         calls = [call for call in framed if isinstance(call, Call)]
         try:
             outcomes = iter((await self._relay(forwarder, calls, costly)) if calls else [])
@@ -92,10 +93,6 @@ class RpcEndpoint:
         return self.dispatcher.refusal(
             document, RpcFailure(LIMIT_EXCEEDED, f"limit exceeded: {busy}")
         )
-
-
-def _requests(document: Any) -> list[Any]:
-    return document if isinstance(document, list) else [document]
 
 
 def _answer(call: Call, outcome: Any) -> dict[str, Any] | None:

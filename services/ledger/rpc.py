@@ -144,8 +144,7 @@ class Dispatcher:
 
     def costly(self, document: Any) -> bool:
         """Whether ``document`` (one call or a batch) asks for any costly method."""
-        requests = document if isinstance(document, list) else [document]
-        return any(_method(request) in self.costly_methods for request in requests)
+        return any(_method(request) in self.costly_methods for request in requests_of(document))
 
     def answer_inline(self, document: Any) -> Any:
         """The answer to a single call of an inline method, computed on the caller's thread
@@ -272,6 +271,11 @@ def _valid_id(value: Any) -> bool:
 
 def error_answer(request_id: Any, failure: RpcFailure) -> dict[str, Any]:
     return {"jsonrpc": "2.0", "id": request_id, "error": failure.to_json()}
+
+
+def requests_of(document: Any) -> list[Any]:
+    """The requests in ``document``: a batch's, or the single call alone."""
+    return document if isinstance(document, list) else [document]
 
 
 def batch_refusal(batch: list[Any]) -> dict[str, Any] | None:
