@@ -24,9 +24,10 @@
 ``robocloud verify`` sends it), beside ``eth_chainId`` through the same client (the HTTP
 floor: an answer with no chain work) and the same call on the embedded chain in this process.
 
-``flood`` answers what strangers' free calls cost an honest robot: the p50 of a transfer and of a
-balance read, quiet and while ``--flooders`` clients each send a looping ``eth_call`` again and
-again (each runs to the EVM timeout), and how the flooding calls were answered.
+``flood`` answers what strangers' free calls cost an honest robot: the p50 of a transfer, of a
+balance read and of an ``eth_call`` of its own, quiet and while ``--flooders`` clients (one
+address, another than the robot's) each send a looping ``eth_call`` again and again (each runs
+to the EVM timeout), and how the flooding calls were answered.
 
 ``index`` is the earlier benchmark: registration + advertisement throughput against raw
 eth-tester, the event index over 10,000 events against eth-tester's ``get_logs``, restart.
@@ -628,15 +629,19 @@ def calls_part(args: argparse.Namespace) -> None:
 
 # ----- flood: transactions and reads while strangers' calls loop -----
 
+FLOODER = "127.0.0.2"
+"""The flood's address: one client, another than the honest robot's (127.0.0.1)."""
 LOOPING_CALL = {"data": "0x5b600056"}
 """Init code that loops forever (JUMPDEST PUSH1 0 JUMP): every such eth_call runs until the
 EVM timeout."""
 
 
-def latencies_ms(node: Node, robot: Identity, count: int) -> tuple[float, float]:
-    """p50 of a sign-send-receipt transfer and of an ``eth_getBalance``, in ms."""
+def latencies_ms(node: Node, robot: Identity, count: int) -> tuple[float, float, float, int]:
+    """p50 of a sign-send-receipt transfer, of an ``eth_getBalance`` and of an ``eth_call``
+    (to an address with no code), in ms; and how many of the calls were refused."""
     nonce = int(node.call("eth_getTransactionCount", [robot.address, "latest"]), 16)
-    sends, reads = [], []
+    sends, reads, calls = [], [], []
+    refused = 0
     for offset in range(count):
         started = time.perf_counter()
         node.receipt(node.call("eth_sendRawTransaction", [transfer(robot, nonce + offset)]))
@@ -644,7 +649,14 @@ def latencies_ms(node: Node, robot: Identity, count: int) -> tuple[float, float]
         started = time.perf_counter()
         node.call("eth_getBalance", [robot.address, "latest"])
         reads.append(time.perf_counter() - started)
-    return statistics.median(sends) * 1000, statistics.median(reads) * 1000
+        started = time.perf_counter()
+        try:
+            node.call("eth_call", [{"to": "0x" + "22" * 20}, "latest"])
+        except RuntimeError:
+            refused += 1
+        calls.append(time.perf_counter() - started)
+    send, read, call = (statistics.median(times) * 1000 for times in (sends, reads, calls))
+    return send, read, call, refused
 
 
 def flood_part(args: argparse.Namespace) -> None:
@@ -665,7 +677,8 @@ def flood_part(args: argparse.Namespace) -> None:
 
         def flood() -> None:
             payload = {"jsonrpc": "2.0", "id": 1, "method": "eth_call", "params": [LOOPING_CALL]}
-            with httpx.Client(timeout=120) as client:
+            from_flooder = httpx.HTTPTransport(local_address=FLOODER)
+            with httpx.Client(transport=from_flooder, timeout=120) as client:
                 while not stop.is_set():
                     error = client.post(rpc_url, json=payload).json().get("error", {})
                     key = f"{error.get('code')} {error.get('message', '')[:40]}"
@@ -696,6 +709,10 @@ def flood_part(args: argparse.Namespace) -> None:
     print(
         f"  eth_getBalance                  {quiet[1]:7.2f} / {flooded[1]:7.2f}   "
         f"{flooded[1] / quiet[1]:5.1f}x"
+    )
+    print(
+        f"  eth_call, another client's      {quiet[2]:7.2f} / {flooded[2]:7.2f}   "
+        f"{flooded[2] / quiet[2]:5.1f}x   refused {quiet[3]} / {flooded[3]}"
     )
     print("  the flooding calls' answers: " + ", ".join(f"{n} x {k}" for k, n in answers.items()))
 

@@ -15,7 +15,7 @@ from typing import Any
 
 from robocloud.bounded_json import JsonDepthError, JsonError
 from robocloud.cid import CIDError
-from services.common.slots import SlotsBusy
+from services.common.slots import ShareBusy, SlotsBusy
 
 
 class ServiceError(Exception):
@@ -171,6 +171,12 @@ COMMON_ERRORS = ErrorMap(
             503,
             "busy",
             lambda exc: {"slots": exc.count, "wait_s": exc.wait_s},
+            headers=lambda _: {"Retry-After": "1"},
+        ),
+        ShareBusy: ErrorRule(
+            429,
+            "rate_limited",
+            lambda exc: {"share": exc.share, "slots": exc.count, "wait_s": exc.wait_s},
             headers=lambda _: {"Retry-After": "1"},
         ),
     }

@@ -45,6 +45,7 @@ from services.common.errors import (
 from services.common.logs import request_id_var
 from services.common.metrics import ServiceMetrics
 from services.common.nonces import NonceStore
+from services.common.slots import client_key, client_var
 
 log = logging.getLogger("robocloud.http")
 
@@ -123,7 +124,8 @@ class RequestIdLayer:
     """Every request gets an id: a client's ``X-Request-Id`` of 8 to 64 safe characters, else
     a new one. It is in the ``request_id`` context variable (so every log line written while
     serving carries it), in the answer's ``X-Request-Id``, and in a 500 for an exception that
-    nothing below handled, logged with the same id.
+    nothing below handled, logged with the same id. Who asks (``slots.client_key`` of the peer
+    address) goes in the ``client`` context variable, which the shares of costly turns count.
     """
 
     def __init__(self, app: ASGIApp) -> None:
@@ -136,6 +138,8 @@ class RequestIdLayer:
         offered = Headers(scope=scope).get("x-request-id", "")
         request_id = offered if _REQUEST_ID.fullmatch(offered) else uuid.uuid4().hex
         token = request_id_var.set(request_id)
+        peer = scope.get("client")
+        client_token = client_var.set(None if peer is None else client_key(peer[0]))
         scope[REQUEST_ID_SCOPE_KEY] = request_id
 
         async def send_with_id(message: Message) -> None:
@@ -159,15 +163,17 @@ class RequestIdLayer:
                 raise
             await send_error(watch, INTERNAL_ERROR)
         finally:
+            client_var.reset(client_token)
             request_id_var.reset(token)
 
 
 class AccessLogLayer:
     """Metrics by route template (bounded label cardinality) and one log line per request.
 
-    The line carries method, path, route, status, duration and, for a signed request, the
-    signer. An exception passing through counts as 500, which is what the client gets; a
-    client that went away mid-request counts as 499, nginx's "client closed request".
+    The line carries method, path, route, status, duration, the client's address and, for a
+    signed request, the signer. An exception passing through counts as 500, which is what the
+    client gets; a client that went away mid-request counts as 499, nginx's "client closed
+    request".
     """
 
     def __init__(self, app: ASGIApp, metrics: ServiceMetrics) -> None:
@@ -199,6 +205,7 @@ class AccessLogLayer:
             "route": template,
             "status": status,
             "duration_ms": round(seconds * 1000, 2),
+            "client": client_var.get(),
         }
         signature = scope.get("state", {}).get("signature")
         if signature is not None:

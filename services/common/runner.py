@@ -30,7 +30,12 @@ ledger's calls, storage's queries). Under a flood of looping calls a ledger tran
 
 
 def serve(app: FastAPI, settings: ServiceSettings) -> None:
-    """Serve until SIGINT or SIGTERM, then drain in-flight requests for a few seconds."""
+    """Serve until SIGINT or SIGTERM, then drain in-flight requests for a few seconds.
+
+    The client is the peer address unless ``trusted_proxies`` names the peer: uvicorn trusts
+    ``X-Forwarded-For`` from loopback by default, which would let any local client claim a new
+    address a request, out of the share of turns its own address holds (``slots``).
+    """
     uvicorn.run(
         app,
         host=settings.host,
@@ -43,6 +48,8 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
             settings.send_timeout_s,
         ),
         h11_max_incomplete_event_size=settings.max_header_bytes,
+        proxy_headers=bool(settings.trusted_proxies),
+        forwarded_allow_ips=settings.trusted_proxies or None,
         log_config=None,
         access_log=False,
         server_header=False,

@@ -59,6 +59,11 @@ class ServiceSettings(BaseSettings):
         default=30.0, gt=0, description="a client must take each piece of an answer within this"
     )
     max_clock_skew_s: int = Field(default=300, gt=0)
+    trusted_proxies: CommaList = Field(
+        default_factory=list,
+        description="addresses whose X-Forwarded-For names the client (a reverse proxy's); "
+        "none by default, so no client can claim another's address",
+    )
     log_level: str = "INFO"
     cas_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['cas']}"
     ledger_url: str = f"http://127.0.0.1:{DEFAULT_PORTS['ledger']}"

@@ -185,7 +185,9 @@ def test_a_flood_of_big_listings_starves_no_other_read(
     """A listing of 20,000 entries is 0.4-0.7 s of CPU and megabytes of HTML or JSON, free
     for anyone. The HTML was rendered on the event loop and ``ls`` ran unbounded on worker
     threads: 40 clients asking again and again held a five-byte file's read for 12 s (the
-    HTML) or past 60 s (``ls``). Listings now take turns on worker threads, two at a time."""
+    HTML) or past 60 s (``ls``). Listings now take turns on worker threads, two at a time,
+    and one client (the flood's address) has one of them: another client's listing is
+    answered in full while the flood goes on."""
     source = tmp_path / "many"
     source.mkdir()
     for index in range(ENTRIES):
@@ -197,13 +199,18 @@ def test_a_flood_of_big_listings_starves_no_other_read(
         with httpx.Client(timeout=5) as honest:
             read = honest.get(f"{cas_service.url}/ipfs/{small}")
             ready = honest.get(f"{cas_service.url}/readyz")
+            listing = ask(honest, cas_service.url, root)
         still_flooding = flood.running()
     assert read.content == b"hello"
     assert ready.json()["status"] == "ready"
+    assert listed_entries(listing) == ENTRIES
     assert still_flooding
+    refused = [answer for answer in flood.answers if answer.status_code != 200]
+    assert refused
     for answer in flood.answers:
         if answer.status_code == 200:
             assert listed_entries(answer) == ENTRIES
-        else:
-            assert answer.status_code == 503
-            assert answer.json()["error"]["code"] == "busy"
+    for answer in refused:
+        assert answer.status_code == 429
+        assert answer.json()["error"]["code"] == "rate_limited"
+        assert answer.json()["error"]["details"] == {"share": 1, "slots": 2, "wait_s": 5.0}

@@ -20,6 +20,7 @@ from robocloud.signing import sign_request
 from tests.conftest import ServiceFactory
 from tests.integration.services.cas.conftest import QUIET_GC, multipart, store_unchanged
 from tests.procs import ServiceProcess
+from tests.raw_http import read_answer
 
 SEND_TIMEOUT_S = 8
 """Longer than the 5 s a stream waits for a turn, so the refusal comes while both are held."""
@@ -38,10 +39,13 @@ def cas_service(service_factory: ServiceFactory) -> ServiceProcess:
 
 
 @contextmanager
-def stalled_reader(service: ServiceProcess, head: bytes) -> Iterator[socket.socket]:
-    """A connection that sends ``head`` and then reads nothing. (A tiny receive buffer would
-    leave the service's side waiting on TCP's zero-window probes once reading resumes.)"""
-    connection = socket.create_connection(("127.0.0.1", service.port))
+def stalled_reader(
+    service: ServiceProcess, head: bytes, client: str = "127.0.0.1"
+) -> Iterator[socket.socket]:
+    """A connection from ``client`` (any loopback address) that sends ``head`` and then reads
+    nothing. (A tiny receive buffer would leave the service's side waiting on TCP's
+    zero-window probes once reading resumes.)"""
+    connection = socket.create_connection(("127.0.0.1", service.port), source_address=(client, 0))
     try:
         connection.sendall(head)
         yield connection
@@ -72,7 +76,10 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
     ]
     with ExitStack() as stack:
         started = time.monotonic()
-        stalled = [stack.enter_context(stalled_reader(cas_service, h.encode())) for h in heads]
+        stalled = [
+            stack.enter_context(stalled_reader(cas_service, head.encode(), client))
+            for head, client in zip(heads, ("127.0.0.2", "127.0.0.3"), strict=True)
+        ]
         time.sleep(0.5)
         busy = httpx.post(f"{cas_service.url}/api/v0/cat", params={"arg": str(cid)}, timeout=30)
         refused_after = time.monotonic() - started
@@ -111,6 +118,47 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
         ("stalled-gateway", f"/ipfs/{cid}"),
     ]
     assert '"level": "error"' not in log
+
+
+def test_one_client_stalling_streams_holds_only_its_share_of_the_turns(
+    cas_service: ServiceProcess,
+) -> None:
+    """Before the shares, one client's stalled downloads held every turn until the send
+    timeout, and every other client's download was refused."""
+    content = os.urandom(FILE_BYTES)
+    with Cas(cas_service.url, Identity.generate()) as cas:
+        cid = cas.add_bytes(content)
+    head = f"GET /ipfs/{cid} HTTP/1.1\r\nHost: cas\r\n\r\n".encode()
+    # The client named in X-Forwarded-For is not believed, from loopback either (uvicorn's
+    # default): the peer address is the client.
+    forwarded = f"GET /ipfs/{cid} HTTP/1.1\r\nHost: cas\r\nX-Forwarded-For: 198.51.100.7\r\n\r\n"
+    with ExitStack() as stack:
+        stack.enter_context(stalled_reader(cas_service, head))
+        time.sleep(0.5)
+        started = time.monotonic()
+        second = stack.enter_context(stalled_reader(cas_service, forwarded.encode()))
+        status, refusal = read_answer(second)
+        refused_after = time.monotonic() - started
+        other_client = httpx.HTTPTransport(local_address="127.0.0.2")
+        with httpx.Client(transport=other_client, timeout=30) as client:
+            other = client.get(f"{cas_service.url}/ipfs/{cid}")
+    assert status == 429
+    error = refusal["error"]
+    assert error["code"] == "rate_limited"
+    assert error["message"] == (
+        "this client already holds 1 of the 2 stream slots, its share, and none came free in "
+        "5 s; retry later"
+    )
+    assert error["details"] == {"share": 1, "slots": 2, "wait_s": 5.0}
+    assert 5 <= refused_after < SEND_TIMEOUT_S
+    assert other.status_code == 200
+    assert hashlib.sha256(other.content).digest() == hashlib.sha256(content).digest()
+    (line,) = [
+        json.loads(entry)
+        for entry in cas_service.log_path.read_text().splitlines()
+        if '"status": 429' in entry
+    ]
+    assert (line["client"], line["path"]) == ("127.0.0.1", f"/ipfs/{cid}")
 
 
 def test_an_upload_that_stops_half_way_is_dropped_and_nothing_is_stored(

@@ -20,6 +20,7 @@ from robocloud.identity import Identity
 from robocloud.signing import sign_request
 from tests.conftest import ServiceFactory
 from tests.procs import ServiceProcess
+from tests.raw_http import read_answer
 
 MiB = 1 << 20
 HEADER_LIMIT = 64 * 1024
@@ -36,27 +37,6 @@ def memory_kib(process: ServiceProcess) -> dict[str, int]:
             if name in ("VmRSS", "VmHWM"):
                 fields[name] = int(value.split()[0])
     return fields
-
-
-def read_answer(sock: socket.socket, received: bytes = b"") -> tuple[int, dict[str, Any]]:
-    """Status and JSON body of one answer, read until its Content-Length is complete."""
-    sock.setblocking(True)
-    sock.settimeout(30)
-    while b"\r\n\r\n" not in received:
-        received += sock.recv(65536)
-    head, _, body = received.partition(b"\r\n\r\n")
-    lines = head.decode().split("\r\n")
-    headers = dict(line.lower().split(": ", 1) for line in lines[1:])
-    while len(body) < int(headers["content-length"]):
-        chunk = sock.recv(65536)
-        assert chunk, "connection closed mid-answer"
-        body += chunk
-    answer: dict[str, Any] = json.loads(body)
-    assert (
-        answer.get("error", {}).get("request_id", headers["x-request-id"])
-        == (headers["x-request-id"])
-    )
-    return int(lines[0].split()[1]), answer
 
 
 def stream_until_answered(sock: socket.socket, total: int) -> tuple[int, int, dict[str, Any]]:
@@ -176,6 +156,23 @@ def test_head_dribbled_a_byte_at_a_time_is_cut_off_with_408(
     assert answer["error"]["code"] == "header_timeout"
     assert answer["error"]["details"] == {"limit_s": 1.0}
     assert healthz(service)["status"] == "ok"
+
+
+@pytest.mark.parametrize(("trusted", "client"), [("", "127.0.0.1"), ("127.0.0.1", "198.51.100.7")])
+def test_the_client_is_the_peer_address_unless_a_trusted_proxy_names_another(
+    service_factory: ServiceFactory, trusted: str, client: str
+) -> None:
+    """Who asks is what the shares of costly turns count. uvicorn believed X-Forwarded-For
+    from loopback by default, so a local client could claim a new address each request."""
+    service = service_factory("broker", {"ROBOCLOUD_TRUSTED_PROXIES": trusted})
+    headers = {"X-Forwarded-For": "198.51.100.7", "X-Request-Id": "forwarded-for"}
+    assert httpx.get(f"{service.url}/healthz", headers=headers).json()["status"] == "ok"
+    (line,) = [
+        json.loads(entry)
+        for entry in service.log_path.read_text().splitlines()
+        if '"request_id": "forwarded-for"' in entry
+    ]
+    assert (line["path"], line["client"]) == ("/healthz", client)
 
 
 def test_kept_alive_connection_is_not_timed_out_between_quick_requests(
