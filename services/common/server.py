@@ -9,13 +9,15 @@ the bytes that break the limit arrive, and the connection is closed without read
 A head must also be complete within ``header_timeout_s`` of its first byte (408), so that
 connections dribbling a byte at a time cannot be held open until the process runs out of
 file descriptors: uvicorn times out only idle kept-alive connections.
-A body must keep arriving, and an answer must be taken: a connection whose client sends
-nothing of its body for ``body_timeout_s`` (while the service is ready to read it), or reads
-nothing of the answer for ``send_timeout_s`` (its write buffer stays above the high-water
-mark), is dropped, what is buffered for it discarded, as nginx's ``client_body_timeout`` and
-``send_timeout`` do. Before, an upload that stopped half way held its staging file and its
-connection for ever, and a client that asked for a large stream and never read held the
-stream open with the read-ahead behind it: a hundred such connections held 430 MiB of the cas.
+A body must keep arriving, and an answer must be taken: a client that sends nothing of its
+body for ``body_timeout_s`` (while the service is ready to read it) is answered 408, as
+nginx's ``client_body_timeout`` does, and one that reads nothing of the answer for
+``send_timeout_s`` (its write buffer stays above the high-water mark) is dropped, what is
+buffered for it discarded, as nginx's ``send_timeout`` does; either way the connection is
+closed and the route sees its client gone. Before, an upload that stopped half way held its
+staging file and its connection for ever, and a client that asked for a large stream and never
+read held the stream open with the read-ahead behind it: a hundred such connections held
+430 MiB of the cas.
 h11 buffers at most one head, and its own bound (``h11_max_incomplete_event_size``) is set to
 the same limit as a backstop for pipelined requests, whose bytes may arrive together with an
 earlier request's body.
@@ -46,8 +48,9 @@ _BLANK_LINE = re.compile(rb"\n\r?\n")
 
 
 @dataclass(frozen=True)
-class HeadRefusal:
-    """Why a request head is refused: the status and the JSON error that says so."""
+class Refusal:
+    """Why the server itself refuses a request (its head, or a body that stopped coming): the
+    status and the JSON error that says so."""
 
     status: int
     code: str
@@ -75,7 +78,7 @@ class HeadMeter:
         self._head_bytes = 0
         self._tail = b""
 
-    def feed(self, data: bytes) -> HeadRefusal | None:
+    def feed(self, data: bytes) -> Refusal | None:
         """Count ``data``; a refusal once the head breaks a limit, else None."""
         if not self.counting or not data:
             return None
@@ -84,7 +87,7 @@ class HeadMeter:
             self._line_bytes += len(data) if line_end == -1 else line_end
             self._line_open = line_end == -1
             if self._line_bytes > self.max_request_line_bytes:
-                return HeadRefusal(
+                return Refusal(
                     414,
                     "request_line_too_long",
                     f"the request line exceeds {self.max_request_line_bytes} bytes",
@@ -99,7 +102,7 @@ class HeadMeter:
             self._head_bytes += end.end() - len(self._tail)
             self.counting = False
         if self._head_bytes > self.max_header_bytes:
-            return HeadRefusal(
+            return Refusal(
                 431,
                 "headers_too_large",
                 f"the request head (request line and header fields) exceeds "
@@ -180,7 +183,22 @@ class BoundedH11Protocol(H11Protocol):
                 self.body_timeout_s - idle, self._body_overdue
             )
             return
-        self._drop("client stopped sending its body", {"body_timeout_s": self.body_timeout_s})
+        if self.cycle is None or self.cycle.response_started:
+            self._drop("client stopped sending its body", {"body_timeout_s": self.body_timeout_s})
+            return
+        # The route waits for the rest of the body: it gets its client's disconnection.
+        self.cycle.disconnected = True
+        self.cycle.message_event.set()
+        self._refuse(
+            Refusal(
+                408,
+                "body_timeout",
+                f"the request body stopped arriving for {self.body_timeout_s:g} s",
+                {"limit_s": self.body_timeout_s},
+            ),
+            self._request_id(),
+            self._path(),
+        )
 
     def pause_writing(self) -> None:
         """The client is not taking the answer as fast as it is written: it has
@@ -200,22 +218,31 @@ class BoundedH11Protocol(H11Protocol):
     def _drop(self, why: str, limit: dict[str, float]) -> None:
         """Drop the connection and what is buffered for it. The route sees a disconnected
         client: an upload discards what it staged, a stream stops and gives back its turn."""
-        scope = getattr(self, "scope", {})
-        token = request_id_var.set(scope.get(REQUEST_ID_SCOPE_KEY, "-"))
+        token = request_id_var.set(self._request_id() or "-")
         try:
             log.warning(
                 f"{why}; connection dropped",
-                extra={"client": self.client, "path": scope.get("path"), **limit},
+                extra={"client": self.client, "path": self._path(), **limit},
             )
         finally:
             request_id_var.reset(token)
         self.transport.abort()
 
+    def _request_id(self) -> str | None:
+        """The id the request layers gave the connection's current request, once they have."""
+        request_id = getattr(self, "scope", {}).get(REQUEST_ID_SCOPE_KEY)
+        return request_id if isinstance(request_id, str) else None
+
+    def _path(self) -> str | None:
+        """The current request's path, once its head arrived."""
+        path = getattr(self, "scope", {}).get("path")
+        return path if isinstance(path, str) else None
+
     def _too_slow(self) -> None:
         self._head_deadline = None
         if self._head.counting and self.conn.their_state is h11.IDLE and not self._refused:
             self._refuse(
-                HeadRefusal(
+                Refusal(
                     408,
                     "header_timeout",
                     f"the request head did not arrive within {self.header_timeout_s:g} s",
@@ -223,16 +250,24 @@ class BoundedH11Protocol(H11Protocol):
                 )
             )
 
-    def _refuse(self, refusal: HeadRefusal) -> None:
-        """Answer in the error model and close without reading the rest of the request."""
+    def _refuse(
+        self, refusal: Refusal, request_id: str | None = None, path: str | None = None
+    ) -> None:
+        """Answer in the error model and close without reading the rest of the request (its
+        id and path, when its head was read: a head refused has neither)."""
         self._refused = True
         self._head_deadline = _cancelled(self._head_deadline)
-        request_id = uuid.uuid4().hex
+        request_id = request_id or uuid.uuid4().hex
         token = request_id_var.set(request_id)
         try:
             log.warning(
-                "request head refused",
-                extra={"status": refusal.status, "code": refusal.code, "client": self.client},
+                "request refused",
+                extra={
+                    "status": refusal.status,
+                    "code": refusal.code,
+                    "client": self.client,
+                    "path": path,
+                },
             )
         finally:
             request_id_var.reset(token)

@@ -5,13 +5,13 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from services.common.server import HeadMeter, HeadRefusal
+from services.common.server import HeadMeter, Refusal
 from services.common.settings import ServiceSettings
 
 HEAD = b"GET /ipfs/bafy HTTP/1.1\r\nHost: cas\r\nX-Thing: value\r\n\r\n"
 
 
-def feed_all(meter: HeadMeter, chunks: list[bytes]) -> HeadRefusal | None:
+def feed_all(meter: HeadMeter, chunks: list[bytes]) -> Refusal | None:
     for chunk in chunks:
         refusal = meter.feed(chunk)
         if refusal is not None:
@@ -43,7 +43,7 @@ def test_long_request_line_is_414_before_its_end_arrives() -> None:
     meter = HeadMeter(max_request_line_bytes=100, max_header_bytes=10_000)
     assert meter.feed(b"GET /" + b"a" * 90) is None
     refusal = meter.feed(b"a" * 10)
-    assert refusal == HeadRefusal(
+    assert refusal == Refusal(
         414, "request_line_too_long", "the request line exceeds 100 bytes", {"limit": 100}
     )
 
