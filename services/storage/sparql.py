@@ -14,6 +14,13 @@ everyone. (A fork per query instead cost 10-35 ms a query; the worker is single-
 forking it is safe.) Memory is bounded too (``RLIMIT_AS``, per process), and each process
 dies with its parent (``PR_SET_PDEATHSIG``).
 
+An executor shares its pages with its worker only until it writes to them, and a query writes
+all over the heap: one count over 10,000 files left 33 MiB private to each of the two
+processes, a large SELECT 105 MiB, and the pair then held twice the worker's memory for as
+long as the executor lived. So a worker idle for ``idle_refresh_s`` after a query is asked to
+fork a fresh executor (``refresh``), sharing every page again; a busy one keeps its executor,
+whose copied pages the next query would only copy again.
+
 Parent and worker speak pickled messages framed by a 4-byte length over the worker's stdin and
 stdout; the worker is our own code, started by us, so pickle is safe here. Descriptions added
 after a worker started reach it as ``load`` messages sent before its next query, so a query
@@ -407,7 +414,8 @@ def _relay(worker: _Worker, inbox: IO[bytes], outbox: IO[bytes]) -> None:
     (so a new executor starts with every description), and an answer comes back unless the
     service says ``stop`` first: then the executor is killed, a new one forked, and the answer
     is ``("stopped",)``. The service sends ``stop`` only while a query runs; one that crossed
-    the query's answer finds nothing to stop."""
+    the query's answer finds nothing to stop. ``refresh`` forks a new executor in place of an
+    idle one, and is answered ``("refreshed",)``."""
     executor = _Executor(worker, inbox, outbox)
     while True:
         try:
@@ -420,6 +428,11 @@ def _relay(worker: _Worker, inbox: IO[bytes], outbox: IO[bytes]) -> None:
         if message[0] == "load":
             worker.load(message[1])
             executor.send(message)
+            continue
+        if message[0] == "refresh":
+            executor.stop()
+            executor = _Executor(worker, inbox, outbox)
+            _framed_write(outbox, ("refreshed",))
             continue
         executor.send(message)
         answer = executor.answer(inbox.fileno())
@@ -534,7 +547,10 @@ _ERRORS: dict[str, Callable[[str], SparqlError]] = {
 
 
 STOP_WAIT_S = 5.0
-"""How long a worker may take to stop a query's process and say so before it is replaced."""
+"""How long a worker may take to stop a query's process (or fork a fresh one) and say so
+before it is replaced."""
+IDLE_REFRESH_S = 30.0
+"""How long a worker stays idle after a query before its executor is forked afresh."""
 
 
 @dataclass
@@ -542,6 +558,8 @@ class _Child:
     process: subprocess.Popen[bytes]
     pending: list[str]
     ready: bool = False
+    last_query: float | None = None
+    """When its executor last answered; None while it has answered nothing."""
 
 
 class SparqlWorkers:
@@ -562,6 +580,7 @@ class SparqlWorkers:
         memory_bytes: int,
         store: str = "memory",
         start_timeout_s: float = 300.0,
+        idle_refresh_s: float = IDLE_REFRESH_S,
     ) -> None:
         self.directory = directory
         self.count = workers
@@ -570,6 +589,7 @@ class SparqlWorkers:
         self.memory_bytes = memory_bytes
         self.store = store
         self.start_timeout_s = start_timeout_s
+        self.idle_refresh_s = idle_refresh_s
         self._lock = threading.Lock()
         self._children: list[_Child] = []
         self._idle: queue.Queue[_Child] = queue.Queue()
@@ -577,11 +597,14 @@ class SparqlWorkers:
         self._loaded = False
         self.replaced = 0
         self.stopped = 0
+        self.refreshed = 0
+        self._closing = threading.Event()
 
     def start(self) -> None:
         """Start every worker in the background; each becomes idle once it has loaded."""
         for _ in range(self.count):
             self._spawn()
+        threading.Thread(target=self._refresh_idle, daemon=True).start()
 
     def loaded(self) -> bool:
         """Whether a worker has loaded the graph, ever: the knowledge base answers queries from
@@ -600,6 +623,7 @@ class SparqlWorkers:
             "busy": max(ready - idle, 0),
             "replaced": self.replaced,
             "stopped": self.stopped,
+            "refreshed": self.refreshed,
         }
 
     def add(self, cids: Sequence[str]) -> None:
@@ -608,6 +632,7 @@ class SparqlWorkers:
                 child.pending.extend(cids)
 
     def close(self) -> None:
+        self._closing.set()
         with self._lock:
             self._closed = True
             children = list(self._children)
@@ -646,8 +671,10 @@ class SparqlWorkers:
                 _framed_write(stdin, ("load", pending))
             _framed_write(stdin, message)
             answer = self._read_answer(child, deadline)
+            child.last_query = time.monotonic()
         except QueryTimeoutError:
             if self._stop_query(child):
+                child.last_query = None  # the executor is a fresh one
                 self._idle.put(child)
             else:
                 self._replace(child, "timed out")
@@ -676,6 +703,39 @@ class SparqlWorkers:
             return False
         with self._lock:
             self.stopped += 1
+        return True
+
+    def _refresh_idle(self) -> None:
+        """Every so often, take each idle worker in turn and, when it has been idle for
+        ``idle_refresh_s`` since a query, have it fork a fresh executor."""
+        while not self._closing.wait(self.idle_refresh_s / 4):
+            for _ in range(self._idle.qsize()):
+                try:
+                    child = self._idle.get_nowait()
+                except queue.Empty:
+                    break
+                idle_since = child.last_query
+                if idle_since is None or time.monotonic() - idle_since < self.idle_refresh_s:
+                    self._idle.put(child)
+                elif self._refresh(child):
+                    child.last_query = None
+                    self._idle.put(child)
+                else:
+                    self._replace(child, "did not refresh its executor")
+
+    def _refresh(self, child: _Child) -> bool:
+        """Have the worker fork a fresh executor; whether it said so within ``STOP_WAIT_S``."""
+        stdin = child.process.stdin
+        assert stdin is not None
+        try:
+            _framed_write(stdin, ("refresh",))
+            answer = self._read_answer(child, time.monotonic() + STOP_WAIT_S)
+        except (SparqlError, OSError, EOFError, ValueError, pickle.UnpicklingError):
+            return False
+        if answer != ("refreshed",):
+            return False
+        with self._lock:
+            self.refreshed += 1
         return True
 
     def _read_answer(self, child: _Child, deadline: float) -> Any:

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from robocloud import semantic
+from robocloud.cid import CID
 from services.common.durable import atomic_write
 from services.storage.sparql import (
     NotAcceptableError,
@@ -188,7 +190,61 @@ def test_a_query_past_its_deadline_is_killed_and_its_worker_free_at_once(
     assert json.loads(body)["boolean"] is True
     thread.join()
     assert [str(exc) for exc in failures] == ["the query did not finish within 3 s; it was stopped"]
-    assert pool.describe() == {"ready": 2, "busy": 0, "replaced": 0, "stopped": 1}
+    assert pool.describe() == {"ready": 2, "busy": 0, "replaced": 0, "stopped": 1, "refreshed": 0}
     for _ in range(2):  # both workers, the one that ran the slow query included
         _, body = pool.query(PREFIX + "ASK { ?s a rc:File }", None)
         assert json.loads(body)["boolean"] is True
+
+
+def test_an_idle_worker_forks_a_fresh_executor_that_shares_its_pages_again(
+    tmp_path: Path,
+) -> None:
+    """A query copies the pages it writes out of what the executor shares with its worker;
+    while the executor lives, both keep their copies. After ``idle_refresh_s`` with no query
+    the worker forks a new executor, and the pair shares those pages again."""
+    for index in range(300):
+        cid = CID.from_block(f"file-{index}".encode())
+        write(tmp_path, semantic.file_description(cid, "image/png", 1000 + index))
+    workers = SparqlWorkers(
+        tmp_path,
+        workers=1,
+        timeout_s=10,
+        max_result_bytes=16 << 20,
+        memory_bytes=1 << 31,
+        store="memory",
+        idle_refresh_s=1.0,
+    )
+    workers.start()
+    try:
+        wait_for(lambda: workers.describe()["ready"] == 1, "the worker")
+        worker = workers._children[0].process.pid
+        first = executor_of(worker)
+        assert select(workers, "SELECT (COUNT(*) AS ?n) WHERE { ?f a rc:File }") == [{"n": "300"}]
+        workers.query(PREFIX + "CONSTRUCT { ?s ?p ?o } WHERE { ?s ?p ?o }", None)
+        copied = private_mib(first)
+        wait_for(lambda: workers.describe()["refreshed"] == 1, "the executor to be refreshed")
+        fresh = executor_of(worker)
+        assert fresh != first
+        assert private_mib(fresh) < copied
+        assert select(workers, "SELECT (COUNT(*) AS ?n) WHERE { ?f a rc:File }") == [{"n": "300"}]
+        # Refreshed once per idle spell: an executor that answered nothing is left alone.
+        wait_for(lambda: workers.describe()["refreshed"] == 2, "the second refresh")
+        third = executor_of(worker)
+        time.sleep(2.5)
+        assert executor_of(worker) == third
+        assert workers.describe()["refreshed"] == 2
+    finally:
+        workers.close()
+
+
+def executor_of(worker: int) -> int:
+    """The pid of the worker's one child, its executor."""
+    (child,) = Path(f"/proc/{worker}/task/{worker}/children").read_text().split()
+    return int(child)
+
+
+def private_mib(pid: int) -> float:
+    """What of the process's memory no other process shares."""
+    lines = Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:]
+    fields = dict(line.split(":", 1) for line in lines)
+    return sum(int(fields[name].split()[0]) for name in ("Private_Clean", "Private_Dirty")) / 1024
