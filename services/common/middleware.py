@@ -54,6 +54,9 @@ CLIENT_CLOSED_REQUEST = 499
 INTERNAL_ERROR = ServiceError("internal error; see the service log")
 REQUEST_ID_SCOPE_KEY = "robocloud.request_id"
 """Where the request id is also kept in the ASGI scope, for the server protocol's log lines."""
+SERVER_ANSWER_SCOPE_KEY = "robocloud.server_answer"
+"""The status the server protocol answered itself while the app still ran (a 408 for a body
+that stopped coming): what the access log records instead of the app's disconnection."""
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{8,64}")
 
 
@@ -190,7 +193,7 @@ class AccessLogLayer:
         try:
             await self.app(scope, receive, watch)
         except ClientDisconnect:
-            status = CLIENT_CLOSED_REQUEST
+            status = scope.get(SERVER_ANSWER_SCOPE_KEY, CLIENT_CLOSED_REQUEST)
             raise
         finally:
             self._record(scope, watch.status or status or 500, time.perf_counter() - started)

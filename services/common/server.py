@@ -39,7 +39,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from services.common.errors import error_body
 from services.common.logs import request_id_var
-from services.common.middleware import REQUEST_ID_SCOPE_KEY
+from services.common.middleware import REQUEST_ID_SCOPE_KEY, SERVER_ANSWER_SCOPE_KEY
 
 log = logging.getLogger("robocloud.http")
 
@@ -187,6 +187,7 @@ class BoundedH11Protocol(H11Protocol):
             self._drop("client stopped sending its body", {"body_timeout_s": self.body_timeout_s})
             return
         # The route waits for the rest of the body: it gets its client's disconnection.
+        self.scope[SERVER_ANSWER_SCOPE_KEY] = 408  # type: ignore[literal-required]
         self.cycle.disconnected = True
         self.cycle.message_event.set()
         self._refuse(
