@@ -61,10 +61,12 @@ MAX_ERROR_BYTES = 1 << 20
 class RetryPolicy:
     """How often and how patiently a request is tried again.
 
-    What is retried (see :meth:`BaseClient.send`): a failed connection (nothing was sent) and
-    503 (the service refused before doing anything) for every request whose body can be sent
+    What is retried (see :meth:`BaseClient.send`): a failed connection (nothing was sent),
+    503 (the service refused before doing anything) and a 429 whose ``Retry-After`` is within
+    ``max_delay_s`` (this client's own requests hold its share of a service's turns; a faucet
+    that says come back in an hour is not waited for) for every request whose body can be sent
     again; a broken or timed-out exchange, 502 and 504 only for idempotent requests. Delays
-    grow exponentially from ``backoff_s``; a 503's ``Retry-After`` is honoured up to
+    grow exponentially from ``backoff_s``; a ``Retry-After`` is honoured up to
     ``max_delay_s``.
     """
 
@@ -74,9 +76,9 @@ class RetryPolicy:
 
     def delay(self, attempt: int, retry_after: str | None = None) -> float:
         wait: float = self.backoff_s * float(2**attempt)
-        if retry_after is not None:
-            with suppress(ValueError):
-                wait = max(wait, float(retry_after))
+        asked = _seconds(retry_after)
+        if asked is not None:
+            wait = max(wait, asked)
         return min(max(wait, 0.0), self.max_delay_s)
 
 
@@ -217,12 +219,19 @@ class BaseClient(Closeable):
                     time.sleep(self.retry.delay(attempt - 1))
                     continue
                 raise
-            if attempt < attempts and _retry_status(response.status_code, idempotent):
+            if attempt < attempts and self._retried(response, idempotent):
                 response.close()
                 time.sleep(self.retry.delay(attempt - 1, response.headers.get("retry-after")))
                 continue
             return response, attempt
         raise AssertionError("unreachable: the last attempt returns or raises")
+
+    def _retried(self, response: httpx.Response, idempotent: bool) -> bool:
+        """Whether ``response`` is one the retry policy sends the request again for."""
+        if response.status_code == 429:
+            wait = _seconds(response.headers.get("retry-after"))
+            return wait is not None and 0 <= wait <= self.retry.max_delay_s
+        return _retry_status(response.status_code, idempotent)
 
     def _exchange(self, request: httpx.Request, stream: bool) -> httpx.Response:
         """One request and, unless streamed, its whole answer; httpx failures translated."""
@@ -391,6 +400,15 @@ def api_error(response: httpx.Response) -> ApiError:
 def _retry_status(status: int, idempotent: bool) -> bool:
     """503 says the service did nothing; 502 and 504 (a proxy) leave that open."""
     return status == 503 or (idempotent and status in (502, 504))
+
+
+def _seconds(retry_after: str | None) -> float | None:
+    """A ``Retry-After`` in seconds; None when there is none or it is not a number."""
+    if retry_after is None:
+        return None
+    with suppress(ValueError):
+        return float(retry_after)
+    return None
 
 
 def _reason(exc: httpx.RequestError) -> str:

@@ -229,6 +229,25 @@ def test_error_answers_become_typed_api_errors(
     assert getattr(err.value, "request_id", None) in ("q", "from-header")
 
 
+def test_a_429_that_asks_for_a_moment_is_retried_one_that_asks_for_longer_is_not() -> None:
+    """A service refuses a client over its share of turns with 429 and ``Retry-After: 1``
+    (nothing was done); a faucet's 429 asks for minutes, and the robot is told at once."""
+    busy = b'{"error":{"code":"rate_limited","message":"this client already holds 1"}}'
+    answers = iter([json_reply(busy, 429, **{"Retry-After": "0"}), json_reply('{"ok":true}')])
+    robot = Identity.generate()
+    with scripted_client(lambda _: next(answers), identity=robot, **FAST) as (server, client):
+        assert client.post_json("/v1/write", {"x": 1}) == {"ok": True}
+    assert server.count() == 2
+    later = json_reply(busy, 429, **{"Retry-After": "3600"})
+    with (
+        scripted_client(lambda _: later, **FAST) as (server, client),
+        pytest.raises(RateLimitedError) as err,
+    ):
+        client.get_json("/x")
+    assert server.count() == 1
+    assert err.value.retry_after == 3600.0
+
+
 def test_429_carries_retry_after() -> None:
     error = b'{"error":{"code":"slow_down","message":"later"}}'
     reply = json_reply(error, 429, **{"Retry-After": "7"})
