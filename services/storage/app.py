@@ -328,6 +328,9 @@ def _open_records(app: FastAPI, settings: StorageSettings, node: StorageNode) ->
     app.state.query_slots = Slots(
         "query", settings.storage_max_queries, settings.storage_query_wait_s
     )
+    app.state.export_slots = Slots(
+        "export", settings.storage_max_exports, settings.storage_query_wait_s
+    )
 
 
 def _close_records(app: FastAPI) -> None:

@@ -96,6 +96,12 @@ class StorageSettings(ServiceSettings):
         description="record queries, state intervals and export pages running at once; more "
         "wait up to storage_query_wait_s, then are refused (503 busy)",
     )
+    storage_max_exports: int = Field(
+        default=16,
+        gt=0,
+        description="GET /v1/export answers streaming at once (each holds a page of records); "
+        "more wait up to storage_query_wait_s, then are refused (503 busy)",
+    )
     storage_query_wait_s: float = Field(
         default=5.0, gt=0, description="how long a query waits for its turn before the 503"
     )

@@ -8,8 +8,7 @@ import json
 import os
 import socket
 import time
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 
 import httpx
 import pytest
@@ -20,7 +19,7 @@ from robocloud.signing import sign_request
 from tests.conftest import ServiceFactory
 from tests.integration.services.cas.conftest import QUIET_GC, multipart, store_unchanged
 from tests.procs import ServiceProcess
-from tests.raw_http import read_answer
+from tests.raw_http import drain, read_answer, stalled_reader
 
 SEND_TIMEOUT_S = 8
 """Longer than the 5 s a stream waits for a turn, so the refusal comes while both are held."""
@@ -36,30 +35,6 @@ def cas_service(service_factory: ServiceFactory) -> ServiceProcess:
         "ROBOCLOUD_SEND_TIMEOUT_S": str(SEND_TIMEOUT_S),
     }
     return service_factory("cas", env)
-
-
-@contextmanager
-def stalled_reader(
-    service: ServiceProcess, head: bytes, client: str = "127.0.0.1"
-) -> Iterator[socket.socket]:
-    """A connection from ``client`` (any loopback address) that sends ``head`` and then reads
-    nothing. (A tiny receive buffer would leave the service's side waiting on TCP's
-    zero-window probes once reading resumes.)"""
-    connection = socket.create_connection(("127.0.0.1", service.port), source_address=(client, 0))
-    try:
-        connection.sendall(head)
-        yield connection
-    finally:
-        connection.close()
-
-
-def drain(connection: socket.socket) -> bytes:
-    """Everything the service sent until it closed the connection."""
-    connection.settimeout(10)
-    received = bytearray()
-    while chunk := connection.recv(1 << 20):
-        received += chunk
-    return bytes(received)
 
 
 def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from robocloud.templates import RecordInvalid
 from tests.conftest import ServiceFactory
 from tests.flood import flooding
 from tests.procs import REPO, ServiceProcess
+from tests.raw_http import drain, stalled_reader
 
 STATE = {
     "name": "state",
@@ -310,3 +312,53 @@ def test_a_flood_of_unselective_queries_starves_no_read_or_write(
             )
             assert error["details"] == {"share": 1, "slots": 1, "wait_s": 2.0}
         assert answer.headers["Retry-After"] == "1"
+
+
+EXPORT_SEND_TIMEOUT_S = 8
+"""Longer than the 5 s an export waits for a turn, so the refusal comes while both are held."""
+
+
+def test_exports_stream_in_turns_that_a_stalled_reader_holds_only_until_the_send_timeout(
+    service_factory: ServiceFactory, identity: Identity
+) -> None:
+    """Each export holds a page of records and its encoding while its client takes them: a
+    hundred clients that asked for an export and never read took the service from 145 to
+    953 MiB (probe, not kept). Exports now take turns, as the cas's streams do."""
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_STORAGE_MAX_EXPORTS": "2",
+            "ROBOCLOUD_SEND_TIMEOUT_S": str(EXPORT_SEND_TIMEOUT_S),
+        },
+    )
+    ranges = [float(index) for index in range(40)]
+    with Storage(storage.url, identity) as client:
+        _approved(client)
+        for first in range(0, 20_000, 5_000):
+            times = range(first, first + 5_000)
+            client.append([_record(identity.address, t, ranges=ranges) for t in times])
+    head = b"GET /v1/export?template=state%401 HTTP/1.1\r\nHost: storage\r\n\r\n"
+    with ExitStack() as stack:
+        started = time.monotonic()
+        stalled = [
+            stack.enter_context(stalled_reader(storage, head, client))
+            for client in ("127.0.0.2", "127.0.0.3")
+        ]
+        time.sleep(0.5)
+        busy = httpx.get(f"{storage.url}/v1/export", params={"template": "state@1"}, timeout=30)
+        refused_after = time.monotonic() - started
+        record = httpx.get(f"{storage.url}/v1/records/state-1-5", timeout=5)
+        time.sleep(max(0.0, started + EXPORT_SEND_TIMEOUT_S + 2 - time.monotonic()))
+        cut = [drain(connection) for connection in stalled]
+    assert busy.status_code == 503
+    assert busy.json()["error"]["message"] == "all 2 export slots stayed busy for 5 s; retry later"
+    assert 5 <= refused_after < EXPORT_SEND_TIMEOUT_S
+    assert record.json()["record"]["t"] == 5
+    for answer in cut:
+        assert answer.startswith(b"HTTP/1.1 200 OK\r\n")
+        assert answer.count(b"\n") < 20_000
+    # The turns came back when the stalled readers were dropped: a whole export streams.
+    whole = httpx.get(f"{storage.url}/v1/export", params={"template": "state@1"}, timeout=60)
+    lines = whole.content.splitlines()
+    assert len(lines) == 20_000
+    assert [json.loads(line)["t"] for line in lines[:3]] == [0, 1, 2]
