@@ -210,7 +210,12 @@ def test_a_flood_of_big_listings_starves_no_other_read(
     for answer in flood.answers:
         if answer.status_code == 200:
             assert listed_entries(answer) == ENTRIES
+    assert 429 in {answer.status_code for answer in refused}
     for answer in refused:
-        assert answer.status_code == 429
-        assert answer.json()["error"]["code"] == "rate_limited"
-        assert answer.json()["error"]["details"] == {"share": 1, "slots": 2, "wait_s": 5.0}
+        error = answer.json()["error"]
+        if answer.status_code == 503:  # its turn of the share came, a slot did not in time
+            assert (error["code"], error["details"]) == ("busy", {"slots": 2, "wait_s": 5.0})
+        else:
+            assert answer.status_code == 429
+            assert error["code"] == "rate_limited"
+            assert error["details"] == {"share": 1, "slots": 2, "wait_s": 5.0}
