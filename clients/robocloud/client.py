@@ -227,11 +227,14 @@ class BaseClient(Closeable):
         raise AssertionError("unreachable: the last attempt returns or raises")
 
     def _retried(self, response: httpx.Response, idempotent: bool) -> bool:
-        """Whether ``response`` is one the retry policy sends the request again for."""
-        if response.status_code == 429:
+        """Whether the request is sent again after ``response``: 503 says the service did
+        nothing, and so does a 429 that asks to come back within the policy's patience; 502
+        and 504 (a proxy) leave that open, so only an idempotent request is resent."""
+        status = response.status_code
+        if status == 429:
             wait = _seconds(response.headers.get("retry-after"))
             return wait is not None and 0 <= wait <= self.retry.max_delay_s
-        return _retry_status(response.status_code, idempotent)
+        return status == 503 or (idempotent and status in (502, 504))
 
     def _exchange(self, request: httpx.Request, stream: bool) -> httpx.Response:
         """One request and, unless streamed, its whole answer; httpx failures translated."""
@@ -395,11 +398,6 @@ def api_error(response: httpx.Response) -> ApiError:
     return error_class_for(response.status_code)(
         response.status_code, code, message, details, request_id
     )
-
-
-def _retry_status(status: int, idempotent: bool) -> bool:
-    """503 says the service did nothing; 502 and 504 (a proxy) leave that open."""
-    return status == 503 or (idempotent and status in (502, 504))
 
 
 def _seconds(retry_after: str | None) -> float | None:
