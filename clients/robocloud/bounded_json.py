@@ -10,6 +10,7 @@ the bound reaches ``json.loads``.
 from __future__ import annotations
 
 import json
+import math
 import re
 from typing import Any
 
@@ -31,7 +32,8 @@ class JsonError(FormatError):
 
 
 class JsonNumberError(JsonError):
-    """A number JSON does not have (``NaN``, ``Infinity``) or an integer beyond the bound.
+    """A number JSON does not have (``NaN``, ``Infinity``, or one like ``1e999`` that only a
+    float's overflow to infinity could hold) or an integer beyond the bound.
 
     The document is otherwise well formed, which lets a protocol tell it from a syntax error
     (JSON-RPC answers -32600 rather than -32700).
@@ -73,7 +75,7 @@ def loads(document: bytes | str, *, max_depth: int = MAX_DEPTH) -> Any:
     if exceeds_depth(raw, max_depth):
         raise JsonDepthError(max_depth)
     try:
-        return json.loads(raw, parse_int=_integer, parse_constant=_not_a_number)
+        return json.loads(raw, parse_int=_integer, parse_float=_real, parse_constant=_not_a_number)
     except RecursionError as exc:
         raise JsonDepthError(max_depth) from exc
     except JsonError:
@@ -86,6 +88,13 @@ def _integer(digits: str) -> int:
     if len(digits.lstrip("-")) > MAX_INTEGER_DIGITS:
         raise JsonNumberError(f"an integer of more than {MAX_INTEGER_DIGITS} digits")
     return int(digits)
+
+
+def _real(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise JsonNumberError(f"{text[:40]} is beyond the range of a double")
+    return value
 
 
 def _not_a_number(constant: str) -> Any:

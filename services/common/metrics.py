@@ -1,7 +1,8 @@
 """Prometheus metrics per app: request counts and latency histograms by route template.
 
-Labels use the route's path template (``/ipfs/{cid}``), never the raw path, so that label
-cardinality stays bounded whatever clients send.
+Labels use the route's path template (``/ipfs/{cid}``), never the raw path, and the method
+only when it is one of HTTP's own (any other token counts as ``other``: HTTP/1.1 lets a client
+send any token as a method), so that label cardinality stays bounded whatever clients send.
 """
 
 from __future__ import annotations
@@ -9,6 +10,10 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+
+HTTP_METHODS = frozenset(
+    {"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"}
+)
 
 
 class ServiceMetrics:
@@ -32,6 +37,7 @@ class ServiceMetrics:
         self.service = service
 
     def observe(self, method: str, route: str, status: int, seconds: float) -> None:
+        method = method if method in HTTP_METHODS else "other"
         self.requests.labels(self.service, method, route, str(status)).inc()
         self.latency.labels(self.service, method, route).observe(seconds)
 

@@ -90,7 +90,15 @@ def test_a_raised_recursion_limit_cannot_turn_depth_into_a_segfault() -> None:
 
 @pytest.mark.parametrize(
     "document",
-    [b"NaN", b"[Infinity]", b'{"id": -Infinity}', b"9" * 1001, b"-" + b"9" * 5000],
+    [
+        b"NaN",
+        b"[Infinity]",
+        b'{"id": -Infinity}',
+        b"9" * 1001,
+        b"-" + b"9" * 5000,
+        b"1e999",
+        b"[-2.5E+400]",
+    ],
 )
 def test_numbers_json_does_not_have_or_too_long_are_number_errors(document: bytes) -> None:
     with pytest.raises(JsonNumberError):

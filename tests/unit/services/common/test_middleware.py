@@ -161,6 +161,20 @@ def test_metrics_are_labelled_by_route_template_never_by_raw_path() -> None:
     }
 
 
+def test_metrics_count_methods_outside_http_as_other_so_a_client_cannot_grow_them() -> None:
+    # HTTP/1.1 lets any token be a method: one label value per token would let an unsigned
+    # client grow /metrics (and the service's memory) without bound.
+    metrics = ServiceMetrics("test")
+    app = AccessLogLayer(routed_app(), metrics)
+    for method in ("M0001", "M0002", "BREW", "PATCH"):
+        call(app, method, "/nowhere")
+    assert requests_counted(metrics) == {
+        ("other", "unmatched", "404"): 3.0,
+        ("PATCH", "unmatched", "404"): 1.0,
+    }
+    assert b"M0001" not in metrics.render()
+
+
 def test_exception_passing_through_counts_as_500_and_is_logged(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
