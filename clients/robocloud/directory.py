@@ -269,7 +269,12 @@ def _find_insharded_directory(
 
 
 def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
-    """The entries of a directory, basic or sharded (shards in link order, depth first)."""
+    """The entries of a directory, basic or sharded (shards in link order, depth first).
+
+    A HAMT whose shards repeat, or hold more links than their fanout, is refused: neither can
+    come from a set of names, and a few shards that all link the same sub-shard would list
+    256 to the power of their depth entries from a 37 KB CAR.
+    """
     node, unixfs = decode_node(directory, get_block(directory))
     if unixfs.type == DIRECTORY:
         yield from node.links
@@ -277,6 +282,8 @@ def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
     if unixfs.type != HAMT_SHARD:
         raise NotADirectory(f"{directory} is not a directory", segment="", at=directory)
     width = hamt_prefix_width(directory, unixfs)
+    _check_fanout(directory, node, unixfs)
+    shards = {directory}
     stack: list[Iterator[Link]] = [iter(node.links)]
     while stack:
         link = next(stack[-1], None)
@@ -286,8 +293,20 @@ def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
             yield Link(link.cid, link.name[width:], link.tsize)
         elif len(stack) > MAX_DAG_DEPTH:
             raise UnixfsError(f"the HAMT of {directory} is deeper than {MAX_DAG_DEPTH} levels")
+        elif link.cid in shards:
+            raise UnixfsError(f"the HAMT of {directory} links the shard {link.cid} twice")
         else:
+            shards.add(link.cid)
             child, data = decode_node(link.cid, get_block(link.cid))
             if data.type != HAMT_SHARD:
                 raise UnixfsError(f"{link.cid} is linked as a HAMT shard but is not one")
+            _check_fanout(link.cid, child, data)
             stack.append(iter(child.links))
+
+
+def _check_fanout(shard: CID, node: PBNode, unixfs: UnixfsData) -> None:
+    if len(node.links) > (unixfs.fanout or 0):
+        raise UnixfsError(
+            f"the HAMT shard {shard} has {len(node.links)} links, more than its fanout "
+            f"{unixfs.fanout}"
+        )

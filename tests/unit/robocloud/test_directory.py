@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 from robocloud.car import CarReader
-from robocloud.cid import CID
+from robocloud.cid import CID, DAG_PB
+from robocloud.dagpb import Link, PBNode
 from robocloud.directory import (
     DirectoryBuilder,
     NotADirectory,
@@ -18,7 +19,10 @@ from robocloud.directory import (
     sharded_directory,
 )
 from robocloud.unixfs import (
+    HAMT_SHARD,
+    MURMUR3_X64_64,
     ImportParams,
+    UnixfsData,
     UnixfsError,
     file_range_blocks,
     import_bytes,
@@ -201,3 +205,36 @@ def test_a_byte_range_of_a_file_needs_only_the_blocks_that_cover_it() -> None:
     covering = list(file_range_blocks(root, store.__getitem__, chunk + 10, 2 * chunk + 1))
     assert [block.cid for block in covering] == [root, leaves[1], leaves[2]]
     assert [block.cid for block in file_range_blocks(root, store.__getitem__, 0, 0)] == [root]
+
+
+def repeating_hamt(levels: int) -> tuple[CID, dict[CID, bytes]]:
+    """HAMT shards that link one sub-shard under all 256 buckets, ``levels`` deep: 256 **
+    levels entries from ``levels + 1`` blocks (a 37 KB CAR for three levels)."""
+    leaf = CID.from_block(b"x")
+    blocks = {leaf: b"x"}
+    links = [Link(leaf, f"{i:02X}file{i}", 1) for i in range(256)]
+    for _ in range(levels):
+        shard = UnixfsData(HAMT_SHARD, hash_type=MURMUR3_X64_64, fanout=256)
+        encoded = PBNode(links, shard.encode()).encode()
+        cid = CID.from_block(encoded, DAG_PB)
+        blocks[cid] = encoded
+        links = [Link(cid, f"{i:02X}", 0) for i in range(256)]
+    return cid, blocks
+
+
+def test_a_hamt_linking_one_shard_twice_is_refused_before_its_entries_multiply() -> None:
+    root, blocks = repeating_hamt(3)
+    listed = list_entries(root, blocks.__getitem__)
+    assert sum(1 for _ in zip(range(256), listed, strict=False)) == 256
+    with pytest.raises(UnixfsError, match=f"links the shard {list(blocks)[1]} twice"):
+        list(listed)
+
+
+def test_a_hamt_shard_with_more_links_than_its_fanout_is_refused() -> None:
+    leaf = CID.from_block(b"x")
+    shard = UnixfsData(HAMT_SHARD, hash_type=MURMUR3_X64_64, fanout=16)
+    links = [Link(leaf, f"{i % 16:X}name{i}", 1) for i in range(17)]
+    encoded = PBNode(links, shard.encode()).encode()
+    root = CID.from_block(encoded, DAG_PB)
+    with pytest.raises(UnixfsError, match="has 17 links, more than its fanout 16"):
+        list(list_entries(root, {root: encoded, leaf: b"x"}.__getitem__))

@@ -20,6 +20,7 @@ from robocloud.errors import ApiError
 from robocloud.unixfs import FILE, MAX_DAG_DEPTH, UnixfsData
 from tests.integration.services.cas.conftest import error_of, multipart, store_unchanged
 from tests.procs import ServiceProcess
+from tests.unit.robocloud.test_directory import repeating_hamt
 from tests.unit.robocloud.test_unixfs import LEAF, chain, fan
 
 
@@ -153,4 +154,25 @@ def test_a_dag_repeating_a_long_chain_is_refused_for_ranges_within_the_visit_bud
         assert error["code"] == code
         assert error["details"]["cid"] == str(root)
         assert f"{root} takes more than" in error["message"]
+    assert alive(cas_service)
+
+
+def test_a_hamt_whose_shards_repeat_one_sub_shard_is_refused_when_listed(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    """Listing it used to build 16.7 M entries (the service passed 700 MB in 14 s)."""
+    root, blocks = repeating_hamt(3)
+    import_car(signed, root, blocks)
+    bottom_shard = list(blocks)[1]  # the walk goes down to it, then meets it again
+    for request in (
+        httpx.Request("GET", f"{cas_service.url}/ipfs/{root}/", headers={"Accept": "text/html"}),
+        httpx.Request("POST", f"{cas_service.url}/api/v0/ls?arg={root}"),
+    ):
+        with httpx.Client(timeout=60) as client:
+            response = client.send(request)
+        assert response.status_code == 400, (request.url, response.text[:300])
+        error = response.json()["error"]
+        assert error["code"] == "invalid_dag"
+        assert error["details"]["cid"] == str(root)
+        assert f"links the shard {bottom_shard} twice" in error["message"]
     assert alive(cas_service)
