@@ -22,6 +22,8 @@ MAX_INTEGER_DIGITS = 1000
 """Longer integers are refused: converting them costs quadratic time, and CPython refuses
 more than 4,300 digits with a bare ValueError anyway."""
 
+_SURROGATE_ESCAPE = re.compile(rb"\\u[dD][89a-fA-F]")
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
 _STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
 _NOT_BRACKET = re.compile(rb"[^\[\]{}]+")
 _ONE_KIND = bytes.maketrans(b"{}", b"[]")
@@ -37,6 +39,15 @@ class JsonNumberError(JsonError):
 
     The document is otherwise well formed, which lets a protocol tell it from a syntax error
     (JSON-RPC answers -32600 rather than -32700).
+    """
+
+
+class JsonSurrogateError(JsonError):
+    """A string holding half of a UTF-16 surrogate pair (``"\\ud800"`` alone).
+
+    JSON's grammar lets the escape through, but no UTF-8 text can hold it (I-JSON, RFC 7493,
+    forbids it): every later step that encodes the string, a response, a log line, a
+    signature's canonical form, would fail on it after the document was accepted.
     """
 
 
@@ -75,13 +86,35 @@ def loads(document: bytes | str, *, max_depth: int = MAX_DEPTH) -> Any:
     if exceeds_depth(raw, max_depth):
         raise JsonDepthError(max_depth)
     try:
-        return json.loads(raw, parse_int=_integer, parse_float=_real, parse_constant=_not_a_number)
+        parsed = json.loads(
+            raw, parse_int=_integer, parse_float=_real, parse_constant=_not_a_number
+        )
     except RecursionError as exc:
         raise JsonDepthError(max_depth) from exc
     except JsonError:
         raise
     except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError among others
         raise JsonError(f"not valid JSON: {exc}") from exc
+    if _SURROGATE_ESCAPE.search(raw) and _holds_lone_surrogate(parsed):
+        raise JsonSurrogateError("a string holds a lone UTF-16 surrogate, which is not text")
+    return parsed
+
+
+def _holds_lone_surrogate(document: Any) -> bool:
+    """Whether any key or string in ``document`` holds a lone surrogate (a pair of escapes
+    decodes to one character outside the range); only walked when the text has the escape."""
+    pending = [document]
+    while pending:
+        value = pending.pop()
+        if isinstance(value, str):
+            if _LONE_SURROGATE.search(value):
+                return True
+        elif isinstance(value, dict):
+            pending.extend(value.keys())
+            pending.extend(value.values())
+        elif isinstance(value, list):
+            pending.extend(value)
+    return False
 
 
 def _integer(digits: str) -> int:

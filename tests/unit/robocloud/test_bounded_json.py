@@ -12,6 +12,7 @@ from robocloud.bounded_json import (
     JsonDepthError,
     JsonError,
     JsonNumberError,
+    JsonSurrogateError,
     exceeds_depth,
     loads,
 )
@@ -108,3 +109,17 @@ def test_numbers_json_does_not_have_or_too_long_are_number_errors(document: byte
 def test_long_but_bounded_integers_and_floats_parse() -> None:
     assert loads(b"9" * 1000) == int("9" * 1000)
     assert loads(b"[1.5e3, -2]") == [1500.0, -2]
+
+
+@pytest.mark.parametrize(
+    "document",
+    [rb'{"description": "\udc80"}', rb'{"\ud800": 1}', rb'[["x\uD800y"]]', rb'"\ude00\ud83d"'],
+)
+def test_strings_holding_a_lone_surrogate_are_refused(document: bytes) -> None:
+    with pytest.raises(JsonSurrogateError):
+        loads(document)
+
+
+def test_surrogate_pairs_and_escaped_backslashes_are_text() -> None:
+    assert loads(rb'{"a": "\ud83d\ude00"}') == {"a": "\N{GRINNING FACE}"}
+    assert loads(rb'["\\ud800"]') == ["\\ud800"]
