@@ -247,13 +247,18 @@ class FileAdder:
 
     def commit(self, owner: str) -> list[Added]:
         """Kubo's order: the files as they came, the directories after their contents."""
-        directories = self._build_directories() if self.directories or self.wrap else []
+        directories = self._build_directories() if self._is_tree() else []
         if not self.only_hash:
             self.staging.commit()
             if self.pin:
                 for root in self._roots(directories):
                     self.store.pins.add(root.cid, owner)
         return self.files + directories
+
+    def _is_tree(self) -> bool:
+        """Whether the upload holds directories: a directory part, a wrap, or a file's path
+        alone (``d/x`` implies ``d`` even when the client sent no part for it)."""
+        return bool(self.directories) or self.wrap or any("/" in f.name for f in self.files)
 
     def _build_directories(self) -> list[Added]:
         tree = DirectoryBuilder(

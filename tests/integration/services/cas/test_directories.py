@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 import pytest
@@ -62,6 +63,22 @@ def test_a_directory_adds_to_the_fixtures_cids_in_kubos_order(
     pins = pin_list(cas_service.url)["Keys"]
     assert "bafybeidlbwbu73tbjr3atntjz4lq5ego5w2uyof35vvwcnheaftzi3rndu" in pins
     assert "bafkreidw23elffhagxz3oi6ctoibqouzfowfn3bwcvq2yzgd5n5h4gjyou" not in pins
+
+
+def test_parents_a_file_path_implies_are_built_and_pinned_without_directory_parts(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    """Only ``dir/...`` file parts: the same CIDs as with kubo's directory parts, and ``dir``
+    pinned (before, nothing was built or pinned, and the next GC took the files)."""
+    files = sorted(path for path in FIXTURE_DIR.rglob("*") if path.is_file())
+    parts = [(quote(f"dir/{p.relative_to(FIXTURE_DIR)}", safe=""), p.read_bytes()) for p in files]
+    lines = add(signed, *multipart(*parts), **{"cid-version": 1})
+    assert [line["Name"] for line in lines][-2:] == ["dir/subdir", "dir"]
+    assert lines[-1]["Hash"] == "bafybeidlbwbu73tbjr3atntjz4lq5ego5w2uyof35vvwcnheaftzi3rndu"
+    assert lines[-1]["Hash"] in pin_list(cas_service.url)["Keys"]
+    signed.request("POST", "/api/v0/repo/gc")
+    leaf = httpx.get(f"{cas_service.url}/ipfs/{lines[-1]['Hash']}/subdir/leaf.txt")
+    assert leaf.content == (FIXTURE_DIR / "subdir" / "leaf.txt").read_bytes()
 
 
 def test_wrap_with_directory_matches_kubos_add_rw(signed: ServiceClient, tmp_path: Path) -> None:
