@@ -12,19 +12,26 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from typing import Annotated, Any
-from urllib.parse import unquote
+from urllib.parse import quote, unquote
 
 import anyio
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import RedirectResponse, Response
+from starlette.convertors import Convertor, register_url_convertor
 
 from robocloud.cid import CID, DAG_PB, parse_cid
-from robocloud.dagpb import PBNode, to_dag_json
+from robocloud.dagpb import DagPbError, PBNode, to_dag_json
 from robocloud.directory import PathNotFound, Resolved
 from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD
 from services.cas.listing import directory_page
-from services.cas.ranges import byte_range, entity_bytes
-from services.cas.store import BlockUnavailable, ContentStore
+from services.cas.ranges import EntityBytes, byte_range
+from services.cas.store import (
+    DAG_SCOPES,
+    BlockUnavailable,
+    ContentStore,
+    InvalidDag,
+    UnknownScope,
+)
 from services.cas.streams import BATCH_BYTES, threaded_stream
 from services.common.errors import BadRequest, ServiceError
 from services.common.responses import stream_in_turn
@@ -41,6 +48,26 @@ LISTING_WAIT_S = 5.0
 """Directory listings (the gateway's HTML, kubo's ``ls``) take turns
 (``services.common.slots``): a directory of 20,000 entries is 0.4-0.6 s of CPU and 5.7 MB of
 HTML, free for anyone to ask again and again."""
+
+
+class AnyPath(Convertor[str]):
+    """Starlette's ``{path:path}`` with ``.`` matching newlines too.
+
+    Its ``.*`` stops at ``\\n``, so an entry whose name holds one (any UTF-8 is a valid dag-pb
+    name) had no route at all: 404 "no route" instead of the entry or ``path_not_found``.
+    The path itself is read from ``raw_path`` (``content_path``), never from this parameter.
+    """
+
+    regex = "(?s:.*)"
+
+    def convert(self, value: str) -> str:
+        return value
+
+    def to_string(self, value: str) -> str:
+        return value
+
+
+register_url_convertor("anypath", AnyPath())
 
 router = APIRouter(tags=["gateway"])
 
@@ -65,6 +92,32 @@ def response_format(requested: str | None, accept: str) -> str:
         if media in offered:
             return name
     return "file"
+
+
+def car_params(scope: str, entity_range: str | None) -> tuple[str, EntityBytes | None]:
+    """A CAR's ``dag-scope`` and ``entity-bytes``, checked before anything is looked up.
+
+    A bad value is 400 whatever the path names and whatever ``If-None-Match`` says: the raw
+    value used to reach the ``ETag`` unchecked (CR/LF in it broke the response, non-ASCII was
+    500) and a bogus scope was answered 304 to ``If-None-Match: *``. A well-formed range
+    implies ``dag-scope=entity``, as the trustless gateway specification says.
+    """
+    if scope not in DAG_SCOPES:
+        raise UnknownScope(scope)
+    if entity_range is None:
+        return scope, None
+    return "entity", EntityBytes.parse(entity_range)
+
+
+def content_url(root: CID, path: list[str]) -> str:
+    """``/ipfs/{root}/{path}`` with each segment percent-encoded, for headers and links.
+
+    Names are any UTF-8 and may hold ``?``, ``#``, ``%`` or CR/LF: decoded, they broke the
+    ``Location`` of the ``index.html`` redirect and made ``X-Ipfs-Path`` a 500 (headers are
+    Latin-1). Kubo sends the decoded path's UTF-8 bytes as they are; the encoded path is the
+    same path, and safe in any header and any URL.
+    """
+    return "/".join(["", "ipfs", str(root), *(quote(segment, safe="") for segment in path)])
 
 
 def content_path(request: Request, cid: str) -> tuple[list[str], bool]:
@@ -101,7 +154,7 @@ def _headers(root: CID, path: list[str], target: CID, etag: str) -> dict[str, st
     return {
         "ETag": etag,
         "Cache-Control": IMMUTABLE,
-        "X-Ipfs-Path": "/".join(["", "ipfs", str(root), *path]),
+        "X-Ipfs-Path": content_url(root, path),
         "X-Ipfs-Roots": str(target),
         "X-Content-Type-Options": "nosniff",
         "Vary": "Accept",
@@ -114,7 +167,7 @@ def _not_modified(request: Request, etag: str) -> bool:
 
 
 @router.api_route("/ipfs/{cid}", methods=["GET", "HEAD"])
-@router.api_route("/ipfs/{cid}/{path:path}", methods=["GET", "HEAD"])
+@router.api_route("/ipfs/{cid}/{path:anypath}", methods=["GET", "HEAD"])
 async def ipfs(
     request: Request,
     cid: str,
@@ -132,13 +185,14 @@ async def ipfs(
     store: ContentStore = request.app.state.store
     use_peers = "only-if-cached" not in request.headers.get("cache-control", "").lower()
     kind = response_format(format, request.headers.get("accept", ""))
+    scope, entity = car_params(dag_scope, entity_range) if kind == "car" else ("all", None)
     head = request.method == "HEAD"
     try:
         resolved = await anyio.to_thread.run_sync(
             lambda: store.resolve(root, segments, use_peers=use_peers)
         )
         if kind == "car":
-            return await _car(request, store, root, segments, resolved, dag_scope, entity_range)
+            return await _car(request, store, root, segments, resolved, scope, entity)
         if kind == "raw":
             return await _raw(request, store, root, segments, resolved.cid, use_peers, head)
         if kind == "dag-json":
@@ -181,17 +235,16 @@ async def _car(
     path: list[str],
     resolved: Resolved,
     scope: str,
-    entity_range: str | None,
+    entity_range: EntityBytes | None,
 ) -> Response:
     use_peers = "only-if-cached" not in request.headers.get("cache-control", "").lower()
     span = None
     if entity_range is not None:
-        scope = "entity"
         target = await anyio.to_thread.run_sync(
             lambda: store.kind(resolved.cid, use_peers=use_peers)
         )
         if target.type == FILE and target.size is not None:
-            span = entity_bytes(entity_range, target.size)
+            span = entity_range.within(target.size)
     etag = f'"{resolved.cid}.car.{scope}.{entity_range or ""}"'
     headers = _headers(root, path, resolved.cid, etag) | {
         "Content-Disposition": f'attachment; filename="{resolved.cid}.car"',
@@ -227,7 +280,11 @@ async def _dag_json(
     if _not_modified(request, etag):
         return Response(status_code=304, headers=headers)
     data = await anyio.to_thread.run_sync(lambda: store.get_block(target, use_peers=use_peers))
-    body = to_dag_json(PBNode.decode(data))
+    try:
+        node = PBNode.decode(data)
+    except DagPbError as exc:
+        raise InvalidDag(target, f"{target} is not a dag-pb node: {exc}") from exc
+    body = to_dag_json(node)
     headers["Content-Length"] = str(len(body))
     return Response(b"" if head else body, headers=headers, media_type=DAG_JSON_MEDIA_TYPE)
 
@@ -251,8 +308,7 @@ async def _content(
     except PathNotFound:
         return await _listing(request, store, root, path, target, use_peers)
     if not trailing:
-        location = "/".join(["", "ipfs", str(root), *path]) + "/"
-        return RedirectResponse(location, status_code=301)
+        return RedirectResponse(content_url(root, path) + "/", status_code=301)
     response = await _file(request, store, root, path, index.cid, use_peers)
     response.headers["Content-Type"] = "text/html; charset=utf-8"
     response.headers["Content-Security-Policy"] = "sandbox"

@@ -8,6 +8,7 @@ outside the file is 416 with ``Content-Range: bytes */size``.
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 
 _RANGE = re.compile(r"bytes=(\d*)-(\d*)")
 _MAX_DIGITS = 19
@@ -64,7 +65,8 @@ def _unsatisfiable(header: str, size: int) -> UnsatisfiableRange:
     return UnsatisfiableRange(header[:100], size)
 
 
-_ENTITY_BYTES = re.compile(r"(-?\d{1,19}):(\*|-?\d{1,19})")
+_ENTITY_BYTES = re.compile(r"(-?[0-9]{1,19}):(\*|-?[0-9]{1,19})")
+"""RFC 9110's ASCII digits: ``\\d`` would also take ``٣`` and every other Unicode digit."""
 
 
 class InvalidEntityBytes(ValueError):
@@ -74,23 +76,50 @@ class InvalidEntityBytes(ValueError):
         super().__init__(f"entity-bytes {value[:60]!r}: {reason}")
 
 
-def entity_bytes(value: str, size: int) -> tuple[int, int]:
-    """``[start, end)`` of the trustless gateway's ``entity-bytes=from:to`` for a file of ``size``.
+@dataclass(frozen=True)
+class EntityBytes:
+    """The trustless gateway's ``entity-bytes=from:to``, parsed before the target is known.
 
-    ``to`` is inclusive or ``*`` (the end); negative values count from the end. A range that
-    is empty after clamping is ``(0, 0)`` (only the root block is sent); one wholly outside
-    the file is refused, as the specification advises when it can be known upfront.
+    ``to`` is inclusive, ``None`` for ``*`` (the end); negative values count from the end.
+    The value is checked whatever the path names (the specification ignores a well-formed
+    range on a directory, but a malformed one is the client's mistake either way), and
+    ``str`` gives its canonical text for the CAR's ``ETag``.
     """
-    match = _ENTITY_BYTES.fullmatch(value)
-    if match is None:
-        raise InvalidEntityBytes(value, "expected from:to with integers or *")
-    first = int(match.group(1))
-    start = size + first if first < 0 else first
-    last = match.group(2)
-    end = (
-        size if last == "*" else (size + int(last) if int(last) < 0 else int(last)) + (last != "*")
-    )
-    if (start >= size and size > 0) or (start < 0 and end <= 0):
-        raise InvalidEntityBytes(value, f"outside the file of {size} bytes")
-    start, end = max(start, 0), min(end, size)
-    return (start, end) if start < end else (0, 0)
+
+    first: int
+    last: int | None
+
+    @classmethod
+    def parse(cls, value: str) -> EntityBytes:
+        """Refuses what boxo refuses: no ``from:to`` of integers or ``*``, or ``from`` after
+        ``to`` when both count from the same end."""
+        match = _ENTITY_BYTES.fullmatch(value)
+        if match is None:
+            raise InvalidEntityBytes(value, "expected from:to with integers or *")
+        first = int(match.group(1))
+        last = None if match.group(2) == "*" else int(match.group(2))
+        if last is not None and (first < 0) == (last < 0) and first > last:
+            raise InvalidEntityBytes(value, "from is after to")
+        return cls(first, last)
+
+    def __str__(self) -> str:
+        return f"{self.first}:{'*' if self.last is None else self.last}"
+
+    def within(self, size: int) -> tuple[int, int]:
+        """``[start, end)`` in a file of ``size`` bytes.
+
+        A range that is empty after clamping is ``(0, 0)`` (only the root block is sent); one
+        wholly outside the file is refused, as the specification advises when it can be known
+        upfront.
+        """
+        start = _from_start(self.first, size)
+        end = size if self.last is None else _from_start(self.last, size) + 1
+        if (start >= size and size > 0) or (start < 0 and end <= 0):
+            raise InvalidEntityBytes(str(self), f"outside the file of {size} bytes")
+        start, end = max(start, 0), min(end, size)
+        return (start, end) if start < end else (0, 0)
+
+
+def _from_start(offset: int, size: int) -> int:
+    """An ``entity-bytes`` offset counted from the start of a file of ``size`` bytes."""
+    return size + offset if offset < 0 else offset
