@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from typing import Annotated, Any
-from urllib.parse import quote, unquote
+from urllib.parse import unquote
 
 import anyio
 from fastapi import APIRouter, Query, Request
@@ -23,7 +23,7 @@ from robocloud.cid import CID, DAG_PB, parse_cid
 from robocloud.dagpb import DagPbError, PBNode, to_dag_json
 from robocloud.directory import PathNotFound, Resolved
 from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD
-from services.cas.listing import directory_page
+from services.cas.listing import content_url, directory_page
 from services.cas.ranges import EntityBytes, byte_range
 from services.cas.store import (
     DAG_SCOPES,
@@ -107,17 +107,6 @@ def car_params(scope: str, entity_range: str | None) -> tuple[str, EntityBytes |
     if entity_range is None:
         return scope, None
     return "entity", EntityBytes.parse(entity_range)
-
-
-def content_url(root: CID, path: list[str]) -> str:
-    """``/ipfs/{root}/{path}`` with each segment percent-encoded, for headers and links.
-
-    Names are any UTF-8 and may hold ``?``, ``#``, ``%`` or CR/LF: decoded, they broke the
-    ``Location`` of the ``index.html`` redirect and made ``X-Ipfs-Path`` a 500 (headers are
-    Latin-1). Kubo sends the decoded path's UTF-8 bytes as they are; the encoded path is the
-    same path, and safe in any header and any URL.
-    """
-    return "/".join(["", "ipfs", str(root), *(quote(segment, safe="") for segment in path)])
 
 
 def content_path(request: Request, cid: str) -> tuple[list[str], bool]:

@@ -1,4 +1,5 @@
-"""The HTML page a browser gets for a directory without an ``index.html``.
+"""The HTML page a browser gets for a directory without an ``index.html``, and the URL of a
+content path that it and the gateway's headers share.
 
 Every name comes from a stranger's DAG: it is escaped for HTML and percent-encoded in links,
 so a name cannot inject markup or point a link elsewhere than its own entry.
@@ -13,9 +14,20 @@ from robocloud.cid import CID
 from robocloud.dagpb import Link
 
 
+def content_url(root: CID, path: list[str]) -> str:
+    """``/ipfs/{root}/{path}`` with each segment percent-encoded, for headers and links.
+
+    Names are any UTF-8 and may hold ``?``, ``#``, ``%`` or CR/LF: decoded, they broke the
+    ``Location`` of the ``index.html`` redirect and made ``X-Ipfs-Path`` a 500 (headers are
+    Latin-1). Kubo sends the decoded path's UTF-8 bytes as they are; the encoded path is the
+    same path, and safe in any header and any URL.
+    """
+    return "/".join(["", "ipfs", str(root), *(quote(segment, safe="") for segment in path)])
+
+
 def directory_page(root: CID, path: list[str], directory: CID, entries: list[Link]) -> str:
     """A listing of ``entries``: name (linked by path), cumulative size, CID (linked by CID)."""
-    base = "/".join(["", "ipfs", str(root), *(quote(segment, safe="") for segment in path)])
+    base = content_url(root, path)
     title = escape("/".join(["", "ipfs", str(root), *path]))
     rows = []
     if path:

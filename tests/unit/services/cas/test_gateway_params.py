@@ -8,7 +8,8 @@ import pytest
 
 from robocloud.cid import CID
 from services.cas.errors import ERRORS
-from services.cas.gateway import AnyPath, car_params, content_url
+from services.cas.gateway import AnyPath, car_params
+from services.cas.listing import content_url
 from services.cas.ranges import EntityBytes, InvalidEntityBytes
 from services.cas.store import UnknownScope
 
