@@ -38,6 +38,8 @@ from services.ledger.settings import LedgerSettings
 log = logging.getLogger("robocloud.ledger")
 
 READY_TIMEOUT_S = 2.0
+UINT64_MAX = 2**64 - 1
+"""Block numbers and epochs are uint64 on chain; beyond, a query is refused (422) by name."""
 
 
 class FaucetRequest(BaseModel):
@@ -91,7 +93,7 @@ def _router() -> APIRouter:
         request: Request,
         cid: str | None = None,
         advertiser: str | None = None,
-        since: int = Query(default=0, ge=0, description="first block number"),
+        since: int = Query(default=0, ge=0, le=UINT64_MAX, description="first block number"),
         limit: int = 100,
     ) -> dict[str, Any]:
         """Advertised events, oldest first, by CID and/or advertiser."""
@@ -101,7 +103,7 @@ def _router() -> APIRouter:
     async def anchors(
         request: Request,
         node: str | None = None,
-        epoch: int | None = Query(default=None, ge=0),
+        epoch: int | None = Query(default=None, ge=0, le=UINT64_MAX),
         limit: int = 100,
     ) -> dict[str, Any]:
         """Anchored TMT roots by storage node and/or epoch."""

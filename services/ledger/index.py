@@ -10,10 +10,17 @@ catching up from the chain repeats nothing.
 Only events emitted by the deployed Registry and AnchorLog update the robot, advertisement
 and anchor tables: anybody may deploy a contract that emits a look-alike ``RobotRegistered``,
 and such a log must never make its sender look registered.
+
+The index is fed in order and cannot skip a block, so no event may make a block unindexable:
+uint64 values a caller chooses (an anchor's epoch and record count) are stored biased by
+-2^63 to fit SQLite's signed 64-bit integers with their order kept, and an event whose
+projection fails all the same is logged and left out of the tables (its log is still
+indexed) instead of failing its block, and with it every later one, forever.
 """
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import threading
 from collections.abc import Iterable, Iterator, Sequence
@@ -25,6 +32,8 @@ from typing import Any
 from robocloud.ledger.abi import ContractAbi, DecodedLog
 from services.common.durable import open_sqlite
 from services.ledger.encoding import LogEntry
+
+log = logging.getLogger("robocloud.ledger.index")
 
 MAX_LOG_RESULTS = 10_000
 """``eth_getLogs`` answers at most this many logs; a wider query is refused (as Infura does)."""
@@ -69,6 +78,30 @@ CREATE TABLE IF NOT EXISTS anchors (
 ) WITHOUT ROWID;
 CREATE INDEX IF NOT EXISTS anchors_epoch ON anchors (epoch);
 """
+"""``anchors.epoch`` and ``anchors.record_count`` hold ``biased`` values."""
+
+VERSION = 1
+"""``PRAGMA user_version`` of an index in this schema; ``MIGRATIONS[v]`` takes version v to
+v + 1 in place, so that an index written by an older ledger (or wedged by an event it could
+not store) is carried on from its cursor instead of being rebuilt from block 0."""
+MIGRATIONS = {
+    # Version 0 stored epochs and record counts as they are; each was below 2^63 (larger
+    # ones could not be stored), so subtracting 2^63 (in two steps: the literal 2^63 is not
+    # an SQLite integer) cannot overflow.
+    0: "UPDATE anchors SET epoch = epoch - 9223372036854775807 - 1, "
+    "record_count = record_count - 9223372036854775807 - 1",
+}
+UINT64_BIAS = 2**63
+MAX_SQLITE_INTEGER = 2**63 - 1
+
+
+def biased(value: int) -> int:
+    """A uint64 as an SQLite integer: ``value - 2^63``, which fits and keeps the order."""
+    return value - UINT64_BIAS
+
+
+def unbiased(value: int) -> int:
+    return value + UINT64_BIAS
 
 
 @dataclass(frozen=True)
@@ -92,6 +125,7 @@ class EventIndex:
     def __init__(self, path: Path, registry: str, anchor_log: str) -> None:
         self._lock = threading.Lock()
         self._db = open_sqlite(path, SCHEMA, synchronous="NORMAL")
+        self._migrate()
         self.registry = ContractAbi.load("Registry")
         self.anchor_log = ContractAbi.load("AnchorLog")
         self._contracts = {
@@ -102,6 +136,21 @@ class EventIndex:
     def close(self) -> None:
         with self._lock:
             self._db.close()
+
+    def _migrate(self) -> None:
+        """Bring an index written by an older ledger to ``VERSION``, one transaction a step."""
+        version = int(self._db.execute("PRAGMA user_version").fetchone()[0])
+        if version > VERSION:
+            raise RuntimeError(
+                f"the event index {version} is newer than this ledger's ({VERSION}); "
+                "delete index.sqlite to rebuild it from the chain"
+            )
+        while version < VERSION:
+            with self._transaction():
+                self._db.execute(MIGRATIONS[version])
+                self._db.execute(f"PRAGMA user_version = {version + 1}")
+            log.info("event index migrated", extra={"version": version + 1})
+            version += 1
 
     # ----- feeding -----
 
@@ -162,15 +211,25 @@ class EventIndex:
         self._apply(entry)
 
     def _apply(self, entry: LogEntry) -> None:
+        """Project one of the contracts' events onto the state tables. A projection that
+        fails is undone and logged: the block is indexed all the same, since a block left
+        unindexed would stop every block after it (the index is fed in order)."""
         contract = self._contracts.get(entry.address)
         if contract is None:
             return
-        decoded = contract.decode_log(entry.to_rpc())
-        if decoded is None:
-            return
-        handler = _HANDLERS.get(decoded.event)
-        if handler is not None:
-            handler(self._db, decoded, entry)
+        self._db.execute("SAVEPOINT projection")
+        try:
+            decoded = contract.decode_log(entry.to_rpc())
+            handler = _HANDLERS.get(decoded.event) if decoded is not None else None
+            if decoded is not None and handler is not None:
+                handler(self._db, decoded, entry)
+        except Exception:
+            self._db.execute("ROLLBACK TO projection")
+            log.exception(
+                "event not projected; its log is indexed",
+                extra={"block": entry.block_number, "log_index": entry.log_index},
+            )
+        self._db.execute("RELEASE projection")
 
     # ----- queries -----
 
@@ -243,8 +302,9 @@ class EventIndex:
     def advertisements(
         self, cid: bytes | None, advertiser: str | None, since: int, limit: int
     ) -> list[dict[str, Any]]:
-        """Advertised events from block ``since`` on, oldest first."""
-        clauses, params = ["block_number >= ?"], [since]
+        """Advertised events from block ``since`` on, oldest first. ``since`` may be any
+        uint64: past SQLite's integers it is clamped, to the same answer (no such block)."""
+        clauses, params = ["block_number >= ?"], [min(since, MAX_SQLITE_INTEGER)]
         if cid is not None:
             clauses.append("cid = ?")
             params.append(cid)  # type: ignore[arg-type]
@@ -272,6 +332,7 @@ class EventIndex:
         ]
 
     def anchors(self, node: str | None, epoch: int | None, limit: int) -> list[dict[str, Any]]:
+        """Anchored roots by node and/or epoch (any uint64), in chain order."""
         clauses: list[str] = []
         params: list[Any] = []
         if node is not None:
@@ -279,7 +340,7 @@ class EventIndex:
             params.append(node)
         if epoch is not None:
             clauses.append("epoch = ?")
-            params.append(epoch)
+            params.append(biased(epoch))
         where = f"WHERE {' AND '.join(clauses)}" if clauses else ""
         sql = f"SELECT * FROM anchors {where} ORDER BY block_number, node LIMIT ?"
         with self._lock:
@@ -287,9 +348,9 @@ class EventIndex:
         return [
             {
                 "node": node_,
-                "epoch": epoch_,
+                "epoch": unbiased(epoch_),
                 "root": bytes(root),
-                "record_count": count,
+                "record_count": unbiased(count),
                 "timestamp": timestamp,
                 "block_number": block,
                 "tx_hash": bytes(tx),
@@ -384,9 +445,9 @@ def _anchored(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
         "INSERT OR REPLACE INTO anchors VALUES (?, ?, ?, ?, ?, ?, ?)",
         (
             args["node"],
-            args["epoch"],
+            biased(args["epoch"]),
             args["root"],
-            args["recordCount"],
+            biased(args["recordCount"]),
             args["timestamp"],
             entry.block_number,
             entry.tx_hash,

@@ -73,3 +73,18 @@ def test_faucet_funds_only_its_signer(service: Service) -> None:
 def test_faucet_needs_a_signature(service: Service) -> None:
     response = httpx.post(f"{service.url}/v1/faucet", json={"address": Identity.generate().address})
     assert response.status_code == 401
+
+
+@pytest.mark.parametrize(
+    ("path", "name"), [("/v1/advertisements", "since"), ("/v1/anchors", "epoch")]
+)
+def test_block_numbers_and_epochs_take_any_uint64(service: Service, path: str, name: str) -> None:
+    """Past 2^63 these were 500 (SQLite's integers are signed); any uint64 is a query with
+    no answer yet, and a larger number is refused naming the parameter."""
+    for value in (2**63, 2**64 - 1):
+        response = httpx.get(f"{service.url}{path}", params={name: value})
+        assert response.status_code == 200, response.text
+        assert list(response.json().values()) == [[]]
+    refused = httpx.get(f"{service.url}{path}", params={name: 2**64})
+    assert refused.status_code == 422
+    assert refused.json()["error"]["details"]["errors"][0]["field"] == f"query.{name}"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -11,8 +12,15 @@ from eth_abi import encode
 from eth_utils.address import to_checksum_address
 
 from robocloud.ledger.abi import ContractAbi
+from services.ledger import index as index_module
 from services.ledger.encoding import LogEntry
-from services.ledger.index import MAX_LOG_RESULTS, EventIndex, IndexLimitError, LogFilter
+from services.ledger.index import (
+    MAX_LOG_RESULTS,
+    SCHEMA,
+    EventIndex,
+    IndexLimitError,
+    LogFilter,
+)
 
 REGISTRY = "0x" + "11" * 20
 ANCHOR_LOG = "0x" + "22" * 20
@@ -20,6 +28,8 @@ IMPOSTOR = "0x" + "33" * 20
 ROBOT = to_checksum_address("0x" + "ab" * 20)
 METADATA = bytes.fromhex("01551220") + bytes(32)
 ABI = ContractAbi.load("Registry")
+ANCHOR_ABI = ContractAbi.load("AnchorLog")
+UINT64_MAX = 2**64 - 1
 
 
 @pytest.fixture
@@ -29,10 +39,18 @@ def index(tmp_path: Path) -> Iterator[EventIndex]:
     opened.close()
 
 
-def log(event: str, block: int, *, at: str = REGISTRY, position: int = 0, **args: Any) -> LogEntry:
-    """An event log of the Registry ABI, encoded as the EVM emits it."""
-    inputs = ABI.events[event]["inputs"]
-    topics = [ABI.event_topic(event)]
+def log(
+    event: str,
+    block: int,
+    *,
+    at: str = REGISTRY,
+    position: int = 0,
+    abi: ContractAbi = ABI,
+    **args: Any,
+) -> LogEntry:
+    """An event log of ``abi`` (the Registry's unless told), encoded as the EVM emits it."""
+    inputs = abi.events[event]["inputs"]
+    topics = [abi.event_topic(event)]
     topics += [encode([p["type"]], [args[p["name"]]]) for p in inputs if p["indexed"]]
     plain = [p for p in inputs if not p["indexed"]]
     data = encode([p["type"] for p in plain], [args[p["name"]] for p in plain])
@@ -48,8 +66,16 @@ def log(event: str, block: int, *, at: str = REGISTRY, position: int = 0, **args
     )
 
 
-def registered(block: int, robot: str = ROBOT, at: str = REGISTRY) -> LogEntry:
-    return log("RobotRegistered", block, at=at, robot=robot, metadataCid=METADATA, timestamp=block)
+def registered(block: int, robot: str = ROBOT, at: str = REGISTRY, position: int = 0) -> LogEntry:
+    return log(
+        "RobotRegistered",
+        block,
+        at=at,
+        position=position,
+        robot=robot,
+        metadataCid=METADATA,
+        timestamp=block,
+    )
 
 
 def test_a_registration_makes_a_robot_and_moves_the_cursor(index: EventIndex) -> None:
@@ -113,3 +139,84 @@ def test_a_query_matching_too_many_logs_is_refused(index: EventIndex) -> None:
     index.add_block(1, bytes(32), entries)
     with pytest.raises(IndexLimitError):
         index.logs(LogFilter(0, 1))
+
+
+def anchored(block: int, epoch: int, record_count: int, position: int = 0) -> LogEntry:
+    return log(
+        "Anchored",
+        block,
+        at=ANCHOR_LOG,
+        position=position,
+        abi=ANCHOR_ABI,
+        node=ROBOT,
+        epoch=epoch,
+        root=b"\x01" * 32,
+        recordCount=record_count,
+        timestamp=block,
+    )
+
+
+def test_anchors_hold_every_uint64_epoch_and_count_in_order(index: EventIndex) -> None:
+    """Epoch 2^63 failed the block with OverflowError, and every block after it."""
+    epochs = [0, 5, 2**63 - 1, 2**63, UINT64_MAX]
+    for block, epoch in enumerate(epochs, start=1):
+        index.add_block(block, bytes(32), [anchored(block, epoch, UINT64_MAX - block)])
+    index.add_block(len(epochs) + 1, bytes(32), [registered(len(epochs) + 1)])
+    assert index.cursor() == (len(epochs) + 1, bytes(32))
+    assert index.robot(ROBOT) is not None
+    rows = index.anchors(ROBOT, None, 100)
+    assert [(row["epoch"], row["record_count"]) for row in rows] == [
+        (epoch, UINT64_MAX - block) for block, epoch in enumerate(epochs, start=1)
+    ]
+    for epoch in epochs:
+        assert [row["epoch"] for row in index.anchors(None, epoch, 100)] == [epoch]
+    assert index.anchors(None, 7, 100) == []
+    assert index.advertisements(None, None, UINT64_MAX, 100) == []
+
+
+def test_an_event_that_cannot_be_projected_still_indexes_its_block(
+    index: EventIndex, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A projection that fails is undone and logged; the block, its logs and every later
+    block are indexed (a failing block used to stop the index for good)."""
+
+    def failing(db: sqlite3.Connection, *_: Any) -> None:
+        db.execute("INSERT INTO robots VALUES ('half-done', x'00', 1, 1, 1, 0)")
+        raise OverflowError("Python int too large to convert to SQLite INTEGER")
+
+    monkeypatch.setitem(index_module._HANDLERS, "Anchored", failing)
+    index.add_block(1, bytes(32), [anchored(1, 1, 1), registered(1, position=1)])
+    index.add_block(2, (2).to_bytes(32, "big"), [anchored(2, 2, 2)])
+    assert index.cursor() == (2, (2).to_bytes(32, "big"))
+    assert len(index.logs(LogFilter(0, 2))) == 3
+    assert index.robot(ROBOT) is not None
+    assert index.robot("half-done") is None
+    assert index.anchors(None, None, 100) == []
+
+
+def test_an_index_of_the_first_schema_is_migrated_in_place(tmp_path: Path) -> None:
+    """An index written before epochs were biased keeps its rows and its cursor, and takes
+    the anchors it could not store before."""
+    path = tmp_path / "index.sqlite"
+    old = sqlite3.connect(path)
+    old.executescript(SCHEMA)
+    old.execute(
+        "INSERT INTO anchors VALUES (?, ?, ?, ?, ?, ?, ?)",
+        (ROBOT, 2**63 - 1, b"\x01" * 32, 7, 1, 1, bytes(32)),
+    )
+    old.execute("INSERT INTO cursor VALUES (0, 1, ?)", (bytes(32),))
+    old.commit()
+    old.close()
+    index = EventIndex(path, REGISTRY, ANCHOR_LOG)
+    try:
+        assert index.cursor() == (1, bytes(32))
+        index.add_block(2, bytes(32), [anchored(2, 2**63, 8)])
+        rows = index.anchors(ROBOT, None, 100)
+        assert [(row["epoch"], row["record_count"]) for row in rows] == [(2**63 - 1, 7), (2**63, 8)]
+    finally:
+        index.close()
+    reopened = EventIndex(path, REGISTRY, ANCHOR_LOG)
+    try:
+        assert [row["epoch"] for row in reopened.anchors(ROBOT, None, 100)] == [2**63 - 1, 2**63]
+    finally:
+        reopened.close()
