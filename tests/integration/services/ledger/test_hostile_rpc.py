@@ -2,7 +2,10 @@
 
 A 100,000-deep nested body used to segfault the ledger (py_ecc raises the recursion limit to
 100,000, so CPython's recursive JSON decoder overflowed the C stack); ids that JSON allows but
-Python cannot turn into an int, or that JSON does not allow at all, used to answer 500.
+Python cannot turn into an int, or that JSON does not allow at all, used to answer 500, and
+so did a lone UTF-16 surrogate (``"\\ud800"``, valid JSON, not text) echoed in an id or a
+message: it could not be encoded into the answer. Such a body is a parse error (anvil answers
+-32600).
 """
 
 from __future__ import annotations
@@ -42,6 +45,10 @@ def post_rpc(service: Service, body: bytes) -> tuple[int, Any]:
         (b"{" + CHAIN_ID_CALL + b', "id": "' + b"x" * 1000 + b'"}', -32600),
         (b"{" + CHAIN_ID_CALL + b', "id": 1', -32700),
         (b"\xff\xfe garbage", -32700),
+        (b"{" + CHAIN_ID_CALL + b', "id": "\\ud800"}', -32700),
+        (b'{"jsonrpc": "2.0", "id": 1, "method": "\\udfff", "params": []}', -32700),
+        (b"[{" + CHAIN_ID_CALL + b', "id": 1}, {' + CHAIN_ID_CALL + b', "id": "\\udc00"}]', -32700),
+        (b'{"jsonrpc": "2.0", "id": 1, "method": "eth_getBalance", "params": ["\\ud800"]}', -32700),
     ],
     ids=[
         "nested-lists",
@@ -55,6 +62,10 @@ def post_rpc(service: Service, body: bytes) -> tuple[int, Any]:
         "id-long-string",
         "truncated",
         "not-utf8",
+        "id-lone-surrogate",
+        "method-lone-surrogate",
+        "batch-lone-surrogate",
+        "param-lone-surrogate",
     ],
 )
 def test_hostile_bodies_get_json_rpc_errors_and_change_nothing(
