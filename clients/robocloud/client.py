@@ -32,7 +32,7 @@ import httpx
 from typing_extensions import Unpack
 
 from robocloud import bounded_json
-from robocloud.config import service_url
+from robocloud.config import expected_deployment, service_url
 from robocloud.errors import (
     ApiError,
     ConfigurationError,
@@ -142,6 +142,7 @@ class BaseClient(Closeable):
         backoff_s: float = 0.2,
         max_answer_bytes: int = MAX_ANSWER_BYTES,
         transport: httpx.BaseTransport | None = None,
+        deployment: str | None = None,
     ) -> None:
         self.service = service or self.default_service
         if base_url is None:
@@ -152,6 +153,8 @@ class BaseClient(Closeable):
         self.identity = identity
         self.retry = RetryPolicy(retries=retries, backoff_s=backoff_s)
         self.max_answer_bytes = max_answer_bytes
+        self.deployment = deployment or expected_deployment()
+        """The deployment whose audience alone this client signs for (None: what it claims)."""
         self._audience: str | None = None
         self._http = httpx.Client(
             base_url=self.base_url,
@@ -328,13 +331,14 @@ class BaseClient(Closeable):
         """The service's audience, ``GET /v1/audience``, fetched once per client.
 
         Every signature names it (ROBOCLOUD-REQUEST-V2), so a request signed for this service
-        is refused by every other service and deployment.
+        is refused by every other service and deployment. With ``deployment`` set, a service
+        claiming another deployment's audience gets :class:`AudienceError` and no signature.
         """
         if self._audience is None:
             answer = self.send("GET", "/v1/audience", signed=False)
             if answer.status_code >= 400:
                 raise api_error(answer)
-            self._audience = str(audience_from_answer(answer.content))
+            self._audience = str(audience_from_answer(answer.content, self.deployment))
         return self._audience
 
     def _sign(self, request: httpx.Request, content_sha256: str) -> None:

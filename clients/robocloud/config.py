@@ -23,6 +23,15 @@ def service_url(service: str) -> str:
     return os.environ.get(f"ROBOCLOUD_{service.upper()}_URL", default).rstrip("/")
 
 
+def expected_deployment() -> str | None:
+    """``$ROBOCLOUD_DEPLOYMENT_ID``: the deployment this robot means to talk to, if it says.
+
+    The SDK then signs only for services that claim it; unset, it signs for the deployment a
+    service claims (docs/signing.md).
+    """
+    return os.environ.get("ROBOCLOUD_DEPLOYMENT_ID") or None
+
+
 @dataclass(frozen=True)
 class Endpoints:
     """The base URL of every service."""

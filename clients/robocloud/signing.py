@@ -105,8 +105,14 @@ def parse_audience(text: str) -> Audience:
     return Audience(match["service"], match["deployment"])
 
 
-def audience_from_answer(document: bytes) -> Audience:
-    """The audience in a service's ``GET /v1/audience`` answer, checked for consistency."""
+def audience_from_answer(document: bytes, expected_deployment: str | None = None) -> Audience:
+    """The audience in a service's ``GET /v1/audience`` answer, checked for consistency and,
+    when the robot names the deployment it means, for belonging to it.
+
+    Anyone can read a service's audience and claim it: a server of another deployment that
+    answers with this one's would be handed signatures it could replay here. Only the robot
+    knows which deployment it meant to talk to, so only its own setting can refuse the claim.
+    """
     answer: Any = bounded_json.loads(document)
     if not isinstance(answer, dict) or not all(
         isinstance(answer.get(key), str) for key in ("audience", "service", "deployment")
@@ -115,6 +121,11 @@ def audience_from_answer(document: bytes) -> Audience:
     audience = parse_audience(answer["audience"])
     if (audience.service, audience.deployment) != (answer["service"], answer["deployment"]):
         raise AudienceError(f"audience {audience} disagrees with its service and deployment")
+    if expected_deployment is not None and audience.deployment != expected_deployment:
+        raise AudienceError(
+            f"the service claims deployment {audience.deployment[:200]!r}, "
+            f"but this robot expects {expected_deployment!r}: it signs nothing for it"
+        )
     return audience
 
 

@@ -13,6 +13,7 @@ import time
 from typing import Any
 
 import httpx
+import pytest
 from eth_account.messages import encode_defunct
 
 from robocloud.client import ServiceClient
@@ -21,6 +22,7 @@ from robocloud.signing import (
     HEADER_AUDIENCE,
     HEADER_SIGNATURE,
     SECP256K1_N,
+    AudienceError,
     chain_deployment_id,
     sign_request,
 )
@@ -192,6 +194,25 @@ def test_sdk_fetches_the_audience_once_per_client(
     metrics = httpx.get(f"{storage.url}/metrics").text
     assert 'route="/v1/audience",service="storage",status="200"} 1.0' in metrics
     assert 'route="/v1/whoami",service="storage",status="200"} 3.0' in metrics
+
+
+def test_sdk_signs_nothing_for_a_service_claiming_another_deployment(
+    service_factory: ServiceFactory, identity: Identity, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A server of deployment B that claims A's audience (anyone can read it from A) would be
+    handed signatures it could replay to A; a robot that names B refuses to sign for it."""
+    impostor = service_factory("storage", {"ROBOCLOUD_DEPLOYMENT_ID": "deployment-a"})
+    client = ServiceClient(impostor.url, identity, deployment="deployment-b")
+    with client, pytest.raises(AudienceError, match="claims deployment 'deployment-a'"):
+        client.post_json("/v1/whoami", {"challenge": "x"})
+    monkeypatch.setenv("ROBOCLOUD_DEPLOYMENT_ID", "deployment-b")
+    client = ServiceClient(impostor.url, identity)
+    with client, pytest.raises(AudienceError, match="this robot expects 'deployment-b'"):
+        client.post_json("/v1/whoami", {"challenge": "x"})
+    assert "/v1/whoami" not in httpx.get(f"{impostor.url}/metrics").text
+    monkeypatch.setenv("ROBOCLOUD_DEPLOYMENT_ID", "deployment-a")
+    with ServiceClient(impostor.url, identity) as client:
+        assert client.post_json("/v1/whoami", {"challenge": "x"})["address"] == identity.address
 
 
 def test_replica_name_is_its_own_audience(
