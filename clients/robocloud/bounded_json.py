@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from collections.abc import Callable
 from typing import Any
 
 from robocloud.errors import FormatError
@@ -80,14 +81,27 @@ def exceeds_depth(document: bytes, max_depth: int) -> bool:
     return passes + unclosed > max_depth
 
 
-def loads(document: bytes | str, *, max_depth: int = MAX_DEPTH) -> Any:
-    """Parse ``document``; raise :class:`JsonDepthError` or :class:`JsonError` when it is bad."""
+def loads(
+    document: bytes | str,
+    *,
+    max_depth: int = MAX_DEPTH,
+    object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] | None = None,
+) -> Any:
+    """Parse ``document``; raise :class:`JsonDepthError` or :class:`JsonError` when it is bad.
+
+    ``object_pairs_hook`` is ``json``'s: a reader that must see duplicate keys (templates
+    name each one as a problem) gets every check here all the same.
+    """
     raw = document.encode() if isinstance(document, str) else document
     if exceeds_depth(raw, max_depth):
         raise JsonDepthError(max_depth)
     try:
         parsed = json.loads(
-            raw, parse_int=_integer, parse_float=_real, parse_constant=_not_a_number
+            raw,
+            parse_int=_integer,
+            parse_float=_real,
+            parse_constant=_not_a_number,
+            object_pairs_hook=object_pairs_hook,
         )
     except RecursionError as exc:
         raise JsonDepthError(max_depth) from exc

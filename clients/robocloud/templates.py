@@ -14,7 +14,6 @@ robot can check its records before it sends them.
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from collections.abc import Callable, Iterator, Mapping
@@ -209,20 +208,13 @@ def _object_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 def load_template_document(document: bytes | str) -> Any:
     """Parse a template's JSON keeping track of duplicate names, which ``json`` would drop.
 
-    The nesting bound is checked first (without recursion), so the parse itself is safe.
+    :func:`robocloud.bounded_json.loads` checks the nesting first (without recursion) and
+    refuses what no template may hold: a string with a lone surrogate (a description
+    ``"\\udc80"`` was stored, then every answer that rendered it failed), NaN, huge numbers.
     """
-    raw = document.encode() if isinstance(document, str) else document
-    depth = 2 * (MAX_NESTING + 2) + 2
-    if bounded_json.exceeds_depth(raw, depth):
-        raise bounded_json.JsonDepthError(depth)
-    try:
-        return json.loads(raw, object_pairs_hook=_object_pairs, parse_constant=_no_constant)
-    except ValueError as exc:
-        raise bounded_json.JsonError(f"not valid JSON: {exc}") from exc
-
-
-def _no_constant(constant: str) -> Any:
-    raise bounded_json.JsonError(f"{constant} is not a JSON number")
+    return bounded_json.loads(
+        document, max_depth=2 * (MAX_NESTING + 2) + 2, object_pairs_hook=_object_pairs
+    )
 
 
 class _Evaluator:
@@ -286,6 +278,17 @@ class _Evaluator:
         return fields
 
 
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+NOT_TEXT = "holds a lone UTF-16 surrogate, which is not text (no UTF-8 can carry it)"
+
+
+def _not_text(value: str) -> bool:
+    """Whether ``value`` holds half of a surrogate pair, as ``os.fsdecode`` makes of a file
+    name that is not UTF-8: JSON's escapes carry it, but no canonical record or answer can
+    be encoded with it, and RFC 7493 (I-JSON) forbids it."""
+    return _LONE_SURROGATE.search(value) is not None
+
+
 def _shown(value: str) -> str:
     return value if len(value) <= 80 else f"{value[:77]}..."
 
@@ -329,6 +332,8 @@ def evaluate(document: Any) -> tuple[Template | None, list[Problem]]:
         evaluator.problem("description", "must be a string")
     elif len(description) > MAX_DESCRIPTION:
         evaluator.problem("description", f"longer than {MAX_DESCRIPTION} characters")
+    elif _not_text(description):
+        evaluator.problem("description", NOT_TEXT)
     if "fields" not in document:
         evaluator.problem("fields", "required")
         fields = None
@@ -403,6 +408,8 @@ def _check_scalar(kind: str, value: Any, path: str) -> None:
             raise RecordInvalid(path, f"must be a string, not {_kind_of(value)}")
         if len(value) > MAX_STRING:
             raise RecordInvalid(path, f"longer than {MAX_STRING} characters")
+        if _not_text(value):
+            raise RecordInvalid(path, NOT_TEXT)
     elif kind == "int":
         _check_int(value, path)
     elif kind == "float":
@@ -485,7 +492,12 @@ def _check_integer(value: Any) -> None:
 def _check_string(value: Any) -> None:
     """``.0`` is refused here only so that :class:`RecordEncoder` may rewrite a float's
     ``.0,`` in the text outside strings: such a string takes the slower, exact path."""
-    if not (type(value) is str and len(value) <= MAX_STRING and ".0" not in value):
+    if not (
+        type(value) is str
+        and len(value) <= MAX_STRING
+        and ".0" not in value
+        and (value.isascii() or not _not_text(value))
+    ):
         _irregular()
 
 

@@ -8,7 +8,9 @@ adds its routers and readiness checks and keeps its own state on ``app.state``.
 
 from __future__ import annotations
 
+import json
 import logging
+import re
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from typing import Any, Literal
@@ -81,11 +83,26 @@ class WhoamiResponse(BaseModel):
     challenge: str | None
 
 
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
 def _json_error(
     status: int, code: str, message: str, details: dict[str, Any], headers: Mapping[str, str]
 ) -> JSONResponse:
+    """The error answer, whatever text it echoes.
+
+    A message or detail may quote what a client sent; a string holding a lone surrogate
+    cannot be encoded as UTF-8, and the error answer would itself fail (a 500 in place of
+    the 400). Such characters become U+FFFD, as a decoder does with bytes that are not UTF-8,
+    rather than escapes: I-JSON (RFC 7493) forbids lone surrogates even escaped, and
+    ``robocloud.bounded_json`` refuses them.
+    """
     body = error_body(code, message, details, request_id_var.get())
-    return JSONResponse(body, status_code=status, headers=dict(headers))
+    try:
+        return JSONResponse(body, status_code=status, headers=dict(headers))
+    except UnicodeEncodeError:
+        text = _LONE_SURROGATE.sub("\ufffd", json.dumps(body, ensure_ascii=False))
+        return JSONResponse(json.loads(text), status_code=status, headers=dict(headers))
 
 
 def _install_error_handlers(app: FastAPI, errors: ErrorMap) -> None:

@@ -10,7 +10,7 @@ import rfc8785
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robocloud.bounded_json import JsonDepthError, JsonError
+from robocloud.bounded_json import JsonDepthError, JsonError, JsonSurrogateError
 from robocloud.templates import (
     MAX_FIELDS,
     MAX_NESTING,
@@ -242,6 +242,7 @@ def test_a_valid_record_passes() -> None:
         (_data(ok=1), "data.ok"),
         (_data(frame=7), "data.frame"),
         (_data(frame="x" * 65537), "data.frame"),
+        (_data(frame="map\udc80"), "data.frame"),
         (_data(ranges=[0.1, "far"]), "data.ranges[1]"),
         (_data(ranges=[0.1, float("-inf")]), "data.ranges[1]"),
         (_data(ranges="not-a-cid"), "data.ranges"),
@@ -312,6 +313,25 @@ def test_a_deep_value_is_checked_only_as_deep_as_the_template() -> None:
 def test_template_documents_refuse_nan() -> None:
     with pytest.raises(JsonError):
         load_template_document(json.dumps({"name": "x", "version": float("nan")}))
+
+
+def test_text_with_a_lone_surrogate_is_no_template_and_no_record_string() -> None:
+    """No UTF-8 answer, log line or canonical record can carry such a string."""
+    with pytest.raises(JsonSurrogateError):
+        load_template_document(
+            b'{"name": "x", "fields": {"s": "string"}, "description": "\\udc80"}'
+        )
+    assert load_template_document(b'{"description": "\\ud83d\\ude00"}') == {
+        "description": "\U0001f600"
+    }
+    assert _problems({**POSE, "description": "where\ud800"}) == {
+        "description": "holds a lone UTF-16 surrogate, which is not text (no UTF-8 can carry it)"
+    }
+    template = parse_template(POSE)
+    validate_record(template, _record(_data(frame="\u00e9t\u00e9 \U0001f600")))
+    with pytest.raises(RecordInvalid) as caught:
+        template.encoder.canonical(_record(_data(frame="\ud800")))
+    assert caught.value.path == "data.frame"
 
 
 FLOATS = st.one_of(

@@ -194,6 +194,14 @@ def test_a_cid_cas_does_not_have_or_that_is_malformed_is_named(services: Service
         f"{services.storage.url}/v1/knowledge", json={"cid": str(example("file").cid())}
     )
     assert unsigned.status_code == 401
+    with services.knowledge() as knowledge:
+        surrogate = knowledge.send(
+            "POST",
+            "/v1/knowledge",
+            content=b'{"cid": "bafk\\ud800"}',
+            headers={"Content-Type": "application/json"},
+        )
+    assert error(surrogate, 400, "invalid_json") == {}
     unchanged(services, before)
 
 

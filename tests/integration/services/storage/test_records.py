@@ -145,6 +145,55 @@ def test_records_round_trip_and_bad_batches_store_nothing(
     assert unsigned.status_code == 401
 
 
+def _refused(answer: httpx.Response, code: str) -> dict[str, Any]:
+    assert answer.status_code == 400, answer.text
+    error: dict[str, Any] = answer.json()["error"]
+    assert error["code"] == code, error
+    return error
+
+
+def test_strings_with_a_lone_surrogate_are_refused_and_nothing_is_stored(
+    storage: ServiceProcess, identity: Identity
+) -> None:
+    """A template description "\\udc80" was stored, and from then on every answer that
+    rendered it (the template, the whole list, for anyone) was 500."""
+    json_type = {"Content-Type": "application/json"}
+    with Storage(storage.url, identity) as client:
+        described = b'{"name": "surr", "fields": {"s": "string"}, "description": "\\udc80"}'
+        for method, path in [
+            ("POST", "/v1/templates"),
+            ("POST", "/v1/templates/state/versions"),
+            ("PUT", "/v1/templates/state@1"),
+        ]:
+            answer = client.send(method, path, content=described, headers=json_type)
+            error = _refused(answer, "invalid_json")
+            assert error["message"] == "a string holds a lone UTF-16 surrogate, which is not text"
+        listed = httpx.get(f"{storage.url}/v1/templates")
+        assert listed.status_code == 200
+        assert listed.json() == {"templates": [], "next": None}
+        assert httpx.get(f"{storage.url}/v1/templates/surr@1").status_code == 404
+        _approved(client)
+        text = json.dumps(_record(identity.address, 1, mode="MODE")).replace("MODE", "\\ud800")
+        error = _refused(
+            client.send("POST", "/v1/records", content=f"[{text}]".encode(), headers=json_type),
+            "invalid_json",
+        )
+        assert error["message"] == "a string holds a lone UTF-16 surrogate, which is not text"
+        error = _refused(
+            client.send(
+                "POST",
+                "/v1/records",
+                content=f"{text}\n".encode(),
+                headers={"Content-Type": "application/x-ndjson"},
+            ),
+            "invalid_record",
+        )
+        assert error["details"] == {"index": 0, "field": "", "reason": "invalid_json"}
+        assert client.query(template="state@1").records == []
+        listed = httpx.get(f"{storage.url}/v1/templates")
+        assert [version["id"] for version in listed.json()["templates"]] == ["state@1"]
+
+
 def test_queries_and_intervals_over_http(storage: ServiceProcess, identity: Identity) -> None:
     robot = identity.address
     other = Identity.generate().address

@@ -40,6 +40,10 @@ def _get(tmp_path: Path, path: str) -> httpx.Response:
     async def missing() -> None:
         raise ThingMissing("a")
 
+    @router.get("/echo")
+    async def echo() -> None:
+        raise ThingMissing("half a pair \udc80")
+
     @router.get("/gone")
     async def gone() -> None:
         raise ThingGone("b")
@@ -78,6 +82,18 @@ def test_a_mapped_domain_exception_gets_its_status_code_and_details(tmp_path: Pa
         "no thing named a",
         {"name": "a"},
     )
+
+
+def test_an_error_echoing_a_lone_surrogate_is_still_answered(tmp_path: Path) -> None:
+    """Such a string cannot be encoded as UTF-8: the error answer itself was a 500."""
+    response = _get(tmp_path, "/echo")
+    assert response.status_code == 404
+    error = _error(response)
+    assert (error["message"], error["details"]) == (
+        "no thing named half a pair \ufffd",
+        {"name": "half a pair \ufffd"},
+    )
+    loads(response.content)
 
 
 def test_a_subclass_uses_its_parents_rule(tmp_path: Path) -> None:
