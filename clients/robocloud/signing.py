@@ -18,7 +18,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import parse_qsl, quote
+from urllib.parse import parse_qsl, quote, unquote
 
 from eth_account import Account
 from eth_account.messages import encode_defunct
@@ -135,9 +135,30 @@ def canonical_query(query: str) -> str:
     Both sides decode the query as sent and encode it again, so that equivalent encodings
     (``%7E`` versus ``~``) sign identically.
     """
-    pairs = parse_qsl(query, keep_blank_values=True)
-    encoded = sorted((quote(k, safe=""), quote(v, safe="")) for k, v in pairs)
-    return "&".join(f"{k}={v}" for k, v in encoded)
+    pairs = [
+        (quote(k, safe=""), quote(v, safe="")) for k, v in parse_qsl(query, keep_blank_values=True)
+    ]
+    _check_repeated_keys_sorted(pairs)
+    return "&".join(f"{k}={v}" for k, v in sorted(pairs))
+
+
+def _check_repeated_keys_sorted(pairs: list[tuple[str, str]]) -> None:
+    """Refuse a key repeated with its values out of sorted order.
+
+    The signature covers the values sorted, while a service reading one value takes the last
+    sent: ``?pin=false&pin=true`` sent as ``?pin=true&pin=false`` would keep the signature
+    and change the meaning. Sent in sorted order, what is read is what was signed.
+    """
+    values: dict[str, list[str]] = {}
+    for key, value in pairs:
+        values.setdefault(key, []).append(value)
+    for key, sent in values.items():
+        if sent != sorted(sent):
+            raise SignatureError(
+                "ambiguous_query",
+                f"the query key {unquote(key)[:100]!r} repeats with its values out of sorted "
+                "order; the signature covers them sorted, so send them sorted",
+            )
 
 
 def canonical_request(

@@ -248,14 +248,22 @@ def test_audience_answer_is_parsed_and_checked_for_consistency() -> None:
     [
         ("", ""),
         ("b=2&a=1", "a=1&b=2"),
-        ("a=2&a=1", "a=1&a=2"),
-        ("z=%7E&a=b+c&a=%20a&k=", "a=%20a&a=b%20c&k=&z=~"),
+        ("b=1&a=2&b=3", "a=2&b=1&b=3"),
+        ("z=%7E&a=%20a&a=b+c&k=", "a=%20a&a=b%20c&k=&z=~"),
         ("path=%2Fx%2Fy", "path=%2Fx%2Fy"),
         ("q=caf%C3%A9", "q=caf%C3%A9"),
     ],
 )
 def test_query_is_decoded_then_encoded_canonically(query: str, canonical: str) -> None:
     assert canonical_query(query) == canonical
+
+
+@pytest.mark.parametrize("query", ["pin=true&pin=false", "arg=b&x=1&arg=a", "a=b+c&a=%20a"])
+def test_a_key_repeated_out_of_sorted_order_is_refused(query: str) -> None:
+    """Signed sorted but read last-wins: the order sent could change what a service reads."""
+    with pytest.raises(SignatureError) as refused:
+        canonical_query(query)
+    assert refused.value.code == "ambiguous_query"
 
 
 @pytest.mark.parametrize(

@@ -129,6 +129,19 @@ def test_changed_query_is_rejected(
     assert_error(response, 401, "invalid_signature")
 
 
+def test_a_repeated_key_sent_out_of_sorted_order_is_refused_before_the_route(
+    http: httpx.Client, identity: Identity
+) -> None:
+    """The signature covers the values sorted and a route reads the last one sent, so a relay
+    reordering ``?pin=false&pin=true`` would keep the signature and flip the meaning."""
+    headers = signed_headers(identity, "/v1/whoami?x=1&x=2")
+    error = assert_error(
+        http.post("/v1/whoami?x=2&x=1", content=BODY, headers=headers), 401, "ambiguous_query"
+    )
+    assert "'x' repeats" in str(error["message"])
+    assert http.post("/v1/whoami?x=1&x=2", content=BODY, headers=headers).status_code == 200
+
+
 def test_changed_path_is_rejected_before_routing(http: httpx.Client, identity: Identity) -> None:
     headers = signed_headers(identity, "/v1/whoami")
     assert_error(http.post("/v1/other", content=BODY, headers=headers), 401, "invalid_signature")
