@@ -23,7 +23,9 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import BinaryIO, NamedTuple
 
-from robocloud.cid import CID, DAG_PB, RAW, Block
+from robocloud.cid import CID, DAG_CBOR, DAG_PB, RAW, Block
+from robocloud.dagcbor import DagCborError
+from robocloud.dagcbor import links as dag_cbor_links
 from robocloud.dagpb import DagPbError, Link, PBNode, fields, len_field, read_uint, uint_field
 from robocloud.errors import FormatError
 
@@ -600,17 +602,24 @@ def list_directory(root: CID, get_block: GetBlock) -> list[Link]:
     return node.links
 
 
-def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Block]:
+def walk_dag(
+    root: CID, get_block: GetBlock, scope: str = "all", seen: set[CID] | None = None
+) -> Iterator[Block]:
     """Blocks in CAR order (depth first, links in order, each block once).
 
     ``block``: the root only. ``entity``: the whole file, or a directory's own nodes (every
     level of a HAMT's shards, whose links to sub-shards are named by their bucket alone)
-    without its entries' content. ``all``: everything reachable. Iterative with one frame
-    per level, bounded by ``MAX_DAG_DEPTH`` as the reader is.
+    without its entries' content; a dag-cbor block alone, as the trustless gateway
+    specification has it for data that is not UnixFS. ``all``: everything reachable, through
+    dag-pb and dag-cbor links alike, as kubo's recursive pin and ``dag export`` go. Iterative
+    with one frame per level, bounded by ``MAX_DAG_DEPTH`` as the reader is.
+
+    ``seen`` holds blocks an earlier walk went through to its end, skipped with everything
+    under them: shared by the walks of several roots, it reads a common sub-DAG once.
     """
     if scope not in ("block", "entity", "all"):
         raise UnixfsError(f"unknown dag-scope {scope!r}: expected block, entity or all")
-    seen: set[CID] = set()
+    seen = set() if seen is None else seen
     frames: list[Iterator[CID]] = [iter((root,))]
     while frames:
         cid = next(frames[-1], None)
@@ -624,16 +633,26 @@ def walk_dag(root: CID, get_block: GetBlock, scope: str = "all") -> Iterator[Blo
         seen.add(cid)
         data = get_block(cid)
         yield Block(cid, data)
-        if scope == "block" or cid.codec != DAG_PB:
+        if scope == "block":
             continue
-        node = _pb_node(cid, data)
-        children = [link.cid for link in node.links]
-        if scope == "entity" and node.data is not None:
-            unixfs = _unixfs_data(cid, node)
-            if unixfs.type == DIRECTORY:
-                children = []
-            elif unixfs.type == HAMT_SHARD:
-                width = hamt_prefix_width(cid, unixfs)
-                children = [link.cid for link in node.links if len(link.name) == width]
+        if cid.codec == DAG_CBOR:
+            if scope == "entity":
+                continue
+            try:
+                children = dag_cbor_links(data)
+            except DagCborError as exc:
+                raise UnixfsError(f"{cid} is not a dag-cbor block: {exc}") from exc
+        elif cid.codec == DAG_PB:
+            node = _pb_node(cid, data)
+            children = [link.cid for link in node.links]
+            if scope == "entity" and node.data is not None:
+                unixfs = _unixfs_data(cid, node)
+                if unixfs.type == DIRECTORY:
+                    children = []
+                elif unixfs.type == HAMT_SHARD:
+                    width = hamt_prefix_width(cid, unixfs)
+                    children = [link.cid for link in node.links if len(link.name) == width]
+        else:
+            continue
         if children:
             frames.append(iter(children))

@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from robocloud.cid import CID, RAW, CIDError
+from robocloud.cid import CID, IDENTITY, RAW, CIDError
 from services.common.durable import atomic_write, fsync_dir
 
 log = logging.getLogger("robocloud.cas.blockstore")
@@ -261,7 +261,13 @@ class Staging:
         return cid.multihash in self._members
 
     def add(self, cid: CID, data: bytes | memoryview) -> None:
-        """Stage a block the caller has already checked against ``cid``."""
+        """Stage a block the caller has already checked against ``cid``.
+
+        An identity CID carries its block in itself and is answered from the CID, never
+        looked up: it is not stored (kubo neither), so a CAR full of them costs no disk.
+        """
+        if cid.hash_code == IDENTITY:
+            return
         if cid.multihash not in self._members and not self.store.has(cid):
             self.write(cid.multihash, data)
 

@@ -239,7 +239,11 @@ async def block_put(
     mhtype: str = "sha2-256",
     pin: bool = False,
 ) -> Response:
-    """Store raw blocks as sent; answers ``{"Key","Size"}`` per block."""
+    """Store raw blocks as sent; answers ``{"Key","Size"}`` per block.
+
+    With ``pin`` each block's DAG must be whole (from this request, the store or a peer),
+    else 404 ``block_not_found`` and nothing is stored.
+    """
     if cid_codec not in CODECS:
         raise BadRequest(
             f"unsupported cid-codec {cid_codec!r}: expected one of {', '.join(CODECS)}",
@@ -261,15 +265,13 @@ async def block_put(
 async def pin_add(
     request: Request, address: SignedAddress, arg: Args, recursive: bool = True
 ) -> dict[str, list[str]]:
-    """Pin DAGs for the signing robot; every block must be here or at a peer."""
+    """Pin DAGs for the signing robot, all or none; every block must be here or at a peer."""
     if not recursive:
         raise BadRequest(
             "only recursive pins are supported", code="unsupported", details={"field": "recursive"}
         )
     roots = [parse_cid(text, "arg") for text in arg]
-    store = _store(request)
-    for root in roots:
-        await anyio.to_thread.run_sync(store.pin, root, address)
+    await anyio.to_thread.run_sync(_store(request).pin, roots, address)
     return {"Pins": [str(root) for root in roots]}
 
 

@@ -62,12 +62,19 @@ class PinSet:
 
     def add(self, cid: CID, owner: str) -> bool:
         """Pin ``cid`` for ``owner``; False if that robot had already pinned it."""
+        return bool(self.add_all([cid], owner))
+
+    def add_all(self, cids: list[CID], owner: str) -> list[CID]:
+        """Pin every CID for ``owner`` in one turn of the lock; returns those newly pinned.
+
+        The caller checks every DAG first, so a request either pins all its roots or none.
+        """
         with self._lock:
-            if owner in self._owners.get(cid, ()):
-                return False
-            self._log.append(self._line("add", cid, owner))
-            self._apply("add", cid, owner)
-            return True
+            new = [cid for cid in dict.fromkeys(cids) if owner not in self._owners.get(cid, ())]
+            for cid in new:
+                self._log.append(self._line("add", cid, owner))
+                self._apply("add", cid, owner)
+            return new
 
     def remove(self, cids: list[CID], owner: str) -> None:
         """Remove ``owner``'s pins on every CID, or none of them.

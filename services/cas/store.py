@@ -16,7 +16,9 @@ from functools import partial
 from pathlib import Path
 
 from robocloud.car import ByteSource, CarError, CarReader, write_car
-from robocloud.cid import CID, DAG_PB, IDENTITY, RAW, Block
+from robocloud.cid import CID, DAG_CBOR, DAG_PB, IDENTITY, RAW, Block
+from robocloud.dagcbor import DagCborError
+from robocloud.dagcbor import links as dag_cbor_links
 from robocloud.dagpb import DagPbError, Link, PBNode
 from robocloud.directory import PathError, Resolved, list_entries, resolve
 from robocloud.unixfs import (
@@ -166,15 +168,22 @@ class ContentStore:
         return len(self.get_block(cid, use_peers=use_peers))
 
     def put_blocks(self, blocks: list[bytes], codec: int, owner: str, *, pin: bool) -> list[CID]:
-        """Store raw blocks as one pack (one fsync, all or none), then pin them if asked."""
+        """Store raw blocks as one pack (one fsync, all or none), then pin them if asked.
+
+        A pin keeps a whole DAG, so with ``pin`` every block's DAG must be complete, as for
+        ``pin/add``: the blocks of this request count, and a block that neither they, the
+        store nor a peer has refuses the request (``DagIncomplete``) with nothing stored.
+        """
         cids = [CID.from_block(data, codec, 1) for data in blocks]
+        roots = list(dict.fromkeys(cids))
         with self.blocks.stage() as staging:
             for cid, data in zip(cids, blocks, strict=True):
                 staging.add(cid, data)
+            if pin:
+                self._require_complete(roots, staging)
             staging.commit()
         if pin:
-            for cid in dict.fromkeys(cids):
-                self.pins.add(cid, owner)
+            self.pins.add_all(roots, owner)
         return cids
 
     # ---- files ----
@@ -291,10 +300,16 @@ class ContentStore:
             raise CarRejected(str(exc)) from exc
         return reader.roots
 
-    def missing_block(self, root: CID, staging: Staging | None = None) -> CID | None:
-        """The first block of ``root``'s DAG that neither the store nor its peers have."""
+    def missing_block(
+        self, root: CID, staging: Staging | None = None, *, seen: set[CID] | None = None
+    ) -> CID | None:
+        """The first block of ``root``'s DAG that neither the store nor its peers have.
+
+        ``seen``: blocks whose DAGs earlier calls found complete, not read again.
+        """
+        get = partial(self._staged_or_stored, staging=staging)
         try:
-            for _ in walk_dag(root, lambda cid: self._staged_or_stored(cid, staging), "all"):
+            for _ in walk_dag(root, get, "all", seen):
                 pass
         except _Missing as missing:
             return missing.cid
@@ -312,12 +327,23 @@ class ContentStore:
 
     # ---- pins and garbage collection ----
 
-    def pin(self, root: CID, owner: str) -> None:
-        """Pin a DAG for ``owner`` once all its blocks are here (fetched from peers if need be)."""
-        missing = self.missing_block(root)
-        if missing is not None:
-            raise DagIncomplete(root, missing)
-        self.pins.add(root, owner)
+    def pin(self, roots: list[CID], owner: str) -> None:
+        """Pin DAGs for ``owner``, all or none, once every block of each is here (fetched from
+        peers if need be): a request refused for one root leaves no pin behind, as ``unpin``."""
+        self._require_complete(roots)
+        self.pins.add_all(roots, owner)
+
+    def _require_complete(self, roots: list[CID], staging: Staging | None = None) -> None:
+        """Raise ``DagIncomplete`` for the first root whose DAG lacks a block.
+
+        One ``seen`` set for all roots: a sub-DAG that several roots share (every block of a
+        ``block/put`` is a root) is walked once, so the work stays linear in the blocks.
+        """
+        seen: set[CID] = set()
+        for root in roots:
+            missing = self.missing_block(root, staging, seen=seen)
+            if missing is not None:
+                raise DagIncomplete(root, missing)
 
     def unpin(self, roots: list[CID], owner: str) -> None:
         """Remove ``owner``'s pins on every root, or none (see ``PinSet.remove``)."""
@@ -340,9 +366,10 @@ class ContentStore:
         a robot pushed with ``block/put`` before pinning the root that links them.
         """
         cutoff = (now if now is not None else time.time()) - grace_s
+        visited: set[tuple[int, bytes]] = set()
         live: set[bytes] = set()
         for root in self.pins.snapshot():
-            self._mark_reachable(root, live)
+            self._mark_reachable(root, visited, live)
         dead = [
             stored.multihash
             for stored in self.blocks.stored()
@@ -352,27 +379,51 @@ class ContentStore:
         self.blocks.compact()
         return [cid_for_multihash(multihash) for multihash in dead]
 
-    def _mark_reachable(self, root: CID, live: set[bytes]) -> None:
-        """Mark every stored block under ``root``, going on past missing or corrupt ones."""
+    def _mark_reachable(self, root: CID, visited: set[tuple[int, bytes]], live: set[bytes]) -> None:
+        """Add to ``live`` the multihash of every stored block under ``root``.
+
+        Goes on past missing or corrupt blocks, so an incomplete pinned DAG loses nothing.
+        Blocks are stored by multihash, but what a block links to depends on the codec its
+        CID names: the same bytes are a leaf as ``raw`` and a node with links as ``dag-pb``.
+        So the walk remembers ``(codec, multihash)``: a raw alias met first (in this pin or
+        another robot's) never hides the links of the dag-pb CID. An identity CID carries its
+        block: decoded in place, its links followed, and nothing of it is stored to keep.
+        """
         stack = [root]
         while stack:
             cid = stack.pop()
-            if cid.multihash in live:
+            if (cid.codec, cid.multihash) in visited:
                 continue
-            live.add(cid.multihash)
-            if cid.codec != DAG_PB:
-                continue
+            visited.add((cid.codec, cid.multihash))
+            if cid.hash_code == IDENTITY:
+                data = cid.digest
+            else:
+                live.add(cid.multihash)
+                if cid.codec not in (DAG_PB, DAG_CBOR):
+                    continue
+                try:
+                    data = self.blocks.get(cid)
+                except BlockNotFound:
+                    log.warning("pinned DAG incomplete during gc", extra={"cid": str(cid)})
+                    continue
             try:
-                node = PBNode.decode(self.blocks.get(cid))
-            except (BlockNotFound, DagPbError):
-                log.warning("pinned DAG incomplete during gc", extra={"cid": str(cid)})
-                continue
-            stack.extend(link.cid for link in node.links)
+                stack.extend(_links(cid, data))
+            except (DagPbError, DagCborError):
+                log.warning("pinned block does not decode during gc", extra={"cid": str(cid)})
 
     def close(self) -> None:
         self.pins.close()
         if self.peers is not None:
             self.peers.close()
+
+
+def _links(cid: CID, data: bytes) -> list[CID]:
+    """What a block links to: dag-pb and dag-cbor have links, every other codec is a leaf."""
+    if cid.codec == DAG_PB:
+        return [link.cid for link in PBNode.decode(data).links]
+    if cid.codec == DAG_CBOR:
+        return dag_cbor_links(data)
+    return []
 
 
 def _once(first: Iterator[Block], rest: Iterator[Block]) -> Iterator[Block]:

@@ -104,11 +104,11 @@ def test_pinning_needs_the_whole_dag(store: ContentStore) -> None:
         [block.data for block in blocks if block.cid.codec == DAG_PB], DAG_PB, ROBOT, pin=False
     )
     with pytest.raises(DagIncomplete) as raised:
-        store.pin(root, ROBOT)
+        store.pin([root], ROBOT)
     assert (raised.value.root, raised.value.missing.codec) == (root, RAW)
     assert store.pinned() == {}
     put_file(store)
-    store.pin(root, ROBOT)
+    store.pin([root], ROBOT)
     assert store.pinned([root]) == {root: frozenset({ROBOT})}
 
 
@@ -121,7 +121,7 @@ def test_a_pin_listing_of_an_unpinned_cid_names_it(store: ContentStore) -> None:
 
 def test_garbage_collection_keeps_pinned_dags_and_young_blocks(store: ContentStore) -> None:
     pinned, pinned_blocks = put_file(store)
-    store.pin(pinned, ROBOT)
+    store.pin([pinned], ROBOT)
     unpinned, _ = put_file(store, b"collect me" * 1000)
     assert store.collect_garbage(grace_s=3600) == []
     removed = {cid.multihash for cid in store.collect_garbage(grace_s=0, now=time.time() + 1)}
@@ -134,7 +134,7 @@ def test_garbage_collection_keeps_pinned_dags_and_young_blocks(store: ContentSto
 
 def test_unpinning_then_collecting_frees_the_dag(store: ContentStore) -> None:
     root, _ = put_file(store)
-    store.pin(root, ROBOT)
+    store.pin([root], ROBOT)
     store.unpin([root], ROBOT)
     assert store.pinned() == {}
     removed = store.collect_garbage(grace_s=0, now=time.time() + 1)
