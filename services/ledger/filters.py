@@ -6,8 +6,11 @@ else's), each dropped when nobody has polled it for ``timeout_s`` (geth's five m
 Ids are 128 random bits, so nobody polls or removes a filter they were not given.
 
 A filter reports what changed since it was last polled: blocks mined since then (block
-filters), or the logs of those blocks that match (log filters). Its cursor moves only after
-the answer is built, so an answer refused for its size loses nothing.
+filters, at most ``MAX_BLOCK_HASHES`` a poll), or the logs of those blocks that match (log
+filters, whole blocks up to ``index.MAX_LOG_RESULTS`` logs a poll, see
+``EventIndex.logs_page``): either way the rest comes with the next poll, so a filter always
+moves on. Its cursor moves only after the answer is built, so an answer that fails loses
+nothing.
 """
 
 from __future__ import annotations

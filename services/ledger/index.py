@@ -25,7 +25,7 @@ import sqlite3
 import threading
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -234,7 +234,34 @@ class EventIndex:
     # ----- queries -----
 
     def logs(self, query: LogFilter) -> list[LogEntry]:
-        """Logs matching ``query`` in chain order; ``IndexLimitError`` past the limit."""
+        """Logs matching ``query`` in chain order; ``IndexLimitError`` past the limit, unless
+        the query is one block: a block cannot be narrowed, so it is answered whole (its gas
+        bounds its logs), as anvil and geth answer it."""
+        if query.from_block == query.to_block:
+            return self._select(query, None)
+        found = self._select(query, MAX_LOG_RESULTS + 1)
+        if len(found) > MAX_LOG_RESULTS:
+            raise IndexLimitError(
+                f"query returned more than {MAX_LOG_RESULTS} results; narrow the block range"
+            )
+        return found
+
+    def logs_page(self, query: LogFilter) -> tuple[list[LogEntry], int]:
+        """The logs of as many whole blocks from ``query.from_block`` on as fit in
+        ``MAX_LOG_RESULTS``, and the last block they cover: what a filter poll answers, so
+        that a filter moves on however many logs its blocks hold. The first block that holds
+        any is answered whole even past the limit (as geth answers a poll whole)."""
+        found = self._select(query, MAX_LOG_RESULTS + 1)
+        if len(found) <= MAX_LOG_RESULTS:
+            return found, query.to_block
+        cut = found[MAX_LOG_RESULTS].block_number
+        if cut > found[0].block_number:
+            return [entry for entry in found if entry.block_number < cut], cut - 1
+        alone = replace(query, from_block=cut, to_block=cut)
+        return self._select(alone, None), cut
+
+    def _select(self, query: LogFilter, limit: int | None) -> list[LogEntry]:
+        """Logs matching ``query`` in chain order, at most ``limit`` (None: all)."""
         clauses = ["block_number BETWEEN ? AND ?"]
         params: list[Any] = [query.from_block, query.to_block]
         if query.block_hash is not None:
@@ -252,16 +279,11 @@ class EventIndex:
                 column = f"{prefix if position == 0 else ''}topic{position}"
                 clauses.append(f"{column} IN ({','.join('?' * len(options))})")
                 params.extend(options)
-        sql = (
-            f"SELECT * FROM logs WHERE {' AND '.join(clauses)} "
-            f"ORDER BY block_number, log_index LIMIT {MAX_LOG_RESULTS + 1}"
-        )
+        sql = f"SELECT * FROM logs WHERE {' AND '.join(clauses)} ORDER BY block_number, log_index"
+        if limit is not None:
+            sql += f" LIMIT {limit}"
         with self._lock:
             rows = self._db.execute(sql, params).fetchall()
-        if len(rows) > MAX_LOG_RESULTS:
-            raise IndexLimitError(
-                f"query returned more than {MAX_LOG_RESULTS} results; narrow the block range"
-            )
         return [_entry(row) for row in rows]
 
     def robot(self, address: str) -> dict[str, Any] | None:

@@ -694,6 +694,7 @@ class EmbeddedMethods:
     def filter_changes(self, params: list[Any]) -> Any:
         filter_id = _filter_id(param(params, 0))
         changes = self.filters.changes(filter_id, self.chain.head().block_number)
+        reported = changes.last
         if changes.criteria is None:
             hashes = self.chain.canonical_hashes(changes.first, changes.last)
             answer: list[Any] = [encoding.data(block_hash) for block_hash in hashes]
@@ -701,8 +702,11 @@ class EmbeddedMethods:
             answer = []
         else:
             window = changes.criteria.window(changes.first, changes.last)
-            answer = [entry.to_rpc() for entry in self.index.logs(window)] if window else []
-        self.filters.reported(filter_id, changes.last)
+            found, covered = self.index.logs_page(window) if window else ([], changes.last)
+            if window is not None and covered < window.to_block:
+                reported = covered  # the rest comes with the next poll
+            answer = [entry.to_rpc() for entry in found]
+        self.filters.reported(filter_id, reported)
         return answer
 
     def filter_logs(self, params: list[Any]) -> Any:

@@ -26,6 +26,8 @@ from tests.rawtx import RawTx
 TOPIC = bytes.fromhex("aa" * 32)
 # LOG1(topic TOPIC, data = the first calldata word), then stop.
 EMITTER = bytes.fromhex("5f355f527f" + TOPIC.hex() + "60205fa100")
+# LOG0 with no data as many times as the first calldata word says, then stop.
+REPEATER = bytes.fromhex("6000355b801560155760006000a0600190036003565b00")
 # Reads the code size of 0x22..22 and writes then clears slot 0.
 TOUCHER = bytes.fromhex("73" + "22" * 20 + "3b50" + "6001600055600060005500")
 
@@ -139,6 +141,42 @@ def test_filters_report_the_same_changes_as_anvil(
         assert gone == {"code": -32000, "message": "filter not found"}
         seen.append([essence(log) for log in changes])
     assert seen[0] == seen[1]
+
+
+def test_a_filter_moves_on_past_ten_thousand_logs_as_anvil_reports_them(pair: Pair) -> None:
+    """A filter whose blocks held more than 10,000 logs answered -32005 at every poll and
+    never moved, and a block of more than 10,000 could never be read. A poll now answers
+    whole blocks up to 10,000 logs (the first block whole, however many it holds) and the
+    rest at the next polls; anvil answers everything at once: the same logs in all."""
+    owner = pair.funded()
+    contracts = pair.deploy(owner, deploying(REPEATER))
+    counts = (6_000, 6_000, 10_001)
+    reported = []
+    for url, address in zip(pair.urls, contracts, strict=True):
+        filter_id = result(url, "eth_newFilter", [{"address": address}])
+        blocks = []
+        for count in counts:
+            nonce = int(result(url, "eth_getTransactionCount", [owner.address, "latest"]), 16)
+            tx = RawTx(nonce=nonce, to=bytes.fromhex(address[2:]), data=count.to_bytes(32, "big"))
+            raw = tx.but(gas=5_000_000, max_fee=10**10).sign(bytes(owner.account.key))
+            tx_hash = result(url, "eth_sendRawTransaction", [raw])
+            blocks.append(result(url, "eth_getTransactionReceipt", [tx_hash])["blockHash"])
+        polls = []
+        while changes := result(url, "eth_getFilterChanges", [filter_id]):
+            polls.append(changes)
+        if url == pair.ledger:
+            assert [len(poll) for poll in polls] == list(counts)
+            whole = call(url, "eth_getLogs", [{"address": address, "fromBlock": "0x0"}])
+            assert whole["error"]["code"] == -32005
+        else:
+            assert [len(poll) for poll in polls] == [sum(counts)]
+        big = result(url, "eth_getLogs", [{"blockHash": blocks[-1]}])
+        assert len(big) == counts[-1]
+        reported.append([(log["logIndex"], *essence(log)[1:]) for poll in polls for log in poll])
+        assert [log["blockHash"] for poll in polls for log in poll] == [
+            block for block, count in zip(blocks, counts, strict=True) for _ in range(count)
+        ]
+    assert reported[0] == reported[1]
 
 
 def test_a_filter_starting_beyond_the_head_is_refused_on_both(pair: Pair) -> None:
@@ -269,7 +307,10 @@ def test_small_methods_agree_with_anvil(pair: Pair) -> None:
 def test_filters_are_read_only(service: Service) -> None:
     """Installing and polling filters mines nothing."""
     before = head(service.url)
-    filter_id = result(f"{service.url}/rpc", "eth_newFilter", [{"fromBlock": "0x0"}])
+    # Up to block 1 (the Registry's deployment logs): the module's chain holds more than
+    # 10,000 logs in all, which eth_getFilterLogs refuses as eth_getLogs does.
+    query = {"fromBlock": "0x0", "toBlock": "0x1"}
+    filter_id = result(f"{service.url}/rpc", "eth_newFilter", [query])
     assert len(result(f"{service.url}/rpc", "eth_getFilterLogs", [filter_id])) > 0
     assert result(f"{service.url}/rpc", "eth_getFilterChanges", [filter_id]) == []
     assert head(service.url) == before

@@ -220,3 +220,25 @@ def test_an_index_of_the_first_schema_is_migrated_in_place(tmp_path: Path) -> No
         assert [row["epoch"] for row in reopened.anchors(ROBOT, None, 100)] == [2**63 - 1, 2**63]
     finally:
         reopened.close()
+
+
+def test_a_page_holds_whole_blocks_and_a_block_past_the_limit_alone(
+    index: EventIndex, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(index_module, "MAX_LOG_RESULTS", 3)
+    sizes = {1: 2, 2: 1, 3: 5, 5: 1}
+    for block, size in sizes.items():
+        index.add_block(block, bytes(32), [registered(block, position=i) for i in range(size)])
+
+    def blocks(page: list[LogEntry]) -> list[int]:
+        return [entry.block_number for entry in page]
+
+    found, last = index.logs_page(LogFilter(0, 9))
+    assert (blocks(found), last) == ([1, 1, 2], 2)
+    found, last = index.logs_page(LogFilter(3, 9))
+    assert (blocks(found), last) == ([3] * 5, 3)
+    found, last = index.logs_page(LogFilter(4, 9))
+    assert (blocks(found), last) == ([5], 9)
+    assert len(index.logs(LogFilter(3, 3))) == 5
+    with pytest.raises(IndexLimitError):
+        index.logs(LogFilter(2, 3))
