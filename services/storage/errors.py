@@ -30,6 +30,7 @@ from services.storage.ingest import JobNotFound, JobNotResumable, TooManyJobs
 from services.storage.keywords import TooManyKeywordHits
 from services.storage.knowledge import (
     CasUnavailable,
+    CidNotCanonical,
     DescriptionInvalid,
     DescriptionNotFound,
     DescriptionTooLarge,
@@ -172,6 +173,9 @@ ERRORS = ErrorMap(
             400, "rdf_unparsable", lambda exc: {"cid": exc.cid, "line": exc.line}
         ),
         NotADescription: ErrorRule(400, "not_a_description", lambda exc: {"cid": exc.cid}),
+        CidNotCanonical: ErrorRule(
+            400, "cid_not_canonical", lambda exc: {"cid": exc.cid[:200], "expected": exc.expected}
+        ),
         DescriptionTooLarge: ErrorRule(
             400, "description_too_large", lambda exc: {"cid": exc.cid, "limit": exc.limit}
         ),

@@ -35,10 +35,12 @@ from robocloud.semantic import (
     DescriptionInvalidError,
     DescriptionSyntaxError,
     DescriptionTooLargeError,
+    NotADescriptionError,
     SemanticError,
     parse_canonical,
     validate,
 )
+from robocloud.unixfs import import_bytes
 from services.common.durable import atomic_write
 from services.storage.sparql import SparqlWorkers
 
@@ -92,6 +94,25 @@ class DescriptionUnparsable(DescriptionRefused):
 
 class NotADescription(DescriptionRefused):
     """RDF or bytes that are not a robocloud description."""
+
+
+class CidNotCanonical(DescriptionRefused):
+    """The bytes are sent under another CID than the one they have in canonical form.
+
+    A description is named by the CID of its canonical bytes as ``robocloud.unixfs`` imports
+    them (CIDv1, raw leaves: what cas answers when they are added), and the SPARQL workers
+    load a stored file only if its bytes have its name. The same bytes under a CIDv0 or a
+    dag-pb CID were acknowledged once and then never loaded; ``expected`` is the CID to use.
+    """
+
+    def __init__(self, cid: str, expected: str) -> None:
+        super().__init__(
+            cid,
+            NotADescriptionError(
+                f"a description is added by the CID of its canonical bytes, {expected}"
+            ),
+        )
+        self.expected = expected
 
 
 class DescriptionTooLarge(DescriptionRefused):
@@ -230,13 +251,16 @@ class KnowledgeBase:
             return cid in self._known
 
     def add(self, cid_text: str) -> Indexed:
-        """Fetch, read, validate and store the description at ``cid_text``; idempotent."""
+        """Fetch, read, validate and store the description at ``cid_text``; idempotent.
+
+        Raises :class:`CidNotCanonical` when the bytes there have another canonical CID.
+        """
         cid = str(parse_cid(cid_text, "cid").to_v1())
-        description = self._fetch(cid)
+        description = self._fetch(cid, cid_text)
         new = self._store(cid, description)
         return Indexed(cid, description.subjects(), len(description), new)
 
-    def _fetch(self, cid: str) -> Description:
+    def _fetch(self, cid: str, cid_text: str) -> Description:
         try:
             with self.connect_cas() as cas:
                 data = cas.get(cid, max_size=self.max_bytes)
@@ -249,6 +273,9 @@ class KnowledgeBase:
             raise DescriptionNotFound(f"cas does not have {cid}", cid) from None
         except RobocloudError as exc:
             raise CasUnavailable(f"cannot fetch {cid} from cas: {exc}", cid) from None
+        expected = str(import_bytes(data)[1])
+        if expected != cid:
+            raise CidNotCanonical(cid_text, expected)
         try:
             description = parse_canonical(
                 data, max_bytes=self.max_bytes, max_triples=self.max_triples

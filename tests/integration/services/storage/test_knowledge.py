@@ -26,6 +26,7 @@ from robocloud.errors import ApiError
 from robocloud.identity import Identity
 from robocloud.knowledge import Knowledge
 from robocloud.semantic import Description
+from robocloud.unixfs import ImportParams
 from tests.flood import flooding
 from tests.procs import REPO, ServiceProcess
 from tests.waiting import wait_for
@@ -33,6 +34,7 @@ from tests.waiting import wait_for
 EXAMPLES = REPO / "ontology" / "examples"
 RC = "https://w3id.org/robocloud#"
 JPEG_FILE = "ipfs://bafkreifhyd2reqnaxb6vmuv3gwnyum4osowzkclmxa2qdsj3fhkderxyem"
+ROBOT_ADDRESS = "0x1a642f0E3c3aF545E7AcBD38b07251B3990914F1"
 APP = "ipfs://bafkreia357kjlhicbaks5xy6g5ridjm6wevmf6ccufgzsdrlpfyi6ydb34"
 PREFIX = f"PREFIX rc: <{RC}>\n"
 TIMEOUT_S = 4
@@ -202,6 +204,27 @@ def test_a_cid_cas_does_not_have_or_that_is_malformed_is_named(services: Service
             headers={"Content-Type": "application/json"},
         )
     assert error(surrogate, 400, "invalid_json") == {}
+    unchanged(services, before)
+
+
+def test_a_description_under_another_cid_than_its_canonical_one_is_refused(
+    services: Services,
+) -> None:
+    """The same bytes under a CIDv0 (dag-pb) were acknowledged, new: true, then never loaded
+    by the SPARQL workers, which check each file's bytes against its name."""
+    before = services.stored()
+    robot = Identity.generate().address
+    text = example("robot").canonical().decode().replace(ROBOT_ADDRESS, robot)
+    data = semantic.parse_description(text, "nt").canonical()
+    with services.cas() as cas:
+        v0 = str(cas.add_bytes(data, params=ImportParams(cid_version=0, raw_leaves=False)))
+        v1_dag_pb = str(cas.add_bytes(data, params=ImportParams(raw_leaves=False)))
+    canonical = str(semantic.parse_canonical(data).cid())
+    assert v0.startswith("Qm")
+    assert v1_dag_pb.startswith("bafybei")
+    for cid in (v0, v1_dag_pb):
+        details = error(services.post(cid), 400, "cid_not_canonical")
+        assert details == {"cid": cid, "expected": canonical}
     unchanged(services, before)
 
 
