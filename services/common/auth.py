@@ -7,14 +7,12 @@ this module holds what that check needs (the nonce store, the authorizer) and th
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from typing import Annotated, Protocol
 
-from eth_utils.address import is_address, to_checksum_address
 from fastapi import Depends, Request
 
 from robocloud.signing import VerifiedRequest
-from services.common.errors import Forbidden, Unauthorized
+from services.common.errors import Unauthorized
 from services.common.settings import ServiceSettings
 
 
@@ -35,24 +33,6 @@ class AnySigner:
 
     async def authorize(self, address: str, role: str | None = None) -> None:
         return None
-
-    def close(self) -> None:
-        return None
-
-
-class Allowlist:
-    """A fixed set of addresses, from ``ROBOCLOUD_ALLOWED_ADDRESSES``; roles are not modelled."""
-
-    def __init__(self, addresses: Iterable[str]) -> None:
-        self.addresses = frozenset(to_checksum_address(a) for a in addresses if is_address(a))
-
-    async def authorize(self, address: str, role: str | None = None) -> None:
-        if address not in self.addresses:
-            raise Forbidden(
-                f"address {address} is not allowed to write to this service",
-                code="address_not_allowed",
-                details={"address": address},
-            )
 
     def close(self) -> None:
         return None

@@ -7,8 +7,9 @@ cost a round trip to the ledger. A revocation therefore takes effect within the 
 lifetime. When the ledger cannot be reached the request is refused with 503: failing open
 would let anybody write whenever the ledger is down.
 
-Addresses in ``ROBOCLOUD_ALLOWED_ADDRESSES`` are allowed without asking (operators' tools,
-tests), exactly as with the plain allowlist.
+Addresses in ``ROBOCLOUD_ALLOWED_ADDRESSES`` are the operator's own keys (its tools, the
+Compose test): allowed without asking, and in every role, since the operator could grant
+itself any role on its ledger anyway. A robot's key does not belong there.
 """
 
 from __future__ import annotations

@@ -24,7 +24,8 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from robocloud.identity import Identity
 from robocloud.signing import HEADER_AUDIENCE, HEADER_NONCE, sign_request
 from services.common.audience import ServiceAudience
-from services.common.auth import Allowlist, AnySigner, Authorizer
+from services.common.auth import AnySigner, Authorizer
+from services.common.errors import Forbidden
 from services.common.logs import request_id_var
 from services.common.metrics import ServiceMetrics
 from services.common.middleware import (
@@ -343,17 +344,35 @@ def test_replayed_nonce_is_401(tmp_path: Path) -> None:
     assert error["details"] == {"header": HEADER_NONCE}
 
 
+class Listed:
+    """An authorizer that lets in the addresses it holds (the registry's answer, fixed)."""
+
+    def __init__(self) -> None:
+        self.addresses: set[str] = set()
+
+    async def authorize(self, address: str, role: str | None = None) -> None:
+        if address not in self.addresses:
+            raise Forbidden(
+                f"address {address} is not allowed",
+                code="address_not_allowed",
+                details={"address": address},
+            )
+
+    def close(self) -> None:
+        return None
+
+
 def test_nonce_is_checked_before_the_authorizer_is_asked(tmp_path: Path) -> None:
     """A refused signer's replay is refused for its nonce: no second authorizer lookup, and a
     request refused once (403, or 503 while the ledger is down) can never be replayed into
     success later, after the signer was registered."""
     robot = Identity.generate()
-    allowlist = Allowlist([])
-    app = signature_layer(tmp_path, never_called, authorizer=allowlist)
+    listed = Listed()
+    app = signature_layer(tmp_path, never_called, authorizer=listed)
     headers = signed(robot, "/w")
     first = error_of(call(app, "POST", "/w", headers=headers), 403, "address_not_allowed")
     assert first["details"] == {"address": robot.address}
-    allowlist.addresses = frozenset({robot.address})
+    listed.addresses.add(robot.address)
     error_of(call(app, "POST", "/w", headers=headers), 401, "replayed_nonce")
 
 
