@@ -264,8 +264,11 @@ def parse_canonical(
         )
     graph = Graph()
     previous = ""
-    for number, line in enumerate(text.splitlines(keepends=True), start=1):
-        triple = _parse_line(line.removesuffix("\n"), number)
+    # Lines end in LF only: str.splitlines also splits at U+000B, U+0085, U+2028 and others,
+    # which a literal may hold, and a description holding one read as a broken line.
+    for number, bare in enumerate(text.split("\n")[:-1], start=1):
+        line = bare + "\n"
+        triple = _parse_line(bare, number)
         if line <= previous:
             order = (
                 "repeats the previous line" if line == previous else "sorts before the one above"
@@ -392,8 +395,35 @@ def _ontology_file(name: str) -> str:
     return (resources.files("robocloud") / "ontology" / name).read_text(encoding="utf-8")
 
 
+_NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
+"""Characters outside XML 1.0's ``Char`` production: no escape carries them (``&#x1;`` is not
+well-formed either), so no RDF/XML view or SPARQL XML answer could hold them."""
+
+
+def _not_xml(description: Description) -> set[Violation]:
+    """A violation for each triple with a term XML 1.0 cannot carry.
+
+    N-Triples and Turtle would carry a C0 control character in a literal, but the knowledge
+    base also answers in RDF/XML and SPARQL XML results: one literal with U+0001 made every
+    XML answer that included it ill-formed, which SPARQLWrapper and rdflib then refused.
+    """
+    found: set[Violation] = set()
+    for subject, predicate, obj in description.graph:
+        for term in (subject, predicate, obj, getattr(obj, "datatype", None)):
+            bad = _NOT_XML.search(str(term)) if term is not None else None
+            if bad is not None:
+                path = _curie(predicate)
+                message = (
+                    f"{path} holds U+{ord(bad.group()):04X}, which XML 1.0 cannot carry "
+                    "(descriptions are answered as RDF/XML and SPARQL XML results too)"
+                )
+                found.add(Violation(str(subject), path, message, str(obj)))
+    return found
+
+
 def violations(description: Description) -> list[Violation]:
-    """Every SHACL violation of the description, sorted by focus node, path and message.
+    """Every SHACL violation of the description, and every term XML cannot carry, sorted by
+    focus node, path and message.
 
     A value that breaks two constraints of one property shape (ill-typed and out of range)
     is listed once: the shape's message is the same for both.
@@ -403,7 +433,7 @@ def violations(description: Description) -> list[Violation]:
     check_bounds(description)
     _, report, _ = validate(description.graph, shacl_graph=shapes(), allow_warnings=True)
     assert isinstance(report, Graph)
-    found: set[Violation] = set()
+    found = _not_xml(description)
     for result in report.objects(None, SH.result):
         focus = report.value(result, SH.focusNode)
         path = report.value(result, SH.resultPath)

@@ -228,6 +228,31 @@ def test_a_violation_names_focus_node_path_and_message() -> None:
     }
 
 
+@pytest.mark.parametrize("character", ["\x01", "\x1f", "\x0b", "\ufffe"])
+def test_a_literal_xml_cannot_carry_is_a_violation_naming_its_triple(character: str) -> None:
+    """Canonical N-Triples carries a control character, but one in a literal made every XML
+    answer that included it ill-formed (SPARQL XML results, RDF/XML)."""
+    title = f"cam{character}era.jpg"
+    text = BUILT["file"]().canonical().replace(b'"camera.jpg"', f'"{title}"'.encode())
+    description = semantic.parse_canonical(text)
+    with pytest.raises(DescriptionInvalidError) as caught:
+        semantic.validate(description)
+    message = (
+        f"dcterms:title holds U+{ord(character):04X}, which XML 1.0 cannot carry "
+        "(descriptions are answered as RDF/XML and SPARQL XML results too)"
+    )
+    assert caught.value.violations == [Violation(f"ipfs://{JPEG}", "dcterms:title", message, title)]
+
+
+@pytest.mark.parametrize("title", ["a\tb\nc\rd", "\x7f\x85\u00e9", "line\u2028separator\u2029"])
+def test_tabs_line_breaks_and_any_other_text_are_carried(title: str) -> None:
+    """U+0085 and U+2028 are line breaks to ``str.splitlines`` only, not to N-Triples."""
+    built = semantic.file_description(JPEG, media_type="image/jpeg", byte_size=10, title=title)
+    read = semantic.parse_canonical(built.canonical())
+    assert read.cid() == built.cid()
+    assert semantic.violations(read) == []
+
+
 def test_every_missing_required_property_is_listed() -> None:
     graph = Graph()
     graph.add((URIRef(f"ipfs://{APP}"), RDF.type, RC.Application))

@@ -156,6 +156,28 @@ def test_a_description_failing_its_shapes_is_refused_listing_each_violation(
     unchanged(services, before)
 
 
+def test_a_literal_xml_cannot_carry_is_refused_naming_its_triple(services: Services) -> None:
+    """One was accepted, and from then on every XML answer holding it (SPARQL XML results,
+    a CONSTRUCT as RDF/XML) was ill-formed: SPARQLWrapper and rdflib could not read them."""
+    before = services.stored()
+    text = example("file").canonical().replace(b'"camera.jpg"', b'"cam\x01era.jpg"')
+    cid = services.put(semantic.parse_canonical(text).canonical())
+    details = error(services.post(cid), 400, "description_invalid")
+    assert details == {
+        "cid": cid,
+        "violations": [
+            {
+                "focus": JPEG_FILE,
+                "path": "dcterms:title",
+                "message": "dcterms:title holds U+0001, which XML 1.0 cannot carry "
+                "(descriptions are answered as RDF/XML and SPARQL XML results too)",
+                "value": "cam\x01era.jpg",
+            }
+        ],
+    }
+    unchanged(services, before)
+
+
 @pytest.mark.parametrize(
     ("document", "code", "details"),
     [
