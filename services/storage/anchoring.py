@@ -119,6 +119,11 @@ class Epoch:
     anchor: AnchorRef | None
 
 
+MAX_SQLITE_INTEGER = 2**63 - 1
+"""SQLite's integers are 64-bit: a larger epoch (``GET /v1/epochs/{epoch}`` takes up to
+10**19 - 1) names none, where binding it raised OverflowError (a 500)."""
+
+
 class EpochStore:
     """The node's epochs in SQLite (synchronous=FULL): each committed before it is anchored."""
 
@@ -143,6 +148,8 @@ class EpochStore:
         return int(row[0] or 0)
 
     def tree(self, epoch: int) -> EpochTree | None:
+        if not 0 <= epoch <= MAX_SQLITE_INTEGER:
+            return None
         with self._lock:
             cached = self._trees.get(epoch)
             if cached is not None:

@@ -104,6 +104,14 @@ def test_epochs_that_are_malformed_or_not_cut(storage: ServiceProcess) -> None:
         "value": "abc",
     }
     assert error(httpx.get(f"{storage.url}/v1/epochs/1"), 404, "epoch_not_found") == {"epoch": 1}
+    # Beyond SQLite's 64-bit integers: binding one raised OverflowError, a 500.
+    for epoch in (2**63 - 1, 2**63, 10**19 - 1):
+        beyond = httpx.get(f"{storage.url}/v1/epochs/{epoch}")
+        assert error(beyond, 404, "epoch_not_found") == {"epoch": epoch}
+    assert error(httpx.get(f"{storage.url}/v1/epochs/{10**19}"), 400, "invalid_parameter") == {
+        "field": "epoch",
+        "value": str(10**19),
+    }
     node = httpx.get(f"{storage.url}/v1/node").json()
     assert node["anchoring"] is False
     assert node["last_epoch"] == 0
