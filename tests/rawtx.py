@@ -19,7 +19,8 @@ SECPK1_N = 0xFFFFFFFFFFFFFFFFFFFFFFFFFFFFFFFEBAAEDCE6AF48A03BBFD25E8CD0364141
 
 @dataclass(frozen=True)
 class RawTx:
-    """A transaction's fields; ``kind`` 0 (legacy, EIP-155), 1 (EIP-2930) or 2 (EIP-1559)."""
+    """A transaction's fields; ``kind`` 0 (legacy, EIP-155), 1 (EIP-2930), 2 (EIP-1559) or 4
+    (EIP-7702, with ``authorizations``: see ``authorization``)."""
 
     kind: int = 2
     chain_id: int = 1337
@@ -32,6 +33,7 @@ class RawTx:
     max_fee: int = 2 * 10**9
     max_priority_fee: int = 10**9
     access_list: list[Any] = field(default_factory=list)
+    authorizations: list[Any] = field(default_factory=list)
 
     def unsigned_fields(self) -> list[Any]:
         if self.kind == 0:
@@ -41,10 +43,11 @@ class RawTx:
                 self.chain_id, self.nonce, self.gas_price, self.gas, self.to, self.value,
                 self.data, self.access_list,
             ]  # fmt: skip
-        return [
+        dynamic = [
             self.chain_id, self.nonce, self.max_priority_fee, self.max_fee, self.gas, self.to,
             self.value, self.data, self.access_list,
         ]  # fmt: skip
+        return [*dynamic, self.authorizations] if self.kind == 4 else dynamic
 
     def sign(
         self,
@@ -76,3 +79,11 @@ class RawTx:
 
     def but(self, **changes: Any) -> RawTx:
         return replace(self, **changes)
+
+
+def authorization(key: bytes, address: bytes, nonce: int, chain_id: int = 1337) -> list[Any]:
+    """An EIP-7702 authorization signed with ``key``: ``[chain_id, address, nonce, y_parity,
+    r, s]``, its fields free to be forged by replacing items."""
+    digest = keccak(b"\x05" + rlp.encode([chain_id, address, nonce]))
+    signature = keys.PrivateKey(key).sign_msg_hash(digest)
+    return [chain_id, address, nonce, signature.v, signature.r, signature.s]

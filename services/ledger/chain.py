@@ -473,9 +473,7 @@ class EmbeddedChain:
         sender's."""
         validation.check_fields(transaction, CHAIN_ID, self._head.gas_limit)
         sender = transaction.sender
-        validation.check_sender(
-            transaction, bytes(state.get_code_hash(sender)), self.base_fee_locked()
-        )
+        validation.check_sender(transaction, bytes(state.get_code(sender)), self.base_fee_locked())
         expected = state.get_nonce(sender)
         if transaction.nonce < expected:
             raise ChainError(

@@ -13,6 +13,7 @@ from typing import Any
 
 import rlp
 from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
+from eth.vm.forks.prague.constants import SET_CODE_TRANSACTION_TYPE
 from eth_utils.address import to_checksum_address
 from eth_utils.crypto import keccak
 
@@ -137,6 +138,18 @@ def transaction_fields(tx: SignedTransactionAPI) -> dict[str, Any]:
     else:
         fields["maxFeePerGas"] = quantity(tx.max_fee_per_gas)
         fields["maxPriorityFeePerGas"] = quantity(tx.max_priority_fee_per_gas)
+    if tx.type_id == SET_CODE_TRANSACTION_TYPE:
+        fields["authorizationList"] = [
+            {
+                "chainId": quantity(auth.chain_id),
+                "address": address(auth.address),
+                "nonce": quantity(auth.nonce),
+                "yParity": quantity(auth.y_parity),
+                "r": quantity(auth.r),
+                "s": quantity(auth.s),
+            }
+            for auth in tx.authorization_list
+        ]
     return fields
 
 

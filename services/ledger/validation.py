@@ -5,7 +5,8 @@ py-evm checks the signature (recovery, low ``s``), the fee cap against the base 
 its own message), the nonce and the balance while it executes; it does not check that the
 priority fee is within the fee cap, that the gas covers the intrinsic cost and EIP-7623's
 calldata floor, the block gas limit, EIP-3860's init code limit, the 256-bit bounds of the
-fee fields, EIP-2681's nonce bound, nor EIP-3607 (no transactions from accounts with code).
+fee fields, EIP-2681's nonce bound, EIP-3607 (no transactions from accounts with code other
+than an EIP-7702 delegation), nor the fields of EIP-7702's authorizations.
 Geth's transaction pool checks all of them with the messages below, which clients such as
 ethers and viem classify by prefix (``intrinsic gas too low``, ``max fee per gas less than
 block base fee``). Every rule raises before anything is queued, executed or stored.
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 
 from eth.abc import SignedTransactionAPI
 from eth.constants import CREATE_CONTRACT_ADDRESS
+from eth.vm.forks.prague.constants import SET_CODE_TRANSACTION_TYPE
 from eth_utils.crypto import keccak
 
 from services.ledger.refusals import ChainError, InvalidParams
@@ -30,7 +32,12 @@ UINT256_MAX = 2**256 - 1
 TX_BASE_GAS = 21_000
 FLOOR_GAS_PER_TOKEN = 10
 """EIP-7623 (Prague): the calldata floor, ``21000 + 10 * tokens``."""
-EMPTY_CODE_HASH = keccak(b"")
+DELEGATION_PREFIX = b"\xef\x01\x00"
+"""EIP-7702: an account's code ``0xef0100 || address`` delegates its execution to address."""
+
+
+def is_delegation(code: bytes) -> bool:
+    return len(code) == 23 and code.startswith(DELEGATION_PREFIX)
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,8 @@ def check_raw_size(raw: bytes) -> None:
 
 def check_fields(transaction: SignedTransactionAPI, chain_id: int, block_gas_limit: int) -> None:
     """The rules that need no state: bounds, replay protection, fees, gas."""
+    if transaction.type_id == SET_CODE_TRANSACTION_TYPE:
+        check_authorizations(transaction)
     if transaction.nonce > UINT64_MAX:
         raise InvalidParams("invalid raw transaction: nonce higher than 2^64-1")
     if transaction.gas > UINT64_MAX:
@@ -108,6 +117,40 @@ def check_fields(transaction: SignedTransactionAPI, chain_id: int, block_gas_lim
         )
 
 
+def check_authorizations(transaction: SignedTransactionAPI) -> None:
+    """EIP-7702's set-code transaction as geth decodes it: a recipient (its ``to`` is an
+    address, so it cannot create a contract), authorizations whose fields fit their types
+    (anvil and geth cannot even decode one that does not: -32602, where py-evm let it reach
+    the block and refused it there, -32000), and at least one authorization. An
+    authorization with a wrong chain id, nonce or signature is valid here: it is skipped
+    when the transaction executes, as the EIP says."""
+    if transaction.to == CREATE_CONTRACT_ADDRESS:
+        raise InvalidParams(
+            "invalid raw transaction: EIP-7702 transaction cannot be used to create contract"
+        )
+    for position, auth in enumerate(transaction.authorization_list):
+        bounds = (
+            ("chain id", auth.chain_id, 256),
+            ("nonce", auth.nonce, 64),
+            ("y parity", auth.y_parity, 8),
+            ("r", auth.r, 256),
+            ("s", auth.s, 256),
+        )
+        for name, value, bits in bounds:
+            if value >= 2**bits:
+                raise InvalidParams(
+                    f"invalid raw transaction: authorization {position}: {name} higher than "
+                    f"2^{bits}-1"
+                )
+        if len(auth.address) != 20:
+            raise InvalidParams(
+                f"invalid raw transaction: authorization {position}: address "
+                f"0x{bytes(auth.address).hex()} is not 20 bytes"
+            )
+    if not transaction.authorization_list:
+        raise ChainError("EIP-7702 transaction with empty auth list")
+
+
 def floor_data_gas(data: bytes) -> int:
     """EIP-7623's least gas for a transaction carrying ``data`` (a zero byte is one token,
     any other byte four)."""
@@ -116,12 +159,14 @@ def floor_data_gas(data: bytes) -> int:
     return TX_BASE_GAS + FLOOR_GAS_PER_TOKEN * tokens
 
 
-def check_sender(transaction: SignedTransactionAPI, code_hash: bytes, base_fee: int) -> None:
-    """The rules that need the head's state: EIP-3607 and the base fee."""
-    if code_hash not in (EMPTY_CODE_HASH, b"\x00" * 32):
+def check_sender(transaction: SignedTransactionAPI, code: bytes, base_fee: int) -> None:
+    """The rules that need the head's state: EIP-3607 and the base fee. A sender whose
+    code is an EIP-7702 delegation designator is still an EOA (EIP-7702 amends EIP-3607 so):
+    it holds its key and has delegated only what calls to it run."""
+    if code and not is_delegation(code):
         raise ChainError(
             f"sender not an eoa: address 0x{transaction.sender.hex()}, "
-            f"codehash: 0x{code_hash.hex()}"
+            f"codehash: 0x{keccak(code).hex()}"
         )
     fees = Fees.of(transaction)
     if fees.cap < base_fee:
