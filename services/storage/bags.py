@@ -297,6 +297,13 @@ class Bag:
             raise _classify_ros2(exc, self.path) from None
         except (TypesysError, KeyError, ValueError, OSError) as exc:
             raise BagCorrupt(_reason(exc), path=self.path) from None
+        except Exception as exc:  # rosbags' readers parse with ord(), struct and asserts
+            # on reads that may come back short: an MCAP cut after its magic raised
+            # TypeError, a forged length MemoryError or struct.error. Only the bag's bytes
+            # reach here, so each of these is damage, not a bug of ours.
+            raise BagCorrupt(
+                f"damaged or truncated ({type(exc).__name__}: {_reason(exc)})", path=self.path
+            ) from None
         self._stack.callback(reader.close)
         self._span = (reader.start_time, reader.end_time)
         storage = reader.storage

@@ -122,6 +122,30 @@ def test_bad_bags_fail_without_records(
     assert unsigned.json()["error"]["code"]
 
 
+def test_an_mcap_cut_after_its_magic_fails_as_a_corrupt_bag(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """With staging processes the bag is opened unchecked; rosbags raised TypeError on the
+    missing first record, and the job failed as ingest_failed with that TypeError's text."""
+    storage = service_factory("storage", {"ROBOCLOUD_STORAGE_INGEST_WORKERS": "2"})
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((SHARED_DATA / "mcap" / "rosbag2_cpp_only_topics.mcap").read_bytes()[:8])
+    with Ingest(storage.url, identity) as ingest:
+        failed = ingest.wait(ingest.upload(cut)["id"], timeout_s=60)
+    assert failed["status"] == "failed"
+    error = failed["error"]
+    assert (error["code"], error["details"], error["resumable"]) == (
+        "bag_corrupt",
+        {"file": "bag.mcap", "offset": None},
+        False,
+    )
+    assert error["message"].endswith(
+        "bag.mcap: damaged or truncated "
+        "(TypeError: ord() expected a character, but string of length 0 found)"
+    )
+    assert failed["records"] == {"staged": 0, "committed": 0}
+
+
 def test_a_real_recording_is_ingested_through_the_draft_its_job_proposes(
     storage: ServiceProcess, identity: Identity
 ) -> None:

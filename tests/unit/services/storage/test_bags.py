@@ -246,6 +246,18 @@ def test_truncated_mcap_names_file_and_offset(tmp_path: Path, fraction: float) -
     assert 0 < caught.value.offset <= len(data)
 
 
+@pytest.mark.parametrize("length", [8, 9, 40])
+def test_an_mcap_cut_after_its_magic_is_corrupt_unchecked_too(tmp_path: Path, length: int) -> None:
+    """Opened unchecked (staging processes check alongside), rosbags' reader raised TypeError
+    on the missing first record, and the ingest job failed as ingest_failed."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((DATA / "mcap/rosbag2_cpp_only_topics.mcap").read_bytes()[:length])
+    for check in (False, True):
+        with pytest.raises(BagCorrupt) as caught:
+            Bag.open(cut, check=check)
+        assert caught.value.path == cut
+
+
 def test_corrupt_compressed_mcap_chunk_is_an_error_not_a_lost_message(tmp_path: Path) -> None:
     """rosbags alone drops the damaged chunk's messages without a word."""
     source = DATA / "mcap/cartographer_b0_short_mcap_zstd"
