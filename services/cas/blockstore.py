@@ -13,6 +13,13 @@ Every read re-hashes the bytes: a block that no longer matches (disk rot, an ope
 mistake) is copied to ``quarantine/``, dropped from its pack's index and reported, and the
 read fails as a miss so that the caller can fetch a good copy from a peer. Deleted blocks
 leave dead bytes in their pack until ``compact`` rewrites it.
+
+Garbage collection runs beside uploads and pins, so what an operation relies on is held
+(:class:`Hold`): a block an upload found already stored and did not write again, a block
+it committed and is about to pin, a block a pin check has read. ``collect`` deletes no
+held block, and a hold is given back only under ``sweeping``, the lock collection's last
+phase takes: a hold ends either before that phase, when its pin is already there to be
+marked, or after it.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import os
 import threading
 import time
 import uuid
+from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,6 +81,9 @@ class Blockstore:
         for leftover in self.spool.iterdir():
             leftover.unlink()
         self._lock = threading.Lock()
+        self.sweeping = threading.Lock()
+        """Held by garbage collection's last phase (marking new pins, then ``collect``)."""
+        self._held: Counter[bytes] = Counter()
         self._index: dict[bytes, Location] = {}
         self._members: dict[str, dict[bytes, Location]] = {}
         self._committed: dict[str, float] = {}
@@ -143,6 +154,23 @@ class Blockstore:
     def stage(self) -> Staging:
         return Staging(self)
 
+    def hold(self) -> Hold:
+        return Hold(self)
+
+    def _keep(self, hold: Hold, multihash: bytes) -> bool:
+        with self._lock:
+            if multihash not in self._index:
+                return False
+            if multihash not in hold.held:
+                hold.held.add(multihash)
+                self._held[multihash] += 1
+            return True
+
+    def _release(self, hold: Hold) -> None:
+        with self.sweeping, self._lock:
+            self._held -= Counter(hold.held)
+            hold.held.clear()
+
     def usage(self) -> tuple[int, int]:
         """How many blocks are stored, and the bytes their packs take (dead bytes included)."""
         with self._lock:
@@ -157,17 +185,29 @@ class Blockstore:
                 for multihash, location in self._index.items()
             ]
 
-    def delete(self, multihashes: Iterable[bytes]) -> None:
-        """Forget blocks; their bytes stay in their packs until ``compact``."""
+    def collect(self, multihashes: Iterable[bytes]) -> list[bytes]:
+        """Delete the blocks no operation holds; returns those deleted."""
         with self._lock:
-            touched: set[str] = set()
-            for multihash in multihashes:
-                location = self._index.pop(multihash, None)
-                if location is not None:
-                    self._members[location.pack].pop(multihash, None)
-                    touched.add(location.pack)
-            for pack in touched:
-                self._write_index(pack)
+            unheld = [multihash for multihash in multihashes if multihash not in self._held]
+            return self._delete(unheld)
+
+    def delete(self, multihashes: Iterable[bytes]) -> None:
+        """Forget blocks, held or not; their bytes stay in their packs until ``compact``."""
+        with self._lock:
+            self._delete(multihashes)
+
+    def _delete(self, multihashes: Iterable[bytes]) -> list[bytes]:
+        deleted: list[bytes] = []
+        touched: set[str] = set()
+        for multihash in multihashes:
+            location = self._index.pop(multihash, None)
+            if location is not None:
+                self._members[location.pack].pop(multihash, None)
+                touched.add(location.pack)
+                deleted.append(multihash)
+        for pack in touched:
+            self._write_index(pack)
+        return deleted
 
     def compact(self, min_dead_fraction: float = 0.5) -> int:
         """Rewrite packs whose dead bytes reach the fraction; returns the bytes reclaimed."""
@@ -208,7 +248,9 @@ class Blockstore:
         fsync_dir(self.packs)
         self.pack_path(pack).unlink(missing_ok=True)
 
-    def _register(self, pack: str, members: dict[bytes, Location], replacing: str | None) -> None:
+    def _register(
+        self, pack: str, members: dict[bytes, Location], replacing: str | None, hold: Hold
+    ) -> None:
         with self._lock:
             duplicates: set[bytes] = set()
             if replacing is None:
@@ -218,6 +260,9 @@ class Blockstore:
             self._members[pack] = members
             self._committed[pack] = self._committed.get(replacing or "", time.time())
             self._index.update(members)
+            for multihash in (members.keys() | duplicates) - hold.held:
+                hold.held.add(multihash)
+                self._held[multihash] += 1
             if replacing is not None and replacing in self._members:
                 self._drop_pack(replacing)
             elif duplicates:
@@ -235,11 +280,34 @@ class Blockstore:
             self.on_corrupt(cid, target)
 
 
+class Hold:
+    """Stored blocks an operation relies on, which garbage collection leaves until it closes."""
+
+    def __init__(self, store: Blockstore) -> None:
+        self.store = store
+        self.held: set[bytes] = set()
+
+    def __enter__(self) -> Hold:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def keep(self, cid: CID) -> bool:
+        """Hold ``cid``'s block if it is stored; False if it is not (or no longer) there."""
+        return self.store._keep(self, cid.multihash)
+
+    def close(self) -> None:
+        self.store._release(self)
+
+
 class Staging:
     """Blocks of one upload in a new pack, durable on disk but invisible until ``commit``.
 
     An upload that fails half-way (a truncated body, a bad block in a CAR) is discarded by
-    leaving the context without committing: nothing of it ever appears in the store.
+    leaving the context without committing: nothing of it ever appears in the store. Until
+    then, and after a commit until it is discarded, it holds (``hold``) what it relies on:
+    the stored blocks it did not write again, and those it committed.
     """
 
     def __init__(self, store: Blockstore) -> None:
@@ -250,6 +318,7 @@ class Staging:
         self._file = self.path.open("xb")
         self._members: dict[bytes, Location] = {}
         self._offset = 0
+        self.hold = store.hold()
 
     def __enter__(self) -> Staging:
         return self
@@ -268,7 +337,7 @@ class Staging:
         """
         if cid.hash_code == IDENTITY:
             return
-        if cid.multihash not in self._members and not self.store.has(cid):
+        if cid.multihash not in self._members and not self.hold.keep(cid):
             self.write(cid.multihash, data)
 
     def write(self, multihash: bytes, data: bytes | memoryview) -> None:
@@ -298,16 +367,17 @@ class Staging:
             return 0
         entries = [[key.hex(), loc.offset, loc.length] for key, loc in self._members.items()]
         atomic_write(self.store.packs / f"{self.name}.idx", json.dumps(entries).encode())
-        self.store._register(self.name, dict(self._members), replacing)
+        self.store._register(self.name, dict(self._members), replacing, self.hold)
         self._members.clear()
         return committed
 
     def discard(self) -> None:
-        """Drop an uncommitted pack (a no-op once committed)."""
+        """Drop an uncommitted pack (once committed, only give back what it held)."""
         if not self._file.closed:
             self._file.close()
             self.path.unlink(missing_ok=True)
         self._members.clear()
+        self.hold.close()
 
 
 def _size_or_zero(path: Path) -> int:

@@ -35,6 +35,7 @@ from services.cas.blockstore import (
     BlockNotFound,
     Blockstore,
     CorruptionHook,
+    Hold,
     Staging,
     cid_for_multihash,
 )
@@ -180,10 +181,10 @@ class ContentStore:
             for cid, data in zip(cids, blocks, strict=True):
                 staging.add(cid, data)
             if pin:
-                self._require_complete(roots, staging)
+                self._require_complete(roots, staging.hold, staging)
             staging.commit()
-        if pin:
-            self.pins.add_all(roots, owner)
+            if pin:
+                self.pins.add_all(roots, owner)
         return cids
 
     # ---- files ----
@@ -301,13 +302,20 @@ class ContentStore:
         return reader.roots
 
     def missing_block(
-        self, root: CID, staging: Staging | None = None, *, seen: set[CID] | None = None
+        self,
+        root: CID,
+        staging: Staging | None = None,
+        *,
+        seen: set[CID] | None = None,
+        hold: Hold | None = None,
     ) -> CID | None:
         """The first block of ``root``'s DAG that neither the store nor its peers have.
 
-        ``seen``: blocks whose DAGs earlier calls found complete, not read again.
+        ``seen``: blocks whose DAGs earlier calls found complete, not read again. ``hold``
+        (the staging's by default) keeps every stored block read from garbage collection.
         """
-        get = partial(self._staged_or_stored, staging=staging)
+        keeper = hold or (staging.hold if staging is not None else None)
+        get = partial(self._staged_or_stored, staging=staging, hold=keeper)
         try:
             for _ in walk_dag(root, get, "all", seen):
                 pass
@@ -317,9 +325,18 @@ class ContentStore:
             raise InvalidDag(root, str(exc)) from exc
         return None
 
-    def _staged_or_stored(self, cid: CID, staging: Staging | None) -> bytes:
+    def _staged_or_stored(self, cid: CID, staging: Staging | None, hold: Hold | None) -> bytes:
         if staging is not None and cid in staging:
             return staging.get(cid)
+        if hold is None or cid.hash_code == IDENTITY:
+            return self._stored(cid)
+        held = hold.keep(cid)  # before the read: no collection between the two
+        data = self._stored(cid)
+        if not held and not hold.keep(cid):
+            raise _Missing(cid)  # fetched from a peer, then collected before it was held
+        return data
+
+    def _stored(self, cid: CID) -> bytes:
         try:
             return self.get_block(cid)
         except BlockUnavailable:
@@ -330,18 +347,22 @@ class ContentStore:
     def pin(self, roots: list[CID], owner: str) -> None:
         """Pin DAGs for ``owner``, all or none, once every block of each is here (fetched from
         peers if need be): a request refused for one root leaves no pin behind, as ``unpin``."""
-        self._require_complete(roots)
-        self.pins.add_all(roots, owner)
+        with self.blocks.hold() as hold:
+            self._require_complete(roots, hold)
+            self.pins.add_all(roots, owner)
 
-    def _require_complete(self, roots: list[CID], staging: Staging | None = None) -> None:
-        """Raise ``DagIncomplete`` for the first root whose DAG lacks a block.
+    def _require_complete(
+        self, roots: list[CID], hold: Hold, staging: Staging | None = None
+    ) -> None:
+        """Raise ``DagIncomplete`` for the first root whose DAG lacks a block; every stored
+        block read stays in ``hold`` until the caller's pin is made.
 
         One ``seen`` set for all roots: a sub-DAG that several roots share (every block of a
         ``block/put`` is a root) is walked once, so the work stays linear in the blocks.
         """
         seen: set[CID] = set()
         for root in roots:
-            missing = self.missing_block(root, staging, seen=seen)
+            missing = self.missing_block(root, staging, seen=seen, hold=hold)
             if missing is not None:
                 raise DagIncomplete(root, missing)
 
@@ -362,20 +383,26 @@ class ContentStore:
     def collect_garbage(self, grace_s: float, now: float | None = None) -> list[CID]:
         """Remove every unpinned block older than ``grace_s``; never a block of a pinned DAG.
 
-        The grace period protects blocks an upload just wrote and is about to pin, and blocks
-        a robot pushed with ``block/put`` before pinning the root that links them.
+        The grace period protects blocks a robot pushed with ``block/put`` before pinning the
+        root that links them. Pins run beside a collection: the blocks a pin check read or an
+        upload relied on are held until the pin is there (``blockstore.Hold``), and the last
+        phase, under ``sweeping``, marks the pins made since the first snapshot before it
+        deletes, so a DAG pinned meanwhile loses nothing.
         """
         cutoff = (now if now is not None else time.time()) - grace_s
         visited: set[tuple[int, bytes]] = set()
         live: set[bytes] = set()
-        for root in self.pins.snapshot():
+        pinned = self.pins.snapshot()
+        for root in pinned:
             self._mark_reachable(root, visited, live)
-        dead = [
-            stored.multihash
-            for stored in self.blocks.stored()
-            if stored.multihash not in live and stored.committed < cutoff
-        ]
-        self.blocks.delete(dead)
+        with self.blocks.sweeping:
+            for root in self.pins.snapshot().keys() - pinned.keys():
+                self._mark_reachable(root, visited, live)
+            dead = self.blocks.collect(
+                stored.multihash
+                for stored in self.blocks.stored()
+                if stored.multihash not in live and stored.committed < cutoff
+            )
         self.blocks.compact()
         return [cid_for_multihash(multihash) for multihash in dead]
 
