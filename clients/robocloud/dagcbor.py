@@ -9,7 +9,8 @@ bytes are left, so the work is linear in the block's size whatever its header sa
 
 It checks the framing dag-cbor allows (definite lengths, tag 42 only, the simple values
 false, true, null and floats) but not canonical form (key order, shortest integers): it
-finds links, it does not validate documents.
+finds links, it does not validate documents. A general CBOR decoder (cbor2) would build
+every value and recurse once per level, the overflow ``bounded_json`` exists to avoid.
 """
 
 from __future__ import annotations
