@@ -45,7 +45,7 @@ class Ingest(ServiceClient):
             headers={"Content-Type": "application/octet-stream"},
             idempotent=False,
         )
-        job: dict[str, Any] = response.json()
+        job: dict[str, Any] = self.json_of(response)
         return job
 
     def from_cas(self, cid: CID | str) -> dict[str, Any]:
