@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import shutil
-import tempfile
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -51,29 +49,24 @@ def _jobs(request: Request) -> IngestJobs:
     return jobs
 
 
-async def _spool_upload(request: Request, directory: Path, limit: int) -> tuple[Path, str]:
-    """The streamed body in a file named by its format (rosbags needs the suffix)."""
+async def _spool_upload(request: Request, spool: Path, limit: int) -> tuple[Path, str]:
+    """The streamed body in a file of ``spool`` named by its format (rosbags needs the
+    suffix); whatever it leaves there on failure goes with ``spool``."""
     digest = hashlib.sha256()
     received = 0
-    target = Path(tempfile.mkdtemp(dir=directory, prefix=".bag-"))
-    path = target / "upload"
-    try:
-        with path.open("wb") as handle:
-            async for chunk in request.stream():
-                received += len(chunk)
-                if received > limit:
-                    raise PayloadTooLarge(
-                        f"a bag upload holds at most {limit} bytes",
-                        details={"limit": limit},
-                    )
-                digest.update(chunk)
-                handle.write(chunk)
-        named = path.with_name(f"bag{SUFFIXES.get(detect_format(path), '')}")
-        path.rename(named)
-        return named, f"upload:{digest.hexdigest()}"
-    except BaseException:
-        shutil.rmtree(target, ignore_errors=True)
-        raise
+    path = spool / "upload"
+    with path.open("wb") as handle:
+        async for chunk in request.stream():
+            received += len(chunk)
+            if received > limit:
+                raise PayloadTooLarge(
+                    f"a bag upload holds at most {limit} bytes", details={"limit": limit}
+                )
+            digest.update(chunk)
+            handle.write(chunk)
+    named = path.with_name(f"bag{SUFFIXES.get(detect_format(path), '')}")
+    path.rename(named)
+    return named, f"upload:{digest.hexdigest()}"
 
 
 @router.post("/v1/ingest", status_code=202)
@@ -83,23 +76,23 @@ async def ingest(request: Request) -> JSONResponse:
     author = authorship_of(request)
     settings = request.app.state.settings
     jobs = _jobs(request)
-    incoming = jobs.root / "incoming"
-    incoming.mkdir(exist_ok=True)
-    if media_type(request) == "application/json":
-        body = await json_body(IngestFromCas)(request)
-        cid = parse_cid(body.cid, "cid")
-        cas = request.app.state.ingest_cas()
-        bounds = BagBounds(settings.storage_max_bag_bytes, settings.storage_max_bag_entries)
-        bag = await anyio.to_thread.run_sync(lambda: fetch_bag(cas, cid, incoming, bounds))
-        source = f"cid:{cid}"
-    elif media_type(request) in ("application/octet-stream", ""):
-        bag, source = await _spool_upload(request, incoming, settings.storage_max_bag_bytes)
-    else:
+    kind = media_type(request)
+    if kind not in ("application/json", "application/octet-stream", ""):
         raise UnsupportedMediaType(
             "send application/json with a cid, or the bag as application/octet-stream",
             details={"header": "Content-Type", "received": request.headers.get("content-type")},
         )
-    job = await anyio.to_thread.run_sync(lambda: jobs.submit(bag, source, author))
+    with jobs.incoming() as spool:
+        if kind == "application/json":
+            body = await json_body(IngestFromCas)(request)
+            cid = parse_cid(body.cid, "cid")
+            cas = request.app.state.ingest_cas()
+            bounds = BagBounds(settings.storage_max_bag_bytes, settings.storage_max_bag_entries)
+            bag = await anyio.to_thread.run_sync(lambda: fetch_bag(cas, cid, spool, bounds))
+            source = f"cid:{cid}"
+        else:
+            bag, source = await _spool_upload(request, spool, settings.storage_max_bag_bytes)
+        job = await anyio.to_thread.run_sync(lambda: jobs.submit(bag, source, author))
     return JSONResponse(job.to_json(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 

@@ -27,10 +27,12 @@ import logging
 import queue
 import secrets
 import shutil
+import tempfile
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -57,6 +59,9 @@ log = logging.getLogger("robocloud.storage.ingest")
 
 Status = Literal["queued", "staging", "committing", "succeeded", "failed"]
 JOB_ID_BYTES = 12
+INCOMING = "incoming"
+"""Under the jobs' root: bags on their way in, each in a directory of its own
+(:meth:`IngestJobs.incoming`)."""
 
 
 class JobNotFound(LookupError):
@@ -203,6 +208,8 @@ class IngestJobs:
         self._lock = threading.Lock()
         self._queue: queue.Queue[str | None] = queue.Queue()
         root.mkdir(parents=True, exist_ok=True)
+        # A bag on its way in when the service stopped (kill -9 during an upload) is no job's.
+        shutil.rmtree(self.root / INCOMING, ignore_errors=True)
         if staging_workers > 1:
             start_workers_server()
         for path in sorted(root.glob("*/job.json"), key=lambda p: p.stat().st_mtime):
@@ -216,6 +223,23 @@ class IngestJobs:
     def close(self) -> None:
         self._queue.put(None)
         self._worker.join()
+
+    @contextmanager
+    def incoming(self) -> Iterator[Path]:
+        """A new directory for one bag on its way in (an upload, a bag fetched from cas),
+        removed when the block ends whatever happened.
+
+        :meth:`submit` moves the bag out of it, which left the directory behind, empty, after
+        every accepted upload; a bag refused after it arrived (429 ``too_many_jobs``) was left
+        whole.
+        """
+        incoming = self.root / INCOMING
+        incoming.mkdir(exist_ok=True)
+        spool = Path(tempfile.mkdtemp(dir=incoming, prefix=".bag-"))
+        try:
+            yield spool
+        finally:
+            shutil.rmtree(spool, ignore_errors=True)
 
     def submit(self, bag: Path, source: str, author: Authorship) -> Job:
         """Take ownership of ``bag`` (moved into the job's directory) and queue its ingest."""

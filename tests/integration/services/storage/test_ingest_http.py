@@ -90,6 +90,7 @@ def test_bad_bags_fail_without_records(
     truncated.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
     text = tmp_path / "notes.txt"
     text.write_text("hello\n")
+    incoming = storage.data_dir / "ingest" / "incoming"
     with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
         imu = approve(client, "sensor_msgs/msg/Imu")
         ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
@@ -98,7 +99,10 @@ def test_bad_bags_fail_without_records(
         assert not_a_bag.value.status == 400
         assert not_a_bag.value.code == "invalid_bag"
         assert not_a_bag.value.details["file"] == "upload"
+        assert list(incoming.iterdir()) == []
         failed = ingest.wait(ingest.upload(truncated)["id"], timeout_s=120)
+        # Each accepted upload left its spool directory behind, empty.
+        assert list(incoming.iterdir()) == []
         assert failed["status"] == "failed"
         assert failed["error"]["code"] == "bag_corrupt"
         assert failed["error"]["resumable"] is False

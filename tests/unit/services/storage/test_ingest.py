@@ -17,7 +17,7 @@ from robocloud.templates import parse_template
 from robocloud.unixfs import import_bytes
 from services.storage.bags import Bag
 from services.storage.catalog import Catalog
-from services.storage.ingest import IngestJobs, Job, JobNotFound
+from services.storage.ingest import IngestJobs, Job, JobNotFound, TooManyJobs
 from services.storage.matcher import Bindings, draft_template
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore
@@ -138,6 +138,34 @@ def test_ingest_writes_bound_topics_and_reports_the_rest(node: Node, tmp_path: P
     assert node.blobs.files[frame][:3] == bytes([9, 10, 11])
     assert job.record_ids == {imu: ["imu-1-0", "imu-1-159"], image: ["image-1-0", "image-1-19"]}
     assert [path.name for path in (node.root / "jobs" / job.id).iterdir()] == ["job.json"]
+
+
+def test_a_bag_on_its_way_in_leaves_nothing_behind(node: Node, tmp_path: Path) -> None:
+    """Each accepted upload left its empty spool directory in ``incoming/``, and one refused
+    with too_many_jobs after it arrived left the whole bag."""
+    incoming = node.root / "jobs" / "incoming"
+    source = bag(tmp_path, "b.bag", 20, kind="ros1")
+    with node.jobs.incoming() as spool:
+        accepted = Path(shutil.copy(source, spool / "bag.bag"))
+        job = node.jobs.submit(accepted, "upload:a", authorship())
+    assert list(incoming.iterdir()) == []
+    assert node.jobs.wait(job.id, 60).status == "succeeded"
+    node.jobs.max_pending = 0
+    with node.jobs.incoming() as spool:
+        refused = Path(shutil.copy(source, spool / "bag.bag"))
+        with pytest.raises(TooManyJobs):
+            node.jobs.submit(refused, "upload:r", authorship("nonce-111111111111"))
+    assert list(incoming.iterdir()) == []
+    assert sorted(path.name for path in (node.root / "jobs").iterdir()) == [job.id, "incoming"]
+
+
+def test_a_bag_left_on_its_way_in_by_a_crash_is_removed_at_open(node: Node) -> None:
+    incoming = node.root / "jobs" / "incoming"
+    (incoming / ".bag-torn").mkdir(parents=True)
+    (incoming / ".bag-torn" / "upload").write_bytes(b"#ROSBAG V2.0\n")
+    node.jobs.close()
+    node.jobs = node.open_jobs()
+    assert not incoming.exists()
 
 
 WORKERS = pytest.mark.parametrize("workers", [1, 3], ids=["in-process", "3-processes"])
