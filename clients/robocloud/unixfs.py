@@ -518,8 +518,18 @@ def _children(node: FileNode, span: _Span) -> Iterator[_Span]:
         position = child_end
 
 
+MAX_FILE_NODES = 1 << 20
+"""Distinct blocks a file read from a CAR may have (about 230 bytes of bookkeeping each):
+256 GiB at kubo's 256 KiB chunks, 16 MiB at 16-byte ones."""
+
+
 def assemble_file(
-    root: CID, blocks: Iterator[Block], out: BinaryIO, progress: Callable[[int], object]
+    root: CID,
+    blocks: Iterator[Block],
+    out: BinaryIO,
+    progress: Callable[[int], object],
+    *,
+    max_nodes: int = MAX_FILE_NODES,
 ) -> int:
     """Write the file ``root`` from its blocks in DFS order (a CAR's), each checked as it comes.
 
@@ -528,10 +538,11 @@ def assemble_file(
     ``blocks``; the reader checks that it is the next block of *this* file's DAG, so the
     bytes written are exactly those ``root`` commits to, with bounded memory. A CAR carries
     a repeated block (a run of zeros) only once, so the content each node holds is
-    remembered by its place in ``out`` (which must be readable) and an inner node's
-    children by their CIDs, and a repeat is replayed from there. Returns the bytes written.
+    remembered by its place in ``out`` (which must be readable) and an inner node by its
+    block, and a repeat is replayed from there. A file of more than
+    ``max_nodes`` distinct blocks is refused. Returns the bytes written.
     """
-    source = _CarOrder(root, blocks, out)
+    source = _CarOrder(root, blocks, out, max_nodes)
     for piece in read_nodes(root, source.node):
         out.write(piece)
         source.written += len(piece)
@@ -542,13 +553,12 @@ def assemble_file(
 
 
 class _Replay(NamedTuple):
-    """A node already received: where its own content lies in the output, and its children."""
+    """An inner node already received: where its own content lies in the output, and its
+    block, decoded again when it repeats (its links as CID objects would be 200 bytes each)."""
 
     at: int
     length: int
-    links: Sequence[CID]
-    sizes: Sequence[int]
-    size: int
+    block: bytes
 
 
 class _CarOrder:
@@ -557,27 +567,50 @@ class _CarOrder:
     The reader asks for nodes in the order it writes the file, so the next unseen node asked
     for must be the next block, and ``written`` (kept by the caller) is where that node's
     own content goes. A node asked for again is not in the CAR again: it is rebuilt from
-    ``out`` and the links kept for it.
+    ``out`` and what is kept for it: an inner node's block, decoded again, and for a leaf one
+    integer keyed by its binary CID. What is kept grows with the file's distinct nodes, so
+    their number is bounded: a 6 MB file chunked by 16 bytes is 400,000 of them.
     """
 
-    def __init__(self, root: CID, blocks: Iterator[Block], out: BinaryIO) -> None:
+    def __init__(
+        self, root: CID, blocks: Iterator[Block], out: BinaryIO, max_nodes: int = MAX_FILE_NODES
+    ) -> None:
         self.root = root
         self.blocks = blocks
         self.out = out
         self.written = 0
-        self._seen: dict[CID, _Replay] = {}
+        self.max_nodes = max_nodes
+        self._inner: dict[CID, _Replay] = {}
+        self._leaves: dict[bytes, int] = {}
+        """A leaf's place in ``out``: ``at << 32 | length``."""
 
     def node(self, cid: CID) -> FileNode:
-        seen = self._seen.get(cid)
-        if seen is not None:
-            return FileNode(self._reread(seen.at, seen.length), seen.links, seen.sizes, seen.size)
+        inner = self._inner.get(cid)
+        if inner is not None:
+            node = file_node(cid, inner.block)
+            return node._replace(data=self._reread(inner.at, inner.length))
+        leaf = self._leaves.get(cid.binary)
+        if leaf is not None:
+            data = self._reread(leaf >> 32, leaf & 0xFFFFFFFF)
+            return FileNode(data, (), (), len(data))
+        return self._next_node(cid)
+
+    def _next_node(self, cid: CID) -> FileNode:
         block = next(self.blocks, None)
         if block is None:
             raise UnixfsError(f"the blocks end before block {cid} of {self.root}")
         if block.cid != cid:
             raise UnixfsError(f"block {block.cid} came where {cid} of {self.root} is due")
+        if len(self._inner) + len(self._leaves) >= self.max_nodes:
+            raise UnixfsError(
+                f"{self.root} has more than {self.max_nodes} distinct blocks, more than a "
+                "download keeps track of (a file chunked into tiny pieces)"
+            )
         node = file_node(cid, block.data)
-        self._seen[cid] = _Replay(self.written, len(node.data), node.links, node.sizes, node.size)
+        if node.links:
+            self._inner[cid] = _Replay(self.written, len(node.data), bytes(block.data))
+        else:
+            self._leaves[cid.binary] = self.written << 32 | len(node.data)
         return node
 
     def _reread(self, at: int, length: int) -> bytes:

@@ -223,6 +223,23 @@ def test_repeated_blocks_sent_once_are_replayed_from_the_output(
     assert assembled(root, carried, tmp_path / "out") == data
 
 
+def test_a_file_of_more_distinct_blocks_than_a_download_tracks_is_refused(
+    tmp_path: Path,
+) -> None:
+    """Every distinct block is remembered for a repeat: 16-byte chunks of a 6 MB file made a
+    robot hold 138 MiB; the bound stops such a file, a repeated block counts once."""
+    data = b"".join(n.to_bytes(16, "big") for n in range(300))
+    blocks, root = import_bytes(data, ImportParams(1, True, 16, 174))
+    carried = car_blocks(root, dict(blocks))
+    with (tmp_path / "out").open("w+b") as out:
+        assert assemble_file(
+            root, iter(carried), out, lambda _: None, max_nodes=len(carried)
+        ) == len(data)
+    with (tmp_path / "out2").open("w+b") as out, pytest.raises(UnixfsError) as refused:
+        assemble_file(root, iter(carried), out, lambda _: None, max_nodes=len(carried) - 1)
+    assert f"more than {len(carried) - 1} distinct blocks" in str(refused.value)
+
+
 def zero_size_child_file() -> tuple[CID, dict[CID, bytes], bytes]:
     """A root with an empty raw leaf between two others, as some importers write."""
     leaves = [b"abc", b"", b"defg"]
