@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
@@ -51,6 +52,12 @@ NAMED_TAGS = ("latest", "pending", "earliest", "safe", "finalized")
 MAX_FEE_HISTORY_BLOCKS = 1024
 MAX_PERCENTILES = 100
 PROTOCOL_VERSION = 68
+QUANTITY = re.compile(r"0[xX][0-9a-fA-F]+")
+SLOT = re.compile(r"0[xX][0-9a-fA-F]{0,64}")
+DECIMAL = re.compile(r"[0-9]{1,20}")
+BLOCK_HASH_LENGTH = 66
+"""A 32-byte block hash as a string: where geth takes a block number or hash (EIP-1898),
+``0x`` and 64 hex digits is a hash, never a number (anvil reads it so too)."""
 """eth/68, the wire protocol geth answered ``eth_protocolVersion`` with."""
 
 Method = Callable[[list[Any]], Any]
@@ -70,6 +77,10 @@ class RpcFailure(Exception):
         if self.data is not None:
             error["data"] = self.data
         return error
+
+
+class UnknownBlock(ChainError):
+    """A block parameter names a hash the chain does not hold."""
 
 
 class NotInline(Exception):
@@ -326,15 +337,36 @@ def as_address(value: Any) -> bytes:
     return bytes.fromhex(value[2:])
 
 
-def as_quantity(value: Any, what: str) -> int:
+def as_quantity(value: Any, what: str, bits: int = 256) -> int:
+    """A quantity of at most ``bits`` bits: ``0x`` and hex digits, as geth and anvil parse
+    them (anvil also takes leading zeros and ``0X``, so this does), or a JSON number.
+    ``int(x, 16)`` alone also took ``0x1_0``, surrounding whitespace and non-ASCII digits."""
     if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
-        return value
-    if not isinstance(value, str) or not value.startswith("0x") or len(value) == 2:
+        number = value
+    elif isinstance(value, str) and QUANTITY.fullmatch(value):
+        number = int(value, 16)
+    else:
         raise InvalidParams(f"invalid {what}: expected a 0x-hex quantity, got {value!r}")
-    try:
-        return int(value, 16)
-    except ValueError as exc:
-        raise InvalidParams(f"invalid {what}: {value!r}") from exc
+    if number.bit_length() > bits:
+        raise InvalidParams(f"invalid {what}: {value!r} is higher than 2^{bits}-1")
+    return number
+
+
+def as_slot(value: Any) -> int:
+    """A storage slot as geth reads one: ``0x`` and at most 64 hex digits (32 bytes)."""
+    if not isinstance(value, str) or not SLOT.fullmatch(value):
+        raise InvalidParams(
+            f"invalid storage slot: expected 0x and at most 64 hex digits, got {value!r}"
+        )
+    return int(value[2:] or "0", 16)
+
+
+def as_count(value: Any, what: str) -> int:
+    """geth's ``HexOrDecimal64`` (``eth_feeHistory``'s block count): a quantity, or decimal
+    digits, as geth and anvil take it."""
+    if isinstance(value, str) and DECIMAL.fullmatch(value):
+        value = int(value)
+    return as_quantity(value, what, 64)
 
 
 def _percentiles(value: Any) -> list[float] | None:
@@ -466,20 +498,29 @@ class EmbeddedMethods:
     # ----- blocks and transactions -----
 
     def tag(self, value: Any) -> BlockTag:
-        """A block parameter: a named tag, a quantity, or an EIP-1898 object."""
+        """A block parameter where geth takes a block number or hash (state reads, calls,
+        ``eth_getBlockReceipts``): a named tag, a quantity, a block hash (a string of 32
+        bytes; before, ``0x00..01`` was read as block 1) or an EIP-1898 object."""
+        if isinstance(value, str) and len(value) == BLOCK_HASH_LENGTH:
+            value = {"blockHash": value}
         if isinstance(value, dict):
             if "blockHash" in value:
                 block = self.chain.block_by_hash(as_bytes(value["blockHash"], "block hash", 32))
                 if block is None:
-                    raise ChainError(f"block {value['blockHash']} not found")
+                    raise UnknownBlock(f"block {value['blockHash']} not found")
                 return int(block.number)
             value = value.get("blockNumber", "latest")
-        if value in NAMED_TAGS:
-            return str(value)
-        return as_quantity(value, "block number")
+        return self.number_tag(value)
+
+    def number_tag(self, value: Any) -> BlockTag:
+        """A block parameter where geth takes a block number only (``eth_getBlockByNumber``,
+        ``eth_getLogs``' range, ``eth_feeHistory``): a named tag or a quantity below 2^64."""
+        if isinstance(value, str) and value in NAMED_TAGS:
+            return value
+        return as_quantity(value, "block number", 64)
 
     def block_by_number(self, params: list[Any]) -> Any:
-        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        block = self.chain.block_by_number(self.number_tag(param(params, 0)))
         full = bool(param(params, 1, False))
         return encoding.block(block, full) if block is not None else None
 
@@ -506,7 +547,11 @@ class EmbeddedMethods:
         return encoding.receipt(located.block, receipts, located.index, located.transaction)
 
     def block_receipts(self, params: list[Any]) -> Any:
-        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        """A block's receipts; null for a block unknown by number or by hash (geth, anvil)."""
+        try:
+            block = self.chain.block_by_number(self.tag(param(params, 0)))
+        except UnknownBlock:
+            return None
         if block is None:
             return None
         receipts = self.chain.receipts(block)
@@ -519,7 +564,7 @@ class EmbeddedMethods:
         return self.chain.block_by_hash(as_bytes(value, "block hash", 32))
 
     def transaction_count_by_number(self, params: list[Any]) -> Any:
-        block = self.chain.block_by_number(self.tag(param(params, 0)))
+        block = self.chain.block_by_number(self.number_tag(param(params, 0)))
         return encoding.quantity(len(block.transactions)) if block is not None else None
 
     def transaction_count_by_hash(self, params: list[Any]) -> Any:
@@ -527,19 +572,19 @@ class EmbeddedMethods:
         return encoding.quantity(len(block.transactions)) if block is not None else None
 
     def transaction_by_number_and_index(self, params: list[Any]) -> Any:
-        block = self.chain.block_by_number(self.tag(param(params, 0)))
-        return _transaction_at(block, as_quantity(param(params, 1), "index"))
+        block = self.chain.block_by_number(self.number_tag(param(params, 0)))
+        return _transaction_at(block, as_quantity(param(params, 1), "index", 64))
 
     def transaction_by_hash_and_index(self, params: list[Any]) -> Any:
         block = self._block_by_hash_param(param(params, 0))
-        return _transaction_at(block, as_quantity(param(params, 1), "index"))
+        return _transaction_at(block, as_quantity(param(params, 1), "index", 64))
 
     def fee_history(self, params: list[Any]) -> Any:
         """geth's ``eth_feeHistory``: base fees (one more, the next block's), gas used
         ratios, the blob fields, and the tips actually paid at the requested percentiles of
         each block's gas (weighted by the gas each transaction used)."""
-        count = min(max(as_quantity(param(params, 0), "block count"), 1), MAX_FEE_HISTORY_BLOCKS)
-        newest = self.chain.header_at(self.tag(param(params, 1, "latest"))).block_number
+        count = min(max(as_count(param(params, 0), "block count"), 1), MAX_FEE_HISTORY_BLOCKS)
+        newest = self.chain.header_at(self.number_tag(param(params, 1, "latest"))).block_number
         percentiles = _percentiles(param(params, 2, None))
         oldest = max(newest - count + 1, 0)
         headers = [self.chain.header_at(n) for n in range(oldest, newest + 1)]
@@ -580,7 +625,7 @@ class EmbeddedMethods:
 
     def storage_at(self, params: list[Any]) -> Any:
         address = as_address(param(params, 0))
-        slot = as_quantity(param(params, 1), "storage slot")
+        slot = as_slot(param(params, 1))
         value = self.chain.storage_at(address, slot, self.tag(param(params, 2, "latest")))
         return encoding.data(value.to_bytes(32, "big"))
 
@@ -596,16 +641,24 @@ class EmbeddedMethods:
             raise InvalidParams(
                 "both gasPrice and (maxFeePerGas or maxPriorityFeePerGas) specified"
             )
-        return CallRequest(
+        request = CallRequest(
             sender=as_address(value["from"]) if value.get("from") else b"\x00" * 20,
             to=as_address(value["to"]) if value.get("to") else b"",
             data=as_bytes(data, "call data"),
             value=as_quantity(value.get("value") or "0x0", "value"),
-            gas=as_quantity(value["gas"], "gas") if value.get("gas") else None,
+            gas=as_quantity(value["gas"], "gas", 64) if value.get("gas") else None,
             gas_price=_optional_quantity(value, "gasPrice"),
             max_fee_per_gas=_optional_quantity(value, "maxFeePerGas"),
             max_priority_fee_per_gas=_optional_quantity(value, "maxPriorityFeePerGas"),
         )
+        cap, tip = request.max_fee_per_gas, request.max_priority_fee_per_gas
+        if cap is not None and tip is not None and tip > cap:
+            # anvil's words; geth refuses it too (-32000 "maxFeePerGas (1) < maxPriorityFeePerGas
+            # (2)"); a call priced so was run as if its tip were the cap
+            raise InvalidParams(
+                "Invalid input: `max_priority_fee_per_gas` greater than `max_fee_per_gas`"
+            )
+        return request
 
     def call(self, params: list[Any]) -> Any:
         request = self.call_request(param(params, 0))
@@ -660,8 +713,8 @@ class EmbeddedMethods:
         if len(addresses) > MAX_OPTIONS:
             raise InvalidParams(f"too many addresses: at most {MAX_OPTIONS}")
         criteria = LogCriteria(
-            from_block=self.tag(query.get("fromBlock") or "latest"),
-            to_block=self.tag(query.get("toBlock") or "latest"),
+            from_block=self.number_tag(query.get("fromBlock") or "latest"),
+            to_block=self.number_tag(query.get("toBlock") or "latest"),
             addresses=tuple(as_address(a) for a in addresses),
             topics=tuple(t if t else None for t in topics),
         )
