@@ -23,6 +23,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+from robocloud import bounded_json
 from robocloud.cid import CIDError, parse_cid
 from robocloud.templates import TEMPLATE_ID, Scalar, Template
 from services.storage.keywords import KeywordIndex
@@ -36,6 +37,8 @@ MAX_SCANNED = 1_000_000
 MAX_INTERVAL_SCAN = 2_000_000
 WHERE = re.compile(r"([a-z][a-z0-9_.]{0,639})\s*(==|!=|<=|>=|=|<|>)(.*)", re.DOTALL)
 ORDERING = frozenset(("<", "<=", ">", ">="))
+TEXT_KINDS = frozenset(("string", "image", "file"))
+"""Kinds whose values are text, and so may be quoted in a comparison."""
 CURSOR = re.compile(r"([a-z][a-z0-9_]{0,62}@[1-9][0-9]{0,8})/(0|[1-9][0-9]{0,18})")
 
 
@@ -122,7 +125,12 @@ def _value(kind: str, text: str, parameter: str) -> Any:
 
 
 def parse_comparison(template: Template, text: str, parameter: str) -> Comparison:
-    """One ``field op value`` against ``template``."""
+    """One ``field op value`` against ``template``.
+
+    Whitespace around the operator and the value is not part of them (``speed > 2``). A
+    value in double quotes is a JSON string, kept exactly: ``mode=" docked "`` holds its
+    spaces, ``mode="=x"`` its ``=``; quotes are for text fields (string, image, file).
+    """
     match = WHERE.fullmatch(text)
     if match is None:
         raise QueryInvalid(
@@ -132,20 +140,57 @@ def parse_comparison(template: Template, text: str, parameter: str) -> Compariso
         )
     path, op, raw = match.group(1), match.group(2), match.group(3).strip()
     op = "=" if op == "==" else op
+    if raw.startswith('"'):
+        return build_comparison(template, path, op, _quoted(raw, parameter), parameter, quoted=True)
     if raw[:1] in ("=", "<", ">", "!"):
         raise QueryInvalid(parameter, f"malformed operator in {text[:80]!r}", "invalid_operator")
+    return build_comparison(template, path, op, raw, parameter)
+
+
+def build_comparison(
+    template: Template,
+    path: str,
+    op: str,
+    value_text: str,
+    parameter: str,
+    *,
+    value_parameter: str | None = None,
+    quoted: bool = False,
+) -> Comparison:
+    """``path op value`` against ``template`` from its parts, none of them read as syntax:
+    a path must be a scalar leaf of the template, the value is parsed for its type as it is.
+
+    ``parameter`` names the query parameter of the path (and of the value, unless
+    ``value_parameter`` names another): ``GET /v1/intervals`` gives field and value apart.
+    """
     kind = template.leaf(path)
     if kind is None:
-        raise QueryInvalid(parameter, f"{template.id} has no field {path}", code="unknown_field")
+        raise QueryInvalid(
+            parameter, f"{template.id} has no field {path[:80]!r}", code="unknown_field"
+        )
     if not isinstance(kind, Scalar) or kind.kind.startswith("range"):
         raise QueryInvalid(parameter, f"{path} is not a scalar field", code="unknown_field")
     if op in ORDERING and kind.kind not in ("int", "float"):
         raise QueryInvalid(
             parameter, f"{op} compares numbers; {path} is {kind.kind}", code="invalid_operator"
         )
-    value = _value(kind.kind, raw, parameter)
+    value_parameter = value_parameter or parameter
+    if quoted and kind.kind not in TEXT_KINDS:
+        raise QueryInvalid(value_parameter, f"a quoted value is text; {path} is {kind.kind}")
+    value = _value(kind.kind, value_text, value_parameter)
     indexed = kind.kind in INDEXED_KINDS and op != "!="
     return Comparison(path, op, value, indexed)
+
+
+def _quoted(raw: str, parameter: str) -> str:
+    """The text of a JSON string literal, which must be all of ``raw``."""
+    try:
+        value = bounded_json.loads(raw)
+    except bounded_json.JsonError as exc:
+        raise QueryInvalid(parameter, f"{raw[:80]!r} is not one quoted JSON string") from exc
+    if not isinstance(value, str):
+        raise QueryInvalid(parameter, f"{raw[:80]!r} is not one quoted JSON string")
+    return value
 
 
 def parse_cursor(text: str) -> tuple[str, int]:
@@ -381,12 +426,21 @@ class QueryEngine:
         start: int | None = None,
         end: int | None = None,
     ) -> list[Interval]:
-        """Per robot, when ``field == value`` began (enter) and stopped (exit, None: still)."""
+        """Per robot, when ``field == value`` began (enter) and stopped (exit, None: still).
+
+        ``field_path`` is a leaf of the template and ``value_text`` its value exactly, never
+        parsed as ``where`` syntax: the condition was once the text ``f"{field}={value}"``,
+        so a field ``i<`` asked ``i <= value`` and a value ``=s3`` matched ``s3``.
+        """
         views = self._template(template_id)
+        template = (
+            views.template if views is not None else self.store.catalog.get(template_id).template
+        )
+        state = build_comparison(
+            template, field_path, "=", value_text, "field", value_parameter="value"
+        )
         if views is None:
-            self._check_known(template_id)
             return []
-        comparison = parse_comparison(views.template, f"{field_path}={value_text}", "field")
         query = RecordQuery(template=template_id, robot=robot, start=start, end=end)
         by_robot: dict[str, list[tuple[int, int, bool]]] = {}
         for scanned, doc in enumerate(self._window_docs(views, query), start=1):
@@ -397,7 +451,7 @@ class QueryEngine:
                     code="query_too_broad",
                 )
             by_robot.setdefault(doc["_robot"], []).append(
-                (doc["_t"], doc["_i"], comparison.matches(doc[comparison.field]))
+                (doc["_t"], doc["_i"], state.matches(doc[state.field]))
             )
         intervals = []
         for name in sorted(by_robot):

@@ -214,6 +214,11 @@ def test_queries_and_intervals_over_http(storage: ServiceProcess, identity: Iden
         assert [i.record["t"] for i in client.query(robot=other).records] == [1000, 1001, 1002]
         intervals = client.intervals("state@1", "mode", "docked", start=0, end=9)
         assert [(i.robot, i.enter, i.exit) for i in intervals] == [(robot, 1, 3), (robot, 5, 7)]
+        # Field and value are not where syntax: "speed<" asked speed <= 0, "=docked" docked.
+        assert client.intervals("state@1", "mode", "=docked") == []
+        with pytest.raises(BadRequestError) as injected:
+            client.intervals("state@1", "speed<", "0")
+        assert injected.value.details == {"parameter": "field", "reason": "unknown_field"}
         for where, reason in [("gear=1", "unknown_field"), ("speed=>1", "invalid_operator")]:
             with pytest.raises(BadRequestError) as invalid:
                 client.query(template="state@1", where=["speed>0", where])

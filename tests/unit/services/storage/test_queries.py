@@ -145,3 +145,51 @@ def test_intervals_per_robot(open_store: StoreFactory) -> None:
     with pytest.raises(QueryInvalid) as invalid:
         engine.intervals("state@1", "gear", "1")
     assert invalid.value.code == "unknown_field"
+
+
+def test_interval_field_and_value_are_never_read_as_where_syntax(
+    open_store: StoreFactory,
+) -> None:
+    """The condition was the text f"{field}={value}": a field "count<" asked count <= 0, and
+    a value "=docked" matched "docked"."""
+    store = open_store()
+    modes = ["docked", " docked ", "=docked", "idle"]
+    store.append([state_record(t, mode=mode) for t, mode in enumerate(modes)], author=AUTHOR)
+    engine = QueryEngine(store)
+
+    def spans(field: str, value: str) -> list[tuple[int, int | None]]:
+        return [(i.enter, i.exit) for i in engine.intervals("state@1", field, value)]
+
+    assert spans("mode", "docked") == [(0, 1)]
+    assert spans("mode", " docked ") == [(1, 2)]
+    assert spans("mode", "=docked") == [(2, 3)]
+    for field in ("count<", "count<=", "mode!", "pose", "", "mode=docked"):
+        with pytest.raises(QueryInvalid) as unknown:
+            engine.intervals("state@1", field, "0")
+        assert (unknown.value.parameter, unknown.value.code) == ("field", "unknown_field")
+    with pytest.raises(QueryInvalid) as bad_value:
+        engine.intervals("state@1", "count", "<1")
+    assert (bad_value.value.parameter, bad_value.value.code) == ("value", "invalid_query")
+
+
+def test_a_field_is_checked_before_its_template_has_records(open_store: StoreFactory) -> None:
+    engine = QueryEngine(open_store())
+    assert engine.intervals("state@1", "mode", "docked") == []
+    with pytest.raises(QueryInvalid) as unknown:
+        engine.intervals("state@1", "gear", "1")
+    assert unknown.value.code == "unknown_field"
+
+
+def test_a_quoted_where_value_keeps_its_whitespace(open_store: StoreFactory) -> None:
+    store = open_store()
+    modes = ["docked", " docked ", "=docked", 'say "hi"']
+    store.append([state_record(t, mode=mode) for t, mode in enumerate(modes)], author=AUTHOR)
+    assert _ts(store, where=("mode = docked ",)) == [0]
+    assert _ts(store, where=('mode=" docked "',)) == [1]
+    assert _ts(store, where=('mode = "=docked"',)) == [2]
+    assert _ts(store, where=('mode="say \\"hi\\""',)) == [3]
+    assert _ts(store, where=('mode!="docked"',)) == [1, 2, 3]
+    for where in ('mode="open', 'mode="a"b', 'count="1"', 'mode="\\ud800"'):
+        with pytest.raises(QueryInvalid) as invalid:
+            _ts(store, where=(where,))
+        assert (invalid.value.parameter, invalid.value.code) == ("where[0]", "invalid_query")
