@@ -294,9 +294,11 @@ class _Worker:
             parsed = parseQuery(text)
         except Exception as exc:  # pyparsing's errors and RecursionError for hostile nesting
             try:
-                parseUpdate(text)
+                update = parseUpdate(text)
             except Exception:
                 return ("error", "QuerySyntaxError", f"not a SPARQL 1.1 query: {exc}"[:1000])
+            if "request" not in update:  # empty text, comments, prefixes: an empty update
+                return ("error", "QuerySyntaxError", "not a SPARQL 1.1 query: it holds no query")
             return (
                 "error",
                 "UpdateRejectedError",

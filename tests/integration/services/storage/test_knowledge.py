@@ -365,6 +365,7 @@ def test_sparql_updates_are_rejected_however_they_are_sent(services: Services) -
     ("params", "status", "code", "details"),
     [
         ({"query": "SELEKT * WHERE { ?s ?p ?o }"}, 400, "sparql_syntax", {}),
+        ({"query": ""}, 400, "sparql_syntax", {}),
         ({}, 400, "missing_parameter", {"field": "query"}),
         (
             {"query": "SELECT * { ?s ?p ?o } #" + "x" * 5000},

@@ -146,6 +146,10 @@ def test_syntax_errors_and_updates_are_told_apart(pool: SparqlWorkers) -> None:
         pool.query("SELECT WHERE", None)
     with pytest.raises(UpdateRejectedError):
         pool.query(PREFIX + "DELETE WHERE { ?s ?p ?o }", None)
+    # Nothing but whitespace, comments or prefixes parses as an empty update: no query.
+    for empty in ("", "  \n", "# nothing", PREFIX):
+        with pytest.raises(QuerySyntaxError, match="it holds no query"):
+            pool.query(empty, None)
     assert pool.describe()["replaced"] == 0
 
 
