@@ -25,7 +25,13 @@ from robocloud.errors import (
     TransportError,
     TransportTimeoutError,
 )
-from robocloud.ledger.errors import RevertError, RpcError, TransactionTimeoutError
+from robocloud.ledger.errors import (
+    FeeLimitError,
+    RevertError,
+    RpcError,
+    TransactionMismatchError,
+    TransactionTimeoutError,
+)
 
 MAX_MESSAGE = 400
 """Characters of a message printed; a hostile service may answer a megabyte of text."""
@@ -48,7 +54,7 @@ MEANINGS: dict[ExitCode, str] = {
     ExitCode.OK: "success",
     ExitCode.ERROR: (
         "a local problem: keystore or passphrase, a file that exists or cannot be written, "
-        "a size limit, a robot that is not registered"
+        "a size or fee limit, a robot that is not registered"
     ),
     ExitCode.USAGE: "a bad argument, option or setting (such as a ROBOCLOUD_*_URL)",
     ExitCode.UNREACHABLE: ("no answer: connection refused, unknown host or timeout; retry later"),
@@ -103,6 +109,16 @@ def failure_of(exc: BaseException) -> Failure:
     if isinstance(exc, TransactionTimeoutError):
         return Failure(
             ExitCode.UNAVAILABLE, str(exc), "it may still be mined; look the hash up later"
+        )
+    if isinstance(exc, FeeLimitError):
+        return Failure(
+            ExitCode.ERROR, str(exc), "raise that limit only for a node and a chain you trust"
+        )
+    if isinstance(exc, TransactionMismatchError):
+        return Failure(
+            ExitCode.INVALID_ANSWER,
+            str(exc),
+            f"the transaction was sent and may be mined: look {exc.tx_hash} up on a node you trust",
         )
     if isinstance(exc, (InvalidAnswerError, FormatError)):
         return Failure(

@@ -18,12 +18,14 @@ from eth_utils.crypto import keccak
 
 from robocloud.cid import parse_cid
 from robocloud.client import Closeable, ServiceClient
+from robocloud.config import deployment_chain
 from robocloud.errors import InvalidAnswerError, MissingIdentityError, NotFoundError
 from robocloud.identity import Identity
 from robocloud.ledger.abi import ContractAbi, DecodedLog
 from robocloud.ledger.errors import (
     AddressError,
     ContractsUnavailableError,
+    DeploymentMismatchError,
     LedgerError,
     RpcError,
 )
@@ -38,7 +40,7 @@ from robocloud.ledger.models import (
     Role,
 )
 from robocloud.ledger.rpc import JsonRpcClient, as_revert
-from robocloud.ledger.transactions import Receipt, Transactor, quantity
+from robocloud.ledger.transactions import FeeLimits, Receipt, Transactor, check_chain, quantity
 
 
 @dataclass(frozen=True)
@@ -210,7 +212,13 @@ def _robot_record(body: Any, what: str) -> RegisteredRobot:
 
 
 class Ledger(Closeable):
-    """robocloud's contracts on one chain, seen and driven by one (optional) identity."""
+    """robocloud's contracts on one chain, seen and driven by one (optional) identity.
+
+    With a deployment (``deployment=``, else the JSON-RPC client's, which defaults to
+    ``ROBOCLOUD_DEPLOYMENT_ID``) of the form ``<chain id>:<Registry>``, the Registry must be
+    that one and the node's chain that chain, or nothing is signed
+    (``DeploymentMismatchError``).
+    """
 
     def __init__(
         self,
@@ -220,17 +228,31 @@ class Ledger(Closeable):
         *,
         service: LedgerService | None = None,
         receipt_timeout_s: float = 60.0,
+        deployment: str | None = None,
+        fee_limits: FeeLimits | None = None,
     ) -> None:
         self.rpc = rpc
         self.addresses = addresses
         self.identity = identity
         self.service = service
+        expected = deployment_chain(deployment or rpc.deployment)
+        self.expected_chain_id = expected[0] if expected is not None else None
+        if expected is not None and addresses.registry.lower() != expected[1]:
+            raise DeploymentMismatchError(
+                f"the ledger says the Registry is {addresses.registry}, but the robot's "
+                f"deployment's is {expected[1]} (ROBOCLOUD_DEPLOYMENT_ID)"
+            )
         self.registry = ContractAbi.load("Registry")
         self.anchor_log = ContractAbi.load("AnchorLog")
         self._contracts = [self.registry, self.anchor_log]
         self._transactor = (
             Transactor(
-                rpc, identity, contracts=self._contracts, receipt_timeout_s=receipt_timeout_s
+                rpc,
+                identity,
+                contracts=self._contracts,
+                receipt_timeout_s=receipt_timeout_s,
+                chain_id=self.expected_chain_id,
+                limits=fee_limits,
             )
             if identity is not None
             else None
@@ -244,16 +266,27 @@ class Ledger(Closeable):
         *,
         transport: httpx.BaseTransport | None = None,
         receipt_timeout_s: float = 60.0,
+        deployment: str | None = None,
+        fee_limits: FeeLimits | None = None,
     ) -> Ledger:
         """Through the ledger service: its ``/rpc``, its contract addresses and its faucet."""
-        service = LedgerService(ledger_url, identity, transport=transport)
+        service = LedgerService(ledger_url, identity, transport=transport, deployment=deployment)
+        rpc = JsonRpcClient(
+            f"{service.base_url}/rpc", service="ledger", transport=transport, deployment=deployment
+        )
         try:
-            addresses = service.contracts()
+            return cls(
+                rpc,
+                service.contracts(),
+                identity,
+                service=service,
+                receipt_timeout_s=receipt_timeout_s,
+                fee_limits=fee_limits,
+            )
         except BaseException:
+            rpc.close()
             service.close()
             raise
-        rpc = JsonRpcClient(f"{service.base_url}/rpc", service="ledger", transport=transport)
-        return cls(rpc, addresses, identity, service=service, receipt_timeout_s=receipt_timeout_s)
 
     def close(self) -> None:
         self.rpc.close()
@@ -264,7 +297,8 @@ class Ledger(Closeable):
 
     @property
     def chain_id(self) -> int:
-        return quantity(self.rpc.request("eth_chainId", []))
+        """The node's chain id, checked against the deployment's when there is one."""
+        return check_chain(quantity(self.rpc.request("eth_chainId", [])), self.expected_chain_id)
 
     def block_number(self) -> int:
         return quantity(self.rpc.request("eth_blockNumber", []))
@@ -310,7 +344,9 @@ class Ledger(Closeable):
         receipt = self._send(
             self.registry, self.addresses.registry, "advertise", cid, description_cid
         )
-        return self._advertised(self._one_log(receipt, self.registry, "Advertised"))
+        return self._advertised(
+            self._one_log(receipt, self.registry, self.addresses.registry, "Advertised")
+        )
 
     def grant_role(self, account: str, role: Role) -> Receipt:
         """Admin only."""
@@ -405,7 +441,9 @@ class Ledger(Closeable):
         receipt = self._send(
             self.anchor_log, self.addresses.anchor_log, "anchor", epoch, root, record_count
         )
-        return self._anchored(self._one_log(receipt, self.anchor_log, "Anchored"))
+        return self._anchored(
+            self._one_log(receipt, self.anchor_log, self.addresses.anchor_log, "Anchored")
+        )
 
     def anchor_at(self, node: str, epoch: int) -> Anchor | None:
         """``node``'s anchor for ``epoch``, or None when it anchored nothing for it."""
@@ -474,15 +512,23 @@ class Ledger(Closeable):
         }
         raw_logs = self.rpc.request("eth_getLogs", [query])
         decoded = [contract.decode_log(log) for log in raw_logs]
-        return [log for log in decoded if log is not None]
+        return [log for log in decoded if log is not None and log.address == checksum(address)]
 
     @staticmethod
-    def _one_log(receipt: Receipt, contract: ContractAbi, event: str) -> DecodedLog:
+    def _one_log(receipt: Receipt, contract: ContractAbi, address: str, event: str) -> DecodedLog:
+        """The transaction's ``event`` as emitted by the contract at ``address``: a log of the
+        same shape from any other contract (one the transaction called, or one the node made
+        up) says nothing about robocloud's."""
         for raw in receipt.logs:
             log = contract.decode_log(raw)
-            if log is not None and log.event == event:
+            if (
+                log is not None
+                and log.event == event
+                and log.address == checksum(address)
+                and log.tx_hash.lower() == receipt.tx_hash.lower()
+            ):
                 return log
-        raise LedgerError(f"transaction {receipt.tx_hash} emitted no {event} event")
+        raise LedgerError(f"transaction {receipt.tx_hash} emitted no {event} event of {address}")
 
     @staticmethod
     def _advertised(log: DecodedLog) -> Advertised:

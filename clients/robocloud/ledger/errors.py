@@ -75,3 +75,28 @@ class ContractsUnavailableError(LedgerError, InvalidAnswerError):
 
 class AddressError(LedgerError, FormatError):
     """Text that is not an Ethereum address (``0x`` and 40 hex digits, checksum if mixed case)."""
+
+
+class DeploymentMismatchError(LedgerError, InvalidAnswerError):
+    """The node serves another chain, or the ledger service names another Registry, than the
+    deployment the robot means (``ROBOCLOUD_DEPLOYMENT_ID``): nothing was signed for it."""
+
+
+class FeeLimitError(LedgerError):
+    """A transaction would take more gas, or cost more per gas, than this robot pays.
+
+    The gas and the gas price come from the node, which the robot does not trust: a lying
+    node could otherwise have it sign away its balance in fees. Nothing was signed.
+    """
+
+
+class TransactionMismatchError(LedgerError, InvalidAnswerError):
+    """The node answered another transaction's hash or receipt for the one the robot sent.
+
+    The robot's own transaction was sent and may still be mined: ``tx_hash`` is its real hash
+    (keccak-256 of the signed bytes), to look up on a node the robot trusts.
+    """
+
+    def __init__(self, message: str, tx_hash: str) -> None:
+        super().__init__(message)
+        self.tx_hash = tx_hash

@@ -98,6 +98,7 @@ class JsonRpcClient(BaseClient):
         retries: int = 3,
         backoff_s: float = 0.2,
         transport: httpx.BaseTransport | None = None,
+        deployment: str | None = None,
     ) -> None:
         super().__init__(
             url,
@@ -106,6 +107,7 @@ class JsonRpcClient(BaseClient):
             retries=retries,
             backoff_s=backoff_s,
             transport=transport,
+            deployment=deployment,
         )
         self.url = self.base_url
         self._ids = itertools.count(1)

@@ -5,6 +5,10 @@ wallet does: estimate gas (which also surfaces a revert before anything is sent)
 nonce and gas price from the node, sign an EIP-155 transaction for the node's chain id, send it
 raw, and poll for the receipt. A mined transaction that reverted is replayed with ``eth_call``
 on the state before its block so that the caller gets the contract's reason, not just status 0.
+
+The node is not trusted with what the robot signs: its chain id must be the deployment's when
+the robot names one, the gas and gas price it asks are capped (:class:`FeeLimits`), and the
+hash it answers for a sent transaction, and the receipt it shows, must be the transaction's own.
 """
 
 from __future__ import annotations
@@ -14,10 +18,19 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from eth_utils.address import to_checksum_address
+from eth_utils.crypto import keccak
 
+from robocloud import config
 from robocloud.identity import Identity
 from robocloud.ledger.abi import ContractAbi
-from robocloud.ledger.errors import RevertError, RpcError, TransactionTimeoutError
+from robocloud.ledger.errors import (
+    DeploymentMismatchError,
+    FeeLimitError,
+    RevertError,
+    RpcError,
+    TransactionMismatchError,
+    TransactionTimeoutError,
+)
 from robocloud.ledger.rpc import JsonRpcClient, as_revert
 
 GAS_MARGIN = 1.25
@@ -28,6 +41,50 @@ estimate and inclusion."""
 def quantity(value: Any) -> int:
     """A JSON-RPC quantity (``0x``-hex) as an int."""
     return int(str(value), 16)
+
+
+@dataclass(frozen=True)
+class FeeLimits:
+    """The most gas, and the most wei per gas, this robot signs a transaction for.
+
+    Defaults from ``ROBOCLOUD_MAX_GAS`` and ``ROBOCLOUD_MAX_FEE_PER_GAS_GWEI`` (docs/cli.md).
+    """
+
+    max_gas: int
+    max_fee_per_gas: int
+
+    @classmethod
+    def from_env(cls) -> FeeLimits:
+        return cls(config.max_gas(), config.max_fee_per_gas())
+
+    def check(self, gas: int, gas_price: int) -> None:
+        """Raise ``FeeLimitError`` for a transaction over either limit."""
+        if gas > self.max_gas:
+            raise FeeLimitError(
+                f"refused to sign a transaction of {gas} gas: this robot pays for at most "
+                f"{self.max_gas} (ROBOCLOUD_MAX_GAS)"
+            )
+        if gas_price > self.max_fee_per_gas:
+            raise FeeLimitError(
+                f"refused to sign at the node's gas price of {gas_price / config.GWEI:g} gwei: "
+                f"this robot pays at most {self.max_fee_per_gas / config.GWEI:g} gwei per gas "
+                "(ROBOCLOUD_MAX_FEE_PER_GAS_GWEI)"
+            )
+
+
+def check_chain(found: int, expected: int | None) -> int:
+    """``found``, the node's chain id, if it is the one the robot expects (None: any)."""
+    if expected is not None and found != expected:
+        raise DeploymentMismatchError(
+            f"the node serves chain {found}, but the robot's deployment is on chain {expected} "
+            "(ROBOCLOUD_DEPLOYMENT_ID)"
+        )
+    return found
+
+
+def transaction_hash(raw: bytes) -> str:
+    """The hash of a signed transaction: keccak-256 of its raw bytes, ``0x``-hex."""
+    return "0x" + keccak(raw).hex()
 
 
 @dataclass(frozen=True)
@@ -68,18 +125,25 @@ class Transactor:
         contracts: list[ContractAbi] | None = None,
         receipt_timeout_s: float = 60.0,
         poll_interval_s: float = 0.05,
+        chain_id: int | None = None,
+        limits: FeeLimits | None = None,
     ) -> None:
         self.rpc = rpc
         self.identity = identity
         self.contracts = contracts or []
         self.receipt_timeout_s = receipt_timeout_s
         self.poll_interval_s = poll_interval_s
+        self.expected_chain_id = chain_id
+        """The chain the robot means to sign for; None signs for whatever the node serves."""
+        self.limits = limits or FeeLimits.from_env()
         self._chain_id: int | None = None
 
     @property
     def chain_id(self) -> int:
+        """The node's chain id, once it was checked against ``expected_chain_id``."""
         if self._chain_id is None:
-            self._chain_id = quantity(self.rpc.request("eth_chainId", []))
+            found = quantity(self.rpc.request("eth_chainId", []))
+            self._chain_id = check_chain(found, self.expected_chain_id)
         return self._chain_id
 
     def call_object(self, to: str | None, data: bytes, value: int = 0) -> dict[str, str]:
@@ -99,13 +163,20 @@ class Transactor:
         return int(estimate * GAS_MARGIN)
 
     def sign(self, to: str | None, data: bytes, *, gas: int, value: int = 0) -> bytes:
-        """The raw signed transaction, with nonce and gas price from the node."""
+        """The raw signed transaction, with nonce and gas price from the node.
+
+        Raises ``FeeLimitError`` before signing when the gas or the node's gas price is over
+        ``limits``, and ``DeploymentMismatchError`` when the node's chain is not the expected.
+        """
         address = self.identity.address
+        chain_id = self.chain_id
+        gas_price = quantity(self.rpc.request("eth_gasPrice", []))
+        self.limits.check(gas, gas_price)
         transaction: dict[str, Any] = {
-            "chainId": self.chain_id,
+            "chainId": chain_id,
             "nonce": quantity(self.rpc.request("eth_getTransactionCount", [address, "pending"])),
             "gas": gas,
-            "gasPrice": quantity(self.rpc.request("eth_gasPrice", [])),
+            "gasPrice": gas_price,
             "data": data,
             "value": value,
         }
@@ -124,7 +195,14 @@ class Transactor:
         """
         gas = gas if gas is not None else self.estimate_gas(to, data, value)
         raw = self.sign(to, data, gas=gas, value=value)
-        tx_hash = str(self.rpc.request("eth_sendRawTransaction", ["0x" + raw.hex()]))
+        tx_hash = transaction_hash(raw)
+        answered = self.rpc.request("eth_sendRawTransaction", ["0x" + raw.hex()])
+        if not isinstance(answered, str) or answered.lower() != tx_hash:
+            raise TransactionMismatchError(
+                f"the node answered {str(answered)[:80]!r} to eth_sendRawTransaction, "
+                f"but the transaction sent is {tx_hash}",
+                tx_hash,
+            )
         receipt = self.wait_for_receipt(tx_hash)
         if receipt.status == 0:
             raise self._revert_of(to, data, value, receipt)
@@ -136,11 +214,20 @@ class Transactor:
         return self.send(None, data)
 
     def wait_for_receipt(self, tx_hash: str) -> Receipt:
+        """Poll for ``tx_hash``'s receipt; one the node shows for another transaction is an
+        ``InvalidAnswerError``, never taken for this one's."""
         deadline = time.monotonic() + self.receipt_timeout_s
         while True:
             raw = self.rpc.request("eth_getTransactionReceipt", [tx_hash])
             if raw is not None:
-                return Receipt.from_rpc(raw)
+                receipt = Receipt.from_rpc(raw)
+                if receipt.tx_hash.lower() != tx_hash.lower():
+                    raise TransactionMismatchError(
+                        f"asked for the receipt of {tx_hash}, the node answered one of "
+                        f"{receipt.tx_hash[:80]!r}",
+                        tx_hash,
+                    )
+                return receipt
             if time.monotonic() >= deadline:
                 raise TransactionTimeoutError(tx_hash, self.receipt_timeout_s)
             time.sleep(self.poll_interval_s)

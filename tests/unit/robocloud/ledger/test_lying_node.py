@@ -1,0 +1,278 @@
+"""``Ledger`` and ``robocloud advertise`` against a ledger whose JSON-RPC lies.
+
+Robots sign their own transactions from what the node says (chain id, gas, gas price), so a
+lying node must not get a signature for another chain or at a ruinous fee, and what it says
+about the transaction afterwards (its hash, its receipt, its events) must be the
+transaction's own.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+from eth_abi.abi import encode
+from eth_utils.crypto import keccak
+from typer.testing import CliRunner
+
+from robocloud.cid import CID
+from robocloud.cli import app
+from robocloud.errors import ConfigurationError, InvalidAnswerError
+from robocloud.identity import Identity
+from robocloud.ledger import ContractAbi, Ledger, LedgerError
+from robocloud.ledger.errors import (
+    DeploymentMismatchError,
+    FeeLimitError,
+    TransactionMismatchError,
+)
+from robocloud.ledger.transactions import FeeLimits
+from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
+
+REGISTRY = "0x" + "22" * 20
+ANCHOR_LOG = "0x" + "33" * 20
+DEPLOYMENT = f"1337:{REGISTRY}"
+GWEI = 10**9
+CONTENT = CID.from_block(b"hello").binary
+REGISTRY_ABI = ContractAbi.load("Registry")
+Answers = dict[str, Callable[[list[Any]], Any]]
+runner = CliRunner()
+
+
+def advertised_log(robot: str, tx_hash: str, address: str = REGISTRY) -> dict[str, Any]:
+    """The ``Advertised`` event a Registry at ``address`` emits for ``robot``."""
+    data = encode(["bytes", "bytes", "bool", "uint64"], [CONTENT, b"", True, 1_700_000_000])
+    return {
+        "address": address,
+        "topics": [
+            "0x" + REGISTRY_ABI.event_topic("Advertised").hex(),
+            "0x" + keccak(CONTENT).hex(),
+            "0x" + "00" * 12 + robot[2:].lower(),
+        ],
+        "data": "0x" + data.hex(),
+        "blockNumber": "0x5",
+        "transactionHash": tx_hash,
+        "logIndex": "0x0",
+    }
+
+
+def honest(robot: str) -> Answers:
+    """What a truthful development node answers to an ``advertise``."""
+
+    def receipt(params: list[Any]) -> dict[str, Any]:
+        return {
+            "transactionHash": params[0],
+            "blockNumber": "0x5",
+            "blockHash": "0x" + "cd" * 32,
+            "status": "0x1",
+            "gasUsed": "0x5208",
+            "logs": [advertised_log(robot, params[0])],
+        }
+
+    return {
+        "eth_chainId": lambda _: hex(1337),
+        "eth_estimateGas": lambda _: hex(100_000),
+        "eth_gasPrice": lambda _: hex(2 * GWEI),
+        "eth_getTransactionCount": lambda _: "0x0",
+        "eth_sendRawTransaction": lambda params: "0x" + keccak(hexstr=params[0]).hex(),
+        "eth_getTransactionReceipt": receipt,
+    }
+
+
+def ledger_script(answers: Answers) -> Callable[[Exchange], Reply]:
+    """The ledger service's ``/v1/contracts`` and a JSON-RPC node answering ``answers``."""
+
+    def script(exchange: Exchange) -> Reply:
+        if exchange.path == "/v1/contracts":
+            contracts = {"Registry": {"address": REGISTRY}, "AnchorLog": {"address": ANCHOR_LOG}}
+            return json_reply(json.dumps({"contracts": contracts}))
+        call = json.loads(exchange.body)
+        result = answers[call["method"]](call["params"])
+        return json_reply(json.dumps({"jsonrpc": "2.0", "id": call["id"], "result": result}))
+
+    return script
+
+
+@contextmanager
+def lying_ledger(robot: Identity, **lies: Callable[[list[Any]], Any]) -> Iterator[ScriptedServer]:
+    with scripted_server(ledger_script({**honest(robot.address), **lies})) as server:
+        yield server
+
+
+def methods(server: ScriptedServer) -> list[str]:
+    return [json.loads(e.body)["method"] for e in server.exchanges if e.path == "/rpc"]
+
+
+def raw_sent(server: ScriptedServer) -> str:
+    (raw,) = [
+        json.loads(e.body)["params"][0]
+        for e in server.exchanges
+        if e.path == "/rpc" and json.loads(e.body)["method"] == "eth_sendRawTransaction"
+    ]
+    return str(raw)
+
+
+def test_an_honest_node_gets_the_advertisement_signed() -> None:
+    robot = Identity.generate()
+    with lying_ledger(robot) as server, Ledger.connect(server.url, robot) as ledger:
+        event = ledger.advertise(CONTENT)
+    assert event.tx_hash == "0x" + keccak(hexstr=raw_sent(server)).hex()
+
+
+@pytest.mark.parametrize(
+    ("lie", "limit"),
+    [
+        ({"eth_gasPrice": lambda _: hex(5000 * GWEI)}, "ROBOCLOUD_MAX_FEE_PER_GAS_GWEI"),
+        ({"eth_estimateGas": lambda _: hex(30_000_000)}, "ROBOCLOUD_MAX_GAS"),
+    ],
+    ids=["gas-price", "gas"],
+)
+def test_a_fee_over_the_limits_is_refused_before_anything_is_signed(
+    lie: Answers, limit: str
+) -> None:
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot, **lie) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(FeeLimitError, match=limit),
+    ):
+        ledger.advertise(CONTENT)
+    assert "eth_sendRawTransaction" not in methods(server)
+
+
+def test_the_fee_limits_are_the_robots_to_raise(monkeypatch: pytest.MonkeyPatch) -> None:
+    robot = Identity.generate()
+    lies: Answers = {
+        "eth_gasPrice": lambda _: hex(5000 * GWEI),
+        "eth_estimateGas": lambda _: hex(30_000_000),
+    }
+    monkeypatch.setenv("ROBOCLOUD_MAX_GAS", "40000000")
+    monkeypatch.setenv("ROBOCLOUD_MAX_FEE_PER_GAS_GWEI", "5000")
+    with lying_ledger(robot, **lies) as server, Ledger.connect(server.url, robot) as ledger:
+        ledger.advertise(CONTENT)
+    limits = FeeLimits(max_gas=40_000_000, max_fee_per_gas=4999 * GWEI)
+    with (
+        lying_ledger(robot, **lies) as server,
+        Ledger.connect(server.url, robot, fee_limits=limits) as ledger,
+        pytest.raises(FeeLimitError, match="at most 4999 gwei"),
+    ):
+        ledger.advertise(CONTENT)
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [("ROBOCLOUD_MAX_GAS", "lots"), ("ROBOCLOUD_MAX_FEE_PER_GAS_GWEI", "-1")],
+)
+def test_an_unusable_fee_limit_is_a_configuration_error(
+    monkeypatch: pytest.MonkeyPatch, name: str, value: str
+) -> None:
+    monkeypatch.setenv(name, value)
+    with pytest.raises(ConfigurationError, match=name):
+        FeeLimits.from_env()
+
+
+def test_a_node_of_another_chain_gets_no_signature(monkeypatch: pytest.MonkeyPatch) -> None:
+    robot = Identity.generate()
+    monkeypatch.setenv("ROBOCLOUD_DEPLOYMENT_ID", DEPLOYMENT)
+    with (
+        lying_ledger(robot, eth_chainId=lambda _: "0x1") as server,
+        Ledger.connect(server.url, robot) as ledger,
+    ):
+        with pytest.raises(DeploymentMismatchError, match=r"serves chain 1, .* on chain 1337"):
+            ledger.advertise(CONTENT)
+        with pytest.raises(DeploymentMismatchError):
+            _ = ledger.chain_id
+    assert "eth_sendRawTransaction" not in methods(server)
+
+
+def test_the_chain_of_the_deployment_named_is_signed_for() -> None:
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot) as server,
+        Ledger.connect(server.url, robot, deployment=DEPLOYMENT) as ledger,
+    ):
+        ledger.advertise(CONTENT)
+        assert ledger.chain_id == 1337
+
+
+def test_a_ledger_naming_another_registry_is_refused() -> None:
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot) as server,
+        pytest.raises(DeploymentMismatchError, match="Registry"),
+    ):
+        Ledger.connect(server.url, robot, deployment=f"1337:0x{'44' * 20}")
+
+
+def test_a_hash_answered_for_another_transaction_is_refused() -> None:
+    robot = Identity.generate()
+    other = "0x" + "ab" * 32
+    with (
+        lying_ledger(robot, eth_sendRawTransaction=lambda _: other) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(TransactionMismatchError) as err,
+    ):
+        ledger.advertise(CONTENT)
+    assert isinstance(err.value, InvalidAnswerError)
+    assert err.value.tx_hash == "0x" + keccak(hexstr=raw_sent(server)).hex()
+    assert "eth_getTransactionReceipt" not in methods(server)
+
+
+def test_a_receipt_of_another_transaction_is_refused() -> None:
+    robot = Identity.generate()
+    other = "0x" + "ab" * 32
+
+    def receipt(params: list[Any]) -> dict[str, Any]:
+        return {
+            **honest(robot.address)["eth_getTransactionReceipt"](params),
+            "transactionHash": other,
+        }
+
+    with (
+        lying_ledger(robot, eth_getTransactionReceipt=receipt) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(TransactionMismatchError, match="receipt"),
+    ):
+        ledger.advertise(CONTENT)
+
+
+@pytest.mark.parametrize("where", ["address", "transaction"])
+def test_an_event_from_elsewhere_is_not_the_registrys(where: str) -> None:
+    robot = Identity.generate()
+
+    def receipt(params: list[Any]) -> dict[str, Any]:
+        if where == "address":
+            log = advertised_log(robot.address, params[0], address="0x" + "44" * 20)
+        else:
+            log = advertised_log(robot.address, "0x" + "ab" * 32)
+        return {**honest(robot.address)["eth_getTransactionReceipt"](params), "logs": [log]}
+
+    with (
+        lying_ledger(robot, eth_getTransactionReceipt=receipt) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(LedgerError, match="emitted no Advertised event"),
+    ):
+        ledger.advertise(CONTENT)
+
+
+def test_the_cli_refuses_a_ruinous_fee_in_one_line(keystore: Path) -> None:
+    robot = Identity.load(keystore, "pw")
+    with lying_ledger(robot, eth_gasPrice=lambda _: hex(5000 * GWEI)) as server:
+        result = runner.invoke(
+            app,
+            [
+                "advertise",
+                str(CID.from_bytes(CONTENT)),
+                "--keystore",
+                str(keystore),
+                "--ledger",
+                server.url,
+            ],
+        )
+    assert result.exit_code == 1, result.output
+    assert result.stderr.startswith("error: refused to sign at the node's gas price of 5000 gwei")
+    assert "ROBOCLOUD_MAX_FEE_PER_GAS_GWEI" in result.stderr
+    assert "eth_sendRawTransaction" not in methods(server)
