@@ -155,8 +155,10 @@ def _evaluated(document: Any, name: str, version: int) -> Template:
     problems = []
     if document.get("name", name) != name:
         problems.append(Problem("name", f"must be {name} here"))
-    if document.get("version", version) != version:
-        problems.append(Problem("version", f"must be {version} (the next version)"))
+    given = document.get("version", version)
+    # true == 1 and 1.0 == 1 in Python: a version that is not an integer is not this one.
+    if isinstance(given, bool) or not isinstance(given, int) or given != version:
+        problems.append(Problem("version", f"must be the integer {version} (the next version)"))
     template, found = evaluate({**document, "name": name, "version": version})
     problems.extend(found)
     if template is None or problems:

@@ -60,6 +60,11 @@ def storage(service_factory: ServiceFactory) -> ServiceProcess:
 
 def test_template_lifecycle_over_http(storage: ServiceProcess, identity: Identity) -> None:
     with Storage(storage.url, identity) as client:
+        with pytest.raises(BadRequestError) as not_an_integer:
+            client.create_template({**STATE, "version": True})
+        assert not_an_integer.value.details == {
+            "problems": [{"path": "version", "message": "must be the integer 1 (the next version)"}]
+        }
         draft = client.create_template(STATE)
         assert (draft.id, draft.status, draft.author) == ("state@1", "draft", identity.address)
         with pytest.raises(BadRequestError) as invalid:

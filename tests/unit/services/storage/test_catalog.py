@@ -76,9 +76,13 @@ def test_bad_documents_change_nothing(tmp_path: Path) -> None:
     assert {p.path for p in invalid.value.problems} == {"fields.Bad"}
     with pytest.raises(TemplateInvalid):
         catalog.create([], author=AUTHOR)
-    with pytest.raises(TemplateInvalid) as wrong_version:
-        catalog.create(_imu(version=2), author=AUTHOR)
-    assert wrong_version.value.problems[0].path == "version"
+    # true == 1 and 1.0 == 1 in Python: both were taken for version 1.
+    for version in (2, True, 1.0, "1"):
+        with pytest.raises(TemplateInvalid) as wrong_version:
+            catalog.create(_imu(version=version), author=AUTHOR)
+        assert [problem.to_json() for problem in wrong_version.value.problems] == [
+            {"path": "version", "message": "must be the integer 1 (the next version)"}
+        ]
     assert catalog.list() == []
     catalog.create(_imu(), author=AUTHOR)
     with pytest.raises(TemplateInvalid) as renamed:
