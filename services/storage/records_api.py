@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hashlib
+import json
+import re
 import time
 from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any, Literal, TypeVar
@@ -212,6 +214,44 @@ def _parsed(index: int, line: bytes) -> Any:
         raise RecordRejected(index, "", str(exc), code="invalid_json") from exc
 
 
+_BLANK = re.compile(r"[ \t\n\r]*")
+
+
+def _first_refused_record(body: bytes) -> int | None:
+    """The index of the first record of a JSON array body that is refused on its own (NaN,
+    a lone surrogate, a syntax error), as NDJSON bodies name theirs; None when the fault is
+    outside every record. Only asked once the whole body was refused: a good batch pays
+    nothing, and the nesting bound already held for the whole."""
+    try:
+        text = body.decode()
+    except UnicodeDecodeError:
+        return None
+    decoder = json.JSONDecoder()
+    position = _after_blanks(text, 0)
+    if not text.startswith("[", position):
+        return None
+    index = 0
+    while True:
+        position = _after_blanks(text, position + 1)
+        if text.startswith("]", position):
+            return None
+        try:
+            end = decoder.raw_decode(text, position)[1]
+            bounded_json.loads(text[position:end], max_depth=RECORD_DEPTH)
+        except ValueError:  # json's errors and bounded_json's
+            return index
+        position = _after_blanks(text, end)
+        if not text.startswith(",", position):
+            return None
+        index += 1
+
+
+def _after_blanks(text: str, position: int) -> int:
+    blanks = _BLANK.match(text, position)
+    assert blanks is not None, "the pattern matches the empty string"
+    return blanks.end()
+
+
 async def _records_of(request: Request, settings: StorageSettings) -> list[Any]:
     kind = media_type(request)
     limit = settings.storage_max_batch_records
@@ -227,7 +267,16 @@ async def _records_of(request: Request, settings: StorageSettings) -> list[Any]:
             "records are application/json (an array) or application/x-ndjson",
             details={"header": "Content-Type", "received": request.headers.get("content-type")},
         )
-    document = bounded_json.loads(await request.body(), max_depth=RECORD_DEPTH + 1)
+    body = await request.body()
+    try:
+        document = bounded_json.loads(body, max_depth=RECORD_DEPTH + 1)
+    except bounded_json.JsonDepthError:
+        raise
+    except bounded_json.JsonError as exc:
+        refused = _first_refused_record(body)
+        if refused is None:
+            raise
+        raise RecordRejected(refused, "", str(exc), code="invalid_json") from exc
     if not isinstance(document, list):
         raise BadRequest(
             "the body must be a JSON array of records", code="invalid_body", details={"field": ""}

@@ -129,6 +129,17 @@ def test_records_round_trip_and_bad_batches_store_nothing(
         )
         assert answer.status_code == 400
         assert answer.json()["error"]["details"]["index"] == 1
+        # A record JSON refuses (NaN) is named in an array as in NDJSON; it was not.
+        body = json.dumps([_record(robot, 71), _record(robot, 72, speed=float("nan"))]).encode()
+        answer = client.send(
+            "POST", "/v1/records", content=body, headers={"Content-Type": "application/json"}
+        )
+        assert answer.status_code == 400
+        assert answer.json()["error"]["details"] == {
+            "index": 1,
+            "field": "",
+            "reason": "invalid_json",
+        }
         lines = json.dumps(_record(robot, 80)).encode() + b"\n{not json\n"
         answer = client.send(
             "POST", "/v1/records", content=lines, headers={"Content-Type": "application/x-ndjson"}
@@ -181,9 +192,12 @@ def test_strings_with_a_lone_surrogate_are_refused_and_nothing_is_stored(
         text = json.dumps(_record(identity.address, 1, mode="MODE")).replace("MODE", "\\ud800")
         error = _refused(
             client.send("POST", "/v1/records", content=f"[{text}]".encode(), headers=json_type),
-            "invalid_json",
+            "invalid_record",
         )
-        assert error["message"] == "a string holds a lone UTF-16 surrogate, which is not text"
+        assert error["details"] == {"index": 0, "field": "", "reason": "invalid_json"}
+        assert error["message"] == (
+            "record 0: record: a string holds a lone UTF-16 surrogate, which is not text"
+        )
         error = _refused(
             client.send(
                 "POST",
