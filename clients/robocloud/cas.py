@@ -274,7 +274,8 @@ class Cas(ServiceClient):
         """Fetch a file as a CAR, verify every block, and write its content to ``path``.
 
         The file appears under ``path`` only once all of it was verified; whatever fails
-        (a lying gateway, ``max_size``, an interrupt) removes the partial file. With
+        (a lying gateway, ``max_size``, an interrupt) removes the partial file, a new one
+        beside ``path`` that this call created (never a file or link already there). With
         ``max_size``, a root that declares more is refused before anything is written, and
         a DAG that holds more than it declares is stopped at the limit. Without
         ``overwrite``, an existing ``path`` is never replaced (``FileExistsError``), even by
@@ -283,14 +284,15 @@ class Cas(ServiceClient):
         root = _as_cid(cid)
         if not overwrite and (path.exists() or path.is_symlink()):
             raise FileExistsError(f"{path} exists")
-        partial = path.with_name(f".{path.name}.partial")
+        url = f"{self.base_url}/ipfs/{root}"
+        if max_size is not None:
+            with self.translate_errors("GET", url):
+                self._check_declared_size(root, max_size)
+        partial, handle = _create_partial(path)
         try:
-            with self.translate_errors("GET", f"{self.base_url}/ipfs/{root}"):
-                if max_size is not None:
-                    self._check_declared_size(root, max_size)
-                with partial.open("w+b") as out:
-                    target = out if max_size is None else _CappedWriter(out, root, max_size)
-                    written = self._download(root, target, progress)
+            with handle as out, self.translate_errors("GET", url):
+                target = out if max_size is None else _CappedWriter(out, root, max_size)
+                written = self._download(root, target, progress)
             _publish(partial, path, overwrite)
         except BaseException:
             partial.unlink(missing_ok=True)
@@ -431,6 +433,28 @@ class _CappedWriter(io.BufferedIOBase, BinaryIO):
 
     def seekable(self) -> bool:
         return True
+
+
+PARTIAL_ATTEMPTS = 16
+
+
+def _create_partial(path: Path) -> tuple[Path, BinaryIO]:
+    """A new hidden file beside ``path`` (``.NAME.<random>.partial``) for the download.
+
+    Created with ``O_CREAT | O_EXCL | O_NOFOLLOW``: a file or symbolic link planted under
+    the name (in a shared directory, by another user) is never opened, so nothing but a
+    file this call created is ever written, truncated or removed. The name is random so a
+    planted one cannot block the download either, nor can two downloads collide.
+    """
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    for _ in range(PARTIAL_ATTEMPTS):
+        partial = path.with_name(f".{path.name}.{secrets.token_hex(6)}.partial")
+        try:
+            descriptor = os.open(partial, flags, 0o666)
+        except FileExistsError:
+            continue
+        return partial, os.fdopen(descriptor, "w+b")
+    raise FileExistsError(f"no free name for a partial file beside {path}")
 
 
 def _publish(partial: Path, path: Path, overwrite: bool) -> None:
