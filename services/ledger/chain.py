@@ -392,8 +392,11 @@ class EmbeddedChain:
         self, request: CallRequest, state: Any, block_gas_limit: int, estimate: bool
     ) -> int:
         """The gas the call runs with, checked against what its sender can pay, as geth does:
-        a priced call must be affordable; an estimate searches no higher than affordable."""
+        a priced call must be affordable; an estimate searches no higher than affordable,
+        nor than a transaction may carry (EIP-7825)."""
         allowance = self.call_limits.gas_for(request.gas, block_gas_limit)
+        if estimate:
+            allowance = min(allowance, validation.MAX_TRANSACTION_GAS)
         balance = int(state.get_balance(Address(request.sender)))
         fee_cap = request.fee_cap
         if fee_cap and estimate and balance >= request.value:

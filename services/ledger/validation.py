@@ -4,9 +4,10 @@ the node, checked before a transaction is queued or mined, each refused with get
 py-evm checks the signature (recovery, low ``s``), the fee cap against the base fee (with
 its own message), the nonce and the balance while it executes; it does not check that the
 priority fee is within the fee cap, that the gas covers the intrinsic cost and EIP-7623's
-calldata floor, the block gas limit, EIP-3860's init code limit, the 256-bit bounds of the
-fee fields, EIP-2681's nonce bound, EIP-3607 (no transactions from accounts with code other
-than an EIP-7702 delegation), nor the fields of EIP-7702's authorizations.
+calldata floor, the block gas limit, EIP-7825's transaction gas cap, EIP-3860's init code
+limit, the 256-bit bounds of the fee fields, EIP-2681's nonce bound, EIP-3607 (no
+transactions from accounts with code other than an EIP-7702 delegation), nor the fields of
+EIP-7702's authorizations.
 Geth's transaction pool checks all of them with the messages below, which clients such as
 ethers and viem classify by prefix (``intrinsic gas too low``, ``max fee per gas less than
 block base fee``). Every rule raises before anything is queued, executed or stored.
@@ -27,6 +28,10 @@ MAX_TRANSACTION_BYTES = 128 * 1024
 """geth's ``txMaxSize``: larger raw transactions are refused as ``oversized data``."""
 MAX_INITCODE_BYTES = 2 * 24_576
 """EIP-3860: twice the EIP-170 code size limit."""
+MAX_TRANSACTION_GAS = 2**24
+"""EIP-7825 (Osaka; geth's ``MaxTxGas``): no transaction may carry more gas. py-evm runs
+about 4.5 million gas a second of a JUMP loop and mines under the chain's lock, so this bounds
+how long one transaction stalls every other write and state read (see docs/ledger.md)."""
 UINT64_MAX = 2**64 - 1
 UINT256_MAX = 2**256 - 1
 TX_BASE_GAS = 21_000
@@ -93,6 +98,10 @@ def check_fields(transaction: SignedTransactionAPI, chain_id: int, block_gas_lim
         )
     if transaction.gas > block_gas_limit:
         raise ChainError("exceeds block gas limit")
+    if transaction.gas > MAX_TRANSACTION_GAS:
+        raise ChainError(
+            f"transaction gas limit too high (cap: {MAX_TRANSACTION_GAS}, tx: {transaction.gas})"
+        )
     fees = Fees.of(transaction)
     if fees.cap > UINT256_MAX:
         raise ChainError("max fee per gas higher than 2^256-1")

@@ -200,3 +200,31 @@ def test_a_valid_transaction_from_the_same_builder_is_mined(service: Service) ->
         receipt = call(f"{service.url}/rpc", "eth_getTransactionReceipt", [answer["result"]])
         assert receipt["result"]["status"] == "0x1"
         assert receipt["result"]["type"] == hex(kind)
+
+
+# Creation code that stops only when it is given more gas than EIP-7825 lets a transaction
+# carry (GAS, PUSH4 2^24, GT, JUMPI to INVALID, else STOP).
+NEEDS_MORE_THAN_THE_CAP = bytes.fromhex("5a630100000011600b57005bfe")
+
+
+def test_gas_above_the_eip_7825_cap_is_refused_as_geth_does(service: Service) -> None:
+    """One transaction at the block gas limit (30 M) running a loop held the chain's lock
+    for 6.4-9.5 s; the cap (geth's since Osaka) bounds that stall to about half."""
+    price = int(call(f"{service.url}/rpc", "eth_gasPrice", [])["result"], 16)
+    error = send_ledger(service, BASE.but(gas=2**24 + 1, max_fee=price))
+    assert error == {
+        "code": -32000,
+        "message": "transaction gas limit too high (cap: 16777216, tx: 16777217)",
+    }
+    identity = Identity.generate()
+    assert faucet(service.url, identity).status_code == 200
+    raw = BASE.but(gas=2**24, max_fee=price).sign(bytes(identity.account.key))
+    answer = call(f"{service.url}/rpc", "eth_sendRawTransaction", [raw])
+    receipt = call(f"{service.url}/rpc", "eth_getTransactionReceipt", [answer["result"]])
+    assert receipt["result"]["status"] == "0x1"
+    request = {"data": "0x" + NEEDS_MORE_THAN_THE_CAP.hex()}
+    estimate = call(f"{service.url}/rpc", "eth_estimateGas", [request])
+    assert estimate["error"] == {
+        "code": -32000,
+        "message": "gas required exceeds allowance (16777216)",
+    }
