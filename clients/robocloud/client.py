@@ -55,6 +55,17 @@ MAX_ANSWER_BYTES = 64 << 20
 """The most a non-streamed answer may hold; a larger one is refused as it arrives."""
 MAX_ERROR_BYTES = 1 << 20
 """The most of an error answer read from a streamed response (its JSON error is small)."""
+ANSWER_DEADLINE_FACTOR = 4
+"""An answer read whole must be complete within this many ``timeout``s of the request: the
+timeout bounds each read, so a service dripping a byte per read would otherwise hold a
+client as long as it likes."""
+
+
+class AnswerDeadlineError(TransportTimeoutError):
+    """An answer read whole did not complete within the client's ``answer_deadline_s``.
+
+    Not retried: a service that sends its answer this slowly would do so again.
+    """
 
 
 @dataclass(frozen=True)
@@ -65,7 +76,8 @@ class RetryPolicy:
     503 (the service refused before doing anything) and a 429 whose ``Retry-After`` is within
     ``max_delay_s`` (this client's own requests hold its share of a service's turns; a faucet
     that says come back in an hour is not waited for) for every request whose body can be sent
-    again; a broken or timed-out exchange, 502 and 504 only for idempotent requests. Delays
+    again; a broken or timed-out exchange, 502 and 504 only for idempotent requests; an answer
+    past its deadline (``AnswerDeadlineError``) never. Delays
     grow exponentially from ``backoff_s``; a ``Retry-After`` is honoured up to
     ``max_delay_s``.
     """
@@ -143,6 +155,7 @@ class BaseClient(Closeable):
         max_answer_bytes: int = MAX_ANSWER_BYTES,
         transport: httpx.BaseTransport | None = None,
         deployment: str | None = None,
+        answer_deadline_s: float | None = None,
     ) -> None:
         self.service = service or self.default_service
         if base_url is None:
@@ -153,6 +166,10 @@ class BaseClient(Closeable):
         self.identity = identity
         self.retry = RetryPolicy(retries=retries, backoff_s=backoff_s)
         self.max_answer_bytes = max_answer_bytes
+        self.answer_deadline_s = (
+            ANSWER_DEADLINE_FACTOR * timeout if answer_deadline_s is None else answer_deadline_s
+        )
+        """How long an answer read whole may take, from the request to its last byte."""
         self.deployment = deployment or expected_deployment()
         """The deployment whose audience alone this client signs for (None: what it claims)."""
         self._audience: str | None = None
@@ -171,9 +188,11 @@ class BaseClient(Closeable):
 
         ``signed`` defaults to signing every method but GET, HEAD and OPTIONS; ``idempotent``
         to RFC 9110's idempotent methods (a POST that only reads may say so). Without
-        ``stream`` the answer is read whole, at most ``max_answer_bytes``; with it the caller
-        reads and closes it (use it as a context manager), except an error answer (status
-        400 or more), which is always read.
+        ``stream`` the answer is read whole, at most ``max_answer_bytes`` within
+        ``answer_deadline_s`` (``TransportTimeoutError`` past it); with it the caller reads
+        and closes it (use it as a context manager), except an error answer (status 400 or
+        more), which is always read. A streamed answer has no overall deadline, only
+        ``timeout`` per read: its reader bounds it (``Cas.get_to_file``: its size).
         """
         response, _ = self._send_counting(method, path, **options)
         return response
@@ -218,7 +237,7 @@ class BaseClient(Closeable):
             try:
                 response = self._exchange(request, stream)
             except TransportError as exc:
-                if attempt < attempts and (isinstance(exc, ConnectError) or idempotent):
+                if attempt < attempts and _resent_after(exc, idempotent):
                     time.sleep(self.retry.delay(attempt - 1))
                     continue
                 raise
@@ -241,26 +260,31 @@ class BaseClient(Closeable):
 
     def _exchange(self, request: httpx.Request, stream: bool) -> httpx.Response:
         """One request and, unless streamed, its whole answer; httpx failures translated."""
+        deadline = time.monotonic() + self.answer_deadline_s
         with self.translate_errors(request.method, str(request.url)):
             response = self._http.send(request, stream=True)
             if stream and response.status_code < 400:
                 return response
             try:
                 limit = MAX_ERROR_BYTES if stream else self.max_answer_bytes
-                return self._read_whole(response, limit)
+                return self._read_whole(response, limit, deadline)
             finally:
                 response.close()
 
-    def _read_whole(self, response: httpx.Response, limit: int) -> httpx.Response:
-        """The response with its body read, refusing more than ``limit`` bytes as they arrive."""
+    def _read_whole(self, response: httpx.Response, limit: int, deadline: float) -> httpx.Response:
+        """The response with its body read, refusing more than ``limit`` bytes as they arrive
+        and giving up at ``deadline`` (checked at every read, so at most one read's timeout
+        late)."""
         declared = response.headers.get("content-length", "")
         if declared.isdigit() and int(declared) > limit:
             raise self._invalid(response, f"an answer of {declared} bytes, over {limit}")
         body = bytearray()
+        self._check_deadline(response, deadline)
         for chunk in response.iter_bytes():
             body += chunk
             if len(body) > limit:
                 raise self._invalid(response, f"an answer of more than {limit} bytes")
+            self._check_deadline(response, deadline)
         kept = [
             (name, value)
             for name, value in response.headers.raw
@@ -273,6 +297,17 @@ class BaseClient(Closeable):
             request=response.request,
             extensions=response.extensions,
         )
+
+    def _check_deadline(self, response: httpx.Response, deadline: float) -> None:
+        if time.monotonic() > deadline:
+            request = response.request
+            raise AnswerDeadlineError(
+                f"{request.method} {request.url} timed out: the answer was not complete "
+                f"{self.answer_deadline_s:g} s after the request",
+                method=request.method,
+                url=str(request.url),
+                service=self.service,
+            )
 
     @contextmanager
     def translate_errors(self, method: str, url: str) -> Iterator[None]:
@@ -402,6 +437,14 @@ def api_error(response: httpx.Response) -> ApiError:
     return error_class_for(response.status_code)(
         response.status_code, code, message, details, request_id
     )
+
+
+def _resent_after(error: TransportError, idempotent: bool) -> bool:
+    """Whether a request is sent again after ``error``: always when it never left, when it
+    may have arrived only if resending is harmless, and never after a dripped answer."""
+    if isinstance(error, AnswerDeadlineError):
+        return False
+    return isinstance(error, ConnectError) or idempotent
 
 
 def _seconds(retry_after: str | None) -> float | None:

@@ -19,6 +19,9 @@ from robocloud.client import ServiceClient
 
 UPLOAD_CHUNK = 1 << 20
 FINISHED = ("succeeded", "failed")
+WAIT_TIMEOUT_S = 3600.0
+"""How long ``Ingest.wait`` follows a job by default: a storage node that answers "running"
+forever must not hold the robot forever."""
 
 
 def _file_chunks(path: Path) -> Iterator[bytes]:
@@ -71,17 +74,18 @@ class Ingest(ServiceClient):
         on_progress: Callable[[dict[str, Any]], None] | None = None,
         *,
         poll_s: float = 0.25,
-        timeout_s: float | None = None,
+        timeout_s: float = WAIT_TIMEOUT_S,
     ) -> dict[str, Any]:
-        """Poll a job until it succeeds or fails (or ``timeout_s`` passes); its last state."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        """Poll a job until it succeeds or fails, or ``timeout_s`` passes; its last state
+        (whose status is then still ``queued`` or ``running``)."""
+        deadline = time.monotonic() + timeout_s
         while True:
             job = self.job(job_id)
             if on_progress is not None:
                 on_progress(job)
-            if job["status"] in FINISHED or (deadline is not None and time.monotonic() > deadline):
+            if job["status"] in FINISHED or time.monotonic() > deadline:
                 return job
-            time.sleep(poll_s)
+            time.sleep(min(poll_s, max(deadline - time.monotonic(), 0.0)))
 
     def resume(self, job_id: str) -> dict[str, Any]:
         job: dict[str, Any] = self.post_json(f"/v1/jobs/{job_id}/resume")

@@ -11,8 +11,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress
 
 from robocloud.cas import Cas
 from robocloud.cli.context import JsonOption, KeystoreOption, StorageOption, fail, load_identity
+from robocloud.cli.exits import ExitCode
 from robocloud.cli.output import console, show, show_json
-from robocloud.ingest import Ingest
+from robocloud.ingest import FINISHED, WAIT_TIMEOUT_S, Ingest
 from robocloud.templates import NAME as TEMPLATE_NAME
 
 
@@ -27,6 +28,9 @@ def ingest(
         "--drafts",
         file_okay=False,
         help="Write the draft template proposed for each unbound topic into this directory.",
+    ),
+    wait_timeout: float = typer.Option(
+        WAIT_TIMEOUT_S, "--timeout", min=0, help="Seconds to wait for the job to finish."
     ),
     keystore: Path | None = KeystoreOption,
     as_json: bool = JsonOption,
@@ -46,14 +50,21 @@ def ingest(
             job = client.ingest(bag)
         stderr = console(stderr=True)
         columns = ("{task.description}", BarColumn(), MofNCompleteColumn())
-        with Progress(*columns, console=stderr, transient=True, disable=as_json) as bar:
+        quiet = as_json or not stderr.is_terminal
+        with Progress(*columns, console=stderr, transient=True, disable=quiet) as bar:
             task = bar.add_task("ingest", total=None)
 
             def advance(state: dict[str, Any]) -> None:
                 messages = state["messages"]
                 bar.update(task, completed=messages["done"], total=messages["total"] or None)
 
-            job = client.wait(job["id"], advance)
+            job = client.wait(job["id"], advance, timeout_s=wait_timeout)
+    if job["status"] not in FINISHED:
+        fail(
+            f"ingest job {job['id']} is still {job['status']} after {wait_timeout:g} s",
+            ExitCode.UNAVAILABLE,
+            "the storage node goes on with it; wait longer with --timeout",
+        )
     if as_json:
         show_json(job)
     else:

@@ -1,0 +1,127 @@
+"""How long a slow service can hold a robot: an answer read whole has a deadline, and an
+ingest job is followed for a bounded time.
+
+httpx's timeout bounds each read, so a server dripping one byte just inside it would
+otherwise hold a client for as long as it likes (64 MiB at a byte per 29 s is 60 years).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+
+import pytest
+from typer.testing import CliRunner
+
+from robocloud.cas import Cas
+from robocloud.cli import app
+from robocloud.client import AnswerDeadlineError, ServiceClient
+from robocloud.ingest import Ingest
+from tests.scripted_http import Exchange, Reply, json_reply, scripted_server
+
+BODY = b'{"Keys": {}, "padding": "' + b"x" * 40 + b'"}'
+runner = CliRunner()
+
+
+@contextmanager
+def dripping_server(pause_s: float) -> Iterator[tuple[str, list[str]]]:
+    """A server that answers every request with ``BODY``, one byte every ``pause_s``."""
+    paths: list[str] = []
+
+    class Drip(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            self.do_POST()
+
+        def do_POST(self) -> None:
+            paths.append(self.path)
+            self.rfile.read(int(self.headers.get("Content-Length") or 0))
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(BODY)))
+            self.end_headers()
+            try:
+                for index in range(len(BODY)):
+                    self.wfile.write(BODY[index : index + 1])
+                    self.wfile.flush()
+                    time.sleep(pause_s)
+            except OSError:
+                return
+
+        def log_message(self, *args: object) -> None:
+            return None
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Drip)
+    server.daemon_threads = True
+    threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}", paths
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_a_dripped_answer_ends_at_the_deadline_and_is_not_retried() -> None:
+    with dripping_server(0.3) as (url, paths), Cas(url, timeout=0.5, backoff_s=0.01) as cas:
+        started = time.monotonic()
+        with pytest.raises(AnswerDeadlineError, match="not complete 2 s after the request"):
+            cas.pins()
+        elapsed = time.monotonic() - started
+    assert 2.0 <= elapsed < 3.0
+    assert paths == ["/api/v0/pin/ls"]
+
+
+def test_the_deadline_is_the_clients_to_choose() -> None:
+    with (
+        dripping_server(0.02) as (url, _),
+        ServiceClient(url, timeout=0.5, answer_deadline_s=30) as client,
+    ):
+        assert client.get_json("/slow-but-steady")["Keys"] == {}
+    with (
+        dripping_server(0.3) as (url, _),
+        ServiceClient(url, timeout=5, answer_deadline_s=0.5, retries=0) as client,
+    ):
+        started = time.monotonic()
+        with pytest.raises(AnswerDeadlineError):
+            client.get_json("/x")
+        assert time.monotonic() - started < 1.5
+
+
+def running_job(exchange: Exchange) -> Reply:
+    job: dict[str, Any] = {
+        "id": "j1",
+        "status": "running",
+        "messages": {"done": 1, "total": 10},
+        "records": {"staged": 0, "committed": 0},
+        "topics": [],
+        "error": None,
+    }
+    return json_reply(json.dumps(job))
+
+
+def test_waiting_for_a_job_that_never_ends_is_bounded() -> None:
+    with scripted_server(running_job) as server, Ingest(server.url) as ingest:
+        started = time.monotonic()
+        job = ingest.wait("j1", poll_s=0.05, timeout_s=0.5)
+        assert time.monotonic() - started < 1.5
+    assert job["status"] == "running"
+
+
+def test_the_cli_gives_up_on_a_job_that_never_ends_in_one_line(
+    keystore: Path, tmp_path: Path
+) -> None:
+    bag = tmp_path / "x.mcap"
+    bag.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
+    with scripted_server(running_job) as server:
+        started = time.monotonic()
+        command = ["ingest", str(bag), "--storage", server.url, "--keystore", str(keystore)]
+        result = runner.invoke(app, [*command, "--timeout", "0.5"])
+        assert time.monotonic() - started < 5
+    assert result.exit_code == 5, result.output
+    assert result.stderr.startswith("error: ingest job j1 is still running after 0.5 s")
+    assert result.stderr.count("\n") == 1
