@@ -33,6 +33,7 @@ from services.ledger.errors import ERRORS
 from services.ledger.forwarding import NodeForwarder
 from services.ledger.grants import RoleGrant, open_granter
 from services.ledger.node import Ledger
+from services.ledger.rpc import EncodedBatch
 from services.ledger.settings import LedgerSettings
 
 log = logging.getLogger("robocloud.ledger")
@@ -70,6 +71,8 @@ def _router() -> APIRouter:
         answer = await endpoint.answer(await request.body())
         if answer is None:
             return Response(status_code=204)
+        if isinstance(answer, EncodedBatch):
+            return Response(answer.body(), media_type="application/json")
         return JSONResponse(answer)
 
     @router.get("/v1/contracts")

@@ -33,4 +33,5 @@ def open_ledger(settings: LedgerSettings) -> Ledger:
         settings.pool_limits(),
         settings.registration_mode(),
         Filters(settings.ledger_max_filters, settings.ledger_filter_timeout_s),
+        settings.ledger_rpc_batch_response_max_bytes,
     )

@@ -56,6 +56,7 @@ class EmbeddedLedger:
         pool_limits: PoolLimits,
         registration_mode: RegistrationMode,
         filters: Filters,
+        batch_response_max_bytes: int,
     ) -> None:
         keys: OperatorKeys = load_or_create(data_dir, passphrase(data_dir, configured_passphrase))
         self.faucet_key = keys.faucet
@@ -79,6 +80,7 @@ class EmbeddedLedger:
             inline=methods.inline_table(),
             costly=COSTLY_METHODS,
             batch_timeout_s=call_limits.timeout_s,
+            batch_response_max_bytes=batch_response_max_bytes,
         )
         log.info(
             "embedded chain ready",

@@ -40,6 +40,13 @@ class LedgerSettings(ServiceSettings):
         "executing at once; "
         "more wait up to the EVM timeout for a turn, then are refused (limit exceeded)",
     )
+    ledger_rpc_batch_response_max_bytes: int = Field(
+        default=25_000_000,
+        gt=0,
+        description="a batch whose answers pass this many bytes answers the calls left "
+        "'response too large' (-32003) without running them (geth's "
+        "--rpc.batch-response-max-size)",
+    )
     ledger_rpc_max_forwards: int = Field(
         default=64,
         gt=0,

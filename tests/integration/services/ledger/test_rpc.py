@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import httpx
 import pytest
 from eth_account import Account
@@ -9,7 +12,14 @@ from web3 import HTTPProvider, Web3
 
 from robocloud.identity import Identity
 from robocloud.ledger import Ledger
-from tests.integration.services.ledger.conftest import METADATA, RobotFactory, Service, head, rpc
+from tests.integration.services.ledger.conftest import (
+    METADATA,
+    RobotFactory,
+    Service,
+    head,
+    rpc,
+    start_ledger,
+)
 
 
 def test_web3_connects_reads_and_sends(service: Service, robot: RobotFactory) -> None:
@@ -125,3 +135,33 @@ def test_reverted_call_has_code_3_data_and_reason(service: Service, robot: Robot
         assert error["message"] == "execution reverted: Registry: advertiser is not an active robot"
         assert error["data"].startswith("0x08c379a0")
     assert stranger.advertisement(b"\x01\x55") is None
+
+
+def test_a_batch_past_its_response_bound_answers_the_rest_response_too_large(
+    tmp_path: Path,
+) -> None:
+    """As geth's --rpc.batch-response-max-size: the calls after the answers pass the bound
+    are answered -32003 without being run. 100 eth_getLogs of a 10,000-log block, a 9 KB
+    request, answered 142 MB and took the ledger to 650 MB."""
+    process = start_ledger(
+        tmp_path / "data", {"ROBOCLOUD_LEDGER_RPC_BATCH_RESPONSE_MAX_BYTES": "50000"}
+    )
+    try:
+        single = rpc(process.url, "eth_getBlockByNumber", ["0x1", True])["result"]
+        answer = {"jsonrpc": "2.0", "id": 0, "result": single}
+        size = len(json.dumps(answer, separators=(",", ":")))
+        assert 5_000 < size < 50_000  # the Registry's deployment: its init code is the input
+        batch = [
+            {"jsonrpc": "2.0", "id": n, "method": "eth_getBlockByNumber", "params": ["0x1", True]}
+            for n in range(40)
+        ]
+        response = httpx.post(f"{process.url}/rpc", json=batch, timeout=30)
+        assert len(response.content) < 50_000 + 2 * size
+        answers = response.json()
+        answered = 50_000 // size + 1
+        assert [a["id"] for a in answers] == list(range(40))
+        assert all(a["result"] == single for a in answers[:answered])
+        too_large = {"code": -32003, "message": "response too large"}
+        assert all(a["error"] == too_large for a in answers[answered:])
+    finally:
+        process.stop()

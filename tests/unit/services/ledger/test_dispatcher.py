@@ -18,7 +18,9 @@ from services.ledger.rpc import (
     NOT_INLINE,
     PARSE_ERROR,
     REQUEST_TIMED_OUT,
+    RESPONSE_TOO_LARGE,
     Dispatcher,
+    EncodedBatch,
     NotInline,
     RpcFailure,
 )
@@ -54,8 +56,13 @@ def body(document: Any) -> bytes:
     return json.dumps(document).encode()
 
 
+def decoded(answer: Any) -> Any:
+    """An answer as a client reads it (a batch's comes encoded)."""
+    return json.loads(answer.body()) if isinstance(answer, EncodedBatch) else answer
+
+
 def handle(document: Any) -> Any:
-    return DISPATCHER.handle(body(document))
+    return decoded(DISPATCHER.handle(body(document)))
 
 
 def test_a_call_is_answered_with_its_id() -> None:
@@ -186,13 +193,15 @@ def test_a_batch_starts_no_call_after_its_deadline_as_geth_answers_them() -> Non
         return params[0]
 
     dispatcher = Dispatcher({"slow": slow}, batch_timeout_s=0.1)
-    answers = dispatcher.handle(
-        body(
-            [
-                *(call("slow", [n], n) for n in range(5)),
-                {"jsonrpc": "2.0", "method": "slow", "params": [99]},
-                {"jsonrpc": "1.0", "id": 7},
-            ]
+    answers = decoded(
+        dispatcher.handle(
+            body(
+                [
+                    *(call("slow", [n], n) for n in range(5)),
+                    {"jsonrpc": "2.0", "method": "slow", "params": [99]},
+                    {"jsonrpc": "1.0", "id": 7},
+                ]
+            )
         )
     )
     assert started == [0, 1]
@@ -201,6 +210,32 @@ def test_a_batch_starts_no_call_after_its_deadline_as_geth_answers_them() -> Non
     assert answers[2:5] == [{"jsonrpc": "2.0", "id": n, "error": timed_out} for n in range(2, 5)]
     assert answers[5]["error"]["code"] == INVALID_REQUEST  # framing is still checked
     assert len(answers) == 6  # and the notification left unstarted gets no answer either
+
+
+def test_a_batch_runs_no_call_once_its_answers_pass_the_bound_as_geth_answers_them() -> None:
+    """100 eth_getLogs of a large block, a 9 KB request, answered 142 MB."""
+    started: list[int] = []
+
+    def big(params: list[Any]) -> Any:
+        started.append(params[0])
+        return "x" * 400
+
+    dispatcher = Dispatcher({"big": big}, batch_response_max_bytes=1000)
+    batch = [
+        *(call("big", [n], n) for n in range(5)),
+        {"jsonrpc": "2.0", "method": "big", "params": [99]},
+        {"jsonrpc": "1.0", "id": 7},
+    ]
+    answer = dispatcher.handle(body(batch))
+    assert isinstance(answer, EncodedBatch)
+    assert len(answer.body()) < 1000 + 2 * 500
+    answers = json.loads(answer.body())
+    assert started == [0, 1, 2]  # the one that passed the bound is answered whole
+    assert [a["result"] for a in answers[:3]] == ["x" * 400] * 3
+    too_large = {"code": RESPONSE_TOO_LARGE, "message": "response too large"}
+    assert answers[3:5] == [{"jsonrpc": "2.0", "id": n, "error": too_large} for n in (3, 4)]
+    assert answers[5]["error"]["code"] == INVALID_REQUEST
+    assert len(answers) == 6
 
 
 def test_a_refusal_answers_a_whole_request_as_its_framing_allows() -> None:
