@@ -20,6 +20,11 @@ from robocloud.errors import InvalidAnswerError
 from robocloud.templates import Template, parse_template, parse_template_id, validate_record
 
 NDJSON = "application/x-ndjson"
+MAX_LISTED = 100_000
+"""The most template versions ``Storage.templates`` lists: a catalog that goes on past it is
+a service inventing pages, and a robot's memory is not its to fill."""
+MAX_PAGES = 1_000
+"""The most pages ``Storage.templates`` follows (100,000 versions at the default limit)."""
 
 
 @dataclass(frozen=True)
@@ -111,22 +116,57 @@ class Storage(ServiceClient):
         return self._version(self.get_json(f"/v1/templates/{template_id}"))
 
     def templates(
-        self, *, name: str | None = None, status: str | None = None, limit: int = 100
+        self,
+        *,
+        name: str | None = None,
+        status: str | None = None,
+        limit: int = 100,
+        max_items: int = MAX_LISTED,
     ) -> Iterator[TemplateVersion]:
-        """Every version (filtered), following the service's pages."""
+        """Every version (filtered), following the service's pages.
+
+        A list that would not end is an ``InvalidAnswerError``: a ``next`` cursor answered
+        twice, a page larger than ``limit`` (or empty, yet with a ``next``), more than
+        ``max_items`` versions or ``MAX_PAGES`` pages.
+        """
         after: str | None = None
-        while True:
-            params = {"name": name, "status": status, "after": after, "limit": limit}
-            answer = self.get_json(
-                "/v1/templates", params={k: v for k, v in params.items() if v is not None}
-            )
-            if not isinstance(answer, dict) or not isinstance(answer.get("templates"), list):
-                raise InvalidAnswerError("the storage service sent an invalid template list")
-            for item in answer["templates"]:
-                yield self._version(item)
-            after = answer.get("next")
-            if not isinstance(after, str):
+        seen: set[str] = set()
+        listed = 0
+        for _ in range(MAX_PAGES):
+            page, after = self._template_page(name, status, after, limit)
+            listed += len(page)
+            if listed > max_items:
+                raise InvalidAnswerError(
+                    f"the storage service lists more than {max_items} template versions"
+                )
+            yield from page
+            if after is None:
                 return
+            if after in seen:
+                raise InvalidAnswerError(
+                    f"the storage service's template list repeats its page {after[:80]!r}"
+                )
+            seen.add(after)
+        raise InvalidAnswerError(f"the storage service's template list runs past {MAX_PAGES} pages")
+
+    def _template_page(
+        self, name: str | None, status: str | None, after: str | None, limit: int
+    ) -> tuple[list[TemplateVersion], str | None]:
+        """One page of the catalog and the cursor of the next (None at the end)."""
+        params = {"name": name, "status": status, "after": after, "limit": limit}
+        answer = self.get_json(
+            "/v1/templates", params={k: v for k, v in params.items() if v is not None}
+        )
+        if not isinstance(answer, dict) or not isinstance(answer.get("templates"), list):
+            raise InvalidAnswerError("the storage service sent an invalid template list")
+        items, following = answer["templates"], answer.get("next")
+        following = following if isinstance(following, str) else None
+        if len(items) > limit or (following is not None and not items):
+            raise InvalidAnswerError(
+                f"asked for pages of {limit} template versions, the storage service sent "
+                f"{len(items)}{' and more to come' if following is not None else ''}"
+            )
+        return [self._version(item) for item in items], following
 
     def append(
         self,
@@ -187,6 +227,10 @@ class Storage(ServiceClient):
         answer = self.get_json("/v1/records", params=_Params(query))
         if not isinstance(answer, dict) or not isinstance(answer.get("records"), list):
             raise InvalidAnswerError("the storage service sent an invalid page of records")
+        if len(answer["records"]) > limit:
+            raise InvalidAnswerError(
+                f"asked for {limit} records, the storage service sent {len(answer['records'])}"
+            )
         following = answer.get("next")
         return RecordPage(
             [_stored(item) for item in answer["records"]],

@@ -1,0 +1,111 @@
+"""``Storage`` and its commands against a hostile storage node on a real socket.
+
+A catalog that never ends must not grow a robot's memory until it is killed, and what the
+service says is neither printed raw on a terminal nor allowed to end a command in a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+import pytest
+from typer.testing import CliRunner
+
+from robocloud.cli import app
+from robocloud.errors import InvalidAnswerError
+from robocloud.storage import Storage
+from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
+
+runner = CliRunner()
+
+
+def version(index: int = 1, **fields: Any) -> dict[str, Any]:
+    """One template version as the catalog answers it."""
+    document = {
+        "name": "imu",
+        "version": index,
+        "fields": {"x": "int"},
+        "description": "d",
+        "status": "approved",
+        "author": "0x" + "ab" * 20,
+    }
+    return {**document, **fields}
+
+
+def catalog(
+    page: Callable[[str | None, int], tuple[list[dict[str, Any]], Any]],
+) -> Callable[[Exchange], Reply]:
+    """A storage node whose ``GET /v1/templates`` answers ``page(after, limit)``."""
+
+    def script(exchange: Exchange) -> Reply:
+        query = parse_qs(urlsplit(exchange.path).query)
+        items, following = page(query.get("after", [None])[0], int(query["limit"][0]))
+        return json_reply(json.dumps({"templates": items, "next": following}))
+
+    return script
+
+
+def listed(server: ScriptedServer, **options: Any) -> list[str]:
+    with Storage(server.url) as storage:
+        return [item.id for item in storage.templates(**options)]
+
+
+def test_an_honest_catalog_is_followed_to_its_end() -> None:
+    def page(after: str | None, limit: int) -> tuple[list[dict[str, Any]], Any]:
+        start = int(after or 0)
+        items = [version(index) for index in range(start + 1, min(start + limit, 7) + 1)]
+        return items, str(start + limit) if start + limit < 7 else None
+
+    with scripted_server(catalog(page)) as server:
+        assert listed(server, limit=3) == [f"imu@{index}" for index in range(1, 8)]
+        assert server.count() == 3
+
+
+def test_a_next_cursor_answered_twice_ends_the_list() -> None:
+    with scripted_server(catalog(lambda *_: ([version()] * 10, "again"))) as server:
+        with pytest.raises(InvalidAnswerError, match="repeats its page 'again'"):
+            listed(server, limit=10)
+        assert server.count() == 2
+
+
+@pytest.mark.parametrize(
+    ("items", "following"), [(11, None), (0, "more")], ids=["oversized", "empty-with-next"]
+)
+def test_a_page_of_another_size_than_asked_is_refused(items: int, following: Any) -> None:
+    with (
+        scripted_server(catalog(lambda *_: ([version()] * items, following))) as server,
+        pytest.raises(InvalidAnswerError, match="asked for pages of 10 template versions"),
+    ):
+        listed(server, limit=10)
+
+
+def test_a_catalog_that_invents_pages_forever_is_cut_at_the_bound() -> None:
+    def page(after: str | None, limit: int) -> tuple[list[dict[str, Any]], Any]:
+        return [version()] * limit, f"{after or ''}x"
+
+    with scripted_server(catalog(page)) as server:
+        with pytest.raises(InvalidAnswerError, match="more than 50 template versions"):
+            listed(server, limit=10, max_items=50)
+        assert server.count() == 6
+
+
+def test_a_query_page_larger_than_asked_is_refused() -> None:
+    record = {"template": "imu@1", "topic": "/imu", "robot": "0x", "t": 1, "data": {}}
+    page = {"records": [{"id": f"imu-1-{i}", "record": record} for i in range(3)], "next": None}
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(page))) as server,
+        Storage(server.url) as storage,
+        pytest.raises(InvalidAnswerError, match="asked for 2 records"),
+    ):
+        storage.query(limit=2)
+
+
+def test_templates_list_ends_in_one_line_on_a_catalog_that_never_ends() -> None:
+    with scripted_server(catalog(lambda *_: ([version()] * 100, "again"))) as server:
+        result = runner.invoke(app, ["templates", "list", "--storage", server.url])
+    assert result.exit_code == 6, result.output
+    assert result.stdout == ""
+    assert result.stderr.count("\n") == 1
