@@ -166,7 +166,7 @@ def build_comparison(
     kind = template.leaf(path)
     if kind is None:
         raise QueryInvalid(
-            parameter, f"{template.id} has no field {path[:80]!r}", code="unknown_field"
+            parameter, f"{template.id} has no field {path[:80]}", code="unknown_field"
         )
     if not isinstance(kind, Scalar) or kind.kind.startswith("range"):
         raise QueryInvalid(parameter, f"{path} is not a scalar field", code="unknown_field")
