@@ -68,6 +68,18 @@ class AnswerDeadlineError(TransportTimeoutError):
     """
 
 
+class RedirectError(InvalidAnswerError):
+    """A service answered a redirect (3xx). The SDK follows none (a signed request names its
+    audience and path, and a write redirected was not carried out), so an answer that is
+    neither a success nor an error is refused rather than taken for a success.
+    ``location`` is the service's ``Location`` header (untrusted), if it sent one."""
+
+    def __init__(self, message: str, status: int, location: str | None) -> None:
+        super().__init__(message)
+        self.status = status
+        self.location = location
+
+
 @dataclass(frozen=True)
 class RetryPolicy:
     """How often and how patiently a request is tried again.
@@ -350,6 +362,22 @@ class BaseClient(Closeable):
         except FormatError as exc:
             raise self._invalid(response, f"an answer that is not usable JSON ({exc})") from exc
 
+    def raise_for_status(self, response: httpx.Response) -> None:
+        """Raise the ``ApiError`` of an error status, and ``RedirectError`` for a 3xx."""
+        if response.status_code >= 400:
+            raise api_error(response)
+        if response.status_code >= 300:
+            response.close()
+            location = response.headers.get("location")
+            where = f", to {location[:200]!r}" if location is not None else ""
+            raise RedirectError(
+                f"{self._where()} redirected {response.request.method} "
+                f"{response.request.url.path} ({response.status_code}{where}); the SDK follows "
+                "no redirect, so nothing was done",
+                response.status_code,
+                location,
+            )
+
     def _invalid(self, response: httpx.Response, what: str) -> InvalidAnswerError:
         request = response.request
         request_id = response.headers.get("x-request-id")
@@ -371,8 +399,7 @@ class BaseClient(Closeable):
         """
         if self._audience is None:
             answer = self.send("GET", "/v1/audience", signed=False)
-            if answer.status_code >= 400:
-                raise api_error(answer)
+            self.raise_for_status(answer)
             self._audience = str(audience_from_answer(answer.content, self.deployment))
         return self._audience
 
@@ -396,10 +423,10 @@ class ServiceClient(BaseClient):
     """A robocloud REST service: error statuses become typed ``ApiError``s."""
 
     def request(self, method: str, path: str, **options: Unpack[RequestOptions]) -> httpx.Response:
-        """``send``, raising the ``ApiError`` subclass of an error status."""
+        """``send``, raising the ``ApiError`` subclass of an error status and
+        ``RedirectError`` for a redirect: only a 2xx answer is a success."""
         response = self.send(method, path, **options)
-        if response.status_code >= 400:
-            raise api_error(response)
+        self.raise_for_status(response)
         return response
 
     def get_json(self, path: str, **kwargs: Any) -> Any:

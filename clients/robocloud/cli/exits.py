@@ -15,6 +15,7 @@ from enum import IntEnum
 from rich.text import Text
 
 from robocloud.cli.output import console, untrusted
+from robocloud.client import RedirectError
 from robocloud.errors import (
     ApiError,
     ConfigurationError,
@@ -109,6 +110,12 @@ def failure_of(exc: BaseException) -> Failure:
     if isinstance(exc, TransactionTimeoutError):
         return Failure(
             ExitCode.UNAVAILABLE, str(exc), "it may still be mined; look the hash up later"
+        )
+    if isinstance(exc, RedirectError):
+        return Failure(
+            ExitCode.INVALID_ANSWER,
+            str(exc),
+            "if the service moved, point its ROBOCLOUD_*_URL (or URL option) at where it is now",
         )
     if isinstance(exc, FeeLimitError):
         return Failure(

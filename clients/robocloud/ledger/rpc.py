@@ -145,6 +145,8 @@ class JsonRpcClient(BaseClient):
         return tx_hash if known is not None else None
 
     def _result(self, method: str, request_id: int, response: httpx.Response) -> Any:
+        if 300 <= response.status_code < 400:
+            self.raise_for_status(response)
         try:
             body = self.json_of(response)
         except InvalidAnswerError:
