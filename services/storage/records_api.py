@@ -21,7 +21,7 @@ from robocloud.signing import HEADER_SIGNATURE, canonical_request
 from robocloud.templates import load_template_document
 from services.common.auth import SignedAddress, require_role, verified_request
 from services.common.bodies import json_body, media_type
-from services.common.errors import BadRequest, PayloadTooLarge, UnsupportedMediaType
+from services.common.errors import BadRequest, Forbidden, PayloadTooLarge, UnsupportedMediaType
 from services.common.slots import Slots
 from services.storage.catalog import Catalog, Status, TemplateVersion
 from services.storage.queries import QueryEngine, QueryInvalid, RecordQuery
@@ -291,8 +291,26 @@ async def append_records(request: Request) -> dict[str, Any]:
     """Store a batch of records (all or none); their ids in the order sent."""
     author = authorship_of(request)
     records = await _records_of(request, request.app.state.settings)
+    _check_written_by_signer(records, author.signer)
     ids = await anyio.to_thread.run_sync(lambda: _store(request).append(records, author=author))
     return {"ids": ids, "count": len(ids)}
+
+
+def _check_written_by_signer(records: list[Any], signer: str) -> None:
+    """A robot writes its own records: every query, interval and export by ``robot`` trusts
+    the field, so one naming another robot than the signer is refused, as ingestion sets it.
+
+    Only a well-formed address is compared; anything else is left to the record's checks.
+    """
+    for index, record in enumerate(records):
+        robot = record.get("robot") if isinstance(record, dict) else None
+        if isinstance(robot, str) and is_address(robot) and robot.lower() != signer.lower():
+            raise Forbidden(
+                f"record {index} names robot {robot}, but {signer} signed the batch: a robot "
+                "writes only its own records",
+                code="robot_not_signer",
+                details={"index": index, "robot": robot, "signer": signer},
+            )
 
 
 def _rendered(stored: StoredRecord, meta: bool = False) -> dict[str, Any]:

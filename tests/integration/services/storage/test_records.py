@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from robocloud.cas import Cas
-from robocloud.errors import ApiError, BadRequestError, ConflictError
+from robocloud.errors import ApiError, BadRequestError, ConflictError, PermissionDeniedError
 from robocloud.identity import Identity
 from robocloud.storage import Storage
 from robocloud.templates import RecordInvalid
@@ -213,14 +213,31 @@ def test_strings_with_a_lone_surrogate_are_refused_and_nothing_is_stored(
         assert [version["id"] for version in listed.json()["templates"]] == ["state@1"]
 
 
-def test_queries_and_intervals_over_http(storage: ServiceProcess, identity: Identity) -> None:
-    robot = identity.address
-    other = Identity.generate().address
-    modes = ["idle", "docked", "docked", "idle"] * 20
+def test_a_record_naming_another_robot_than_its_signer_is_refused_whole(
+    storage: ServiceProcess, identity: Identity
+) -> None:
+    """Queries, intervals and exports by robot trust the field: a signer writing records in
+    another robot's name was stored, and shown as that robot's."""
+    victim = Identity.generate().address
     with Storage(storage.url, identity) as client:
         _approved(client)
+        with pytest.raises(PermissionDeniedError) as refused:
+            client.append([_record(identity.address, 1), _record(victim, 2)])
+        assert refused.value.code == "robot_not_signer"
+        assert refused.value.details == {"index": 1, "robot": victim, "signer": identity.address}
+        assert client.query(template="state@1").records == []
+        assert client.append([_record(identity.address, 3)]) == ["state-1-0"]
+
+
+def test_queries_and_intervals_over_http(storage: ServiceProcess, identity: Identity) -> None:
+    robot = identity.address
+    other_robot = Identity.generate()
+    other = other_robot.address
+    modes = ["idle", "docked", "docked", "idle"] * 20
+    with Storage(storage.url, identity) as client, Storage(storage.url, other_robot) as theirs:
+        _approved(client)
         client.append([_record(robot, t, modes[t]) for t in range(80)])
-        client.append([_record(other, 1000 + t, "docked") for t in range(3)])
+        theirs.append([_record(other, 1000 + t, "docked") for t in range(3)])
         page = client.query(template="state@1", start=10, end=20, where=["mode=docked"])
         assert [item.record["t"] for item in page.records] == [10, 13, 14, 17, 18]
         page = client.query(template="state@1", where=["speed>7.5", "pose.x<=78"], limit=2)
