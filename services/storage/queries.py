@@ -255,8 +255,7 @@ class QueryEngine:
             raise QueryInvalid("where", f"at most {MAX_WHERE} comparisons")
         if query.where and query.template is None:
             raise QueryInvalid("where", "comparisons need a template")
-        if query.start is not None and query.end is not None and query.start > query.end:
-            raise QueryInvalid("start", "is after end")
+        _check_window(query.start, query.end)
         after = parse_cursor(query.cursor) if query.cursor is not None else None
         if query.template is not None:
             views = self._template(query.template)
@@ -432,6 +431,7 @@ class QueryEngine:
         parsed as ``where`` syntax: the condition was once the text ``f"{field}={value}"``,
         so a field ``i<`` asked ``i <= value`` and a value ``=s3`` matched ``s3``.
         """
+        _check_window(start, end)
         views = self._template(template_id)
         template = (
             views.template if views is not None else self.store.catalog.get(template_id).template
@@ -480,3 +480,9 @@ class QueryEngine:
         for doc in tail:
             if keep is None or keep(doc):
                 yield doc
+
+
+def _check_window(start: int | None, end: int | None) -> None:
+    """Records and intervals refuse the same inverted window (intervals answered it empty)."""
+    if start is not None and end is not None and start > end:
+        raise QueryInvalid("start", "is after end")

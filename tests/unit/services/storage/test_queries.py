@@ -145,6 +145,9 @@ def test_intervals_per_robot(open_store: StoreFactory) -> None:
     with pytest.raises(QueryInvalid) as invalid:
         engine.intervals("state@1", "gear", "1")
     assert invalid.value.code == "unknown_field"
+    with pytest.raises(QueryInvalid) as inverted:  # answered [] while records refused it
+        engine.intervals("state@1", "mode", "docked", start=40, end=10)
+    assert (inverted.value.parameter, str(inverted.value)) == ("start", "start: is after end")
 
 
 def test_interval_field_and_value_are_never_read_as_where_syntax(
