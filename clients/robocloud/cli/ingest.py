@@ -12,7 +12,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress
 from robocloud.cas import Cas
 from robocloud.cli.context import JsonOption, KeystoreOption, StorageOption, fail, load_identity
 from robocloud.cli.exits import ExitCode
-from robocloud.cli.output import console, show, show_json
+from robocloud.cli.output import console, show, show_json, untrusted
 from robocloud.ingest import FINISHED, WAIT_TIMEOUT_S, Ingest
 from robocloud.templates import NAME as TEMPLATE_NAME
 
@@ -68,17 +68,28 @@ def ingest(
     if as_json:
         show_json(job)
     else:
-        show(f"job {job['id']}: {job['status']}, {job['records']['committed']} records")
-        for topic in job["topics"]:
-            show(
-                f"  {topic['topic']} ({topic['msgtype']}): {topic['template'] or topic['skipped']}"
-            )
+        show(_job_line(job), *(_topic_line(topic) for topic in job["topics"]))
     if drafts is not None:
         _write_drafts(job, drafts)
         if not as_json:
             show(f"draft templates of unbound topics written to {drafts}")
     if job["status"] != "succeeded":
         fail(f"ingest failed: {job['error']['message']}")
+
+
+def _job_line(job: dict[str, Any]) -> str:
+    """The job's outcome as text; every part of it is the storage node's word."""
+    committed = job["records"]["committed"]
+    return f"job {untrusted(job['id'])}: {untrusted(job['status'])}, {untrusted(committed)} records"
+
+
+def _topic_line(topic: dict[str, Any]) -> str:
+    """What became of one topic (its template, or why it was skipped), escaped."""
+    outcome = topic.get("template") or topic.get("skipped")
+    return (
+        f"  {untrusted(topic.get('topic'))} ({untrusted(topic.get('msgtype'))}): "
+        f"{untrusted(outcome)}"
+    )
 
 
 def _write_drafts(job: dict[str, Any], directory: Path) -> None:

@@ -47,6 +47,8 @@ from robocloud.unixfs import Importer
 
 HEADER_BYTES = 1 << 16
 """Where an image's size is looked for: a JPEG's frame header comes before its pixels."""
+MAX_LINE = 1 << 20
+"""Characters of one line of a Turtle answer printed as text (the knowledge base's word)."""
 FORMATS = {
     "json": "application/sparql-results+json",
     "xml": "application/sparql-results+xml",
@@ -294,11 +296,18 @@ def sparql(
     )
     with Knowledge(storage) as knowledge:
         answer = knowledge.sparql(text, accept=accept)
-    if output != "table" or answer.media_type != "application/sparql-results+json":
+    if output != "table":
         sys.stdout.buffer.write(answer.body)
         sys.stdout.flush()
-        return
-    document = bounded_json.loads(answer.body)
+    elif answer.media_type != "application/sparql-results+json":
+        for line in answer.body.decode("utf-8", "replace").splitlines():
+            typer.echo(untrusted(line, MAX_LINE))
+    else:
+        _print_table(bounded_json.loads(answer.body))
+
+
+def _print_table(document: Any) -> None:
+    """SPARQL JSON results as tab-separated lines, every name and value escaped."""
     if isinstance(document, dict) and "boolean" in document:
         show("yes" if document["boolean"] is True else "no")
         return
@@ -314,7 +323,8 @@ def sparql(
             f"the knowledge base's answer is not SPARQL JSON results: {exc}",
             ExitCode.INVALID_ANSWER,
         )
-    for line in ["\t".join(names), *table]:  # tab-separated as it is: rich expands tabs
+    header = "\t".join(untrusted(name, 200) for name in names)
+    for line in [header, *table]:  # tab-separated as it is: rich expands tabs
         typer.echo(line)
 
 

@@ -46,10 +46,10 @@ def _show_version(version: TemplateVersion, as_json: bool) -> None:
     show(
         *rows(
             [
-                ("id", version.id),
-                ("status", version.status),
-                ("author", version.author),
-                ("reviewer", version.reviewer or "-"),
+                ("id", untrusted(version.id)),
+                ("status", untrusted(version.status)),
+                ("author", untrusted(version.author)),
+                ("reviewer", untrusted(version.reviewer or "-")),
                 ("reason", untrusted(version.reason or "-")),
                 ("fields", untrusted(fields, 2000)),
                 ("description", untrusted(version.template.description or "-")),
@@ -156,7 +156,12 @@ def list_templates(
     if as_json:
         show_json([{"id": v.id, "status": v.status, "author": v.author} for v in versions])
         return
-    show(*(f"{v.id:<40} {v.status:<10} {v.author}" for v in versions))
+    show(
+        *(
+            f"{untrusted(v.id):<40} {untrusted(v.status, 10):<10} {untrusted(v.author)}"
+            for v in versions
+        )
+    )
 
 
 def query(
@@ -199,12 +204,11 @@ def query(
     lines = [f"{'id':<28} {'t':>20} {'topic':<20} data"]
     for item in page.records:
         data = json.dumps(item.record.get("data"), separators=(",", ":"))
+        record_id, t = untrusted(item.id, 80), untrusted(item.record.get("t"), 20)
         topic_text = untrusted(item.record.get("topic"), 20)
-        lines.append(
-            f"{item.id:<28} {item.record.get('t')!s:>20} {topic_text:<20} {untrusted(data, 200)}"
-        )
+        lines.append(f"{record_id:<28} {t:>20} {topic_text:<20} {untrusted(data, 200)}")
     if page.next is not None:
-        lines.append(f"more: --cursor {page.next}")
+        lines.append(f"more: --cursor {untrusted(page.next, 1000)}")
     show(*lines)
 
 

@@ -12,7 +12,7 @@ import typer
 from robocloud.cli.context import JsonOption, StorageOption, fail
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.ledger import LedgerOption
-from robocloud.cli.output import rows, show, show_json
+from robocloud.cli.output import rows, show, show_json, untrusted
 from robocloud.client import ServiceClient
 from robocloud.ledger import JsonRpcClient, LedgerService
 from robocloud.ledger.client import checksum
@@ -69,7 +69,10 @@ def verify(
         *rows(
             [
                 ("record", f"{parsed} verified"),
-                ("template", f"{proof.template}: leaf {proof.leaf_index} of {proof.tree_size}"),
+                (
+                    "template",
+                    f"{untrusted(proof.template)}: leaf {proof.leaf_index} of {proof.tree_size}",
+                ),
                 ("epoch", f"{proof.epoch}: TMT root {proof.tmt_root.hex()}"),
                 ("anchor", f"{proof.anchor.node} on chain {chain_id}, tx {proof.anchor.tx}"),
             ]
