@@ -54,10 +54,14 @@ class BagFormat(Enum):
 
 
 class BagError(Exception):
-    """A bag cannot be read; ``path`` names the file, ``offset`` the byte where known."""
+    """A bag cannot be read; ``path`` names the file, ``offset`` the byte where known.
+
+    The message names the file alone: it reaches the robot that sent the bag, and the
+    service's own directories are none of its business (logs keep ``path``).
+    """
 
     def __init__(self, message: str, *, path: Path, offset: int | None = None) -> None:
-        where = f"{path}" if offset is None else f"{path} at byte {offset}"
+        where = path.name if offset is None else f"{path.name} at byte {offset}"
         super().__init__(f"{where}: {message}")
         self.reason = message
         self.path = path

@@ -105,6 +105,7 @@ def test_bad_bags_fail_without_records(
         assert list(incoming.iterdir()) == []
         assert failed["status"] == "failed"
         assert failed["error"]["code"] == "bag_corrupt"
+        assert str(storage.data_dir) not in failed["error"]["message"]  # was the spool path
         assert failed["error"]["resumable"] is False
         assert failed["records"]["committed"] == 0
         page = client.get_json("/v1/records", params={"template": imu})

@@ -215,7 +215,8 @@ def test_truncated_ros1_bag_names_the_file(tmp_path: Path, fraction: float) -> N
     with pytest.raises(BagCorrupt) as caught:
         Bag.open(cut)
     assert caught.value.path == cut
-    assert str(cut) in str(caught.value)
+    assert str(caught.value).startswith("cut.bag")
+    assert str(tmp_path) not in str(caught.value)
 
 
 def test_corrupt_ros1_chunk_names_its_offset(tmp_path: Path) -> None:
