@@ -12,10 +12,12 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 from robocloud.cas import Cas
 from robocloud.cid import CID
 from robocloud.client import ServiceClient
+from robocloud.errors import InvalidAnswerError
 
 UPLOAD_CHUNK = 1 << 20
 FINISHED = ("succeeded", "failed")
@@ -28,6 +30,31 @@ def _file_chunks(path: Path) -> Iterator[bytes]:
     with path.open("rb") as stream:
         while chunk := stream.read(UPLOAD_CHUNK):
             yield chunk
+
+
+def _job(answer: Any) -> dict[str, Any]:
+    """A job as the storage node answers it, checked for every field this SDK and the CLI
+    read (id, status, message and record counts, topics, the error of a failed job), so a
+    malformed one is an ``InvalidAnswerError`` rather than a ``KeyError`` later."""
+    try:
+        counts = [answer["messages"]["done"], answer["messages"]["total"]]
+        counts.append(answer["records"]["committed"])
+        if not isinstance(answer["id"], str) or not isinstance(answer["status"], str):
+            raise TypeError("id or status is not text")
+        if any(isinstance(count, bool) or not isinstance(count, int) for count in counts):
+            raise TypeError("a message or record count is not an integer")
+        topics = answer["topics"]
+        if not isinstance(topics, list) or not all(isinstance(t, dict) for t in topics):
+            raise TypeError("topics is not a list of objects")
+        if answer["status"] == "failed" and not isinstance(answer["error"].get("message"), str):
+            raise TypeError("a failed job has no error message")
+    except (AttributeError, KeyError, TypeError) as exc:
+        raise InvalidAnswerError(
+            f"the storage service sent a malformed ingest job ({type(exc).__name__}: "
+            f"{str(exc)[:200]})"
+        ) from exc
+    job: dict[str, Any] = answer
+    return job
 
 
 class Ingest(ServiceClient):
@@ -48,13 +75,11 @@ class Ingest(ServiceClient):
             headers={"Content-Type": "application/octet-stream"},
             idempotent=False,
         )
-        job: dict[str, Any] = self.json_of(response)
-        return job
+        return _job(self.json_of(response))
 
     def from_cas(self, cid: CID | str) -> dict[str, Any]:
         """Ingest a bag already in cas: a file, or a ROS 2 bag directory."""
-        job: dict[str, Any] = self.post_json("/v1/ingest", {"cid": str(cid)})
-        return job
+        return _job(self.post_json("/v1/ingest", {"cid": str(cid)}))
 
     def ingest(self, bag: Path, cas: Cas | None = None) -> dict[str, Any]:
         """A bag file is uploaded; a ROS 2 bag directory goes through ``cas`` (required then)."""
@@ -65,8 +90,7 @@ class Ingest(ServiceClient):
         return self.upload(bag)
 
     def job(self, job_id: str) -> dict[str, Any]:
-        job: dict[str, Any] = self.get_json(f"/v1/jobs/{job_id}")
-        return job
+        return _job(self.get_json(f"/v1/jobs/{quote(job_id, safe='')}"))
 
     def wait(
         self,
@@ -88,8 +112,7 @@ class Ingest(ServiceClient):
             time.sleep(min(poll_s, max(deadline - time.monotonic(), 0.0)))
 
     def resume(self, job_id: str) -> dict[str, Any]:
-        job: dict[str, Any] = self.post_json(f"/v1/jobs/{job_id}/resume")
-        return job
+        return _job(self.post_json(f"/v1/jobs/{quote(job_id, safe='')}/resume"))
 
     def bind(
         self, template: str, *, topic: str | None = None, msgtype: str | None = None

@@ -232,10 +232,15 @@ class Storage(ServiceClient):
                 f"asked for {limit} records, the storage service sent {len(answer['records'])}"
             )
         following = answer.get("next")
+        pending = answer.get("keywords_pending") or 0
+        if isinstance(pending, bool) or not isinstance(pending, int) or pending < 0:
+            raise InvalidAnswerError(
+                f"the storage service sent keywords_pending {str(pending)[:80]!r}, not a count"
+            )
         return RecordPage(
             [_stored(item) for item in answer["records"]],
             following if isinstance(following, str) else None,
-            int(answer.get("keywords_pending") or 0),
+            pending,
         )
 
     def intervals(

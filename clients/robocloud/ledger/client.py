@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import httpx
+from eth_abi.exceptions import DecodingError
 from eth_utils.address import is_address, to_checksum_address
 from eth_utils.crypto import keccak
 
@@ -169,6 +170,18 @@ class LedgerService(ServiceClient):
         if order != sorted(order) or any(event.block_number < since for event in events):
             raise InvalidAnswerError("the ledger's advertisements are out of order")
         return events
+
+
+def _decoded(contract: ContractAbi, log: Any) -> DecodedLog | None:
+    """``contract.decode_log`` of a log a node sent; a malformed one is an
+    ``InvalidAnswerError`` (a node's word, not a bug here)."""
+    try:
+        return contract.decode_log(log)
+    except (AttributeError, DecodingError, KeyError, TypeError, ValueError) as exc:
+        raise InvalidAnswerError(
+            f"the node sent a malformed log of {contract.name} ({type(exc).__name__}: "
+            f"{str(exc)[:200]})"
+        ) from exc
 
 
 def _advertisement(item: Any) -> IndexedAdvertisement:
@@ -395,7 +408,12 @@ class Ledger(Closeable):
 
     def registration_mode(self) -> RegistrationMode:
         mode = self._call(self.registry, self.addresses.registry, "registrationMode")[0]
-        return RegistrationMode(int(mode))
+        try:
+            return RegistrationMode(int(mode))
+        except ValueError:
+            raise InvalidAnswerError(
+                f"the Registry's registration mode {mode} is unknown"
+            ) from None
 
     def is_active(self, address: str) -> bool:
         return bool(
@@ -497,7 +515,14 @@ class Ledger(Closeable):
             result = self.rpc.request("eth_call", [call, "latest"])
         except RpcError as exc:
             raise as_revert(exc, self._contracts) or exc from exc
-        return contract.decode_output(function, bytes.fromhex(str(result).removeprefix("0x")))
+        try:
+            if not isinstance(result, str) or not result.startswith("0x"):
+                raise ValueError(f"{str(result)[:80]!r} is not 0x-hex")
+            return contract.decode_output(function, bytes.fromhex(result[2:]))
+        except (DecodingError, ValueError) as exc:
+            raise InvalidAnswerError(
+                f"the node's answer to {contract.name}.{function} is not its result: {exc}"
+            ) from exc
 
     def _logs(
         self, contract: ContractAbi, address: str, topics: list[str | None], from_block: int
@@ -511,7 +536,9 @@ class Ledger(Closeable):
             "toBlock": "latest",
         }
         raw_logs = self.rpc.request("eth_getLogs", [query])
-        decoded = [contract.decode_log(log) for log in raw_logs]
+        if not isinstance(raw_logs, list):
+            raise InvalidAnswerError("the node's answer to eth_getLogs is not a list")
+        decoded = [_decoded(contract, log) for log in raw_logs]
         return [log for log in decoded if log is not None and log.address == checksum(address)]
 
     @staticmethod
@@ -520,7 +547,7 @@ class Ledger(Closeable):
         same shape from any other contract (one the transaction called, or one the node made
         up) says nothing about robocloud's."""
         for raw in receipt.logs:
-            log = contract.decode_log(raw)
+            log = _decoded(contract, raw)
             if (
                 log is not None
                 and log.event == event

@@ -91,7 +91,8 @@ class FeeLimitError(LedgerError):
 
 
 class TransactionMismatchError(LedgerError, InvalidAnswerError):
-    """The node answered another transaction's hash or receipt for the one the robot sent.
+    """The node answered, for the transaction the robot sent, a hash or a receipt that is not
+    that transaction's: another's, or a malformed one.
 
     The robot's own transaction was sent and may still be mined: ``tx_hash`` is its real hash
     (keccak-256 of the signed bytes), to look up on a node the robot trusts.

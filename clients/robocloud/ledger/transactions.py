@@ -13,6 +13,7 @@ hash it answers for a sent transaction, and the receipt it shows, must be the tr
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +22,7 @@ from eth_utils.address import to_checksum_address
 from eth_utils.crypto import keccak
 
 from robocloud import config
+from robocloud.errors import InvalidAnswerError
 from robocloud.identity import Identity
 from robocloud.ledger.abi import ContractAbi
 from robocloud.ledger.errors import (
@@ -38,9 +40,18 @@ GAS_MARGIN = 1.25
 estimate and inclusion."""
 
 
+_QUANTITY = re.compile(r"0x[0-9a-fA-F]{1,64}")
+
+
 def quantity(value: Any) -> int:
-    """A JSON-RPC quantity (``0x``-hex) as an int."""
-    return int(str(value), 16)
+    """A JSON-RPC quantity (``0x`` and at most 64 hex digits) as an int.
+
+    It comes from a node, so anything else (``null``, ``"0xzz"``, a number) is an
+    ``InvalidAnswerError``, never a ``ValueError`` escaping as a traceback.
+    """
+    if not isinstance(value, str) or not _QUANTITY.fullmatch(value):
+        raise InvalidAnswerError(f"the node sent {value!r:.80} where a quantity belongs")
+    return int(value, 16)
 
 
 @dataclass(frozen=True)
@@ -100,18 +111,41 @@ class Receipt:
     logs: list[dict[str, Any]] = field(repr=False)
 
     @classmethod
-    def from_rpc(cls, raw: dict[str, Any]) -> Receipt:
-        return cls(
-            tx_hash=str(raw["transactionHash"]),
-            block_number=quantity(raw["blockNumber"]),
-            block_hash=str(raw["blockHash"]),
-            status=quantity(raw["status"]),
-            gas_used=quantity(raw["gasUsed"]),
-            contract_address=(
-                to_checksum_address(raw["contractAddress"]) if raw.get("contractAddress") else None
-            ),
-            logs=list(raw.get("logs") or []),
-        )
+    def from_rpc(cls, raw: Any) -> Receipt:
+        """A node's receipt; a malformed one is an ``InvalidAnswerError``."""
+        try:
+            logs = raw.get("logs") or []
+            if not isinstance(logs, list):
+                raise TypeError(f"logs is {type(logs).__name__}, not a list")
+            return cls(
+                tx_hash=str(raw["transactionHash"]),
+                block_number=quantity(raw["blockNumber"]),
+                block_hash=str(raw["blockHash"]),
+                status=quantity(raw["status"]),
+                gas_used=quantity(raw["gasUsed"]),
+                contract_address=(
+                    to_checksum_address(raw["contractAddress"])
+                    if raw.get("contractAddress")
+                    else None
+                ),
+                logs=logs,
+            )
+        except (AttributeError, KeyError, TypeError, ValueError) as exc:
+            raise InvalidAnswerError(
+                f"the node sent a malformed transaction receipt ({type(exc).__name__}: "
+                f"{str(exc)[:200]})"
+            ) from exc
+
+
+def _receipt_of(tx_hash: str, raw: Any) -> Receipt:
+    """The receipt the node sent for ``tx_hash``; a malformed one names the hash, since the
+    transaction was sent and may be mined."""
+    try:
+        return Receipt.from_rpc(raw)
+    except InvalidAnswerError as exc:
+        raise TransactionMismatchError(
+            f"the node's receipt for {tx_hash} is unusable: {exc}", tx_hash
+        ) from exc
 
 
 class Transactor:
@@ -220,7 +254,7 @@ class Transactor:
         while True:
             raw = self.rpc.request("eth_getTransactionReceipt", [tx_hash])
             if raw is not None:
-                receipt = Receipt.from_rpc(raw)
+                receipt = _receipt_of(tx_hash, raw)
                 if receipt.tx_hash.lower() != tx_hash.lower():
                     raise TransactionMismatchError(
                         f"asked for the receipt of {tx_hash}, the node answered one of "

@@ -7,15 +7,21 @@ nesting bound would overflow the C stack and kill it rather than fail a test.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import pytest
+from typer.testing import CliRunner
 
 from robocloud.bounded_json import JsonDepthError
+from robocloud.cli import app
 from robocloud.errors import InvalidAnswerError
 from robocloud.identity import Identity
 from robocloud.ingest import Ingest
 from tests.scripted_http import Exchange, Reply, json_reply, nested_json, scripted_server
+
+runner = CliRunner()
 
 
 @pytest.fixture
@@ -47,3 +53,56 @@ def test_an_upload_answer_that_is_not_json_is_an_invalid_answer(bag: Path) -> No
         pytest.raises(InvalidAnswerError, match="not usable JSON"),
     ):
         ingest.upload(bag)
+
+
+JOB: dict[str, Any] = {
+    "id": "j1",
+    "status": "succeeded",
+    "messages": {"done": 1, "total": 1},
+    "records": {"staged": 1, "committed": 1},
+    "topics": [],
+    "error": None,
+}
+
+
+@pytest.mark.parametrize(
+    "job",
+    [
+        {key: value for key, value in JOB.items() if key != "status"},
+        {key: value for key, value in JOB.items() if key != "messages"},
+        {**JOB, "records": {"committed": "1"}},
+        {**JOB, "topics": "none"},
+        {**JOB, "status": "failed"},
+        {**JOB, "id": 7},
+        [JOB],
+    ],
+    ids=["no-status", "no-messages", "count-text", "topics-text", "failed-no-error", "id", "list"],
+)
+def test_a_malformed_job_is_an_invalid_answer(job: Any) -> None:
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(job))) as server,
+        Ingest(server.url) as ingest,
+        pytest.raises(InvalidAnswerError, match="malformed ingest job"),
+    ):
+        ingest.job("j1")
+
+
+def test_a_job_id_is_one_path_segment() -> None:
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(JOB))) as server,
+        Ingest(server.url) as ingest,
+    ):
+        ingest.job("../templates?x=1")
+    assert [exchange.path for exchange in server.exchanges] == ["/v1/jobs/..%2Ftemplates%3Fx%3D1"]
+
+
+def test_ingest_ends_in_one_line_on_a_job_without_status(bag: Path, keystore: Path) -> None:
+    job = {key: value for key, value in JOB.items() if key != "status"}
+    with scripted_server(lambda _: json_reply(json.dumps(job))) as server:
+        result = runner.invoke(
+            app, ["ingest", str(bag), "--storage", server.url, "--keystore", str(keystore)]
+        )
+    assert result.exit_code == 6, result.output
+    assert result.stdout == ""
+    assert result.stderr.startswith("error: the storage service sent a malformed ingest job")
+    assert result.stderr.count("\n") == 1

@@ -109,3 +109,23 @@ def test_templates_list_ends_in_one_line_on_a_catalog_that_never_ends() -> None:
     assert result.exit_code == 6, result.output
     assert result.stdout == ""
     assert result.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize("pending", ["zz", -1, True, 1.5], ids=repr)
+def test_a_malformed_keywords_pending_is_an_invalid_answer(pending: Any) -> None:
+    page = {"records": [], "next": None, "keywords_pending": pending}
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(page))) as server,
+        Storage(server.url) as storage,
+        pytest.raises(InvalidAnswerError, match="keywords_pending"),
+    ):
+        storage.query()
+
+
+def test_query_ends_in_one_line_on_a_malformed_page() -> None:
+    page = {"records": [], "next": None, "keywords_pending": "zz"}
+    with scripted_server(lambda _: json_reply(json.dumps(page))) as server:
+        result = runner.invoke(app, ["query", "--storage", server.url])
+    assert result.exit_code == 6, result.output
+    assert result.stderr.startswith("error: the storage service sent keywords_pending 'zz'")
+    assert result.stderr.count("\n") == 1

@@ -29,7 +29,7 @@ from robocloud.ledger.errors import (
     FeeLimitError,
     TransactionMismatchError,
 )
-from robocloud.ledger.transactions import FeeLimits
+from robocloud.ledger.transactions import FeeLimits, quantity
 from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
 
 REGISTRY = "0x" + "22" * 20
@@ -276,3 +276,92 @@ def test_the_cli_refuses_a_ruinous_fee_in_one_line(keystore: Path) -> None:
     assert result.stderr.startswith("error: refused to sign at the node's gas price of 5000 gwei")
     assert "ROBOCLOUD_MAX_FEE_PER_GAS_GWEI" in result.stderr
     assert "eth_sendRawTransaction" not in methods(server)
+
+
+@pytest.mark.parametrize(
+    "value", ["0xzz", None, 5, "0x", "539", "0x" + "f" * 65, "0x1_0", " 0x1"], ids=repr
+)
+def test_a_malformed_quantity_is_an_invalid_answer(value: Any) -> None:
+    with pytest.raises(InvalidAnswerError, match="where a quantity belongs"):
+        quantity(value)
+
+
+def test_a_quantity_is_read_as_hex() -> None:
+    assert [quantity("0x0"), quantity("0x539"), quantity("0x" + "f" * 64)] == [0, 1337, 2**256 - 1]
+
+
+@pytest.mark.parametrize(
+    "receipt",
+    [{}, {"transactionHash": "0x", "blockNumber": "0xnope"}, "receipt", {"logs": "x"}],
+    ids=["empty", "bad-quantity", "not-an-object", "logs-not-a-list"],
+)
+def test_a_malformed_receipt_names_the_transaction_sent(receipt: Any) -> None:
+    robot = Identity.generate()
+
+    def answer(params: list[Any]) -> Any:
+        if isinstance(receipt, dict) and "logs" in receipt:
+            return {**honest(robot.address)["eth_getTransactionReceipt"](params), **receipt}
+        return receipt
+
+    with (
+        lying_ledger(robot, eth_getTransactionReceipt=answer) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(TransactionMismatchError, match="receipt for 0x") as err,
+    ):
+        ledger.advertise(CONTENT)
+    assert err.value.tx_hash == "0x" + keccak(hexstr=raw_sent(server)).hex()
+
+
+def test_a_malformed_log_is_an_invalid_answer() -> None:
+    robot = Identity.generate()
+
+    def receipt(params: list[Any]) -> dict[str, Any]:
+        log = {**advertised_log(robot.address, params[0]), "data": "0x1234"}
+        return {**honest(robot.address)["eth_getTransactionReceipt"](params), "logs": [log]}
+
+    with (
+        lying_ledger(robot, eth_getTransactionReceipt=receipt) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match="malformed log of Registry"),
+    ):
+        ledger.advertise(CONTENT)
+
+
+@pytest.mark.parametrize("result", ["0x", None, "zz", "0x" + "00" * 31 + "07"], ids=repr)
+def test_a_call_result_that_is_not_the_functions_is_an_invalid_answer(result: Any) -> None:
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot, eth_call=lambda _: result) as server,
+        Ledger.connect(server.url, robot) as ledger,
+    ):
+        with pytest.raises(InvalidAnswerError):
+            ledger.registration_mode()
+        with pytest.raises(InvalidAnswerError):
+            ledger.advertisement(CONTENT)
+
+
+def test_logs_that_are_not_a_list_are_an_invalid_answer() -> None:
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot, eth_getLogs=lambda _: "logs") as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match="eth_getLogs"),
+    ):
+        ledger.advertisements()
+
+
+@pytest.mark.parametrize("chain_id", ['"0xzz"', "null"])
+def test_verify_ends_in_one_line_on_a_malformed_chain_id(chain_id: str) -> None:
+    def script(exchange: Exchange) -> Reply:
+        if exchange.path.startswith("/v1/records/"):
+            return json_reply(b'{"whatever": 1}')
+        call = json.loads(exchange.body)
+        return json_reply(f'{{"jsonrpc":"2.0","id":{call["id"]},"result":{chain_id}}}')
+
+    with scripted_server(script) as server:
+        rpc = f"{server.url}/rpc"
+        command = ["verify", "imu-1-0", "--storage", server.url, "--rpc", rpc]
+        result = runner.invoke(app, [*command, "--anchor-log", ANCHOR_LOG])
+    assert result.exit_code == 6, result.output
+    assert result.stderr.startswith("error: the node sent")
+    assert result.stderr.count("\n") == 1
