@@ -89,9 +89,8 @@ class RetryPolicy:
     ``max_delay_s`` (this client's own requests hold its share of a service's turns; a faucet
     that says come back in an hour is not waited for) for every request whose body can be sent
     again; a broken or timed-out exchange, 502 and 504 only for idempotent requests; an answer
-    past its deadline (``AnswerDeadlineError``) never. Delays
-    grow exponentially from ``backoff_s``; a ``Retry-After`` is honoured up to
-    ``max_delay_s``.
+    past its deadline (``AnswerDeadlineError``) never. Delays grow exponentially from
+    ``backoff_s``; a ``Retry-After`` is honoured up to ``max_delay_s``.
     """
 
     retries: int = 3
