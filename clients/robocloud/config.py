@@ -38,12 +38,14 @@ def service_url(service: str) -> str:
 
 
 def expected_deployment() -> str | None:
-    """``$ROBOCLOUD_DEPLOYMENT_ID``: the deployment this robot means to talk to, if it says.
+    """``$ROBOCLOUD_EXPECTED_DEPLOYMENT``: the deployment this robot means to talk to, if it
+    says.
 
     The SDK then signs only for services that claim it; unset, it signs for the deployment a
-    service claims (docs/signing.md).
+    service claims (docs/signing.md). Not the services' ``ROBOCLOUD_DEPLOYMENT_ID``, their own
+    id, which in ``signed`` mode differs from the ledger's their SDK clients sign for.
     """
-    return os.environ.get("ROBOCLOUD_DEPLOYMENT_ID") or None
+    return os.environ.get("ROBOCLOUD_EXPECTED_DEPLOYMENT") or None
 
 
 def deployment_chain(deployment: str | None) -> tuple[int, str] | None:

@@ -228,7 +228,7 @@ class Ledger(Closeable):
     """robocloud's contracts on one chain, seen and driven by one (optional) identity.
 
     With a deployment (``deployment=``, else the JSON-RPC client's, which defaults to
-    ``ROBOCLOUD_DEPLOYMENT_ID``) of the form ``<chain id>:<Registry>``, the Registry must be
+    ``ROBOCLOUD_EXPECTED_DEPLOYMENT``) of the form ``<chain id>:<Registry>``, the Registry must be
     that one and the node's chain that chain, or nothing is signed
     (``DeploymentMismatchError``).
     """
@@ -253,7 +253,7 @@ class Ledger(Closeable):
         if expected is not None and addresses.registry.lower() != expected[1]:
             raise DeploymentMismatchError(
                 f"the ledger says the Registry is {addresses.registry}, but the robot's "
-                f"deployment's is {expected[1]} (ROBOCLOUD_DEPLOYMENT_ID)"
+                f"deployment's is {expected[1]} (ROBOCLOUD_EXPECTED_DEPLOYMENT)"
             )
         self.registry = ContractAbi.load("Registry")
         self.anchor_log = ContractAbi.load("AnchorLog")

@@ -79,7 +79,7 @@ class AddressError(LedgerError, FormatError):
 
 class DeploymentMismatchError(LedgerError, InvalidAnswerError):
     """The node serves another chain, or the ledger service names another Registry, than the
-    deployment the robot means (``ROBOCLOUD_DEPLOYMENT_ID``): nothing was signed for it."""
+    deployment the robot means (``ROBOCLOUD_EXPECTED_DEPLOYMENT``): nothing was signed for it."""
 
 
 class FeeLimitError(LedgerError):

@@ -88,7 +88,7 @@ def check_chain(found: int, expected: int | None) -> int:
     if expected is not None and found != expected:
         raise DeploymentMismatchError(
             f"the node serves chain {found}, but the robot's deployment is on chain {expected} "
-            "(ROBOCLOUD_DEPLOYMENT_ID)"
+            "(ROBOCLOUD_EXPECTED_DEPLOYMENT)"
         )
     return found
 

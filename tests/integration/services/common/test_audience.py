@@ -205,12 +205,12 @@ def test_sdk_signs_nothing_for_a_service_claiming_another_deployment(
     client = ServiceClient(impostor.url, identity, deployment="deployment-b")
     with client, pytest.raises(AudienceError, match="claims deployment 'deployment-a'"):
         client.post_json("/v1/whoami", {"challenge": "x"})
-    monkeypatch.setenv("ROBOCLOUD_DEPLOYMENT_ID", "deployment-b")
+    monkeypatch.setenv("ROBOCLOUD_EXPECTED_DEPLOYMENT", "deployment-b")
     client = ServiceClient(impostor.url, identity)
     with client, pytest.raises(AudienceError, match="this robot expects 'deployment-b'"):
         client.post_json("/v1/whoami", {"challenge": "x"})
     assert "/v1/whoami" not in httpx.get(f"{impostor.url}/metrics").text
-    monkeypatch.setenv("ROBOCLOUD_DEPLOYMENT_ID", "deployment-a")
+    monkeypatch.setenv("ROBOCLOUD_EXPECTED_DEPLOYMENT", "deployment-a")
     with ServiceClient(impostor.url, identity) as client:
         assert client.post_json("/v1/whoami", {"challenge": "x"})["address"] == identity.address
 

@@ -176,7 +176,7 @@ def test_an_unusable_fee_limit_is_a_configuration_error(
 
 def test_a_node_of_another_chain_gets_no_signature(monkeypatch: pytest.MonkeyPatch) -> None:
     robot = Identity.generate()
-    monkeypatch.setenv("ROBOCLOUD_DEPLOYMENT_ID", DEPLOYMENT)
+    monkeypatch.setenv("ROBOCLOUD_EXPECTED_DEPLOYMENT", DEPLOYMENT)
     with (
         lying_ledger(robot, eth_chainId=lambda _: "0x1") as server,
         Ledger.connect(server.url, robot) as ledger,
