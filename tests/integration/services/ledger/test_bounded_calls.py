@@ -11,6 +11,7 @@ from typing import Any
 
 import httpx
 import pytest
+from py_ecc import optimized_bn128 as bn254
 from web3 import HTTPProvider, Web3
 
 from robocloud.identity import Identity
@@ -80,6 +81,39 @@ def test_a_call_that_never_ends_is_aborted_like_geth(
     ledger: ServiceProcess, loop_address: str, extra: dict[str, Any]
 ) -> None:
     answer = call_loop(ledger.url, loop_address, **extra)
+    assert answer["error"] == {
+        "code": -32000,
+        "message": f"execution aborted (timeout = {TIMEOUT_S}s)",
+    }
+
+
+def bn254_pairs(count: int) -> str:
+    """``count`` pairs (G1, G2), then as many (-G1, G2): pairings whose product is one."""
+    g1 = bn254.normalize(bn254.G1)
+    minus_g1 = bn254.normalize(bn254.neg(bn254.G1))
+    x, y = bn254.normalize(bn254.G2)
+    g2 = b"".join(n.to_bytes(32, "big") for n in (*reversed(x.coeffs), *reversed(y.coeffs)))
+
+    def g1_bytes(point: Any) -> bytes:
+        return b"".join(int(n).to_bytes(32, "big") for n in point)
+
+    pairs = [g1_bytes(g1) + g2] * count + [g1_bytes(minus_g1) + g2] * count
+    return "0x" + b"".join(pairs).hex()
+
+
+def test_a_pairing_that_would_outlast_the_deadline_is_aborted_before_it_starts(
+    ledger: ServiceProcess,
+) -> None:
+    """py-evm pairs in pure Python and a precompile cannot be stopped half-way: 40 pairings
+    ran 7 s past a 5 s timeout, and 2^24 gas of them would hold a worker for minutes."""
+    pairing = "0x" + "00" * 19 + "08"
+    one = "0x" + "00" * 31 + "01"
+    assert rpc(ledger.url, "eth_call", [{"to": pairing, "data": bn254_pairs(1)}, "latest"]) == {
+        "jsonrpc": "2.0",
+        "id": 1,
+        "result": one,
+    }
+    answer = rpc(ledger.url, "eth_call", [{"to": pairing, "data": bn254_pairs(20)}, "latest"])
     assert answer["error"] == {
         "code": -32000,
         "message": f"execution aborted (timeout = {TIMEOUT_S}s)",
