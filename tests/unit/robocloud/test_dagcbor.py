@@ -3,8 +3,6 @@ or loop; and the DAG walk following them as kubo's recursive pin and ``dag expor
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
 from robocloud.cid import CID, DAG_CBOR, DAG_PB, RAW, Block, encode_varint
@@ -104,11 +102,10 @@ def test_what_is_not_dag_cbor_is_refused_saying_why(data: bytes, message: str) -
 
 
 def test_a_huge_claimed_count_is_refused_before_reading_items() -> None:
-    started = time.perf_counter()
+    """Counted down one item at a time, 2^63 would never end (pytest's timeout would)."""
     for major in (4, 5):
         with pytest.raises(DagCborError, match="items"):
             links(head(major, 2**63) + head(0, 0))
-    assert time.perf_counter() - started < 0.1
 
 
 def test_nesting_a_million_levels_deep_meets_no_stack() -> None:
