@@ -55,3 +55,32 @@ def test_the_journal_is_replayed_and_compacted_on_open(tmp_path: Path) -> None:
     assert reopened.snapshot() == {ONE: frozenset({ALICE}), TWO: frozenset({BOB})}
     assert len(path.read_text().splitlines()) == 2
     reopened.close()
+
+
+def test_a_many_root_pin_torn_by_a_crash_leaves_none_of_its_roots(tmp_path: Path) -> None:
+    """One journal line a request: a crash mid-write tears that line, which is dropped on
+    read. With a line a root, the first roots of a pin/add stayed pinned after the crash."""
+    path = tmp_path / "pins.log"
+    pins = PinSet(path)
+    pins.add(ONE, BOB)
+    roots = [CID.from_block(bytes([n])) for n in range(50)]
+    assert pins.add_all(roots, ALICE) == roots
+    pins.close()
+    journal = path.read_bytes()
+    assert journal.count(b"\n") == 2
+    path.write_bytes(journal[: len(journal) - len(journal.splitlines()[-1]) // 2])
+    reopened = PinSet(path)
+    assert reopened.snapshot() == {ONE: frozenset({BOB})}
+    reopened.close()
+
+
+def test_a_journal_written_one_root_a_line_is_still_read(tmp_path: Path) -> None:
+    path = tmp_path / "pins.log"
+    path.write_text(
+        f'{{"op":"add","cid":"{ONE}","owner":"{ALICE}"}}\n'
+        f'{{"op":"add","cid":"{TWO}","owner":"{ALICE}"}}\n'
+        f'{{"op":"rm","cid":"{ONE}","owner":"{ALICE}"}}\n'
+    )
+    pins = PinSet(path)
+    assert pins.snapshot() == {TWO: frozenset({ALICE})}
+    pins.close()
