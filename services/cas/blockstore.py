@@ -161,14 +161,25 @@ class Blockstore:
         with self._lock:
             if multihash not in self._index:
                 return False
-            if multihash not in hold.held:
-                hold.held.add(multihash)
-                self._held[multihash] += 1
+            self._hold_locked(hold, multihash)
             return True
 
+    def _hold_locked(self, hold: Hold, multihash: bytes) -> None:
+        """Count ``hold`` among the holders of ``multihash``; the caller has ``_lock``."""
+        if multihash not in hold.held:
+            hold.held.add(multihash)
+            self._held[multihash] += 1
+
     def _release(self, hold: Hold) -> None:
+        """Give back what ``hold`` held, in time linear in it (``Counter -=`` would walk every
+        block every open hold holds)."""
         with self.sweeping, self._lock:
-            self._held -= Counter(hold.held)
+            for multihash in hold.held:
+                remaining = self._held[multihash] - 1
+                if remaining:
+                    self._held[multihash] = remaining
+                else:
+                    del self._held[multihash]
             hold.held.clear()
 
     def usage(self) -> tuple[int, int]:
@@ -260,9 +271,8 @@ class Blockstore:
             self._members[pack] = members
             self._committed[pack] = self._committed.get(replacing or "", time.time())
             self._index.update(members)
-            for multihash in (members.keys() | duplicates) - hold.held:
-                hold.held.add(multihash)
-                self._held[multihash] += 1
+            for multihash in members.keys() | duplicates:
+                self._hold_locked(hold, multihash)
             if replacing is not None and replacing in self._members:
                 self._drop_pack(replacing)
             elif duplicates:

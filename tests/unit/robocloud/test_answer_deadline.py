@@ -14,7 +14,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from typing import Any
 
 import pytest
 from typer.testing import CliRunner
@@ -24,6 +23,7 @@ from robocloud.cli import app
 from robocloud.client import AnswerDeadlineError, ServiceClient
 from robocloud.ingest import Ingest
 from tests.scripted_http import Exchange, Reply, json_reply, scripted_server
+from tests.unit.robocloud.test_ingest_answers import JOB
 
 BODY = b'{"Keys": {}, "padding": "' + b"x" * 40 + b'"}'
 runner = CliRunner()
@@ -94,14 +94,7 @@ def test_the_deadline_is_the_clients_to_choose() -> None:
 
 
 def running_job(exchange: Exchange) -> Reply:
-    job: dict[str, Any] = {
-        "id": "j1",
-        "status": "running",
-        "messages": {"done": 1, "total": 10},
-        "records": {"staged": 0, "committed": 0},
-        "topics": [],
-        "error": None,
-    }
+    job = {**JOB, "status": "running", "messages": {"done": 1, "total": 10}}
     return json_reply(json.dumps(job))
 
 

@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
-from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -22,13 +21,6 @@ from tests.unit.services.cas.test_reachability import ALICE, file_node, put, raw
 
 LATER = 3600.0
 """Collections run as if this much later: every block stored by the test is old enough."""
-
-
-@pytest.fixture
-def store(tmp_path: Path) -> Iterator[ContentStore]:
-    opened = ContentStore.open(tmp_path, [])
-    yield opened
-    opened.close()
 
 
 def unpinned_file(store: ContentStore) -> CID:

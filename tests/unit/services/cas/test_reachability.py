@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import io
 import time
-from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
@@ -19,13 +17,6 @@ from services.cas.store import ContentStore, DagIncomplete
 
 ALICE = "0x" + "a1" * 20
 BOB = "0x" + "b0" * 20
-
-
-@pytest.fixture
-def store(tmp_path: Path) -> Iterator[ContentStore]:
-    opened = ContentStore.open(tmp_path, [])
-    yield opened
-    opened.close()
 
 
 def raw(data: bytes) -> Block:

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import io
 import time
-from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
@@ -26,13 +24,6 @@ from services.cas.store import (
 ROBOT = "0x" + "ab" * 20
 DATA = bytes(range(256)) * 2000  # two chunks: a root and two leaves
 SMALL = ImportParams(chunk_size=262_144)
-
-
-@pytest.fixture
-def store(tmp_path: Path) -> Iterator[ContentStore]:
-    opened = ContentStore.open(tmp_path, [])
-    yield opened
-    opened.close()
 
 
 def put_file(store: ContentStore, data: bytes = DATA) -> tuple[CID, list[Block]]:
