@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,6 +124,17 @@ def result(url: str, method: str, params: Any) -> Any:
     return answer["result"]
 
 
+def mined(url: str, tx_hash: str, timeout_s: float = 10.0) -> dict[str, Any]:
+    """The receipt of ``tx_hash``, waited for: anvil answers eth_sendRawTransaction before its
+    miner task has sealed the block, so a receipt asked for at once can still be null there."""
+    deadline = time.monotonic() + timeout_s
+    while (receipt := result(url, "eth_getTransactionReceipt", [tx_hash])) is None:
+        assert time.monotonic() < deadline, f"{tx_hash} not mined on {url} in {timeout_s} s"
+        time.sleep(0.02)
+    assert isinstance(receipt, dict)
+    return receipt
+
+
 @dataclass
 class Pair:
     """The ledger's /rpc and a fresh anvil: the same request to both, answers compared."""
@@ -152,7 +164,7 @@ class Pair:
             nonce = int(result(url, "eth_getTransactionCount", [identity.address, "latest"]), 16)
             tx = RawTx(nonce=nonce, to=b"", data=init_code, gas=1_000_000, max_fee=10**11)
             tx_hash = result(url, "eth_sendRawTransaction", [tx.sign(bytes(identity.account.key))])
-            receipt = result(url, "eth_getTransactionReceipt", [tx_hash])
+            receipt = mined(url, tx_hash)
             assert receipt["status"] == "0x1", receipt
             addresses.append(receipt["contractAddress"])
         return addresses[0], addresses[1]

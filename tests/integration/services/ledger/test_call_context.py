@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from tests.integration.services.ledger.conftest import Pair, call, deploying, result
+from tests.integration.services.ledger.conftest import Pair, call, deploying, mined, result
 from tests.rawtx import RawTx
 from tests.unit.services.ledger.test_calls import COUNTER
 
@@ -41,7 +41,7 @@ def contracts(pair: Pair) -> tuple[str, str]:
             nonce = int(result(url, "eth_getTransactionCount", [owner.address, "latest"]), 16)
             tx = RawTx(nonce=nonce, max_fee=10**11)
             tx_hash = result(url, "eth_sendRawTransaction", [tx.sign(bytes(owner.account.key))])
-            assert result(url, "eth_getTransactionReceipt", [tx_hash])["status"] == "0x1"
+            assert mined(url, tx_hash)["status"] == "0x1"
     return addresses
 
 
@@ -118,7 +118,7 @@ def test_calls_leave_nothing_behind_and_see_each_new_head(pair: Pair) -> None:
         nonce = int(result(url, "eth_getTransactionCount", [owner.address, "latest"]), 16)
         tx = RawTx(nonce=nonce, to=bytes.fromhex(address[2:]), gas=100_000, max_fee=10**11)
         tx_hash = result(url, "eth_sendRawTransaction", [tx.sign(bytes(owner.account.key))])
-        assert result(url, "eth_getTransactionReceipt", [tx_hash])["status"] == "0x1"
+        assert mined(url, tx_hash)["status"] == "0x1"
         assert counts(url, address, "latest") == (1, 0), url
         assert counts(url, address, deployed) == (0, 0), url
         assert counts(url, address, "latest") == (1, 0), url

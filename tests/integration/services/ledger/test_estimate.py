@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from tests.integration.services.ledger.conftest import Pair, call, deploying, result
+from tests.integration.services.ledger.conftest import Pair, call, deploying, mined, result
 from tests.rawtx import RawTx
 
 # Calls itself n times (the first word of calldata) and returns 1 from the deepest call: the
@@ -93,7 +93,7 @@ def test_a_transaction_with_the_estimate_succeeds(
     estimate = int(result(pair.ledger, "eth_estimateGas", [request, "latest"]), 16)
     tx = RawTx(to=bytes.fromhex(to[2:]), data=data, gas=estimate, max_fee=10**11)
     tx_hash = result(pair.ledger, "eth_sendRawTransaction", [tx.sign(bytes(sender.account.key))])
-    assert result(pair.ledger, "eth_getTransactionReceipt", [tx_hash])["status"] == "0x1"
+    assert mined(pair.ledger, tx_hash)["status"] == "0x1"
 
 
 def test_a_call_that_fails_with_all_the_gas_is_refused_as_geth_does(pair: Pair) -> None:

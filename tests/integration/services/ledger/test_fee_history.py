@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.integration.services.ledger.conftest import Pair, call, result
+from tests.integration.services.ledger.conftest import Pair, call, mined, result
 from tests.rawtx import RawTx
 
 GWEI = 10**9
@@ -18,7 +18,7 @@ def test_rewards_are_the_tips_paid_on_both(pair: Pair) -> None:
         for nonce, tip in enumerate((1, 2, 3)):
             tx = RawTx(nonce=nonce, max_fee=100 * GWEI, max_priority_fee=tip * GWEI)
             tx_hash = result(url, "eth_sendRawTransaction", [tx.sign(bytes(sender.account.key))])
-            assert result(url, "eth_getTransactionReceipt", [tx_hash])["status"] == "0x1"
+            assert mined(url, tx_hash)["status"] == "0x1"
         history = result(url, "eth_feeHistory", ["0x3", "latest", [0, 50, 99.5]])
         head = int(result(url, "eth_blockNumber", []), 16)
         assert history["oldestBlock"] == hex(head - 2)
@@ -37,7 +37,7 @@ def test_a_legacy_transaction_pays_its_price_above_the_base_fee(pair: Pair) -> N
     for url in pair.urls:
         tx = RawTx(kind=0, gas_price=7 * GWEI)
         tx_hash = result(url, "eth_sendRawTransaction", [tx.sign(bytes(sender.account.key))])
-        receipt = result(url, "eth_getTransactionReceipt", [tx_hash])
+        receipt = mined(url, tx_hash)
         block = result(url, "eth_getBlockByNumber", [receipt["blockNumber"], False])
         history = result(url, "eth_feeHistory", ["0x1", receipt["blockNumber"], [50]])
         assert history["reward"] == [[hex(7 * GWEI - int(block["baseFeePerGas"], 16))]]

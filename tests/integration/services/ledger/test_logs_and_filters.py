@@ -18,6 +18,7 @@ from tests.integration.services.ledger.conftest import (
     call,
     deploying,
     head,
+    mined,
     result,
     start_ledger,
 )
@@ -44,7 +45,7 @@ def emit(url: str, sender: Identity, to: str, word: int) -> str:
     tx_hash = result(
         url, "eth_sendRawTransaction", [tx.but(max_fee=10**11).sign(bytes(sender.account.key))]
     )
-    assert result(url, "eth_getTransactionReceipt", [tx_hash])["status"] == "0x1"
+    assert mined(url, tx_hash)["status"] == "0x1"
     return str(tx_hash)
 
 
@@ -124,7 +125,7 @@ def test_filters_report_the_same_changes_as_anvil(
         blocks_filter = result(url, "eth_newBlockFilter", [])
         assert result(url, "eth_getFilterChanges", [logs_filter]) == []
         hashes = [emit(url, sender, address, word) for word in (7, 8)]
-        receipts = [result(url, "eth_getTransactionReceipt", [h]) for h in hashes]
+        receipts = [mined(url, h) for h in hashes]
         changes = result(url, "eth_getFilterChanges", [logs_filter])
         assert [log["transactionHash"] for log in changes] == hashes
         assert result(url, "eth_getFilterChanges", [logs_filter]) == []
@@ -160,7 +161,7 @@ def test_a_filter_moves_on_past_ten_thousand_logs_as_anvil_reports_them(pair: Pa
             tx = RawTx(nonce=nonce, to=bytes.fromhex(address[2:]), data=count.to_bytes(32, "big"))
             raw = tx.but(gas=5_000_000, max_fee=10**10).sign(bytes(owner.account.key))
             tx_hash = result(url, "eth_sendRawTransaction", [raw])
-            blocks.append(result(url, "eth_getTransactionReceipt", [tx_hash])["blockHash"])
+            blocks.append(mined(url, tx_hash)["blockHash"])
         polls = []
         while changes := result(url, "eth_getFilterChanges", [filter_id]):
             polls.append(changes)
@@ -251,7 +252,7 @@ def test_block_lookups_agree_with_anvil(
     sender, contracts = emitter
     for url, address in zip(pair.urls, contracts, strict=True):
         tx_hash = emit(url, sender, address, 9)
-        receipt = result(url, "eth_getTransactionReceipt", [tx_hash])
+        receipt = mined(url, tx_hash)
         number, block_hash = receipt["blockNumber"], receipt["blockHash"]
         assert result(url, "eth_getBlockReceipts", [number]) == [receipt]
         assert result(url, "eth_getBlockReceipts", ["latest"]) == [receipt]

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from tests.integration.services.ledger.conftest import Pair, call, result
+from tests.integration.services.ledger.conftest import Pair, call, mined, result
 from tests.rawtx import RawTx
 
 ONE = "0x" + "00" * 31 + "01"
@@ -24,7 +24,7 @@ def test_a_block_hash_string_names_its_block_as_on_anvil(pair: Pair) -> None:
     for url in pair.urls:
         tx = RawTx(to=bytes.fromhex(recipient[2:]), value=7, max_fee=10**11)
         tx_hash = result(url, "eth_sendRawTransaction", [tx.sign(bytes(sender.account.key))])
-        receipt = result(url, "eth_getTransactionReceipt", [tx_hash])
+        receipt = mined(url, tx_hash)
         block_hash, number = receipt["blockHash"], receipt["blockNumber"]
         result(url, "eth_sendRawTransaction", [tx.but(nonce=1).sign(bytes(sender.account.key))])
         seen = {}

@@ -15,6 +15,7 @@ from tests.integration.services.ledger.conftest import (
     call,
     faucet,
     head,
+    mined,
     result,
     start_ledger,
 )
@@ -37,8 +38,8 @@ def test_ten_nonces_out_of_order_are_all_mined_on_both(pair: Pair) -> None:
             hashes[nonce] = result(url, "eth_sendRawTransaction", [transfer(sender, nonce)])
             if nonce == 3:
                 assert result(url, "eth_getTransactionReceipt", [hashes[3]]) is None, url
-        receipts = [result(url, "eth_getTransactionReceipt", [hashes[n]]) for n in range(10)]
-        assert all(r is not None and r["status"] == "0x1" for r in receipts), url
+        receipts = [mined(url, hashes[n]) for n in range(10)]
+        assert all(r["status"] == "0x1" for r in receipts), url
         numbers = [int(r["blockNumber"], 16) for r in receipts]
         assert numbers == sorted(numbers), "mined in nonce order"
         assert result(url, "eth_getTransactionCount", [sender.address, "latest"]) == "0xa"
@@ -58,8 +59,9 @@ def test_a_waiting_transaction_is_found_by_hash_in_no_block_on_both(pair: Pair) 
         tip = int(found["maxPriorityFeePerGas"], 16)
         assert int(found["gasPrice"], 16) == next_base_fee + tip, url
         result(url, "eth_sendRawTransaction", [transfer(sender, 0)])
-        mined = result(url, "eth_getTransactionByHash", [waiting])
-        assert mined["blockNumber"] is not None, url
+        receipt = mined(url, waiting)
+        found = result(url, "eth_getTransactionByHash", [waiting])
+        assert found["blockNumber"] == receipt["blockNumber"], url
     ours, anvil = answers
     keys = ("hash", "nonce", "from", "to", "value", "blockHash", "blockNumber", "maxFeePerGas")
     assert {key: ours[key] for key in keys} == {key: anvil[key] for key in keys}
@@ -81,7 +83,7 @@ def test_a_waiting_transaction_is_replaced_only_for_a_higher_price_on_both(pair:
         replacement = transfer(sender, 1, max_priority_fee=2 * 10**9, max_fee=2 * 10**11)
         replaced = result(url, "eth_sendRawTransaction", [replacement])
         result(url, "eth_sendRawTransaction", [transfer(sender, 0)])
-        receipt = result(url, "eth_getTransactionReceipt", [replaced])
+        receipt = mined(url, replaced)
         assert receipt is not None
         assert receipt["status"] == "0x1"
     own = call(pair.ledger, "eth_sendRawTransaction", [transfer(sender, 5)])

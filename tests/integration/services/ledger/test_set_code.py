@@ -9,7 +9,15 @@ from typing import Any
 import pytest
 
 from robocloud.identity import Identity
-from tests.integration.services.ledger.conftest import Pair, Service, call, faucet, head, result
+from tests.integration.services.ledger.conftest import (
+    Pair,
+    Service,
+    call,
+    faucet,
+    head,
+    mined,
+    result,
+)
 from tests.rawtx import RawTx, authorization
 
 TARGET = b"\x22" * 20
@@ -31,7 +39,7 @@ def test_a_delegated_eoa_keeps_sending_transactions_as_on_anvil(pair: Pair) -> N
         # The sender's nonce moves before authorizations apply, so it signs nonce + 1.
         delegate = SET_CODE.but(to=sender, authorizations=[authorization(key, TARGET, 1)])
         tx_hash = result(url, "eth_sendRawTransaction", [delegate.sign(key)])
-        receipt = result(url, "eth_getTransactionReceipt", [tx_hash])
+        receipt = mined(url, tx_hash)
         assert receipt["status"] == "0x1"
         assert receipt["type"] == "0x4"
         code = result(url, "eth_getCode", [identity.address, "latest"])
@@ -40,7 +48,7 @@ def test_a_delegated_eoa_keeps_sending_transactions_as_on_anvil(pair: Pair) -> N
         assert nonce_of(url, identity) == 2
         plain = RawTx(nonce=2, to=b"\x33" * 20, value=1, max_fee=10**11)
         sent = result(url, "eth_sendRawTransaction", [plain.sign(key)])
-        assert result(url, "eth_getTransactionReceipt", [sent])["status"] == "0x1"
+        assert mined(url, sent)["status"] == "0x1"
         seen.append((transaction["authorizationList"], receipt["gasUsed"]))
     assert seen[0] == seen[1]
     assert seen[0][0] == [
