@@ -33,6 +33,7 @@ from typing_extensions import Unpack
 
 from robocloud import bounded_json
 from robocloud.config import expected_deployment, service_url
+from robocloud.deadline import AnswerClock, DeadlineTransport, reads_bounded_by
 from robocloud.errors import (
     ApiError,
     ConfigurationError,
@@ -56,9 +57,9 @@ MAX_ANSWER_BYTES = 64 << 20
 MAX_ERROR_BYTES = 1 << 20
 """The most of an error answer read from a streamed response (its JSON error is small)."""
 ANSWER_DEADLINE_FACTOR = 4
-"""An answer read whole must be complete within this many ``timeout``s of the request: the
-timeout bounds each read, so a service dripping a byte per read would otherwise hold a
-client as long as it likes."""
+"""An answer read whole must be complete within this many ``timeout``s of the request's last
+byte: the timeout bounds each read, so a service dripping a byte per read would otherwise
+hold a client as long as it likes."""
 
 
 class AnswerDeadlineError(TransportTimeoutError):
@@ -180,14 +181,15 @@ class BaseClient(Closeable):
         self.answer_deadline_s = (
             ANSWER_DEADLINE_FACTOR * timeout if answer_deadline_s is None else answer_deadline_s
         )
-        """How long an answer read whole may take, from the request to its last byte."""
+        """How long an answer may take, from the request's last byte to the answer's (the
+        status line and headers of a streamed answer, a whole answer otherwise)."""
         self.deployment = deployment or expected_deployment()
         """The deployment whose audience alone this client signs for (None: what it claims)."""
         self._audience: str | None = None
         self._http = httpx.Client(
             base_url=self.base_url,
             timeout=timeout,
-            transport=transport,
+            transport=transport or DeadlineTransport(),
             headers={"User-Agent": USER_AGENT},
         )
 
@@ -202,8 +204,9 @@ class BaseClient(Closeable):
         ``stream`` the answer is read whole, at most ``max_answer_bytes`` within
         ``answer_deadline_s`` (``TransportTimeoutError`` past it); with it the caller reads
         and closes it (use it as a context manager), except an error answer (status 400 or
-        more), which is always read. A streamed answer has no overall deadline, only
-        ``timeout`` per read: its reader bounds it (``Cas.get_to_file``: its size).
+        more), which is always read. A streamed answer's headers have the same deadline; its
+        body has none, only ``timeout`` per read: its reader bounds it
+        (``Cas.get_to_file``: its size).
         """
         response, _ = self._send_counting(method, path, **options)
         return response
@@ -271,31 +274,41 @@ class BaseClient(Closeable):
 
     def _exchange(self, request: httpx.Request, stream: bool) -> httpx.Response:
         """One request and, unless streamed, its whole answer; httpx failures translated."""
-        deadline = time.monotonic() + self.answer_deadline_s
-        with self.translate_errors(request.method, str(request.url)):
-            response = self._http.send(request, stream=True)
-            if stream and response.status_code < 400:
-                return response
-            try:
-                limit = MAX_ERROR_BYTES if stream else self.max_answer_bytes
-                return self._read_whole(response, limit, deadline)
-            finally:
-                response.close()
+        clock = AnswerClock(self.answer_deadline_s)
+        try:
+            with (
+                self.translate_errors(request.method, str(request.url)),
+                reads_bounded_by(clock),
+            ):
+                response = self._http.send(request, stream=True)
+                if stream and response.status_code < 400:
+                    return response
+                try:
+                    limit = MAX_ERROR_BYTES if stream else self.max_answer_bytes
+                    return self._read_whole(response, limit, clock)
+                finally:
+                    response.close()
+        except TransportTimeoutError as exc:
+            if clock.left_s > 0 or isinstance(exc, AnswerDeadlineError):
+                raise
+            raise self._past_deadline(request) from exc
 
-    def _read_whole(self, response: httpx.Response, limit: int, deadline: float) -> httpx.Response:
+    def _read_whole(
+        self, response: httpx.Response, limit: int, clock: AnswerClock
+    ) -> httpx.Response:
         """The response with its body read, refusing more than ``limit`` bytes as they arrive
-        and giving up at ``deadline`` (checked at every read, so at most one read's timeout
-        late)."""
+        and giving up when ``clock`` runs out (the transport's reads end then; a transport of
+        the caller's own is checked between reads, so at most one read's timeout late)."""
         declared = response.headers.get("content-length", "")
         if declared.isdigit() and int(declared) > limit:
             raise self._invalid(response, f"an answer of {declared} bytes, over {limit}")
         body = bytearray()
-        self._check_deadline(response, deadline)
+        self._check_deadline(response, clock)
         for chunk in response.iter_bytes():
             body += chunk
             if len(body) > limit:
                 raise self._invalid(response, f"an answer of more than {limit} bytes")
-            self._check_deadline(response, deadline)
+            self._check_deadline(response, clock)
         kept = [
             (name, value)
             for name, value in response.headers.raw
@@ -309,16 +322,18 @@ class BaseClient(Closeable):
             extensions=response.extensions,
         )
 
-    def _check_deadline(self, response: httpx.Response, deadline: float) -> None:
-        if time.monotonic() > deadline:
-            request = response.request
-            raise AnswerDeadlineError(
-                f"{request.method} {request.url} timed out: the answer was not complete "
-                f"{self.answer_deadline_s:g} s after the request",
-                method=request.method,
-                url=str(request.url),
-                service=self.service,
-            )
+    def _check_deadline(self, response: httpx.Response, clock: AnswerClock) -> None:
+        if clock.left_s < 0:
+            raise self._past_deadline(response.request)
+
+    def _past_deadline(self, request: httpx.Request) -> AnswerDeadlineError:
+        return AnswerDeadlineError(
+            f"{request.method} {request.url} timed out: the answer was not complete "
+            f"{self.answer_deadline_s:g} s after the request",
+            method=request.method,
+            url=str(request.url),
+            service=self.service,
+        )
 
     @contextmanager
     def translate_errors(self, method: str, url: str) -> Iterator[None]:

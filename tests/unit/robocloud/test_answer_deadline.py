@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -29,26 +30,42 @@ BODY = b'{"Keys": {}, "padding": "' + b"x" * 40 + b'"}'
 runner = CliRunner()
 
 
+HEAD = (
+    b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\n"
+    + f"Content-Length: {len(BODY)}\r\n\r\n".encode()
+)
+
+
+@dataclass
+class Dripping:
+    url: str
+    paths: list[str] = field(default_factory=list)
+    sent: int = 0
+    """Bytes of the current answer written so far (status line and headers included)."""
+
+
 @contextmanager
-def dripping_server(pause_s: float) -> Iterator[tuple[str, list[str]]]:
-    """A server that answers every request with ``BODY``, one byte every ``pause_s``."""
-    paths: list[str] = []
+def dripping_server(pause_s: float, *, headers_too: bool = False) -> Iterator[Dripping]:
+    """A server that answers every request with ``BODY``, one byte every ``pause_s``; with
+    ``headers_too``, its status line and headers as well."""
+    state = Dripping("")
 
     class Drip(BaseHTTPRequestHandler):
         def do_GET(self) -> None:
             self.do_POST()
 
         def do_POST(self) -> None:
-            paths.append(self.path)
+            state.paths.append(self.path)
             self.rfile.read(int(self.headers.get("Content-Length") or 0))
-            self.send_response(200)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(BODY)))
-            self.end_headers()
+            answer, state.sent = HEAD + BODY, 0
+            if not headers_too:
+                self.wfile.write(HEAD)
+                state.sent = len(HEAD)
             try:
-                for index in range(len(BODY)):
-                    self.wfile.write(BODY[index : index + 1])
+                while state.sent < len(answer):
+                    self.wfile.write(answer[state.sent : state.sent + 1])
                     self.wfile.flush()
+                    state.sent += 1
                     time.sleep(pause_s)
             except OSError:
                 return
@@ -59,38 +76,94 @@ def dripping_server(pause_s: float) -> Iterator[tuple[str, list[str]]]:
     server = ThreadingHTTPServer(("127.0.0.1", 0), Drip)
     server.daemon_threads = True
     threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
+    state.url = f"http://127.0.0.1:{server.server_address[1]}"
     try:
-        yield f"http://127.0.0.1:{server.server_address[1]}", paths
+        yield state
     finally:
         server.shutdown()
         server.server_close()
 
 
 def test_a_dripped_answer_ends_at_the_deadline_and_is_not_retried() -> None:
-    with dripping_server(0.3) as (url, paths), Cas(url, timeout=0.5, backoff_s=0.01) as cas:
+    with dripping_server(0.3) as server, Cas(server.url, timeout=0.5, backoff_s=0.01) as cas:
         started = time.monotonic()
         with pytest.raises(AnswerDeadlineError, match="not complete 2 s after the request"):
             cas.pins()
         elapsed = time.monotonic() - started
     # The whole answer takes 21 s; a margin wide enough for a loaded machine still tells.
     assert 2.0 <= elapsed < 10.0
-    assert paths == ["/api/v0/pin/ls"]
+    assert server.paths == ["/api/v0/pin/ls"]
 
 
 def test_the_deadline_is_the_clients_to_choose() -> None:
     with (
-        dripping_server(0.02) as (url, _),
-        ServiceClient(url, timeout=0.5, answer_deadline_s=30) as client,
+        dripping_server(0.02) as server,
+        ServiceClient(server.url, timeout=0.5, answer_deadline_s=30) as client,
     ):
         assert client.get_json("/slow-but-steady")["Keys"] == {}
     with (
-        dripping_server(0.3) as (url, _),
-        ServiceClient(url, timeout=5, answer_deadline_s=0.5, retries=0) as client,
+        dripping_server(0.3) as server,
+        ServiceClient(server.url, timeout=5, answer_deadline_s=0.5, retries=0) as client,
     ):
         started = time.monotonic()
         with pytest.raises(AnswerDeadlineError):
             client.get_json("/x")
         assert time.monotonic() - started < 10.0  # the whole answer takes 21 s
+
+
+def test_dripped_headers_end_at_the_deadline_and_are_not_retried() -> None:
+    """The deadline used to start once the headers were in: a service dripping its status
+    line and headers (71 bytes here, 21 s; up to h11's 100 KiB cap in all) held the
+    robot for as long as that took, a byte per read timeout: it gave up only once they were
+    all in."""
+    with (
+        dripping_server(0.3, headers_too=True) as server,
+        Cas(server.url, timeout=0.5, backoff_s=0.01) as cas,
+    ):
+        with pytest.raises(AnswerDeadlineError, match="not complete 2 s after the request"):
+            cas.pins()
+        assert server.sent < len(HEAD)
+    assert server.paths == ["/api/v0/pin/ls"]
+
+
+def test_a_streamed_answers_headers_have_the_deadline() -> None:
+    with (
+        dripping_server(0.3, headers_too=True) as server,
+        ServiceClient(server.url, timeout=5, answer_deadline_s=1, retries=0) as client,
+    ):
+        with pytest.raises(AnswerDeadlineError, match="not complete 1 s after the request"):
+            client.send("GET", "/stream", stream=True)
+        assert server.sent < len(HEAD)
+    assert server.paths == ["/stream"]
+
+
+def test_a_slow_upload_is_not_the_answers_time() -> None:
+    """A robot sending its body slowly (a bag read off a slow disk, a thin uplink) used to
+    have that time counted against the answer, and a prompt answer to a 3 s upload failed
+    a 1 s deadline after the service had done the work."""
+    chunks = [b"x" * 1000] * 6
+
+    def slowly() -> Iterator[bytes]:
+        for chunk in chunks:
+            time.sleep(0.5)
+            yield chunk
+
+    with (
+        scripted_server(
+            lambda exchange: json_reply(json.dumps({"got": len(exchange.body)}))
+        ) as server,
+        ServiceClient(server.url, timeout=5, answer_deadline_s=1, retries=0) as client,
+    ):
+        response = client.send(
+            "POST",
+            "/upload",
+            content=slowly(),
+            headers={"Content-Length": "6000"},
+            signed=False,
+        )
+    assert response.status_code == 200
+    assert client.json_of(response) == {"got": 6000}
+    assert [exchange.path for exchange in server.exchanges] == ["/upload"]
 
 
 def running_job(exchange: Exchange) -> Reply:

@@ -1,0 +1,145 @@
+"""An HTTP transport whose reads end at the deadline of the answer being read.
+
+httpx's ``timeout`` bounds each read, not an answer: a service that drips its status line and
+headers one byte just inside it holds the client until h11's 100 KiB header cap, months at a
+byte per 29 s, before the client sees a response it could time. So the deadline is enforced
+where the bytes arrive: within :func:`reads_bounded_by`, every read of a connection is given
+at most the time left on the current :class:`AnswerClock` (a context variable, so per
+thread), and past it fails as httpx's ``ReadTimeout``. Outside such a block, as while a
+caller reads a streamed body, reads keep httpx's own per-read timeout.
+"""
+
+from __future__ import annotations
+
+import ssl
+import time
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import dataclass, field
+from typing import Any
+
+import httpcore
+import httpx
+
+
+@dataclass
+class AnswerClock:
+    """When the answer to the request being exchanged must be complete: ``budget_s`` after
+    the request's last byte left. A slow upload is the robot's own time, not the answer's,
+    so every write the transport makes starts the clock again."""
+
+    budget_s: float
+    sent_at: float = field(default_factory=time.monotonic)
+
+    def sent(self) -> None:
+        self.sent_at = time.monotonic()
+
+    @property
+    def left_s(self) -> float:
+        return self.sent_at + self.budget_s - time.monotonic()
+
+
+_clock: ContextVar[AnswerClock | None] = ContextVar("robocloud_answer_clock", default=None)
+
+
+@contextmanager
+def reads_bounded_by(clock: AnswerClock) -> Iterator[None]:
+    """Within the block, a :class:`DeadlineTransport`'s writes restart ``clock`` and its reads
+    end when ``clock`` runs out."""
+    token = _clock.set(clock)
+    try:
+        yield
+    finally:
+        _clock.reset(token)
+
+
+def _read_timeout(timeout: float | None) -> float | None:
+    """``timeout`` shortened to the time left on the current clock, if there is one."""
+    clock = _clock.get()
+    if clock is None:
+        return timeout
+    left = clock.left_s
+    if left <= 0:
+        raise httpcore.ReadTimeout("the answer's deadline has passed")
+    return left if timeout is None else min(timeout, left)
+
+
+class _DeadlineStream(httpcore.NetworkStream):
+    """A connection whose reads respect the current :class:`AnswerClock`, and whose writes
+    restart it."""
+
+    def __init__(self, stream: httpcore.NetworkStream) -> None:
+        self._stream = stream
+
+    def read(self, max_bytes: int, timeout: float | None = None) -> bytes:
+        return self._stream.read(max_bytes, _read_timeout(timeout))
+
+    def write(self, buffer: bytes, timeout: float | None = None) -> None:
+        self._stream.write(buffer, timeout)
+        clock = _clock.get()
+        if clock is not None:
+            clock.sent()
+
+    def close(self) -> None:
+        self._stream.close()
+
+    def start_tls(
+        self,
+        ssl_context: ssl.SSLContext,
+        server_hostname: str | None = None,
+        timeout: float | None = None,
+    ) -> httpcore.NetworkStream:
+        return _DeadlineStream(self._stream.start_tls(ssl_context, server_hostname, timeout))
+
+    def get_extra_info(self, info: str) -> Any:
+        return self._stream.get_extra_info(info)
+
+
+class _DeadlineBackend(httpcore.NetworkBackend):
+    """httpcore's socket backend, its connections wrapped in :class:`_DeadlineStream`."""
+
+    def __init__(self) -> None:
+        self._backend = httpcore.SyncBackend()
+
+    def connect_tcp(
+        self,
+        host: str,
+        port: int,
+        timeout: float | None = None,
+        local_address: str | None = None,
+        socket_options: Iterable[Any] | None = None,
+    ) -> httpcore.NetworkStream:
+        stream = self._backend.connect_tcp(host, port, timeout, local_address, socket_options)
+        return _DeadlineStream(stream)
+
+    def connect_unix_socket(
+        self,
+        path: str,
+        timeout: float | None = None,
+        socket_options: Iterable[Any] | None = None,
+    ) -> httpcore.NetworkStream:
+        return _DeadlineStream(self._backend.connect_unix_socket(path, timeout, socket_options))
+
+    def sleep(self, seconds: float) -> None:
+        self._backend.sleep(seconds)
+
+
+class DeadlineTransport(httpx.HTTPTransport):
+    """httpx's default transport, over connections that honour :func:`reads_bounded_by`.
+
+    httpx builds its connection pool with no way to name a network backend, so the pool is
+    built again here with the same defaults and this module's backend (httpcore's public
+    ``network_backend`` argument).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        limits = httpx.Limits(max_connections=100, max_keepalive_connections=20)
+        self._pool = httpcore.ConnectionPool(
+            ssl_context=httpx.create_ssl_context(),
+            max_connections=limits.max_connections,
+            max_keepalive_connections=limits.max_keepalive_connections,
+            keepalive_expiry=limits.keepalive_expiry,
+            network_backend=_DeadlineBackend(),
+        )
