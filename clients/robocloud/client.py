@@ -33,7 +33,7 @@ from typing_extensions import Unpack
 
 from robocloud import bounded_json
 from robocloud.config import expected_deployment, service_url
-from robocloud.deadline import AnswerClock, DeadlineTransport, reads_bounded_by
+from robocloud.deadline import AnswerClock, reads_bounded_by, transport_for
 from robocloud.errors import (
     ApiError,
     ConfigurationError,
@@ -189,7 +189,7 @@ class BaseClient(Closeable):
         self._http = httpx.Client(
             base_url=self.base_url,
             timeout=timeout,
-            transport=transport or DeadlineTransport(),
+            transport=transport or transport_for(self.base_url),
             headers={"User-Agent": USER_AGENT},
         )
 

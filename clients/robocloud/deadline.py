@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ssl
 import time
+import urllib.request
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -126,20 +127,61 @@ class _DeadlineBackend(httpcore.NetworkBackend):
 
 
 class DeadlineTransport(httpx.HTTPTransport):
-    """httpx's default transport, over connections that honour :func:`reads_bounded_by`.
+    """httpx's default transport, over connections that honour :func:`reads_bounded_by`;
+    through the HTTP(S) proxy at ``proxy``, if there is one.
 
     httpx builds its connection pool with no way to name a network backend, so the pool is
-    built again here with the same defaults and this module's backend (httpcore's public
+    built again here with httpx's defaults and this module's backend (httpcore's public
     ``network_backend`` argument).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, proxy: str | None = None) -> None:
         super().__init__()
         limits = httpx.Limits(max_connections=100, max_keepalive_connections=20)
-        self._pool = httpcore.ConnectionPool(
-            ssl_context=httpx.create_ssl_context(),
+        ssl_context = httpx.create_ssl_context()
+        if proxy is None:
+            self._pool = httpcore.ConnectionPool(
+                ssl_context=ssl_context,
+                max_connections=limits.max_connections,
+                max_keepalive_connections=limits.max_keepalive_connections,
+                keepalive_expiry=limits.keepalive_expiry,
+                network_backend=_DeadlineBackend(),
+            )
+            return
+        via = httpx.Proxy(proxy)
+        self._pool = httpcore.HTTPProxy(
+            proxy_url=httpcore.URL(
+                scheme=via.url.raw_scheme,
+                host=via.url.raw_host,
+                port=via.url.port,
+                target=via.url.raw_path,
+            ),
+            proxy_auth=via.raw_auth,
+            proxy_headers=via.headers.raw,
+            ssl_context=ssl_context,
+            proxy_ssl_context=via.ssl_context,
             max_connections=limits.max_connections,
             max_keepalive_connections=limits.max_keepalive_connections,
             keepalive_expiry=limits.keepalive_expiry,
             network_backend=_DeadlineBackend(),
         )
+
+
+def transport_for(base_url: str) -> httpx.BaseTransport:
+    """The transport of an SDK client of ``base_url``.
+
+    A client given a transport no longer reads proxies from the environment, so this picks
+    the one httpx would have picked (``<scheme>_proxy`` or ``all_proxy``, unless ``no_proxy``
+    names the host). A SOCKS proxy gets httpx's own transport, whose answers the client
+    still times between reads.
+    """
+    url = httpx.URL(base_url)
+    proxies = urllib.request.getproxies()
+    proxy = proxies.get(url.scheme) or proxies.get("all")
+    if not proxy or urllib.request.proxy_bypass(url.host):
+        return DeadlineTransport()
+    if "://" not in proxy:
+        proxy = f"http://{proxy}"
+    if not proxy.startswith(("http://", "https://")):
+        return httpx.HTTPTransport(proxy=proxy)
+    return DeadlineTransport(proxy)

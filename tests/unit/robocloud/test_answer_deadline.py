@@ -189,3 +189,28 @@ def test_the_cli_gives_up_on_a_job_that_never_ends_in_one_line(
     assert result.exit_code == 5, result.output
     assert result.stderr.startswith("error: ingest job j1 is still running after 0.5 s")
     assert result.stderr.count("\n") == 1
+
+
+def test_a_robot_behind_a_proxy_still_goes_through_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """httpx reads no proxy from the environment for a client given its own transport, as the
+    SDK's clients now are; the SDK picks the proxy itself, as httpx did."""
+    monkeypatch.delenv("no_proxy", raising=False)
+    monkeypatch.delenv("NO_PROXY", raising=False)
+    with scripted_server(lambda exchange: json_reply('{"via": "proxy"}')) as proxy:
+        monkeypatch.setenv("http_proxy", proxy.url)
+        with ServiceClient("http://robocloud.invalid:8080", timeout=5, retries=0) as client:
+            assert client.get_json("/v1/thing") == {"via": "proxy"}
+    assert [exchange.path for exchange in proxy.exchanges] == [
+        "http://robocloud.invalid:8080/v1/thing"
+    ]
+
+
+def test_no_proxy_names_the_hosts_reached_directly(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("http_proxy", "http://127.0.0.1:9")
+    monkeypatch.setenv("no_proxy", "127.0.0.1")
+    with (
+        scripted_server(lambda exchange: json_reply('{"via": "direct"}')) as server,
+        ServiceClient(server.url, timeout=5, retries=0) as client,
+    ):
+        assert client.get_json("/v1/thing") == {"via": "direct"}
+    assert [exchange.path for exchange in server.exchanges] == ["/v1/thing"]
