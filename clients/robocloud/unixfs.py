@@ -648,44 +648,57 @@ def walk_dag(
     with one frame per level, bounded by ``MAX_DAG_DEPTH`` as the reader is.
 
     ``seen`` holds blocks an earlier walk went through to its end, skipped with everything
-    under them: shared by the walks of several roots, it reads a common sub-DAG once.
+    under them: shared by the walks of several roots, it reads a common sub-DAG once. A walk
+    cut short (a block missing or malformed, the caller gone) takes back the blocks it had
+    not finished, the path down to where it stopped, so ``seen`` stays true for the next.
     """
     if scope not in ("block", "entity", "all"):
         raise UnixfsError(f"unknown dag-scope {scope!r}: expected block, entity or all")
     seen = set() if seen is None else seen
     frames: list[Iterator[CID]] = [iter((root,))]
-    while frames:
-        cid = next(frames[-1], None)
-        if cid is None:
-            frames.pop()
-            continue
-        if cid in seen:
-            continue
-        if len(frames) > MAX_DAG_DEPTH + 1:
-            raise UnixfsError(f"{cid} lies deeper than {MAX_DAG_DEPTH} levels under {root}")
-        seen.add(cid)
-        data = get_block(cid)
-        yield Block(cid, data)
-        if scope == "block":
-            continue
-        if cid.codec == DAG_CBOR:
-            if scope == "entity":
+    path: list[CID] = []  # the block whose links each frame but the first walks
+    cid: CID | None = None
+    try:
+        while frames:
+            cid = next(frames[-1], None)
+            if cid is None:
+                frames.pop()
+                if path:
+                    path.pop()
                 continue
-            try:
-                children = dag_cbor_links(data)
-            except DagCborError as exc:
-                raise UnixfsError(f"{cid} is not a dag-cbor block: {exc}") from exc
-        elif cid.codec == DAG_PB:
-            node = _pb_node(cid, data)
-            children = [link.cid for link in node.links]
-            if scope == "entity" and node.data is not None:
-                unixfs = _unixfs_data(cid, node)
-                if unixfs.type == DIRECTORY:
-                    children = []
-                elif unixfs.type == HAMT_SHARD:
-                    width = hamt_prefix_width(cid, unixfs)
-                    children = [link.cid for link in node.links if len(link.name) == width]
-        else:
-            continue
-        if children:
-            frames.append(iter(children))
+            if cid in seen:
+                continue
+            if len(frames) > MAX_DAG_DEPTH + 1:
+                raise UnixfsError(f"{cid} lies deeper than {MAX_DAG_DEPTH} levels under {root}")
+            seen.add(cid)
+            data = get_block(cid)
+            yield Block(cid, data)
+            if scope == "block":
+                continue
+            if cid.codec == DAG_CBOR:
+                if scope == "entity":
+                    continue
+                try:
+                    children = dag_cbor_links(data)
+                except DagCborError as exc:
+                    raise UnixfsError(f"{cid} is not a dag-cbor block: {exc}") from exc
+            elif cid.codec == DAG_PB:
+                node = _pb_node(cid, data)
+                children = [link.cid for link in node.links]
+                if scope == "entity" and node.data is not None:
+                    unixfs = _unixfs_data(cid, node)
+                    if unixfs.type == DIRECTORY:
+                        children = []
+                    elif unixfs.type == HAMT_SHARD:
+                        width = hamt_prefix_width(cid, unixfs)
+                        children = [link.cid for link in node.links if len(link.name) == width]
+            else:
+                continue
+            if children:
+                frames.append(iter(children))
+                path.append(cid)
+    except BaseException:
+        seen.difference_update(path)
+        if cid is not None:
+            seen.discard(cid)
+        raise

@@ -565,3 +565,31 @@ def test_an_imported_file_of_one_byte_chunks_under_two_links_is_within_budget() 
     assert b"".join(read_file(root, store.__getitem__, 1000, 1)) == data[1000:1001]
     with io.BytesIO() as out:
         assert assemble_file(root, iter(car_blocks(root, store)), out, lambda _: None) == len(data)
+
+
+def test_a_walk_cut_short_takes_back_the_blocks_it_did_not_finish() -> None:
+    """A ``seen`` shared by several roots' walks lets a sub-DAG they share be read once; a
+    walk that stopped at a missing block must not leave the blocks above it there, or the
+    next root over them would pass for complete."""
+    gone = CID.from_block(b"gone", RAW, 1)
+    here = CID.from_block(b"here", RAW, 1)
+    middle_data = PBNode([Link(here, "a", 4), Link(gone, "b", 4)], None).encode()
+    middle = CID.from_block(middle_data, DAG_PB, 1)
+    first_data = PBNode([Link(middle, "m", 8)], b"first").encode()
+    second_data = PBNode([Link(middle, "m", 8)], b"second").encode()
+    first = CID.from_block(first_data, DAG_PB, 1)
+    second = CID.from_block(second_data, DAG_PB, 1)
+    store = {here: b"here", middle: middle_data, first: first_data, second: second_data}
+    seen: set[CID] = set()
+    with pytest.raises(KeyError):
+        list(walk_dag(first, store.__getitem__, "all", seen))
+    assert seen == {here}
+    with pytest.raises(KeyError):
+        list(walk_dag(second, store.__getitem__, "all", seen))
+    store[gone] = b"gone"
+    assert [block.cid for block in walk_dag(second, store.__getitem__, "all", seen)] == [
+        second,
+        middle,
+        gone,
+    ]
+    assert seen == {here, gone, middle, second}
