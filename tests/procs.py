@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
 
@@ -103,6 +107,26 @@ class ServiceProcess:
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+    def logged(
+        self, match: Callable[[dict[str, Any]], bool], count: int = 1, timeout_s: float = 10.0
+    ) -> list[dict[str, Any]]:
+        """The service's JSON log lines that ``match``, once there are ``count`` of them (or
+        ``timeout_s`` has passed): a request's access line is written after its answer has
+        gone, so a test holding the answer can be ahead of it."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            found = [line for line in self._json_lines() if match(line)]
+            if len(found) >= count or time.monotonic() > deadline:
+                return found
+            time.sleep(0.05)
+
+    def _json_lines(self) -> list[dict[str, Any]]:
+        lines = []
+        for text in self.log().splitlines():
+            with contextlib.suppress(ValueError):
+                lines.append(json.loads(text))
+        return [line for line in lines if isinstance(line, dict)]
 
     def __enter__(self) -> ServiceProcess:
         return self.start()

@@ -4,7 +4,6 @@ reading may hold one (the send timeout), bodies in how long one may pause (the b
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import socket
 import time
@@ -82,12 +81,10 @@ def test_stalled_readers_hold_their_turns_only_until_the_send_timeout(
 
     whole = httpx.get(f"{cas_service.url}/ipfs/{cid}", timeout=30)
     assert hashlib.sha256(whole.content).digest() == hashlib.sha256(content).digest()
-    log = cas_service.log_path.read_text()
-    dropped = [
-        json.loads(line)
-        for line in log.splitlines()
-        if "client stopped reading; connection dropped" in line
-    ]
+    dropped = cas_service.logged(
+        lambda line: line.get("msg") == "client stopped reading; connection dropped", count=2
+    )
+    log = cas_service.log()
     assert sorted((line["request_id"], line["path"]) for line in dropped) == [
         ("stalled-export", "/api/v0/dag/export"),
         ("stalled-gateway", f"/ipfs/{cid}"),
@@ -128,11 +125,7 @@ def test_one_client_stalling_streams_holds_only_its_share_of_the_turns(
     assert 5 <= refused_after < SEND_TIMEOUT_S
     assert other.status_code == 200
     assert hashlib.sha256(other.content).digest() == hashlib.sha256(content).digest()
-    (line,) = [
-        json.loads(entry)
-        for entry in cas_service.log_path.read_text().splitlines()
-        if '"status": 429' in entry
-    ]
+    (line,) = cas_service.logged(lambda line: line.get("status") == 429)
     assert (line["client"], line["path"]) == ("127.0.0.1", f"/ipfs/{cid}")
 
 
@@ -164,13 +157,12 @@ def test_an_upload_that_stops_half_way_is_answered_408_and_nothing_is_stored(
     }
     assert 1 <= answered_after < 10
     assert packs(service) == packs_before
-    lines = [json.loads(entry) for entry in service.log_path.read_text().splitlines()]
+    lines = service.logged(lambda line: line.get("request_id") == "stalled-upload", count=2)
     # The server's line, and the access log's: the status the client got, not 499.
-    assert [
-        (line["msg"], line["path"], line["status"])
-        for line in lines
-        if line["request_id"] == "stalled-upload"
-    ] == [("request refused", "/api/v0/add", 408), ("request", "/api/v0/add", 408)]
+    assert [(line["msg"], line["path"], line["status"]) for line in lines] == [
+        ("request refused", "/api/v0/add", 408),
+        ("request", "/api/v0/add", 408),
+    ]
 
 
 def packs(service: ServiceProcess) -> list[str]:

@@ -167,11 +167,7 @@ def test_the_client_is_the_peer_address_unless_a_trusted_proxy_names_another(
     service = service_factory("broker", {"ROBOCLOUD_TRUSTED_PROXIES": trusted})
     headers = {"X-Forwarded-For": "198.51.100.7", "X-Request-Id": "forwarded-for"}
     assert httpx.get(f"{service.url}/healthz", headers=headers).json()["status"] == "ok"
-    (line,) = [
-        json.loads(entry)
-        for entry in service.log_path.read_text().splitlines()
-        if '"request_id": "forwarded-for"' in entry
-    ]
+    (line,) = service.logged(lambda line: line.get("request_id") == "forwarded-for")
     assert (line["path"], line["client"]) == ("/healthz", client)
 
 
