@@ -40,11 +40,15 @@ from eth.exceptions import Revert
 from eth.vm.chain_context import ChainContext
 from eth.vm.forks.frontier.validation import validate_frontier_transaction
 from eth.vm.forks.prague import PragueVM
-from eth.vm.forks.prague.computation import PragueComputation
-from eth.vm.forks.prague.state import PragueState, PragueTransactionExecutor
+from eth.vm.forks.prague.state import PragueTransactionExecutor
 from eth_typing import Address, Hash32
 
 from services.ledger.chaindb import DevChain, DurableAtomicDB
+from services.ledger.precompile_budget import (
+    PRECOMPILE_CHECK_GAS,
+    BudgetedComputation,
+    BudgetedState,
+)
 
 T = TypeVar("T")
 
@@ -70,45 +74,24 @@ class CallLimits:
         return cap if requested is None else min(requested, cap)
 
 
-SLOW_PRECOMPILE_SECONDS_PER_GAS = {
-    bytes(19) + bytes([address]): seconds_per_gas
-    for address, seconds_per_gas in (
-        (0x07, 2.8e-6),  # bn254 multiplication
-        (0x08, 9.4e-6),  # bn254 pairing: 0.25-0.53 s a pair
-        (0x0C, 3.5e-6),  # BLS12-381 G1 MSM
-        (0x0E, 9.8e-6),  # G2 MSM
-        (0x0F, 10.8e-6),  # BLS12-381 pairing: 0.7-0.76 s a pair
-        (0x10, 0.7e-6),  # map to G1
-        (0x11, 5.9e-6),  # map to G2
-    )
-}
-"""What py-evm's pure-Python precompiles take a unit of the gas they charge (the larger of
-two runs on the 2-core development machine, one under load): the curve precompiles run in
-py_ecc, 10 to 50 times slower a gas than opcodes, and one run of a precompile cannot be
-stopped half-way. A call charged enough to outlast its deadline is aborted before it starts:
-40 bn254 pairings took 7 s past a 5 s timeout, 490 (2^24 gas) would take minutes. The
-additions (150 to 600 gas) never charge enough to matter; blake2f runs natively."""
-
-PRECOMPILE_CHECK_GAS = 1_000
-"""Charges smaller than this are opcodes, or precompiles too quick to matter."""
-
-
-class BoundedComputation(PragueComputation):
+class BoundedComputation(BudgetedComputation):
     """Checks its call's deadline each time an opcode is charged its gas, and before a slow
-    precompile runs, against what its charge will take."""
+    precompile runs, against what its charge will take: one run of a precompile cannot be
+    stopped half-way, and 40 bn254 pairings took 7 s past a 5 s timeout."""
 
     state: CallState
 
     def consume_gas(self, amount: int, reason: str) -> None:
-        """py-evm's own ``consume_gas`` (a call to the gas meter) after the deadline check,
-        without the frame ``super()`` would add: it runs once per opcode."""
+        """The budget check of a mined transaction, so that a call and ``eth_estimateGas``
+        answer what mining will do, then the deadline's; without ``super()``'s frame."""
         now = time.monotonic()
         if now > self.state.deadline:
             raise CallTimeout(reason)
-        if amount >= PRECOMPILE_CHECK_GAS:
-            rate = SLOW_PRECOMPILE_SECONDS_PER_GAS.get(self.msg.code_address)
-            if rate is not None and now + amount * rate > self.state.deadline:
-                raise CallTimeout(reason)
+        if (
+            amount >= PRECOMPILE_CHECK_GAS
+            and now + self.spend_precompile_budget(amount, reason) > self.state.deadline
+        ):
+            raise CallTimeout(reason)
         self._gas_meter.consume_gas(amount, reason)
 
 
@@ -155,7 +138,7 @@ class CallExecutor(PragueTransactionExecutor):
         return computation
 
 
-class CallState(PragueState):
+class CallState(BudgetedState):
     """A free call's state: the block's base fee stays visible to ``BASEFEE``, but the call
     pays nothing, so the fee checks of a real transaction do not apply (geth's NoBaseFee);
     the sender's nonce and its balance for the value still do. ``recorder``, when set,

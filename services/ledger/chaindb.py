@@ -42,6 +42,7 @@ from eth_tester.backends.pyevm.main import (
 )
 
 from services.common.durable import open_sqlite
+from services.ledger.precompile_budget import BudgetedState
 
 CHAIN_ID = 1337
 GENESIS_TIMESTAMP = 0
@@ -128,7 +129,9 @@ class DevChain(MiningChain):
     """Chain id 1337, no proof of work, the newest fork eth-tester supports."""
 
     chain_id = CHAIN_ID
-    vm_configuration = ConsensusApplier(NoProofConsensus).amend_vm_configuration(((0, PragueVM),))
+    vm_configuration = ConsensusApplier(NoProofConsensus).amend_vm_configuration(
+        ((0, PragueVM.configure(_state_class=BudgetedState)),)
+    )
 
     def create_header_from_parent(
         self, parent_header: BlockHeaderAPI, **header_params: Any
