@@ -88,3 +88,17 @@ def test_the_budget_is_the_transactions_across_its_calls(pair: Pair) -> None:
             ]
         )
     assert flags == [[1, 0], [1, 1]]
+
+
+def test_a_precompile_refusing_its_input_is_that_failure_not_a_timeout(pair: Pair) -> None:
+    """py-evm charges a failed frame its remaining gas; the call's check took that charge
+    for the precompile's own and answered every failed pairing "execution aborted (timeout
+    = 5s)" at once, where anvil answers the precompile's error."""
+    malformed = {"to": "0x" + PAIRING.hex(), "data": "0x" + "01" * 100}
+    assert call(pair.ledger, "eth_call", [malformed, "latest"])["error"] == {
+        "code": -32000,
+        "message": "execution failed: VMError Invalid ECPAIRING parameters",
+    }
+    assert call(pair.anvil, "eth_call", [malformed, "latest"])["error"]["message"] == (
+        "EVM error PrecompileError"
+    )
