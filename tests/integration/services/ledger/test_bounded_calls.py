@@ -20,10 +20,9 @@ from tests.flood import flooding
 from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
 from tests.integration.services.ledger.conftest import PASSPHRASE, faucet, rpc, start_ledger
 from tests.procs import ServiceProcess
+from tests.unit.services.ledger.test_chain import DEPLOY_LOOP, LOOP_RUNTIME
 
 TIMEOUT_S = 3
-LOOP_RUNTIME = "5b600056"  # JUMPDEST PUSH1 0 JUMP: forever
-DEPLOY_LOOP = "635b6000566000526004601cf3"  # return those 4 bytes as the contract's code
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,8 @@ blocks that survive a reopen and a kill -9 with the same head hash."""
 from __future__ import annotations
 
 import textwrap
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -24,6 +26,8 @@ from services.ledger.operator import OperatorKeys
 from tests.unit.services.ledger.crash import acknowledged_before_kill
 
 METADATA = bytes.fromhex("01551220") + bytes(32)
+LOOP_RUNTIME = "5b600056"  # JUMPDEST PUSH1 0 JUMP: forever
+DEPLOY_LOOP = "635b6000566000526004601cf3"  # return those 4 bytes as the contract's code
 REGISTRY = ContractAbi.load("Registry")
 
 
@@ -163,4 +167,37 @@ def test_kill_9_loses_no_acknowledged_transaction(tmp_path: Path) -> None:
         assert chain.locate(bytes.fromhex(tx_hash)) is not None
     assert chain.head().block_number >= len(acknowledged)
     assert chain.header_at(len(acknowledged)).hash.hex() == acknowledged[-1][1]
+    chain.close()
+
+
+def test_reads_go_on_between_the_blocks_of_waiting_transactions(tmp_path: Path) -> None:
+    """The transaction closing a nonce gap used to mine every waiting one after it in one
+    turn of the chain's lock: 64 of 2^24 gas held every read and the readiness check about
+    four minutes. Now a read waits for one block at most, while the rest are still mined."""
+    operator, robot = keys(), Identity.generate()
+    chain = EmbeddedChain(tmp_path / "chain.sqlite", operator.genesis_state())
+    fund(chain, operator, robot)
+    created = send_as(chain, robot, None, bytes.fromhex(DEPLOY_LOOP), gas=100_000)
+    located = chain.locate(created)
+    assert located is not None
+    loop = create_address(robot.address, 0)
+    waiting = 6
+    for nonce in range(2, 2 + waiting):
+        queued = chain.send_raw_transaction(raw_call(robot, nonce, loop, b"", gas=2_000_000))
+        assert queued.mined == ()
+    first_block = chain.head().block_number + 1
+    closing = threading.Thread(
+        target=chain.send_raw_transaction,
+        args=(raw_call(robot, 1, loop, b"", gas=2_000_000),),
+    )
+    closing.start()
+    try:
+        while chain.head().block_number < first_block:
+            time.sleep(0.01)
+        chain.balance(bytes.fromhex(robot.address[2:]), "latest")
+        assert closing.is_alive(), "the read waited for every waiting transaction"
+    finally:
+        closing.join()
+    assert chain.head().block_number == first_block + waiting
+    assert chain.nonce(bytes.fromhex(robot.address[2:]), "latest") == 2 + waiting
     chain.close()
