@@ -138,15 +138,15 @@ class DeadlineTransport(httpx.HTTPTransport):
     def __init__(self, proxy: str | None = None) -> None:
         super().__init__()
         limits = httpx.Limits(max_connections=100, max_keepalive_connections=20)
-        ssl_context = httpx.create_ssl_context()
+        pool_options: dict[str, Any] = {
+            "ssl_context": httpx.create_ssl_context(),
+            "max_connections": limits.max_connections,
+            "max_keepalive_connections": limits.max_keepalive_connections,
+            "keepalive_expiry": limits.keepalive_expiry,
+            "network_backend": _DeadlineBackend(),
+        }
         if proxy is None:
-            self._pool = httpcore.ConnectionPool(
-                ssl_context=ssl_context,
-                max_connections=limits.max_connections,
-                max_keepalive_connections=limits.max_keepalive_connections,
-                keepalive_expiry=limits.keepalive_expiry,
-                network_backend=_DeadlineBackend(),
-            )
+            self._pool = httpcore.ConnectionPool(**pool_options)
             return
         via = httpx.Proxy(proxy)
         self._pool = httpcore.HTTPProxy(
@@ -158,12 +158,8 @@ class DeadlineTransport(httpx.HTTPTransport):
             ),
             proxy_auth=via.raw_auth,
             proxy_headers=via.headers.raw,
-            ssl_context=ssl_context,
             proxy_ssl_context=via.ssl_context,
-            max_connections=limits.max_connections,
-            max_keepalive_connections=limits.max_keepalive_connections,
-            keepalive_expiry=limits.keepalive_expiry,
-            network_backend=_DeadlineBackend(),
+            **pool_options,
         )
 
 
