@@ -139,9 +139,9 @@ def test_a_streamed_answers_headers_have_the_deadline() -> None:
 
 def test_a_slow_upload_is_not_the_answers_time() -> None:
     """A robot sending its body slowly (a bag read off a slow disk, a thin uplink) used to
-    have that time counted against the answer, and a prompt answer to a 3 s upload failed
-    a 1 s deadline after the service had done the work."""
-    chunks = [b"x" * 1000] * 6
+    have that time counted against the answer, and a prompt answer to a 4 s upload failed
+    a 2 s deadline after the service had done the work."""
+    chunks = [b"x" * 1000] * 8
 
     def slowly() -> Iterator[bytes]:
         for chunk in chunks:
@@ -152,17 +152,17 @@ def test_a_slow_upload_is_not_the_answers_time() -> None:
         scripted_server(
             lambda exchange: json_reply(json.dumps({"got": len(exchange.body)}))
         ) as server,
-        ServiceClient(server.url, timeout=5, answer_deadline_s=1, retries=0) as client,
+        ServiceClient(server.url, timeout=5, answer_deadline_s=2, retries=0) as client,
     ):
         response = client.send(
             "POST",
             "/upload",
             content=slowly(),
-            headers={"Content-Length": "6000"},
+            headers={"Content-Length": "8000"},
             signed=False,
         )
     assert response.status_code == 200
-    assert client.json_of(response) == {"got": 6000}
+    assert client.json_of(response) == {"got": 8000}
     assert [exchange.path for exchange in server.exchanges] == ["/upload"]
 
 
