@@ -17,6 +17,7 @@ from robocloud.errors import FormatError
 RAW = 0x55
 DAG_PB = 0x70
 DAG_CBOR = 0x71
+DAG_JSON = 0x0129
 SHA2_256 = 0x12
 IDENTITY = 0x00
 CODEC_NAMES = {RAW: "raw", DAG_PB: "dag-pb", DAG_CBOR: "dag-cbor"}

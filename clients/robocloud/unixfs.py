@@ -23,9 +23,11 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import BinaryIO, NamedTuple
 
-from robocloud.cid import CID, DAG_CBOR, DAG_PB, RAW, Block
+from robocloud.cid import CID, DAG_CBOR, DAG_JSON, DAG_PB, RAW, Block
 from robocloud.dagcbor import DagCborError
 from robocloud.dagcbor import links as dag_cbor_links
+from robocloud.dagjson import DagJsonError
+from robocloud.dagjson import links as dag_json_links
 from robocloud.dagpb import DagPbError, Link, PBNode, fields, len_field, read_uint, uint_field
 from robocloud.errors import FormatError
 
@@ -675,13 +677,10 @@ def walk_dag(
             yield Block(cid, data)
             if scope == "block":
                 continue
-            if cid.codec == DAG_CBOR:
+            if cid.codec in (DAG_CBOR, DAG_JSON):
                 if scope == "entity":
                     continue
-                try:
-                    children = dag_cbor_links(data)
-                except DagCborError as exc:
-                    raise UnixfsError(f"{cid} is not a dag-cbor block: {exc}") from exc
+                children = _ipld_links(cid, data)
             elif cid.codec == DAG_PB:
                 node = _pb_node(cid, data)
                 children = [link.cid for link in node.links]
@@ -702,3 +701,12 @@ def walk_dag(
         if cid is not None:
             seen.discard(cid)
         raise
+
+
+def _ipld_links(cid: CID, data: bytes) -> list[CID]:
+    """The links of a dag-cbor or dag-json block, or ``UnixfsError`` naming it."""
+    try:
+        return dag_cbor_links(data) if cid.codec == DAG_CBOR else dag_json_links(data)
+    except (DagCborError, DagJsonError) as exc:
+        codec = "dag-cbor" if cid.codec == DAG_CBOR else "dag-json"
+        raise UnixfsError(f"{cid} is not a {codec} block: {exc}") from exc

@@ -16,9 +16,11 @@ from functools import partial
 from pathlib import Path
 
 from robocloud.car import ByteSource, CarError, CarReader, write_car
-from robocloud.cid import CID, DAG_CBOR, DAG_PB, IDENTITY, RAW, Block
+from robocloud.cid import CID, DAG_CBOR, DAG_JSON, DAG_PB, IDENTITY, RAW, Block
 from robocloud.dagcbor import DagCborError
 from robocloud.dagcbor import links as dag_cbor_links
+from robocloud.dagjson import DagJsonError
+from robocloud.dagjson import links as dag_json_links
 from robocloud.dagpb import DagPbError, Link, PBNode
 from robocloud.directory import PathError, Resolved, list_entries, resolve
 from robocloud.unixfs import (
@@ -426,7 +428,7 @@ class ContentStore:
                 data = cid.digest
             else:
                 live.add(cid.multihash)
-                if cid.codec not in (DAG_PB, DAG_CBOR):
+                if cid.codec not in (DAG_PB, DAG_CBOR, DAG_JSON):
                     continue
                 try:
                     data = self.blocks.get(cid)
@@ -435,7 +437,7 @@ class ContentStore:
                     continue
             try:
                 stack.extend(_links(cid, data))
-            except (DagPbError, DagCborError):
+            except (DagPbError, DagCborError, DagJsonError):
                 log.warning("pinned block does not decode during gc", extra={"cid": str(cid)})
 
     def close(self) -> None:
@@ -445,11 +447,14 @@ class ContentStore:
 
 
 def _links(cid: CID, data: bytes) -> list[CID]:
-    """What a block links to: dag-pb and dag-cbor have links, every other codec is a leaf."""
+    """What a block links to: dag-pb, dag-cbor and dag-json have links, every other codec
+    is a leaf."""
     if cid.codec == DAG_PB:
         return [link.cid for link in PBNode.decode(data).links]
     if cid.codec == DAG_CBOR:
         return dag_cbor_links(data)
+    if cid.codec == DAG_JSON:
+        return dag_json_links(data)
     return []
 
 

@@ -1,6 +1,6 @@
 """What a pin keeps, in process: garbage collection walks by codec as well as multihash,
-through identity CIDs and dag-cbor links; pinning is all or nothing and needs whole DAGs;
-identity blocks are never stored."""
+through identity CIDs and dag-cbor and dag-json links; pinning is all or nothing and needs
+whole DAGs; identity blocks are never stored."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import time
 import pytest
 
 from robocloud.car import write_car
-from robocloud.cid import CID, DAG_CBOR, DAG_PB, RAW, Block, encode_varint
+from robocloud.cid import CID, DAG_CBOR, DAG_JSON, DAG_PB, RAW, Block, encode_varint
 from robocloud.dagpb import Link, PBNode
 from robocloud.unixfs import DIRECTORY, FILE, UnixfsData
 from services.cas.store import ContentStore, DagIncomplete
@@ -71,6 +71,18 @@ def test_dag_cbor_links_are_followed_and_what_they_leave_is_collected(
     binary = b"\x00" + kept.cid.binary
     document = b"\xa1\x64kept\xd8\x2a\x58" + bytes([len(binary)]) + binary
     root = Block(CID.from_block(document, DAG_CBOR), document)
+    put(store, root, kept, loose)
+    store.pin([root.cid], ALICE)
+    assert collect(store) == {loose.cid.multihash}
+    assert store.get_block(kept.cid) == kept.data
+
+
+def test_dag_json_links_are_followed_and_what_they_leave_is_collected(
+    store: ContentStore,
+) -> None:
+    kept, loose = raw(b"linked from dag-json"), raw(b"linked from nothing either")
+    document = b'{"kept":{"/":"' + str(kept.cid).encode() + b'"}}'
+    root = Block(CID.from_block(document, DAG_JSON), document)
     put(store, root, kept, loose)
     store.pin([root.cid], ALICE)
     assert collect(store) == {loose.cid.multihash}
