@@ -644,9 +644,10 @@ def walk_dag(
 
     ``block``: the root only. ``entity``: the whole file, or a directory's own nodes (every
     level of a HAMT's shards, whose links to sub-shards are named by their bucket alone)
-    without its entries' content; a dag-cbor block alone, as the trustless gateway
-    specification has it for data that is not UnixFS. ``all``: everything reachable, through
-    dag-pb and dag-cbor links alike, as kubo's recursive pin and ``dag export`` go. Iterative
+    without its entries' content; a dag-cbor or dag-json block alone, as the trustless
+    gateway specification has it for data that is not UnixFS. ``all``: everything reachable,
+    through dag-pb, dag-cbor and dag-json links alike, as kubo's recursive pin and
+    ``dag export`` go. Iterative
     with one frame per level, bounded by ``MAX_DAG_DEPTH`` as the reader is.
 
     ``seen`` holds blocks an earlier walk went through to its end, skipped with everything
