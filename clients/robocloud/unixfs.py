@@ -647,8 +647,8 @@ def walk_dag(
     without its entries' content; a dag-cbor or dag-json block alone, as the trustless
     gateway specification has it for data that is not UnixFS. ``all``: everything reachable,
     through dag-pb, dag-cbor and dag-json links alike, as kubo's recursive pin and
-    ``dag export`` go. Iterative
-    with one frame per level, bounded by ``MAX_DAG_DEPTH`` as the reader is.
+    ``dag export`` go. Iterative with one frame per level, bounded by ``MAX_DAG_DEPTH`` as
+    the reader is.
 
     ``seen`` holds blocks an earlier walk went through to its end, skipped with everything
     under them: shared by the walks of several roots, it reads a common sub-DAG once. A walk
@@ -681,7 +681,7 @@ def walk_dag(
             if cid.codec in (DAG_CBOR, DAG_JSON):
                 if scope == "entity":
                     continue
-                children = _ipld_links(cid, data)
+                children = links_of(cid, data)
             elif cid.codec == DAG_PB:
                 node = _pb_node(cid, data)
                 children = [link.cid for link in node.links]
@@ -704,10 +704,22 @@ def walk_dag(
         raise
 
 
-def _ipld_links(cid: CID, data: bytes) -> list[CID]:
-    """The links of a dag-cbor or dag-json block, or ``UnixfsError`` naming it."""
+LINKING_CODECS = frozenset({DAG_PB, DAG_CBOR, DAG_JSON})
+"""The codecs whose blocks link to others; a block of any other codec is a leaf."""
+
+
+def links_of(cid: CID, data: bytes) -> list[CID]:
+    """What the block ``data`` of ``cid`` links to, in order; ``UnixfsError`` naming the
+    block when it does not decode as its codec. Empty for codecs outside
+    ``LINKING_CODECS``."""
+    if cid.codec == DAG_PB:
+        return [link.cid for link in _pb_node(cid, data).links]
     try:
-        return dag_cbor_links(data) if cid.codec == DAG_CBOR else dag_json_links(data)
+        if cid.codec == DAG_CBOR:
+            return dag_cbor_links(data)
+        if cid.codec == DAG_JSON:
+            return dag_json_links(data)
     except (DagCborError, DagJsonError) as exc:
         codec = "dag-cbor" if cid.codec == DAG_CBOR else "dag-json"
         raise UnixfsError(f"{cid} is not a {codec} block: {exc}") from exc
+    return []

@@ -16,20 +16,18 @@ from functools import partial
 from pathlib import Path
 
 from robocloud.car import ByteSource, CarError, CarReader, write_car
-from robocloud.cid import CID, DAG_CBOR, DAG_JSON, DAG_PB, IDENTITY, RAW, Block
-from robocloud.dagcbor import DagCborError
-from robocloud.dagcbor import links as dag_cbor_links
-from robocloud.dagjson import DagJsonError
-from robocloud.dagjson import links as dag_json_links
-from robocloud.dagpb import DagPbError, Link, PBNode
+from robocloud.cid import CID, DAG_PB, IDENTITY, RAW, Block
+from robocloud.dagpb import Link
 from robocloud.directory import PathError, Resolved, list_entries, resolve
 from robocloud.unixfs import (
     FILE,
+    LINKING_CODECS,
     RAW_TYPE,
     UnixfsError,
     decode_node,
     file_range_blocks,
     file_size,
+    links_of,
     read_file,
     walk_dag,
 )
@@ -357,16 +355,23 @@ class ContentStore:
         self, roots: list[CID], hold: Hold, staging: Staging | None = None
     ) -> None:
         """Raise ``DagIncomplete`` for the first root whose DAG lacks a block; every stored
-        block read stays in ``hold`` until the caller's pin is made.
-
-        One ``seen`` set for all roots: a sub-DAG that several roots share (every block of a
-        ``block/put`` is a root) is walked once, so the work stays linear in the blocks.
-        """
-        seen: set[CID] = set()
-        for root in roots:
-            missing = self.missing_block(root, staging, seen=seen, hold=hold)
+        block read stays in ``hold`` until the caller's pin is made."""
+        for root, missing in self.missing_blocks(roots, staging, hold=hold):
             if missing is not None:
                 raise DagIncomplete(root, missing)
+
+    def missing_blocks(
+        self, roots: list[CID], staging: Staging | None = None, *, hold: Hold | None = None
+    ) -> Iterator[tuple[CID, CID | None]]:
+        """Each distinct root with its ``missing_block``, walked as it is asked for.
+
+        One ``seen`` set for all roots: a sub-DAG that several roots share (every block of a
+        ``block/put`` is a root; a CAR may name one DAG under its 1,024 header roots) is
+        walked once, so the work stays linear in the blocks.
+        """
+        seen: set[CID] = set()
+        for root in dict.fromkeys(roots):
+            yield root, self.missing_block(root, staging, seen=seen, hold=hold)
 
     def unpin(self, roots: list[CID], owner: str) -> None:
         """Remove ``owner``'s pins on every root, or none (see ``PinSet.remove``)."""
@@ -428,7 +433,7 @@ class ContentStore:
                 data = cid.digest
             else:
                 live.add(cid.multihash)
-                if cid.codec not in (DAG_PB, DAG_CBOR, DAG_JSON):
+                if cid.codec not in LINKING_CODECS:
                     continue
                 try:
                     data = self.blocks.get(cid)
@@ -436,26 +441,14 @@ class ContentStore:
                     log.warning("pinned DAG incomplete during gc", extra={"cid": str(cid)})
                     continue
             try:
-                stack.extend(_links(cid, data))
-            except (DagPbError, DagCborError, DagJsonError):
+                stack.extend(links_of(cid, data))
+            except UnixfsError:
                 log.warning("pinned block does not decode during gc", extra={"cid": str(cid)})
 
     def close(self) -> None:
         self.pins.close()
         if self.peers is not None:
             self.peers.close()
-
-
-def _links(cid: CID, data: bytes) -> list[CID]:
-    """What a block links to: dag-pb, dag-cbor and dag-json have links, every other codec
-    is a leaf."""
-    if cid.codec == DAG_PB:
-        return [link.cid for link in PBNode.decode(data).links]
-    if cid.codec == DAG_CBOR:
-        return dag_cbor_links(data)
-    if cid.codec == DAG_JSON:
-        return dag_json_links(data)
-    return []
 
 
 def _once(first: Iterator[Block], rest: Iterator[Block]) -> Iterator[Block]:

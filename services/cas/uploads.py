@@ -336,13 +336,9 @@ class CarImport:
         """Walk every root's DAG first (one too deep or malformed rejects the whole import),
         then pin the complete ones in one journal line.
 
-        The roots share one walk: a CAR naming the same large DAG under ten thousand roots,
-        or ten thousand roots over one shared sub-DAG, costs one pass over its blocks."""
-        seen: set[CID] = set()
-        missing = {
-            root: self.store.missing_block(root, self.staging, seen=seen)
-            for root in dict.fromkeys(self.roots)
-        }
+        The roots share one walk (``ContentStore.missing_blocks``): a CAR naming one large
+        DAG under many roots costs one pass over its blocks."""
+        missing = dict(self.store.missing_blocks(self.roots, self.staging))
         self.staging.commit()
         if not self.pin_roots:
             return [ImportedRoot(root, "") for root in self.roots]
