@@ -7,16 +7,16 @@ always on disk, and a restart reopens the store with the same head hash: nothing
 
 Transactions are checked here before py-evm sees them so that each refusal has the message
 Ethereum nodes use (``nonce too low``, ``invalid chain id``, ``insufficient funds``). The class
-is thread-safe: one lock serialises writes and the reads that touch py-evm's mutable chain.
+is thread-safe: one fair lock serialises writes and the reads that touch py-evm's mutable chain.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -35,6 +35,7 @@ from eth_typing import Address
 from eth_utils.crypto import keccak
 from eth_utils.exceptions import ValidationError
 
+from services.common.fairlock import FairLock
 from services.ledger import validation
 from services.ledger.calls import (
     AccessEntries,
@@ -105,11 +106,10 @@ class MinedBlock:
 
 @dataclass(frozen=True)
 class Submitted:
-    """A transaction accepted: the blocks it caused to be mined (itself first, then any of
-    its sender's waiting transactions it made next), or none when it waits in the pool."""
+    """A transaction accepted: the block it was mined in, or None when it waits in the pool."""
 
     hash: bytes
-    mined: tuple[MinedBlock, ...]
+    mined: MinedBlock | None
 
 
 @dataclass(frozen=True)
@@ -134,8 +134,10 @@ class EmbeddedChain:
         call_limits: CallLimits | None = None,
         pool_limits: PoolLimits | None = None,
     ) -> None:
-        self._lock = threading.RLock()
+        self._lock = FairLock()
         self._pool = PendingPool(pool_limits or PoolLimits())
+        self._promoter = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ledger-promote")
+        self._closing = False
         self._chain, self._db = open_chain(path, genesis_state)
         self._transaction_builder = self._chain.get_vm_class(
             self._chain.header
@@ -153,6 +155,10 @@ class EmbeddedChain:
         return CHAIN_ID
 
     def close(self) -> None:
+        """Stop mining waiting transactions (the one in progress ends its block), then close."""
+        with self._lock:
+            self._closing = True
+        self._promoter.shutdown(wait=True, cancel_futures=True)
         self._calls.close()
         with self._lock:
             self._db.close()
@@ -427,19 +433,23 @@ class EmbeddedChain:
         return transaction
 
     def send_raw_transaction(self, raw: bytes) -> Submitted:
-        """Validate ``raw``; mine it in a new block, durable before this returns, with any
-        waiting transactions of its sender it makes next; or, if its nonce is ahead of its
-        sender's, queue it until the gap closes."""
+        """Validate ``raw`` and mine it in a new block, durable before this returns; or, if
+        its nonce is ahead of its sender's, queue it until the gap closes.
+
+        The sender's waiting transactions that this one makes next are mined after the
+        answer, by the promoter thread: up to 64 blocks of 2^24 gas would otherwise hold the
+        answer minutes, past any client's timeout, for a transaction mined long before."""
         transaction = self.decode(raw)
         with self._lock:
             self._pool.expire()
             vm = self._next_vm()
             if self._check(transaction, vm.state):
                 self._pool.add(transaction)
-                return Submitted(transaction.hash, ())
-            mined = [self._mine(transaction, vm)]
-        mined.extend(self._promote(transaction.sender))
-        return Submitted(transaction.hash, tuple(mined))
+                return Submitted(transaction.hash, None)
+            mined = self._mine(transaction, vm)
+            if self._pool.waiting(transaction.sender) and not self._closing:
+                self._promoter.submit(self._promote, transaction.sender)
+        return Submitted(transaction.hash, mined)
 
     def _next_vm(self) -> VirtualMachineAPI:
         """The VM of the block to mine next: the time now (at least the parent's + 1, which
@@ -449,32 +459,41 @@ class EmbeddedChain:
             max(pending.timestamp, int(time.time())), keccak(pending.parent_hash)
         )
 
-    def _promote(self, sender: bytes) -> list[MinedBlock]:
+    def _promote(self, sender: bytes) -> None:
         """Mine the sender's waiting transactions while each is the next by nonce; one no
         longer valid (its sender's balance fell) is dropped, and the rest wait again.
 
-        One block a turn of the lock, yielding between turns: a sender's 64 waiting
-        transactions of 2^24 gas each held the lock about four minutes in one turn, every
-        read and the readiness check waiting behind them."""
-        mined: list[MinedBlock] = []
-        while True:
-            time.sleep(0)  # let a thread waiting for the lock take it before the next block
-            with self._lock:
-                if not self._pool.waiting(sender):
-                    return mined
-                vm = self._next_vm()
-                waiting = self._pool.take(sender, vm.state.get_nonce(Address(sender)))
-                if waiting is None:
-                    return mined
-                try:
-                    self._check(waiting, vm.state)
-                    mined.append(self._mine(waiting, vm))
-                except ChainError as exc:
-                    log.info(
-                        "waiting transaction dropped",
-                        extra={"tx": "0x" + waiting.hash.hex(), "reason": exc.message},
-                    )
-                    return mined
+        One block a turn of the lock: the lock is fair, so every read that came meanwhile
+        goes before the next block."""
+        try:
+            while not self._closing:
+                with self._lock:
+                    if not self._promote_one(sender):
+                        return
+        except Exception:
+            log.exception(
+                "mining waiting transactions failed", extra={"sender": "0x" + sender.hex()}
+            )
+
+    def _promote_one(self, sender: bytes) -> bool:
+        """Mine the sender's next waiting transaction; False when none is next (or it was
+        dropped)."""
+        if not self._pool.waiting(sender):
+            return False
+        vm = self._next_vm()
+        waiting = self._pool.take(sender, vm.state.get_nonce(Address(sender)))
+        if waiting is None:
+            return False
+        try:
+            self._check(waiting, vm.state)
+            self._mine(waiting, vm)
+        except ChainError as exc:
+            log.info(
+                "waiting transaction dropped",
+                extra={"tx": "0x" + waiting.hash.hex(), "reason": exc.message},
+            )
+            return False
+        return True
 
     def _check(self, transaction: SignedTransactionAPI, state: StateAPI) -> bool:
         """Every validity rule, in geth's order: the transaction's own fields, then its

@@ -116,8 +116,7 @@ def test_the_queue_is_bounded_per_sender_and_in_total(small_pool: ServiceProcess
     url = f"{small_pool.url}/rpc"
     first, second, third = funded(small_pool), funded(small_pool), funded(small_pool)
     before = head(small_pool.url)
-    for nonce in (1, 2, 3):
-        result(url, "eth_sendRawTransaction", [transfer(first, nonce)])
+    queued = [result(url, "eth_sendRawTransaction", [transfer(first, n)]) for n in (1, 2, 3)]
     error = call(url, "eth_sendRawTransaction", [transfer(first, 4)])["error"]
     assert error == {
         "code": -32000,
@@ -133,6 +132,7 @@ def test_the_queue_is_bounded_per_sender_and_in_total(small_pool: ServiceProcess
     }
     assert head(small_pool.url) == before, "nothing waiting was mined"
     result(url, "eth_sendRawTransaction", [transfer(first, 0)])
+    mined(url, queued[-1])
     assert result(url, "eth_getTransactionCount", [first.address, "latest"]) == "0x4"
     result(url, "eth_sendRawTransaction", [transfer(third, 1)])  # room again
 
@@ -145,6 +145,10 @@ def test_a_waiting_transaction_that_became_invalid_is_dropped(small_pool: Servic
     waiting = result(url, "eth_sendRawTransaction", [transfer(sender, 1, value=balance // 2)])
     spend = transfer(sender, 0, value=balance - 21_000 * 10**11)
     result(url, "eth_sendRawTransaction", [spend])
+    deadline = time.monotonic() + 10
+    while result(url, "eth_getTransactionByHash", [waiting]) is not None:
+        assert time.monotonic() < deadline, "the unaffordable transaction still waits"
+        time.sleep(0.02)
     assert result(url, "eth_getTransactionCount", [sender.address, "latest"]) == "0x1"
     assert result(url, "eth_getTransactionReceipt", [waiting]) is None
 
@@ -159,6 +163,7 @@ def test_waiting_transactions_expire(tmp_path_factory: pytest.TempPathFactory) -
         late = result(url, "eth_sendRawTransaction", [transfer(sender, 1)])
         time.sleep(1.0)  # past the timeout: however slow the machine, it has expired
         result(url, "eth_sendRawTransaction", [transfer(sender, 0)])
+        assert result(url, "eth_getTransactionByHash", [late]) is None, "expired, not mined"
         assert result(url, "eth_getTransactionReceipt", [late]) is None
         assert result(url, "eth_getTransactionCount", [sender.address, "latest"]) == "0x1"
     finally:

@@ -4,7 +4,6 @@ blocks that survive a reopen and a kill -9 with the same head hash."""
 from __future__ import annotations
 
 import textwrap
-import threading
 import time
 from pathlib import Path
 
@@ -63,9 +62,10 @@ def test_reopen_keeps_head_hash_receipts_and_state(tmp_path: Path) -> None:
     chain = EmbeddedChain(tmp_path / "chain.sqlite", operator.genesis_state())
     deployment = deploy(chain, operator.admin)
     fund(chain, operator, robot)
-    (mined,) = chain.send_raw_transaction(
+    mined = chain.send_raw_transaction(
         raw_call(robot, 0, deployment.registry, REGISTRY.encode_call("register", METADATA))
     ).mined
+    assert mined is not None
     assert receipt_status(mined.receipts[0]) == 1
     head = chain.head()
     chain.close()
@@ -170,34 +170,59 @@ def test_kill_9_loses_no_acknowledged_transaction(tmp_path: Path) -> None:
     chain.close()
 
 
-def test_reads_go_on_between_the_blocks_of_waiting_transactions(tmp_path: Path) -> None:
-    """The transaction closing a nonce gap used to mine every waiting one after it in one
-    turn of the chain's lock: 64 of 2^24 gas held every read and the readiness check about
-    four minutes. Now a read waits for one block at most, while the rest are still mined."""
+def queue_behind_a_gap(chain: EmbeddedChain, robot: Identity, waiting: int) -> bytes:
+    """Deploy the endless loop, queue ``waiting`` calls of 2,000,000 gas to it behind a nonce gap,
+    and return the raw transaction that closes the gap (itself such a call)."""
+    created = send_as(chain, robot, None, bytes.fromhex(DEPLOY_LOOP), gas=100_000)
+    assert chain.locate(created) is not None
+    loop = create_address(robot.address, 0)
+    for nonce in range(2, 2 + waiting):
+        queued = chain.send_raw_transaction(raw_call(robot, nonce, loop, b"", gas=2_000_000))
+        assert queued.mined is None
+    return raw_call(robot, 1, loop, b"", gas=2_000_000)
+
+
+def test_the_gap_closer_is_answered_with_its_own_block_and_reads_go_on(tmp_path: Path) -> None:
+    """The transaction closing a nonce gap used to mine every waiting one after it before it
+    was answered, in one turn of the chain's lock: 64 of 2^24 gas held its sender's answer
+    and every read about four minutes. Now the answer comes with its own block, and the
+    waiting ones are mined after it, one block a turn, each read going first."""
     operator, robot = keys(), Identity.generate()
     chain = EmbeddedChain(tmp_path / "chain.sqlite", operator.genesis_state())
     fund(chain, operator, robot)
-    created = send_as(chain, robot, None, bytes.fromhex(DEPLOY_LOOP), gas=100_000)
-    located = chain.locate(created)
-    assert located is not None
-    loop = create_address(robot.address, 0)
     waiting = 6
-    for nonce in range(2, 2 + waiting):
-        queued = chain.send_raw_transaction(raw_call(robot, nonce, loop, b"", gas=2_000_000))
-        assert queued.mined == ()
+    closer = queue_behind_a_gap(chain, robot, waiting)
     first_block = chain.head().block_number + 1
-    closing = threading.Thread(
-        target=chain.send_raw_transaction,
-        args=(raw_call(robot, 1, loop, b"", gas=2_000_000),),
-    )
-    closing.start()
-    try:
-        while chain.head().block_number < first_block:
-            time.sleep(0.01)
-        chain.balance(bytes.fromhex(robot.address[2:]), "latest")
-        assert closing.is_alive(), "the read waited for every waiting transaction"
-    finally:
-        closing.join()
-    assert chain.head().block_number == first_block + waiting
-    assert chain.nonce(bytes.fromhex(robot.address[2:]), "latest") == 2 + waiting
+    submitted = chain.send_raw_transaction(closer)
+    assert submitted.mined is not None
+    assert submitted.mined.block.number == first_block
+    address = bytes.fromhex(robot.address[2:])
+    assert chain.nonce(address, "latest") < 2 + waiting, "the answer waited for the rest"
+    last = first_block + waiting
+    reads = 0
+    deadline = time.monotonic() + 120
+    while chain.head().block_number < last:
+        assert time.monotonic() < deadline, "the waiting transactions were not all mined"
+        chain.balance(address, "latest")
+        reads += 1
+    assert reads >= waiting - 1, "reads did not go on between the blocks"
+    assert chain.nonce(address, "latest") == 2 + waiting
     chain.close()
+
+
+def test_closing_stops_mining_waiting_transactions_after_one_block(tmp_path: Path) -> None:
+    operator, robot = keys(), Identity.generate()
+    path = tmp_path / "chain.sqlite"
+    chain = EmbeddedChain(path, operator.genesis_state())
+    fund(chain, operator, robot)
+    waiting = 6
+    closer = queue_behind_a_gap(chain, robot, waiting)
+    first_block = chain.head().block_number + 1
+    chain.send_raw_transaction(closer)
+    chain.close()
+    reopened = EmbeddedChain(path, operator.genesis_state())
+    head = reopened.head().block_number
+    assert first_block <= head < first_block + waiting
+    nonce = reopened.nonce(bytes.fromhex(robot.address[2:]), "latest")
+    assert nonce == 2 + head - first_block, "the head's nonce is the last mined block's"
+    reopened.close()
