@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import os
 import secrets
 import tempfile
 from collections.abc import Callable, Iterator
@@ -26,6 +25,7 @@ from robocloud.client import ServiceClient
 from robocloud.dagpb import Link
 from robocloud.directory import BuiltDirectory, DirectoryBuilder
 from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
+from robocloud.partial import written_whole
 from robocloud.unixfs import (
     DEFAULT_MAX_LINKS,
     PROFILES,
@@ -288,16 +288,9 @@ class Cas(ServiceClient):
         if max_size is not None:
             with self.translate_errors("GET", url):
                 self._check_declared_size(root, max_size)
-        partial, handle = _create_partial(path)
-        try:
-            with handle as out, self.translate_errors("GET", url):
-                target = out if max_size is None else _CappedWriter(out, root, max_size)
-                written = self._download(root, target, progress)
-            _publish(partial, path, overwrite)
-        except BaseException:
-            partial.unlink(missing_ok=True)
-            raise
-        return written
+        with written_whole(path, overwrite=overwrite) as out, self.translate_errors("GET", url):
+            target = out if max_size is None else _CappedWriter(out, root, max_size)
+            return self._download(root, target, progress)
 
     def block(self, cid: CID | str, *, cached_only: bool = False) -> bytes:
         """One raw block from the gateway, verified against its CID.
@@ -433,37 +426,6 @@ class _CappedWriter(io.BufferedIOBase, BinaryIO):
 
     def seekable(self) -> bool:
         return True
-
-
-PARTIAL_ATTEMPTS = 16
-
-
-def _create_partial(path: Path) -> tuple[Path, BinaryIO]:
-    """A new hidden file beside ``path`` (``.NAME.<random>.partial``) for the download.
-
-    Created with ``O_CREAT | O_EXCL | O_NOFOLLOW``: a file or symbolic link planted under
-    the name (in a shared directory, by another user) is never opened, so nothing but a
-    file this call created is ever written, truncated or removed. The name is random so a
-    planted one cannot block the download either, nor can two downloads collide.
-    """
-    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
-    for _ in range(PARTIAL_ATTEMPTS):
-        partial = path.with_name(f".{path.name}.{secrets.token_hex(6)}.partial")
-        try:
-            descriptor = os.open(partial, flags, 0o666)
-        except FileExistsError:
-            continue
-        return partial, os.fdopen(descriptor, "w+b")
-    raise FileExistsError(f"no free name for a partial file beside {path}")
-
-
-def _publish(partial: Path, path: Path, overwrite: bool) -> None:
-    """Move the finished file into place; without ``overwrite``, atomically only if absent."""
-    if overwrite:
-        partial.replace(path)
-        return
-    os.link(partial, path)
-    partial.unlink()
 
 
 class _LocalImport:

@@ -33,7 +33,13 @@ from typing_extensions import Unpack
 
 from robocloud import bounded_json
 from robocloud.config import expected_deployment, service_url
-from robocloud.deadline import AnswerClock, reads_bounded_by, transport_for
+from robocloud.deadline import (
+    AnswerClock,
+    LowSpeed,
+    LowSpeedGuard,
+    reads_bounded_by,
+    transport_for,
+)
 from robocloud.errors import (
     ApiError,
     ConfigurationError,
@@ -168,6 +174,7 @@ class BaseClient(Closeable):
         transport: httpx.BaseTransport | None = None,
         deployment: str | None = None,
         answer_deadline_s: float | None = None,
+        low_speed: LowSpeed = LowSpeed(),
     ) -> None:
         self.service = service or self.default_service
         if base_url is None:
@@ -183,6 +190,9 @@ class BaseClient(Closeable):
         )
         """How long an answer may take, from the request's last byte to the answer's (the
         status line and headers of a streamed answer, a whole answer otherwise)."""
+        self.low_speed = low_speed
+        """The slowest a streamed answer's body may come (a deadline cannot fit a body whose
+        size only its reader bounds)."""
         self.deployment = deployment or expected_deployment()
         """The deployment whose audience alone this client signs for (None: what it claims)."""
         self._audience: str | None = None
@@ -205,8 +215,9 @@ class BaseClient(Closeable):
         ``answer_deadline_s`` (``TransportTimeoutError`` past it); with it the caller reads
         and closes it (use it as a context manager), except an error answer (status 400 or
         more), which is always read. A streamed answer's headers have the same deadline; its
-        body has none, only ``timeout`` per read: its reader bounds it
-        (``Cas.get_to_file``: its size).
+        body has ``timeout`` per read and ``low_speed`` as a whole (its reader bounds its
+        size: ``Cas.get_to_file``), past which its reader gets ``TransportTimeoutError``
+        from within ``translate_errors``.
         """
         response, _ = self._send_counting(method, path, **options)
         return response
@@ -282,6 +293,8 @@ class BaseClient(Closeable):
             ):
                 response = self._http.send(request, stream=True)
                 if stream and response.status_code < 400:
+                    if isinstance(response.stream, httpx.SyncByteStream):
+                        response.stream = LowSpeedGuard(response.stream, self.low_speed)
                     return response
                 try:
                     limit = MAX_ERROR_BYTES if stream else self.max_answer_bytes

@@ -6,7 +6,10 @@ byte per 29 s, before the client sees a response it could time. So the deadline 
 where the bytes arrive: within :func:`reads_bounded_by`, every read of a connection is given
 at most the time left on the current :class:`AnswerClock` (a context variable, so per
 thread), and past it fails as httpx's ``ReadTimeout``. Outside such a block, as while a
-caller reads a streamed body, reads keep httpx's own per-read timeout.
+caller reads a streamed body, reads keep httpx's own per-read timeout, and the body as a whole
+has a lowest speed instead (:class:`LowSpeedGuard`): a body may be as large as its reader
+allows, so no deadline fits it, but one dripped a byte per read would otherwise last as long
+as its size.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from __future__ import annotations
 import ssl
 import time
 import urllib.request
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, field
@@ -39,6 +42,52 @@ class AnswerClock:
     @property
     def left_s(self) -> float:
         return self.sent_at + self.budget_s - time.monotonic()
+
+
+@dataclass(frozen=True)
+class LowSpeed:
+    """The slowest a streamed body may come, as curl's ``--speed-limit``/``--speed-time``:
+    fewer than ``min_bytes`` in any ``window_s`` ends it."""
+
+    min_bytes: int = 1024
+    window_s: float = 60.0
+
+
+class LowSpeedGuard(httpx.SyncByteStream):
+    """A response body that fails as httpx's ``ReadTimeout`` once a whole window has passed
+    with fewer bytes than ``speed`` requires.
+
+    The bytes are counted as they reach the reader, so a window is checked when a read
+    returns: a service that sends nothing at all is ended by the per-read timeout first.
+    """
+
+    def __init__(
+        self,
+        body: httpx.SyncByteStream,
+        speed: LowSpeed,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._body = body
+        self._speed = speed
+        self._clock = clock
+
+    def __iter__(self) -> Iterator[bytes]:
+        window_start, window_bytes = self._clock(), 0
+        for chunk in self._body:
+            window_bytes += len(chunk)
+            now = self._clock()
+            if now - window_start >= self._speed.window_s:
+                if window_bytes < self._speed.min_bytes:
+                    raise httpx.ReadTimeout(
+                        f"the answer's body came too slowly: {window_bytes} bytes in "
+                        f"{now - window_start:.0f} s, under {self._speed.min_bytes} in "
+                        f"{self._speed.window_s:g} s"
+                    )
+                window_start, window_bytes = now, 0
+            yield chunk
+
+    def close(self) -> None:
+        self._body.close()
 
 
 _clock: ContextVar[AnswerClock | None] = ContextVar("robocloud_answer_clock", default=None)

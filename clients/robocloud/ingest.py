@@ -18,6 +18,7 @@ from robocloud.cas import Cas
 from robocloud.cid import CID
 from robocloud.client import ServiceClient
 from robocloud.errors import InvalidAnswerError
+from robocloud.partial import written_whole
 
 UPLOAD_CHUNK = 1 << 20
 FINISHED = ("succeeded", "failed")
@@ -124,14 +125,20 @@ class Ingest(ServiceClient):
         return bindings
 
     def export(self, params: dict[str, Any], out: Path) -> int:
-        """Write a query's export (``format`` = ``mcap`` or ``jsonl``) to ``out``; its size."""
+        """Write a query's export (``format`` = ``mcap`` or ``jsonl``) to ``out``; its size.
+
+        ``out`` is replaced only by a whole export: one that fails midway (a refusal, a
+        broken or too slow answer) leaves it as it was."""
         size = 0
-        response = self.request("GET", "/v1/export", params=params, stream=True)
-        try:
-            with out.open("wb") as handle:
+        with (
+            written_whole(out, overwrite=True) as handle,
+            self.translate_errors("GET", f"{self.base_url}/v1/export"),
+        ):
+            response = self.request("GET", "/v1/export", params=params, stream=True)
+            try:
                 for chunk in response.iter_bytes():
                     handle.write(chunk)
                     size += len(chunk)
-        finally:
-            response.close()
+            finally:
+                response.close()
         return size

@@ -1,5 +1,5 @@
-"""How long a slow service can hold a robot: an answer read whole has a deadline, and an
-ingest job is followed for a bounded time.
+"""How long a slow service can hold a robot: an answer read whole has a deadline, a streamed
+body a lowest speed, and an ingest job is followed for a bounded time.
 
 httpx's timeout bounds each read, so a server dripping one byte just inside it would
 otherwise hold a client for as long as it likes (64 MiB at a byte per 29 s is 60 years).
@@ -16,12 +16,15 @@ from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+import httpx
 import pytest
 from typer.testing import CliRunner
 
 from robocloud.cas import Cas
 from robocloud.cli import app
 from robocloud.client import AnswerDeadlineError, ServiceClient
+from robocloud.deadline import LowSpeed, LowSpeedGuard
+from robocloud.errors import TransportTimeoutError
 from robocloud.ingest import Ingest
 from tests.scripted_http import Exchange, Reply, json_reply, scripted_server
 from tests.unit.robocloud.test_ingest_answers import JOB
@@ -135,6 +138,64 @@ def test_a_streamed_answers_headers_have_the_deadline() -> None:
             client.send("GET", "/stream", stream=True)
         assert server.sent < len(HEAD)
     assert server.paths == ["/stream"]
+
+
+def test_a_streamed_body_too_slow_is_ended_and_leaves_the_old_file(tmp_path: Path) -> None:
+    """A streamed body had only the per-read timeout, so a service dripping a byte just inside
+    it held an export for as long as the body was long (a GiB: a thousand years at a byte
+    per 29 s), and what had come was left under the export's name as if it were all."""
+    out = tmp_path / "run.mcap"
+    out.write_bytes(b"the previous export\n")
+    slowest = LowSpeed(min_bytes=64, window_s=1.0)
+    with (
+        dripping_server(0.2) as server,
+        Ingest(server.url, timeout=5, retries=0, low_speed=slowest) as ingest,
+    ):
+        started = time.monotonic()
+        with pytest.raises(
+            TransportTimeoutError, match=r"came too slowly: \d+ bytes in \d+ s, under 64 in 1 s"
+        ):
+            ingest.export({"template": "imu@1", "format": "mcap"}, out)
+        elapsed = time.monotonic() - started
+    assert elapsed < 8.0  # the whole body takes 15 s
+    assert server.paths[0].startswith("/v1/export?")
+    assert out.read_bytes() == b"the previous export\n"
+    assert [path.name for path in tmp_path.iterdir()] == ["run.mcap"]
+
+
+def test_a_steady_stream_is_read_whole(tmp_path: Path) -> None:
+    out = tmp_path / "run.jsonl"
+    with (
+        dripping_server(0.005) as server,
+        Ingest(server.url, low_speed=LowSpeed(min_bytes=8, window_s=0.2)) as ingest,
+    ):
+        assert ingest.export({"template": "imu@1", "format": "jsonl"}, out) == len(BODY)
+    assert out.read_bytes() == BODY
+
+
+class Chunks(httpx.SyncByteStream):
+    def __init__(self, *chunks: bytes) -> None:
+        self.chunks = chunks
+        self.closed = False
+
+    def __iter__(self) -> Iterator[bytes]:
+        yield from self.chunks
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_each_window_needs_its_own_bytes() -> None:
+    """Enough bytes in one window do not carry over to the next."""
+    body = Chunks(b"x" * 5, b"x" * 5, b"x" * 3, b"x" * 3)
+    times = iter([0.0, 0.5, 1.0, 1.5, 2.5])
+    guard = LowSpeedGuard(body, LowSpeed(min_bytes=10, window_s=1.0), clock=lambda: next(times))
+    read: list[bytes] = []
+    with pytest.raises(httpx.ReadTimeout, match="6 bytes in 2 s, under 10 in 1 s"):
+        read.extend(guard)
+    assert [len(chunk) for chunk in read] == [5, 5, 3]
+    guard.close()
+    assert body.closed
 
 
 def test_a_slow_upload_is_not_the_answers_time() -> None:

@@ -1,0 +1,63 @@
+"""Files a robot downloads appear whole or not at all.
+
+A download written straight under its name leaves half a file behind when the service, the
+network or a check fails midway, and the next reader takes it for the whole. So the bytes go
+to a new hidden file beside the name, which replaces it only once everything arrived.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import BinaryIO
+
+PARTIAL_ATTEMPTS = 16
+
+
+@contextmanager
+def written_whole(path: Path, *, overwrite: bool) -> Iterator[BinaryIO]:
+    """A handle on a partial file beside ``path``, moved to ``path`` when the block ends
+    normally and removed when it raises (an interrupt included).
+
+    Without ``overwrite``, an existing ``path`` is never replaced (``FileExistsError``), even
+    by a file that appeared meanwhile.
+    """
+    partial, handle = _create_partial(path)
+    try:
+        with handle:
+            yield handle
+        _publish(partial, path, overwrite)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+
+
+def _create_partial(path: Path) -> tuple[Path, BinaryIO]:
+    """A new hidden file beside ``path`` (``.NAME.<random>.partial``).
+
+    Created with ``O_CREAT | O_EXCL | O_NOFOLLOW``: a file or symbolic link planted under
+    the name (in a shared directory, by another user) is never opened, so nothing but a
+    file this call created is ever written, truncated or removed. The name is random so a
+    planted one cannot block the download either, nor can two downloads collide.
+    """
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    for _ in range(PARTIAL_ATTEMPTS):
+        partial = path.with_name(f".{path.name}.{secrets.token_hex(6)}.partial")
+        try:
+            descriptor = os.open(partial, flags, 0o666)
+        except FileExistsError:
+            continue
+        return partial, os.fdopen(descriptor, "w+b")
+    raise FileExistsError(f"no free name for a partial file beside {path}")
+
+
+def _publish(partial: Path, path: Path, overwrite: bool) -> None:
+    """Move the finished file into place; without ``overwrite``, atomically only if absent."""
+    if overwrite:
+        partial.replace(path)
+        return
+    os.link(partial, path)
+    partial.unlink()
