@@ -37,31 +37,29 @@ class Waiting:
 
 
 class PendingPool:
-    """Future-nonce transactions by sender; not thread-safe (the chain's lock guards it)."""
+    """Future-nonce transactions by sender; changed under the chain's lock only.
+
+    ``find`` alone may be called without the lock (a dict lookup is atomic in CPython): a
+    robot polling for the receipt of a waiting transaction is answered null on the event
+    loop, without queueing for the lock behind the blocks being mined.
+    """
 
     def __init__(self, limits: PoolLimits, clock: Callable[[], float] = time.monotonic) -> None:
         self.limits = limits
         self._clock = clock
         self._by_sender: dict[bytes, dict[int, Waiting]] = {}
-        self._count = 0
+        self._by_hash: dict[bytes, SignedTransactionAPI] = {}
 
     def __len__(self) -> int:
-        return self._count
+        return len(self._by_hash)
 
     def waiting(self, sender: bytes) -> int:
         return len(self._by_sender.get(sender, {}))
 
-    def contains(self, tx_hash: bytes) -> bool:
-        return self.find(tx_hash) is not None
-
     def find(self, tx_hash: bytes) -> SignedTransactionAPI | None:
-        """The waiting transaction of that hash (a scan: the pool holds at most
-        ``max_total``, 1,024 by default)."""
-        for queue in self._by_sender.values():
-            for waiting in queue.values():
-                if waiting.transaction.hash == tx_hash:
-                    return waiting.transaction
-        return None
+        """The waiting transaction of that hash (one that has expired is found until the
+        next ``expire``)."""
+        return self._by_hash.get(tx_hash)
 
     def add(self, transaction: SignedTransactionAPI) -> None:
         """Queue ``transaction`` (already valid but for its nonce), or refuse it as geth
@@ -83,15 +81,15 @@ class PendingPool:
                 f"txpool is full: address 0x{sender.hex()} has {len(queue)} transactions "
                 f"waiting for a nonce gap to close (limit {self.limits.max_per_sender})"
             )
-        elif self._count >= self.limits.max_total:
+        elif len(self) >= self.limits.max_total:
             raise ChainError(
-                f"txpool is full: {self._count} transactions waiting (limit "
-                f"{self.limits.max_total})"
+                f"txpool is full: {len(self)} transactions waiting (limit {self.limits.max_total})"
             )
-        else:
-            self._count += 1
+        if existing is not None:
+            del self._by_hash[existing.transaction.hash]
         queue[transaction.nonce] = Waiting(transaction, self._clock() + self.limits.timeout_s)
         self._by_sender[sender] = queue
+        self._by_hash[transaction.hash] = transaction
 
     def take(self, sender: bytes, nonce: int) -> SignedTransactionAPI | None:
         """The waiting transaction with ``sender``'s next ``nonce``, removed from the pool;
@@ -100,11 +98,10 @@ class PendingPool:
         if not queue:
             return None
         for stale in [n for n in queue if n < nonce]:
-            del queue[stale]
-            self._count -= 1
+            del self._by_hash[queue.pop(stale).transaction.hash]
         found = queue.pop(nonce, None)
         if found is not None:
-            self._count -= 1
+            del self._by_hash[found.transaction.hash]
         if not queue:
             del self._by_sender[sender]
         return found.transaction if found is not None else None
@@ -114,7 +111,6 @@ class PendingPool:
         for sender in list(self._by_sender):
             queue = self._by_sender[sender]
             for nonce in [n for n, waiting in queue.items() if waiting.deadline < now]:
-                del queue[nonce]
-                self._count -= 1
+                del self._by_hash[queue.pop(nonce).transaction.hash]
             if not queue:
                 del self._by_sender[sender]

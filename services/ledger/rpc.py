@@ -527,7 +527,10 @@ class EmbeddedMethods:
             raise NotInline() from exc
 
     def recent_receipt(self, params: list[Any]) -> Any:
-        located = self.chain.recent(as_bytes(param(params, 0), "transaction hash", 32))
+        tx_hash = as_bytes(param(params, 0), "transaction hash", 32)
+        located = self.chain.recent(tx_hash)
+        if located is None and self.chain.is_waiting(tx_hash):
+            return None
         receipts = self.chain.recent_receipts(located.block.hash) if located else None
         if located is None or receipts is None:
             raise NotInline()

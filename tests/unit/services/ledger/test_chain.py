@@ -12,6 +12,7 @@ from eth_account import Account
 
 from robocloud.identity import Identity
 from robocloud.ledger.abi import ContractAbi
+from services.ledger import chain as chain_module
 from services.ledger.chain import (
     CallRequest,
     ChainError,
@@ -182,11 +183,15 @@ def queue_behind_a_gap(chain: EmbeddedChain, robot: Identity, waiting: int) -> b
     return raw_call(robot, 1, loop, b"", gas=2_000_000)
 
 
-def test_the_gap_closer_is_answered_with_its_own_block_and_reads_go_on(tmp_path: Path) -> None:
+def test_the_gap_closer_is_answered_in_time_and_reads_go_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The transaction closing a nonce gap used to mine every waiting one after it before it
     was answered, in one turn of the chain's lock: 64 of 2^24 gas held its sender's answer
-    and every read about four minutes. Now the answer comes with its own block, and the
-    waiting ones are mined after it, one block a turn, each read going first."""
+    and every read about four minutes. Now the answer waits ``PROMOTION_IN_ANSWER_S`` at
+    most (none here), the waiting ones are mined after it, one block a turn, and each read
+    goes first."""
+    monkeypatch.setattr(chain_module, "PROMOTION_IN_ANSWER_S", 0.0)
     operator, robot = keys(), Identity.generate()
     chain = EmbeddedChain(tmp_path / "chain.sqlite", operator.genesis_state())
     fund(chain, operator, robot)
@@ -210,7 +215,10 @@ def test_the_gap_closer_is_answered_with_its_own_block_and_reads_go_on(tmp_path:
     chain.close()
 
 
-def test_closing_stops_mining_waiting_transactions_after_one_block(tmp_path: Path) -> None:
+def test_closing_stops_mining_waiting_transactions_after_one_block(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(chain_module, "PROMOTION_IN_ANSWER_S", 0.0)
     operator, robot = keys(), Identity.generate()
     path = tmp_path / "chain.sqlite"
     chain = EmbeddedChain(path, operator.genesis_state())
@@ -219,10 +227,29 @@ def test_closing_stops_mining_waiting_transactions_after_one_block(tmp_path: Pat
     closer = queue_behind_a_gap(chain, robot, waiting)
     first_block = chain.head().block_number + 1
     chain.send_raw_transaction(closer)
+    started = time.monotonic()
     chain.close()
+    assert time.monotonic() - started < 30, "closing waited for every waiting transaction"
     reopened = EmbeddedChain(path, operator.genesis_state())
     head = reopened.head().block_number
     assert first_block <= head < first_block + waiting
     nonce = reopened.nonce(bytes.fromhex(robot.address[2:]), "latest")
     assert nonce == 2 + head - first_block, "the head's nonce is the last mined block's"
     reopened.close()
+
+
+def test_a_few_waiting_transfers_are_mined_before_the_answer(tmp_path: Path) -> None:
+    """Within ``PROMOTION_IN_ANSWER_S`` the sender's answer comes after its waiting
+    transactions: the quickest way to mine a few transfers, and their receipts are there
+    when it asks."""
+    operator, robot = keys(), Identity.generate()
+    chain = EmbeddedChain(tmp_path / "chain.sqlite", operator.genesis_state())
+    fund(chain, operator, robot)
+    target = "0x" + "22" * 20
+    for nonce in range(1, 4):
+        assert chain.send_raw_transaction(raw_call(robot, nonce, target, b"")).mined is None
+    submitted = chain.send_raw_transaction(raw_call(robot, 0, target, b""))
+    assert submitted.mined is not None
+    assert chain.nonce(bytes.fromhex(robot.address[2:]), "latest") == 4
+    assert chain.head().block_number == submitted.mined.block.number + 3
+    chain.close()

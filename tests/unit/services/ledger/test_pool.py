@@ -68,3 +68,28 @@ def test_replacement_needs_ten_percent_more() -> None:
         pool.add(signed(sender, 1, tip=2 * 10**9))  # the fee cap must rise 10 % too
     pool.add(signed(sender, 1, tip=2 * 10**9, cap=2 * 10**11))
     assert len(pool) == 1
+
+
+def test_a_transaction_is_found_by_hash_until_it_leaves() -> None:
+    """``find`` answers the receipt polls of waiting transactions without the chain's lock,
+    so it must forget each hash as its transaction leaves: replaced, taken, stale, expired."""
+    clock = Clock()
+    pool = PendingPool(PoolLimits(timeout_s=10), clock)
+    sender = Identity.generate()
+    address = bytes.fromhex(sender.address[2:])
+    first, stale, taken = signed(sender, 1), signed(sender, 2), signed(sender, 3)
+    for transaction in (first, stale, taken):
+        pool.add(transaction)
+    assert pool.find(stale.hash) is stale
+    replacement = signed(sender, 1, tip=2 * 10**9, cap=2 * 10**11)
+    pool.add(replacement)
+    assert pool.find(first.hash) is None
+    assert pool.find(replacement.hash) is replacement
+    assert pool.take(address, 3) is taken
+    assert [pool.find(t.hash) for t in (replacement, stale, taken)] == [None, None, None]
+    late = signed(sender, 5)
+    pool.add(late)
+    clock.now = 11
+    pool.expire()
+    assert pool.find(late.hash) is None
+    assert len(pool) == 0
