@@ -3,6 +3,7 @@ go and asks again at once (which Python's own locks let win)."""
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 
@@ -74,5 +75,36 @@ def test_only_the_holder_releases() -> None:
         thread.start()
         thread.join()
     assert failures == ["cannot release a FairLock this thread does not hold"]
+    with lock:
+        pass
+
+
+def test_an_interrupted_wait_leaves_the_queue() -> None:
+    """A waiter interrupted by a signal must not be handed the lock later: it would hold it
+    forever, and every other thread would wait behind it."""
+    lock, holding, release = FairLock(), threading.Event(), threading.Event()
+
+    def holder() -> None:
+        with lock:
+            holding.set()
+            release.wait(5)
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise TimeoutError("interrupted")
+
+    thread = threading.Thread(target=holder)
+    thread.start()
+    holding.wait(5)
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.2)
+        with pytest.raises(TimeoutError, match="interrupted"):
+            lock.acquire()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert len(lock._waiters) == 0
+    release.set()
+    thread.join(5)
     with lock:
         pass
