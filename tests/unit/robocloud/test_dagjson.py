@@ -5,10 +5,12 @@ recursive pin and ``dag export`` do."""
 from __future__ import annotations
 
 import json
+import random
+from typing import Any
 
 import pytest
 
-from robocloud.cid import CID, DAG_JSON, DAG_PB, Block
+from robocloud.cid import CID, DAG_JSON, DAG_PB, Block, CIDError, parse_cid
 from robocloud.dagjson import DagJsonError, links
 from robocloud.unixfs import UnixfsError, walk_dag
 
@@ -50,9 +52,33 @@ def test_what_only_looks_like_a_link_is_not_one(document: object) -> None:
     [
         (b'{"/": "bafy-not-a-cid"}', "a link that is not a CID"),
         (b'{"a": [1, 2', "not dag-json"),
-        (b"[" * 65 + b"]" * 65, "nested deeper than 64 levels"),
+        (b"[" * 1025 + b"]" * 1025, "nested deeper than 1024 levels"),
+        (b'{"/": ""}', "a link that is not a CID"),
+        (b'{"a": 1, "a": 2}', "repeated map key 'a'"),
+        (b'["\\ud800"]', "lone UTF-16 surrogate"),
+        (b'["caf\xe9"]', "not UTF-8"),
+        (b"[1] [2]", "data after the document"),
+        (b"[01]", "expected ',' or the end of the list"),
+        (b'{"a" 1}', "expected ':'"),
+        (b"{1: 2}", "expected a map key"),
+        (b"[NaN]", "expected a value"),
+        (b"", "expected a value"),
     ],
-    ids=["bad-cid", "truncated", "too-deep"],
+    ids=[
+        "bad-cid",
+        "truncated",
+        "too-deep",
+        "empty-cid",
+        "repeated-key",
+        "lone-surrogate",
+        "latin-1",
+        "trailing",
+        "leading-zero",
+        "no-colon",
+        "number-key",
+        "nan",
+        "empty",
+    ],
 )
 def test_bad_documents_are_refused(data: bytes, reason: str) -> None:
     with pytest.raises(DagJsonError, match=reason):
@@ -70,3 +96,59 @@ def test_the_walk_follows_dag_json_links_and_names_a_bad_block() -> None:
     broken = Block(CID.from_block(b"{", DAG_JSON), b"{")
     with pytest.raises(UnixfsError, match=f"{broken.cid} is not a dag-json block"):
         list(walk_dag(broken.cid, {broken.cid: broken.data}.__getitem__))
+
+
+def test_nesting_is_taken_to_go_ipld_primes_depth() -> None:
+    """go-ipld-prime (kubo's decoder) takes 1,024 levels; cas refused more than 64, the bound
+    its JSON parser needed, so kubo's DAGs of 65 to 1,024 levels could not be pinned."""
+    depth = 1024
+    data = b'{"a":' * (depth - 1) + f'{{"/":"{ONE}"}}'.encode() + b"}" * (depth - 1)
+    assert links(data) == [ONE]
+
+
+def reference_links(data: bytes) -> list[CID] | str:
+    """The links as a parse with ``json.loads`` and a walk of its values find them, or
+    ``"refused"`` when one of them is not a CID."""
+    found: list[CID] = []
+    pending: list[Any] = [json.loads(data)]
+    while pending:
+        value = pending.pop()
+        if isinstance(value, dict):
+            if len(value) == 1 and isinstance(value.get("/"), str):
+                try:
+                    found.append(parse_cid(value["/"]))
+                except CIDError:
+                    return "refused"
+                continue
+            pending.extend(reversed(list(value.values())))
+        elif isinstance(value, list):
+            pending.extend(reversed(value))
+    return found
+
+
+def links_or_refused(data: bytes) -> list[CID] | str:
+    try:
+        return links(data)
+    except DagJsonError as exc:
+        return "refused" if "a link that is not a CID" in str(exc) else str(exc)
+
+
+def random_document(rng: random.Random, depth: int = 0) -> Any:
+    kind = rng.choice(["map", "list", "link", "scalar"] if depth < 6 else ["link", "scalar"])
+    if kind == "map":
+        keys = rng.sample(["a", "/", "b", "long key", "\u00e9", "bytes"], rng.randint(0, 4))
+        return {key: random_document(rng, depth + 1) for key in keys}
+    if kind == "list":
+        return [random_document(rng, depth + 1) for _ in range(rng.randint(0, 4))]
+    if kind == "link":
+        return {"/": str(rng.choice([ONE, TWO]))}
+    return rng.choice([0, -7, 1.5e-3, 10**30, "text", 'caf\u00e9 "quoted"', True, None])
+
+
+def test_links_agree_with_a_json_parse_on_random_documents() -> None:
+    rng = random.Random(20261126)
+    for _ in range(500):
+        document = random_document(rng)
+        indent = rng.choice([None, 1, "\t"])
+        data = json.dumps(document, indent=indent, ensure_ascii=rng.random() < 0.5).encode()
+        assert links_or_refused(data) == reference_links(data), data

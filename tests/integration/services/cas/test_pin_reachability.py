@@ -13,7 +13,7 @@ import pytest
 
 from robocloud.car import CarReader, write_car
 from robocloud.cas import Cas
-from robocloud.cid import CID, DAG_CBOR, DAG_PB, RAW, Block, encode_varint
+from robocloud.cid import CID, DAG_CBOR, DAG_JSON, DAG_PB, RAW, Block, encode_varint
 from robocloud.client import ServiceClient
 from robocloud.dagpb import Link, PBNode
 from robocloud.errors import ApiError
@@ -142,6 +142,31 @@ def test_dag_cbor_links_are_pinned_exported_and_kept(
     assert signed.request("POST", "/api/v0/block/get", params={"arg": str(child.cid)}).content == (
         child.data
     )
+
+
+def json_links_to(child: CID, depth: int) -> Block:
+    """dag-json ``{"a": {"a": ... {"/": <CID>}}}``, the link ``depth`` levels down."""
+    document = b'{"a":' * (depth - 1) + f'{{"/":"{child}"}}'.encode() + b"}" * (depth - 1)
+    return Block(CID.from_block(document, DAG_JSON), document)
+
+
+def test_a_dag_json_dag_as_deep_as_kubo_takes_is_pinned_and_kept(
+    cas_service: ServiceProcess, signed: ServiceClient
+) -> None:
+    """go-ipld-prime decodes dag-json 1,024 levels deep; cas refused past 64 (400
+    invalid_dag), so such a DAG could be pinned on kubo and not here."""
+    child, loose = raw(b"json child payload"), raw(b"left for the collector")
+    root = json_links_to(child.cid, 1024)
+    assert dag_import(signed, [root.cid], [root, child, loose]) == [
+        {"Cid": {"/": str(root.cid)}, "PinErrorMsg": ""}
+    ]
+    assert exported(cas_service.url, root.cid) == [root.cid, child.cid]
+    assert gc(signed) == {str(loose.cid)}
+    too_deep = json_links_to(child.cid, 1025)
+    with store_unchanged(cas_service), pytest.raises(ApiError) as raised:
+        dag_import(signed, [too_deep.cid], [too_deep])
+    error = error_of(raised, 400, "invalid_dag")
+    assert "nested deeper than 1024 levels" in error.message
 
 
 def test_pin_add_of_a_dag_cbor_root_needs_what_it_links(
