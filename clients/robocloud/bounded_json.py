@@ -23,8 +23,10 @@ MAX_INTEGER_DIGITS = 1000
 """Longer integers are refused: converting them costs quadratic time, and CPython refuses
 more than 4,300 digits with a bare ValueError anyway."""
 
-_SURROGATE_ESCAPE = re.compile(rb"\\u[dD][89a-fA-F]")
-_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+SURROGATE_ESCAPE = re.compile(rb"\\u[dD][89a-fA-F]")
+"""The escape a lone surrogate can come from: UTF-8 text cannot hold one otherwise."""
+LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+"""Half of a UTF-16 surrogate pair in a string: no UTF-8 can carry it (RFC 7493 forbids it)."""
 _STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
 _NOT_BRACKET = re.compile(rb"[^\[\]{}]+")
 _ONE_KIND = bytes.maketrans(b"{}", b"[]")
@@ -109,7 +111,7 @@ def loads(
         raise
     except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError among others
         raise JsonError(f"not valid JSON: {exc}") from exc
-    if _SURROGATE_ESCAPE.search(raw) and _holds_lone_surrogate(parsed):
+    if SURROGATE_ESCAPE.search(raw) and _holds_lone_surrogate(parsed):
         raise JsonSurrogateError("a string holds a lone UTF-16 surrogate, which is not text")
     return parsed
 
@@ -121,7 +123,7 @@ def _holds_lone_surrogate(document: Any) -> bool:
     while pending:
         value = pending.pop()
         if isinstance(value, str):
-            if _LONE_SURROGATE.search(value):
+            if LONE_SURROGATE.search(value):
                 return True
         elif isinstance(value, dict):
             pending.extend(value.keys())

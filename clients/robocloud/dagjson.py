@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from json.scanner import NUMBER_RE
 from typing import NoReturn
 
+from robocloud import bounded_json
 from robocloud.cid import CID, CIDError, parse_cid
 from robocloud.errors import FormatError
 
@@ -32,7 +33,6 @@ _scan_string: Callable[[str, int, bool], tuple[str, int]] = json.decoder.scanstr
 """``json``'s string reader (C): the text from after an opening quote to its closing one,
 unescaped, and where it ended; typeshed does not list it."""
 _WHITESPACE = re.compile(r"[ \t\n\r]*")
-_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
 _LITERALS = ("true", "false", "null")
 
 
@@ -60,14 +60,16 @@ def links(data: bytes) -> list[CID]:
     except UnicodeDecodeError as exc:
         raise DagJsonError(f"not dag-json: not UTF-8 text ({exc})") from exc
     try:
-        return _Scan(text).links()
+        return _Scan(text, bounded_json.SURROGATE_ESCAPE.search(data) is not None).links()
     except json.JSONDecodeError as exc:  # from the string reader
         raise DagJsonError(f"not dag-json: {exc}") from exc
 
 
 class _Scan:
-    def __init__(self, text: str) -> None:
+    def __init__(self, text: str, escapes_surrogates: bool) -> None:
         self.text = text
+        self.escapes_surrogates = escapes_surrogates
+        """Whether a string may hold a lone surrogate (only an escape can make one)."""
         self.pos = 0
         self.open: list[_Map | _List] = []
         self.found: list[CID] = []
@@ -154,7 +156,7 @@ class _Scan:
 
     def _string(self) -> str:
         value, self.pos = _scan_string(self.text, self.pos + 1, True)
-        if _LONE_SURROGATE.search(value):
+        if self.escapes_surrogates and bounded_json.LONE_SURROGATE.search(value):
             self._fail("a string holds a lone UTF-16 surrogate, which is not text")
         return value
 

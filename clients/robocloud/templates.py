@@ -278,7 +278,6 @@ class _Evaluator:
         return fields
 
 
-_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
 NOT_TEXT = "holds a lone UTF-16 surrogate, which is not text (no UTF-8 can carry it)"
 
 
@@ -286,7 +285,7 @@ def _not_text(value: str) -> bool:
     """Whether ``value`` holds half of a surrogate pair, as ``os.fsdecode`` makes of a file
     name that is not UTF-8: JSON's escapes carry it, but no canonical record or answer can
     be encoded with it, and RFC 7493 (I-JSON) forbids it."""
-    return _LONE_SURROGATE.search(value) is not None
+    return bounded_json.LONE_SURROGATE.search(value) is not None
 
 
 def _shown(value: str) -> str:

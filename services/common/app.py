@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from typing import Any, Literal
@@ -24,6 +23,7 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import robocloud
+from robocloud import bounded_json
 from robocloud.signing import LOCAL_DEPLOYMENT
 from services.common.audience import ServiceAudience, learn_from_ledger
 from services.common.auth import SignedAddress, build_authorizer
@@ -83,9 +83,6 @@ class WhoamiResponse(BaseModel):
     challenge: str | None
 
 
-_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
-
-
 def _json_error(
     status: int, code: str, message: str, details: dict[str, Any], headers: Mapping[str, str]
 ) -> JSONResponse:
@@ -101,7 +98,7 @@ def _json_error(
     try:
         return JSONResponse(body, status_code=status, headers=dict(headers))
     except UnicodeEncodeError:
-        text = _LONE_SURROGATE.sub("\ufffd", json.dumps(body, ensure_ascii=False))
+        text = bounded_json.LONE_SURROGATE.sub("\ufffd", json.dumps(body, ensure_ascii=False))
         return JSONResponse(json.loads(text), status_code=status, headers=dict(headers))
 
 
