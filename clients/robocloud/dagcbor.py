@@ -3,9 +3,11 @@
 Pinning, garbage collection and ``dag/export`` follow a DAG whatever its codecs, as kubo's
 recursive pin and ``dag export`` do; from a dag-cbor block they need its links (CBOR tag 42
 over a byte string: ``0x00``, then the binary CID), not its values. :func:`links` reads the
-CBOR items in one pass, keeping a count of the items still due instead of recursing, so a
-block nested a million levels deep meets no stack; a container may claim no more items than
-bytes are left, so the work is linear in the block's size whatever its header says.
+CBOR items in one pass, keeping a count of the items each open container still holds
+instead of recursing; it takes the nesting go-ipld-prime (kubo's decoder) takes, 1,024
+levels, and refuses the 1,025th, so cas pins what kubo pins and no more. A container may
+claim no more items than bytes are left, so the work is linear in the block's size whatever
+its header says.
 
 It checks the framing dag-cbor allows (definite lengths, tag 42 only, the simple values
 false, true, null and floats) but not canonical form (key order, shortest integers): it
@@ -16,6 +18,7 @@ every value and recurse once per level, the overflow ``bounded_json`` exists to 
 from __future__ import annotations
 
 from robocloud.cid import CID, CIDError
+from robocloud.dagjson import MAX_DEPTH
 from robocloud.errors import FormatError
 
 CID_TAG = 42
@@ -33,8 +36,12 @@ def links(data: bytes) -> list[CID]:
     found: list[CID] = []
     pos = 0
     due = 1
+    holding: list[int] = []
+    """Items still to read in each open container, the innermost last."""
     while due:
         due -= 1
+        if holding:
+            holding[-1] -= 1
         at = pos
         major, info, value, pos = _head(data, pos)
         if major in (2, 3):
@@ -42,11 +49,15 @@ def links(data: bytes) -> list[CID]:
                 raise DagCborError(f"byte {at}: a {value}-byte string, {len(data) - pos} left")
             pos += value
         elif major in (4, 5):
-            due += value * (2 if major == 5 else 1)
+            if len(holding) >= MAX_DEPTH:
+                raise DagCborError(f"byte {at}: nested deeper than {MAX_DEPTH} levels")
+            items = value * (2 if major == 5 else 1)
+            due += items
             if due > len(data) - pos:
                 raise DagCborError(
                     f"byte {at}: a container of {value} items, {len(data) - pos} bytes left"
                 )
+            holding.append(items)
         elif major == 6:
             if value != CID_TAG:
                 raise DagCborError(f"byte {at}: tag {value}; dag-cbor has only tag 42 (a CID)")
@@ -54,6 +65,8 @@ def links(data: bytes) -> list[CID]:
             found.append(cid)
         elif major == 7 and info not in _SIMPLE:
             raise DagCborError(f"byte {at}: simple value {info} is not dag-cbor")
+        while holding and not holding[-1]:
+            holding.pop()
     if pos != len(data):
         raise DagCborError(f"{len(data) - pos} bytes after the dag-cbor item")
     return found

@@ -27,7 +27,7 @@ from robocloud.cid import CID, CIDError, parse_cid
 from robocloud.errors import FormatError
 
 MAX_DEPTH = 1024
-"""go-ipld-prime's default ``MaxDepth`` for dag-json (and dag-cbor), which kubo decodes with."""
+"""go-ipld-prime's default ``MaxDepth`` for dag-json and dag-cbor, which kubo decodes with."""
 
 _scan_string: Callable[[str, int, bool], tuple[str, int]] = json.decoder.scanstring  # type: ignore[attr-defined]
 """``json``'s string reader (C): the text from after an opening quote to its closing one,

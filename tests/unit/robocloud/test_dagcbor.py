@@ -108,9 +108,25 @@ def test_a_huge_claimed_count_is_refused_before_reading_items() -> None:
             links(head(major, 2**63) + head(0, 0))
 
 
-def test_nesting_a_million_levels_deep_meets_no_stack() -> None:
-    deep = head(4, 1) * 1_000_000 + link(ONE)
-    assert links(deep) == [ONE]
+def test_nesting_is_taken_to_go_ipld_primes_depth_and_no_further() -> None:
+    """go-ipld-prime (kubo's decoder) takes 1,024 levels of lists and maps and refuses the
+    1,025th, empty or not; before, any depth was taken, so cas pinned DAGs kubo refuses."""
+    assert links(head(4, 1) * 1023 + head(5, 1) + text("a") + link(ONE)) == [ONE]
+    two_branches = head(4, 2) + head(4, 1) * 1022 + head(4, 0) + head(4, 1) * 1023 + link(ONE)
+    assert links(two_branches) == [ONE]
+    for innermost in (head(4, 0), head(5, 0), head(4, 1) + link(ONE)):
+        with pytest.raises(DagCborError, match="byte 1024: nested deeper than 1024 levels"):
+            links(head(4, 1) * 1024 + innermost)
+
+
+def test_nesting_a_million_levels_deep_is_refused_at_the_bound() -> None:
+    with pytest.raises(DagCborError, match="nested deeper than 1024"):
+        links(head(4, 1) * 1_000_000 + link(ONE))
+
+
+def test_a_link_is_not_a_level() -> None:
+    """A tag 42 over a byte string is a value, not a container."""
+    assert links(head(4, 1) * 1023 + head(4, 2) + link(ONE) + link(TWO)) == [ONE, TWO]
 
 
 def test_the_walk_follows_dag_cbor_links_into_any_codec() -> None:

@@ -144,25 +144,32 @@ def test_dag_cbor_links_are_pinned_exported_and_kept(
     )
 
 
-def json_links_to(child: CID, depth: int) -> Block:
-    """dag-json ``{"a": {"a": ... {"/": <CID>}}}``, the link ``depth`` levels down."""
-    document = b'{"a":' * (depth - 1) + f'{{"/":"{child}"}}'.encode() + b"}" * (depth - 1)
-    return Block(CID.from_block(document, DAG_JSON), document)
+def nested_link_to(child: CID, depth: int, codec: str) -> Block:
+    """The link ``depth`` levels down: dag-json ``{"a": {"a": ... {"/": <CID>}}}`` (the link
+    is a map, a level of its own), or dag-cbor ``[[... <CID>]]`` (the link is a tag)."""
+    if codec == "dag-json":
+        document = b'{"a":' * (depth - 1) + f'{{"/":"{child}"}}'.encode() + b"}" * (depth - 1)
+        return Block(CID.from_block(document, DAG_JSON), document)
+    binary = b"\x00" + child.binary
+    document = b"\x81" * depth + b"\xd8\x2a\x58" + bytes([len(binary)]) + binary
+    return Block(CID.from_block(document, DAG_CBOR), document)
 
 
-def test_a_dag_json_dag_as_deep_as_kubo_takes_is_pinned_and_kept(
-    cas_service: ServiceProcess, signed: ServiceClient
+@pytest.mark.parametrize("codec", ["dag-json", "dag-cbor"])
+def test_a_dag_as_deep_as_kubo_takes_is_pinned_and_kept_and_one_deeper_refused(
+    cas_service: ServiceProcess, signed: ServiceClient, codec: str
 ) -> None:
-    """go-ipld-prime decodes dag-json 1,024 levels deep; cas refused past 64 (400
-    invalid_dag), so such a DAG could be pinned on kubo and not here."""
-    child, loose = raw(b"json child payload"), raw(b"left for the collector")
-    root = json_links_to(child.cid, 1024)
+    """go-ipld-prime decodes dag-json and dag-cbor 1,024 levels deep and no deeper. cas
+    refused dag-json past 64 (400 invalid_dag), so such a DAG could be pinned on kubo and
+    not here; and took dag-cbor at any depth, so it pinned DAGs kubo refuses."""
+    child, loose = raw(f"{codec} child payload".encode()), raw(b"left for the collector")
+    root = nested_link_to(child.cid, 1024, codec)
     assert dag_import(signed, [root.cid], [root, child, loose]) == [
         {"Cid": {"/": str(root.cid)}, "PinErrorMsg": ""}
     ]
     assert exported(cas_service.url, root.cid) == [root.cid, child.cid]
     assert gc(signed) == {str(loose.cid)}
-    too_deep = json_links_to(child.cid, 1025)
+    too_deep = nested_link_to(child.cid, 1025, codec)
     with store_unchanged(cas_service), pytest.raises(ApiError) as raised:
         dag_import(signed, [too_deep.cid], [too_deep])
     error = error_of(raised, 400, "invalid_dag")
