@@ -9,13 +9,15 @@ a string; ``{"/": {"bytes": ...}}`` is a byte string, not a link.
 takes the nesting go-ipld-prime takes, 1,024 levels (its decoders' ``MaxDepth``), where
 ``json.loads`` recurses once per level in C and the services' recursion limit stops it
 short of that. It refuses what is not dag-json (text that is not UTF-8, JSON's grammar
-broken, a repeated map key, a lone surrogate) but builds no values: strings are read by
-``json``'s own C scanner, and a number is only matched, never converted.
+broken, a repeated map key, a lone surrogate, a number a 64-bit float cannot hold, as Go's
+``strconv.ParseFloat`` under go-ipld-prime refuses it) but builds no values: strings are
+read by ``json``'s own C scanner, and a number is converted only when it could overflow.
 """
 
 from __future__ import annotations
 
 import json.decoder
+import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -32,6 +34,9 @@ MAX_DEPTH = 1024
 _scan_string: Callable[[str, int, bool], tuple[str, int]] = json.decoder.scanstring  # type: ignore[attr-defined]
 """``json``'s string reader (C): the text from after an opening quote to its closing one,
 unescaped, and where it ended; typeshed does not list it."""
+_FLOAT_DIGITS = 308
+"""A number with no exponent and no more integer digits than this fits a 64-bit float, so it
+is not converted to check."""
 _WHITESPACE = re.compile(r"[ \t\n\r]*")
 _LITERALS = ("true", "false", "null")
 
@@ -109,6 +114,9 @@ class _Scan:
             return self._string()
         number = NUMBER_RE.match(self.text, self.pos)
         if number is not None:
+            integer, _, exponent = number.groups()
+            if (exponent or len(integer) > _FLOAT_DIGITS) and math.isinf(float(number.group())):
+                self._fail("a number beyond the range of a 64-bit float")
             self.pos = number.end()
             return False
         for literal in _LITERALS:

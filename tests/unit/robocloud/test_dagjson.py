@@ -63,6 +63,9 @@ def test_what_only_looks_like_a_link_is_not_one(document: object) -> None:
         (b"{1: 2}", "expected a map key"),
         (b"[NaN]", "expected a value"),
         (b"", "expected a value"),
+        (b"[1e999]", "beyond the range of a 64-bit float at character 1"),
+        (b"[-1.7976931348623159e308]", "beyond the range"),
+        (b"[" + b"9" * 309 + b"]", "beyond the range"),
     ],
     ids=[
         "bad-cid",
@@ -78,11 +81,21 @@ def test_what_only_looks_like_a_link_is_not_one(document: object) -> None:
         "number-key",
         "nan",
         "empty",
+        "float-overflow",
+        "past-max-float",
+        "integer-overflow",
     ],
 )
 def test_bad_documents_are_refused(data: bytes, reason: str) -> None:
     with pytest.raises(DagJsonError, match=reason):
         links(data)
+
+
+def test_numbers_a_64_bit_float_holds_are_taken() -> None:
+    """Go's ``strconv.ParseFloat``, which reads go-ipld-prime's dag-json numbers, refuses only
+    an overflow: an underflow is zero, and the largest float is a float."""
+    data = b"[1e-999, 1.7976931348623157e308, -4.9e-324, " + b"9" * 308 + b', {"/": "%s"}]'
+    assert links(data % str(ONE).encode()) == [ONE]
 
 
 def test_the_walk_follows_dag_json_links_and_names_a_bad_block() -> None:
