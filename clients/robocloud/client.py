@@ -200,7 +200,7 @@ class BaseClient(Closeable):
             base_url=self.base_url,
             timeout=timeout,
             transport=transport or transport_for(self.base_url),
-            headers={"User-Agent": USER_AGENT},
+            headers={"User-Agent": USER_AGENT, "Accept-Encoding": "identity"},
         )
 
     def close(self) -> None:
@@ -292,6 +292,7 @@ class BaseClient(Closeable):
                 reads_bounded_by(clock),
             ):
                 response = self._http.send(request, stream=True)
+                self._refuse_encoded(response)
                 if stream and response.status_code < 400:
                     if isinstance(response.stream, httpx.SyncByteStream):
                         response.stream = LowSpeedGuard(response.stream, self.low_speed)
@@ -305,6 +306,17 @@ class BaseClient(Closeable):
             if clock.left_s > 0 or isinstance(exc, AnswerDeadlineError):
                 raise
             raise self._past_deadline(request) from exc
+
+    def _refuse_encoded(self, response: httpx.Response) -> None:
+        """Refuse an answer with a content coding, which the request did not accept: httpx
+        would decode it a whole read at a time, so 64 KiB of zstd would become gigabytes
+        before ``max_answer_bytes`` or a download's cap saw one byte of it."""
+        coding = response.headers.get("content-encoding", "identity").strip().lower()
+        if coding != "identity":
+            response.close()
+            raise self._invalid(
+                response, f"an answer with Content-Encoding {coding[:40]!r}, not asked for"
+            )
 
     def _read_whole(
         self, response: httpx.Response, limit: int, clock: AnswerClock
