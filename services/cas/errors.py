@@ -12,6 +12,7 @@ from services.cas.store import (
     DagIncomplete,
     InvalidDag,
     NotAFile,
+    ReadBudgetExceeded,
     UnknownScope,
     UnpinnedArgument,
 )
@@ -42,6 +43,11 @@ ERRORS = ErrorMap(
         NotAFile: ErrorRule(400, "not_a_file", _cid),
         InvalidDag: ErrorRule(400, "invalid_dag", _cid),
         CarRejected: ErrorRule(400, "invalid_car"),
+        ReadBudgetExceeded: ErrorRule(
+            400,
+            "too_much_to_read",
+            lambda exc: {"field": "arg", "cid": str(exc.cid), "limit_bytes": exc.limit},
+        ),
         UnknownScope: ErrorRule(400, "invalid_dag_scope", lambda _: {"field": "dag-scope"}),
         UnpinnedArgument: ErrorRule(400, "not_pinned", _cid),
         NotPinned: ErrorRule(404, "not_pinned", _cid),

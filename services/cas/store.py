@@ -18,7 +18,7 @@ from pathlib import Path
 from robocloud.car import ByteSource, CarError, CarReader, write_car
 from robocloud.cid import CID, DAG_PB, IDENTITY, RAW, Block
 from robocloud.dagpb import Link
-from robocloud.directory import PathError, Resolved, list_entries, resolve
+from robocloud.directory import GetBlock, PathError, Resolved, list_entries, resolve
 from robocloud.unixfs import (
     FILE,
     LINKING_CODECS,
@@ -91,6 +91,17 @@ class UnknownScope(ValueError):
     def __init__(self, scope: str) -> None:
         super().__init__(f"unknown dag-scope {scope!r}: expected one of {', '.join(DAG_SCOPES)}")
         self.scope = scope
+
+
+class ReadBudgetExceeded(ValueError):
+    """One request would read more bytes of blocks than ``BudgetedReads`` allows it."""
+
+    def __init__(self, cid: CID, limit: int) -> None:
+        super().__init__(
+            f"reading block {cid} would take this request past {limit} bytes of blocks read"
+        )
+        self.cid = cid
+        self.limit = limit
 
 
 class UnpinnedArgument(ValueError):
@@ -208,33 +219,49 @@ class ContentStore:
 
     # ---- directories and paths ----
 
-    def resolve(self, root: CID, segments: list[str], *, use_peers: bool = True) -> Resolved:
+    def _getter(self, use_peers: bool, get: GetBlock | None) -> GetBlock:
+        """``get`` when the caller reads through its own (``BudgetedReads``), else the store."""
+        return get or partial(self.get_block, use_peers=use_peers)
+
+    def resolve(
+        self,
+        root: CID,
+        segments: list[str],
+        *,
+        use_peers: bool = True,
+        get: GetBlock | None = None,
+    ) -> Resolved:
         """Follow a content path through directories and HAMT shards."""
         try:
-            return resolve(root, segments, lambda cid: self.get_block(cid, use_peers=use_peers))
+            return resolve(root, segments, self._getter(use_peers, get))
         except PathError:
             raise
         except UnixfsError as exc:
             raise InvalidDag(root, str(exc)) from exc
 
-    def entries(self, directory: CID, *, use_peers: bool = True) -> list[Link]:
+    def entries(
+        self, directory: CID, *, use_peers: bool = True, get: GetBlock | None = None
+    ) -> list[Link]:
         """A directory's entries (a sharded one's from every shard); ``NotADirectory`` else."""
-        get = partial(self.get_block, use_peers=use_peers)
         try:
-            return list(list_entries(directory, get))
+            return list(list_entries(directory, self._getter(use_peers, get)))
         except PathError:
             raise
         except UnixfsError as exc:
             raise InvalidDag(directory, str(exc)) from exc
 
-    def kind(self, cid: CID, *, use_peers: bool = True) -> UnixfsKind:
-        """What a CID names, from its root block: a file, a directory, or another block."""
+    def kind(self, cid: CID, *, use_peers: bool = True, get: GetBlock | None = None) -> UnixfsKind:
+        """What a CID names, from its root block: a file, a directory, or another block.
+
+        A raw block is a file of its own length, which the block index holds: it is not read
+        (``ls`` of 65,536 links to one 8 MiB raw block read and re-hashed it per entry).
+        """
         if cid.codec == RAW:
-            return UnixfsKind(FILE, len(self.get_block(cid, use_peers=use_peers)))
+            return UnixfsKind(FILE, self.block_size(cid, use_peers=use_peers))
         if cid.codec != DAG_PB:
             return UnixfsKind(None, None)
         try:
-            _, unixfs = decode_node(cid, self.get_block(cid, use_peers=use_peers))
+            _, unixfs = decode_node(cid, self._getter(use_peers, get)(cid))
         except UnixfsError:
             return UnixfsKind(None, None)
         if unixfs.type in (FILE, RAW_TYPE):
@@ -458,6 +485,44 @@ def _once(first: Iterator[Block], rest: Iterator[Block]) -> Iterator[Block]:
         if block.cid not in seen:
             seen.add(block.cid)
             yield block
+
+
+class BudgetedReads:
+    """The block reads of one request, at most ``limit`` bytes in all, and the ``kind`` of
+    each CID worked out once.
+
+    ``ls`` reads a block per entry for its type and size: a directory node of 65,536 links
+    to one 8 MiB block cost minutes of re-hashing per ``arg``, free for anyone to ask. Each
+    block's size comes from the index before it is read, so the read that would pass the
+    budget is refused (``ReadBudgetExceeded``) rather than done.
+    """
+
+    def __init__(self, store: ContentStore, limit: int) -> None:
+        self._store = store
+        self._limit = limit
+        self._kinds: dict[CID, UnixfsKind] = {}
+        self.spent = 0
+
+    def get(self, cid: CID) -> bytes:
+        """A verified block, charged to the budget by the size the index gives."""
+        size = self._store.block_size(cid)
+        if self.spent + size > self._limit:
+            raise ReadBudgetExceeded(cid, self._limit)
+        self.spent += size
+        return self._store.get_block(cid)
+
+    def resolve(self, root: CID, segments: list[str]) -> Resolved:
+        return self._store.resolve(root, segments, get=self.get)
+
+    def entries(self, directory: CID) -> list[Link]:
+        return self._store.entries(directory, get=self.get)
+
+    def kind(self, cid: CID) -> UnixfsKind:
+        """``ContentStore.kind``, remembered: entries that repeat a CID read its block once."""
+        known = self._kinds.get(cid)
+        if known is None:
+            known = self._kinds[cid] = self._store.kind(cid, get=self.get)
+        return known
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,137 @@
+"""``ls`` and the gateway's listings and dag-json, in process over ``httpx.ASGITransport``.
+
+In process, the test can count what the store reads and hold the listing turns itself, which
+a service in its own process does not show.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from fastapi import FastAPI
+
+from robocloud.cid import CID, DAG_PB, RAW
+from robocloud.dagpb import Link, PBNode
+from robocloud.directory import directory_node
+from robocloud.unixfs import FILE, UnixfsData
+from services.cas import kubo
+from services.cas.app import build_app
+from services.cas.settings import CasSettings
+from services.cas.store import ContentStore
+
+ROBOT = "0x" + "ab" * 20
+ENTRIES = 300
+
+
+@pytest.fixture
+def app(tmp_path: Path) -> Iterator[FastAPI]:
+    built = build_app(CasSettings(data_dir=tmp_path, cas_gc_interval_s=0))
+    yield built
+    built.state.store.close()
+
+
+def store_of(app: FastAPI) -> ContentStore:
+    store: ContentStore = app.state.store
+    return store
+
+
+def call(app: FastAPI, method: str, path: str, **kwargs: Any) -> httpx.Response:
+    async def go() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://cas") as client:
+            return await client.request(method, path, **kwargs)
+
+    return asyncio.run(go())
+
+
+def count_reads(store: ContentStore, monkeypatch: pytest.MonkeyPatch) -> Counter[bytes]:
+    """Every block the store reads from its packs, by multihash."""
+    reads: Counter[bytes] = Counter()
+    get = store.blocks.get
+
+    def counted(cid: CID) -> bytes:
+        reads[cid.multihash] += 1
+        return get(cid)
+
+    monkeypatch.setattr(store.blocks, "get", counted)
+    return reads
+
+
+def put_directory(store: ContentStore, links: list[Link]) -> CID:
+    blocks, link = directory_node(links)
+    for block in blocks:
+        store.put_blocks([block.data], DAG_PB, ROBOT, pin=False)
+    return link.cid
+
+
+def test_ls_reads_an_entry_repeated_under_many_names_once(
+    app: FastAPI, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every entry used to read and re-hash its whole block (65,536 links to one 8 MiB block:
+    minutes an ``arg``). A dag-pb entry's block is now read once a request, however many
+    names link it; a raw entry's size comes from the index, its block never read."""
+    store = store_of(app)
+    payload = b"x" * 100_000
+    (raw,) = store.put_blocks([payload], RAW, ROBOT, pin=False)
+    leaf = PBNode([], UnixfsData(FILE, payload, filesize=len(payload)).encode()).encode()
+    (node,) = store.put_blocks([leaf], DAG_PB, ROBOT, pin=False)
+    links = [Link(raw, f"raw-{i}", len(payload)) for i in range(ENTRIES)]
+    links += [Link(node, f"node-{i}", len(leaf)) for i in range(ENTRIES)]
+    directory = put_directory(store, links)
+    reads = count_reads(store, monkeypatch)
+
+    answer = call(app, "POST", "/api/v0/ls", params=[("arg", str(directory))] * 2)
+
+    assert answer.status_code == 200, answer.text
+    objects = answer.json()["Objects"]
+    assert len(objects) == 2
+    for listed in objects:
+        assert len(listed["Links"]) == 2 * ENTRIES
+        assert {(link["Size"], link["Type"]) for link in listed["Links"]} == {(len(payload), 2)}
+    assert reads[node.multihash] == 1
+    assert reads[raw.multihash] == 0
+
+
+def test_ls_stops_at_its_read_budget_naming_the_block(
+    app: FastAPI, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = store_of(app)
+    leaves = [
+        PBNode([], UnixfsData(FILE, bytes([i]) * 1000, filesize=1000).encode()).encode()
+        for i in range(10)
+    ]
+    nodes = store.put_blocks(leaves, DAG_PB, ROBOT, pin=False)
+    directory = put_directory(store, [Link(c, f"f{i}", 1000) for i, c in enumerate(nodes)])
+    monkeypatch.setattr(kubo, "LS_READ_BYTES", store.block_size(directory) + 3_500)
+
+    answer = call(app, "POST", "/api/v0/ls", params={"arg": str(directory)})
+
+    assert answer.status_code == 400, answer.text
+    error = answer.json()["error"]
+    assert error["code"] == "too_much_to_read"
+    assert error["details"]["field"] == "arg"
+    assert error["details"]["cid"] in {str(cid) for cid in nodes}
+
+
+def test_ls_of_more_arguments_than_its_limit_is_refused_naming_arg(
+    app: FastAPI, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = store_of(app)
+    directory = put_directory(store, [])
+    reads = count_reads(store, monkeypatch)
+
+    answer = call(
+        app, "POST", "/api/v0/ls", params=[("arg", str(directory))] * (kubo.MAX_LS_ARGS + 1)
+    )
+
+    assert answer.status_code == 400, answer.text
+    error = answer.json()["error"]
+    assert error["code"] == "too_many_arguments"
+    assert error["details"] == {"field": "arg", "limit": kubo.MAX_LS_ARGS}
+    assert not reads
