@@ -18,6 +18,7 @@ from eth_utils.address import to_checksum_address
 from robocloud import bounded_json
 from robocloud.bounded_json import JsonError
 from robocloud.errors import KeystoreError
+from robocloud.partial import written_whole
 
 PASSPHRASE_ENV = "ROBOCLOUD_PASSPHRASE"
 KEYSTORE_ENV = "ROBOCLOUD_KEYSTORE"
@@ -57,14 +58,15 @@ class Identity:
             raise KeystoreError("an empty passphrase would leave the key unprotected")
         keystore = Account.encrypt(self.account.key, passphrase, kdf="scrypt", iterations=scrypt_n)
         path.parent.mkdir(parents=True, exist_ok=True)
+        if path.exists() or path.is_symlink():
+            raise KeystoreError(f"{path} already exists; refusing to overwrite a key")
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with written_whole(path, overwrite=False, mode=0o600) as handle:
+                handle.write(json.dumps(keystore).encode())
+                handle.flush()
+                os.fsync(handle.fileno())
         except FileExistsError as exc:
             raise KeystoreError(f"{path} already exists; refusing to overwrite a key") from exc
-        with os.fdopen(fd, "w") as handle:
-            json.dump(keystore, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
 
     @classmethod
     def load(cls, path: Path, passphrase: str) -> Identity:
@@ -94,7 +96,10 @@ class Identity:
         address = keystore.get("address")
         if not isinstance(address, str):
             raise KeystoreError(f"{path} has no address field")
-        return str(to_checksum_address("0x" + address.removeprefix("0x")))
+        try:
+            return str(to_checksum_address("0x" + address.removeprefix("0x")))
+        except ValueError as exc:
+            raise KeystoreError(f"{path} has a malformed address: {address[:64]!r}") from exc
 
 
 def _read_keystore(path: Path) -> dict[str, Any]:

@@ -18,14 +18,15 @@ PARTIAL_ATTEMPTS = 16
 
 
 @contextmanager
-def written_whole(path: Path, *, overwrite: bool) -> Iterator[BinaryIO]:
+def written_whole(path: Path, *, overwrite: bool, mode: int = 0o666) -> Iterator[BinaryIO]:
     """A handle on a partial file beside ``path``, moved to ``path`` when the block ends
     normally and removed when it raises (an interrupt included).
 
     Without ``overwrite``, an existing ``path`` is never replaced (``FileExistsError``), even
-    by a file that appeared meanwhile.
+    by a file that appeared meanwhile. ``mode`` (before the umask) is the file's from its
+    creation, so a secret is never readable by others, not even half written.
     """
-    partial, handle = _create_partial(path)
+    partial, handle = _create_partial(path, mode)
     try:
         with handle:
             yield handle
@@ -35,7 +36,7 @@ def written_whole(path: Path, *, overwrite: bool) -> Iterator[BinaryIO]:
         raise
 
 
-def _create_partial(path: Path) -> tuple[Path, BinaryIO]:
+def _create_partial(path: Path, mode: int) -> tuple[Path, BinaryIO]:
     """A new hidden file beside ``path`` (``.NAME.<random>.partial``).
 
     Created with ``O_CREAT | O_EXCL | O_NOFOLLOW``: a file or symbolic link planted under
@@ -47,7 +48,7 @@ def _create_partial(path: Path) -> tuple[Path, BinaryIO]:
     for _ in range(PARTIAL_ATTEMPTS):
         partial = path.with_name(f".{path.name}.{secrets.token_hex(6)}.partial")
         try:
-            descriptor = os.open(partial, flags, 0o666)
+            descriptor = os.open(partial, flags, mode)
         except FileExistsError:
             continue
         return partial, os.fdopen(descriptor, "w+b")

@@ -179,6 +179,6 @@ def decode_revert(data: bytes, contracts: list[ContractAbi] | None = None) -> st
             custom = contract.decode_error(data)
             if custom is not None:
                 return custom
-    except DecodingError:
+    except (DecodingError, UnicodeDecodeError):  # a reason that is not UTF-8: a node's lie
         pass
     return f"execution reverted with undecodable data 0x{data.hex()}"

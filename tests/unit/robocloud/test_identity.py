@@ -79,3 +79,34 @@ def test_a_hostile_keystore_is_a_keystore_error(
     path.write_bytes(document)
     with pytest.raises(KeystoreError, match=message):
         Identity.load(path, "pw")
+
+
+@pytest.mark.parametrize("address", ["zz", "0x12", "g" * 40])
+def test_a_keystore_with_a_malformed_address_is_a_keystore_error(
+    tmp_path: Path, address: str
+) -> None:
+    """eth_utils' ValueError escaped as a traceback from ``robocloud keys show``."""
+    path = tmp_path / "key.json"
+    path.write_text(json.dumps({"address": address}))
+    with pytest.raises(KeystoreError, match="malformed address"):
+        Identity.keystore_address(path)
+
+
+def test_a_save_that_fails_midway_leaves_no_keystore_behind(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The keystore was created under its name and then written, so a failed write (a full
+    disk) left an empty file that made the next ``keys new`` refuse to overwrite it and
+    ``keys show`` call it unreadable."""
+    path = tmp_path / "robot.json"
+
+    def disk_full(_: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as patched:
+        patched.setattr("robocloud.identity.os.fsync", disk_full)
+        with pytest.raises(OSError, match="No space left"):
+            Identity.generate().save(path, "pass", scrypt_n=FAST_SCRYPT)
+    assert list(tmp_path.iterdir()) == []
+    Identity.generate().save(path, "pass", scrypt_n=FAST_SCRYPT)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600

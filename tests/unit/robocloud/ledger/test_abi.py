@@ -81,6 +81,13 @@ def test_decode_log_reads_topics_and_data() -> None:
     assert registry.decode_log({**log, "topics": []}) is None
 
 
+def test_a_revert_reason_that_is_not_utf8_is_shown_as_hex() -> None:
+    """eth_abi raises UnicodeDecodeError, not DecodingError, for such a string: it escaped
+    as a traceback from every CLI command that reads the chain."""
+    data = ERROR_SELECTOR + encode(["bytes"], [b"\xff\xfe"])
+    assert decode_revert(data) == f"execution reverted with undecodable data 0x{data.hex()}"
+
+
 def test_decode_revert_reasons() -> None:
     assert decode_revert(ERROR_SELECTOR + encode(["string"], ["Registry: empty CID"])) == (
         "Registry: empty CID"
