@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import hashlib
 import io
+import itertools
+import os
 import secrets
 import tempfile
 from collections.abc import Callable, Iterator
@@ -20,7 +22,7 @@ from urllib.parse import quote_plus
 
 from robocloud import bounded_json
 from robocloud.car import MAX_SECTION_BYTES, CarError, CarReader
-from robocloud.cid import CID, RAW, CIDError, parse_cid
+from robocloud.cid import CID, DAG_PB, RAW, Block, CIDError, parse_cid
 from robocloud.client import ServiceClient
 from robocloud.dagpb import Link
 from robocloud.directory import BuiltDirectory, DirectoryBuilder
@@ -28,12 +30,17 @@ from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
 from robocloud.partial import written_whole
 from robocloud.unixfs import (
     DEFAULT_MAX_LINKS,
+    DIRECTORY,
+    HAMT_SHARD,
+    METADATA,
     PROFILES,
+    SYMLINK,
     Importer,
     ImportParams,
     UnixfsError,
     assemble_file,
-    file_size,
+    decode_node,
+    file_node,
 )
 
 READ_SIZE = 1 << 20
@@ -63,6 +70,29 @@ class ContentTooLargeError(RobocloudError):
         self.cid = cid
         self.limit = limit
         self.declared = declared
+
+
+class NotAFileError(RobocloudError):
+    """The CID asked for is content that is not a file (a directory, a symbolic link): a
+    verified fact about what was asked for, so the asker's mistake, not the gateway's."""
+
+    def __init__(self, cid: CID, kind: str) -> None:
+        super().__init__(f"{cid} is {kind}, not a file")
+        self.cid = cid
+        self.kind = kind
+
+
+class LocalContentError(RobocloudError, ValueError):
+    """Content on this machine that cas cannot take as it is: a symbolic link, a name that
+    is not UTF-8 (UnixFS names are text), a directory with no name of its own."""
+
+
+_NOT_FILES = {
+    DIRECTORY: "a directory",
+    HAMT_SHARD: "a sharded directory",
+    SYMLINK: "a symbolic link",
+    METADATA: "a UnixFS metadata node",
+}
 
 
 def _no_progress(_: int) -> None:
@@ -180,7 +210,7 @@ class Cas(ServiceClient):
         file while the gateway works on the previous chunk.
         """
         params = params or ImportParams()
-        part = _Part(name or path.name, path)
+        part = _Part(name or _part_name(path), path)
         tree = _LocalImport(params)
         reported = self._add([part], tree, params, pin, progress)[-1][1]
         expected = tree.files[part.name].cid
@@ -204,11 +234,12 @@ class Cas(ServiceClient):
         """
         params = params or ImportParams()
         parts = _directory_parts(path, hidden)
+        root_name = parts[0].name
         tree = _LocalImport(params)
         answers = self._add(parts, tree, params, pin, progress)
-        expected = tree.directories()[path.name].link.cid
+        expected = tree.directories()[root_name].link.cid
         reported = answers[-1][1]
-        if answers[-1][0] != path.name or reported != expected:
+        if answers[-1][0] != root_name or reported != expected:
             raise CasError(f"the gateway says {reported}, but the directory's CID is {expected}")
         return expected
 
@@ -325,7 +356,9 @@ class Cas(ServiceClient):
         """The size a file's root block declares (verified block; the DAG may still lie)."""
         root = _as_cid(cid)
         try:
-            return file_size(root, self.block)
+            block = Block(root, self.block(root))
+            _refuse_what_is_not_a_file(block)
+            return file_node(root, block.data).size
         except (UnixfsError, FormatError) as exc:
             raise CasError(f"refused the gateway's root block {root}: {exc}") from exc
 
@@ -348,7 +381,13 @@ class Cas(ServiceClient):
             reader = CarReader(_IteratorReader(response.iter_bytes(READ_SIZE)))
             if root not in reader.roots:
                 raise CasError(f"the gateway's CAR is rooted at {reader.roots}, not {root}")
-            return assemble_file(root, iter(reader), out, progress)
+            blocks: Iterator[Block] = iter(reader)
+            first = next(blocks, None)
+            if first is not None:
+                if first.cid == root:
+                    _refuse_what_is_not_a_file(first)
+                blocks = itertools.chain([first], blocks)
+            return assemble_file(root, blocks, out, progress)
         except (CarError, UnixfsError) as exc:
             raise CasError(f"refused the gateway's CAR for {root}: {exc}") from exc
         finally:
@@ -469,21 +508,51 @@ class _LocalImport:
         return tree.finish()
 
 
+def _refuse_what_is_not_a_file(root: Block) -> None:
+    """``NotAFileError`` when the root block (hashed against its CID by the CAR reader) is a
+    directory or another node that is not a file (a malformed one is a ``UnixfsError``)."""
+    if root.cid.codec != DAG_PB:
+        return
+    _, unixfs = decode_node(root.cid, root.data)
+    kind = _NOT_FILES.get(unixfs.type)
+    if kind is not None:
+        raise NotAFileError(root.cid, kind)
+
+
+def _part_name(path: Path) -> str:
+    """The name ``path`` has in UnixFS: its own, ``.`` and ``..`` resolved as ``ipfs add``
+    does (``put .`` is the current directory under its name); refused when not UTF-8."""
+    name = Path(os.path.abspath(path)).name
+    if not name:
+        raise LocalContentError(f"{path} has no name to store it under")
+    try:
+        name.encode()
+    except UnicodeEncodeError as exc:
+        raise LocalContentError(
+            f"{os.fsencode(path)!r} has a name that is not UTF-8; UnixFS names are text"
+        ) from exc
+    return name
+
+
 def _directory_parts(root: Path, hidden: bool) -> list[_Part]:
     """kubo's order: each directory before its entries, entries by name bytes."""
     if not root.is_dir():
         raise NotADirectoryError(f"{root} is not a directory")
-    parts = [_Part(root.name, None)]
-    stack = [(root, root.name)]
+    root_name = _part_name(root)
+    parts = [_Part(root_name, None)]
+    stack = [(root, root_name)]
     while stack:
         directory, name = stack.pop()
         children: list[tuple[Path, str]] = []
-        for entry in sorted(directory.iterdir(), key=lambda item: item.name.encode()):
+        for entry in sorted(directory.iterdir(), key=lambda item: os.fsencode(item.name)):
             if entry.name.startswith(".") and not hidden:
                 continue
             if entry.is_symlink():
-                raise CasError(f"{entry} is a symbolic link: robocloud stores no UnixFS symlinks")
-            path = f"{name}/{entry.name}"
+                raise LocalContentError(
+                    f"{os.fsencode(entry)!r} is a symbolic link: robocloud stores no UnixFS "
+                    "symlinks"
+                )
+            path = f"{name}/{_part_name(entry)}"
             if entry.is_dir():
                 parts.append(_Part(path, None))
                 children.append((entry, path))

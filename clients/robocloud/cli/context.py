@@ -12,6 +12,7 @@ import typer
 from robocloud.cid import CID, CIDError, parse_cid
 from robocloud.cli.exits import ExitCode, Failure, report
 from robocloud.cli.output import untrusted
+from robocloud.errors import KeystoreError
 from robocloud.identity import PASSPHRASE_ENV, Identity, default_keystore_path
 
 JsonOption = typer.Option(False, "--json", help="Print one JSON document instead of text.")
@@ -36,9 +37,17 @@ def passphrase(*, confirm: bool = False) -> str:
     from_env = os.environ.get(PASSPHRASE_ENV)
     if from_env:
         return from_env
-    return str(
-        typer.prompt("Keystore passphrase", hide_input=True, confirmation_prompt=confirm, err=True)
-    )
+    try:
+        return str(
+            typer.prompt(
+                "Keystore passphrase", hide_input=True, confirmation_prompt=confirm, err=True
+            )
+        )
+    except typer.Abort as exc:  # click's answer to both Ctrl-C and no terminal (EOF)
+        raise KeystoreError(
+            f"no passphrase given (interrupted, or no terminal to ask on); scripts and robots "
+            f"set {PASSPHRASE_ENV}"
+        ) from exc
 
 
 def keystore_path(keystore: Path | None) -> Path:

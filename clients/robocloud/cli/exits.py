@@ -14,6 +14,7 @@ from enum import IntEnum
 
 from rich.text import Text
 
+from robocloud.cas import LocalContentError, NotAFileError
 from robocloud.cli.output import console, untrusted
 from robocloud.client import RedirectError
 from robocloud.errors import (
@@ -127,6 +128,14 @@ def failure_of(exc: BaseException) -> Failure:
             str(exc),
             f"the transaction was sent and may be mined: look {exc.tx_hash} up on a node you trust",
         )
+    if isinstance(exc, NotAFileError):
+        return Failure(
+            ExitCode.USAGE,
+            str(exc),
+            "`robocloud get` fetches one file: give the CID of a file, such as an entry's",
+        )
+    if isinstance(exc, LocalContentError):
+        return Failure(ExitCode.ERROR, str(exc))
     if isinstance(exc, (InvalidAnswerError, FormatError)):
         return Failure(
             ExitCode.INVALID_ANSWER,

@@ -261,6 +261,18 @@ def _store(
     return results
 
 
+def _query_text(query: str) -> str:
+    """The query itself, or the text of the file (``@FILE``) or of stdin (``-``) it names."""
+    if query != "-" and not query.startswith("@"):
+        return query
+    raw = sys.stdin.buffer.read() if query == "-" else Path(query[1:]).read_bytes()
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        where = "stdin" if query == "-" else query[1:]
+        raise typer.BadParameter(f"{where} is not UTF-8 text: {exc}", param_hint="QUERY") from exc
+
+
 def sparql(
     query: str = typer.Argument(
         ...,
@@ -283,12 +295,7 @@ def sparql(
         output = "json"
     if output != "table" and output not in FORMATS:
         raise typer.BadParameter(f"table or one of {', '.join(FORMATS)}", param_hint="--format")
-    if query == "-":
-        text = sys.stdin.read()
-    elif query.startswith("@"):
-        text = Path(query[1:]).read_text()
-    else:
-        text = query
+    text = _query_text(query)
     accept = (
         "application/sparql-results+json, text/turtle;q=0.9"
         if output == "table"

@@ -11,8 +11,9 @@ import typer
 from robocloud.cli.context import JsonOption, KeystoreOption, StorageOption, fail, load_identity
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.output import rows, show, show_json, untrusted
+from robocloud.errors import FormatError
 from robocloud.storage import Storage, TemplateVersion
-from robocloud.templates import load_template_document, type_to_json
+from robocloud.templates import load_template_document, parse_template_id, type_to_json
 
 MAX_TEMPLATE_FILE = 256 * 1024
 
@@ -22,9 +23,26 @@ templates_app = typer.Typer(
 
 
 def _document(file: Path) -> Any:
+    """The template document in ``file``: a file that is not one is the command's mistake
+    (exit 2), not the service's (exit 6, which a ``FormatError`` would otherwise get)."""
     if file.stat().st_size > MAX_TEMPLATE_FILE:
         fail(f"{file} is larger than {MAX_TEMPLATE_FILE} bytes", ExitCode.USAGE)
-    return load_template_document(file.read_bytes())
+    try:
+        return load_template_document(file.read_bytes())
+    except FormatError as exc:
+        fail(f"{file}: {exc}", ExitCode.USAGE)
+
+
+def _template_id(text: str) -> str:
+    """A ``name@version`` argument, checked here so a bad one is a usage error (exit 2)."""
+    try:
+        parse_template_id(text)
+    except FormatError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    return text
+
+
+TemplateId = typer.Argument(..., metavar="ID", help="name@version", callback=_template_id)
 
 
 def _show_version(version: TemplateVersion, as_json: bool) -> None:
@@ -92,7 +110,7 @@ def new_version(
 
 @templates_app.command("edit")
 def edit(
-    template_id: str = typer.Argument(..., metavar="ID", help="name@version"),
+    template_id: str = TemplateId,
     file: Path = TemplateFile,
     storage: str | None = StorageOption,
     keystore: Path | None = KeystoreOption,
@@ -106,7 +124,7 @@ def edit(
 
 @templates_app.command("submit")
 def submit(
-    template_id: str = typer.Argument(..., metavar="ID", help="name@version"),
+    template_id: str = TemplateId,
     storage: str | None = StorageOption,
     keystore: Path | None = KeystoreOption,
     as_json: bool = JsonOption,
@@ -118,7 +136,7 @@ def submit(
 
 @templates_app.command("review")
 def review(
-    template_id: str = typer.Argument(..., metavar="ID", help="name@version"),
+    template_id: str = TemplateId,
     decision: str = typer.Argument(..., help="approve or reject"),
     reason: str | None = typer.Option(None, help="Why (shown to the author)."),
     storage: str | None = StorageOption,
@@ -134,7 +152,7 @@ def review(
 
 @templates_app.command("show")
 def show_template(
-    template_id: str = typer.Argument(..., metavar="ID", help="name@version"),
+    template_id: str = TemplateId,
     storage: str | None = StorageOption,
     as_json: bool = JsonOption,
 ) -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from robocloud.cas import LocalContentError, NotAFileError
+from robocloud.cid import CID
 from robocloud.cli.exits import ExitCode, failure_of
 from robocloud.errors import (
     ApiError,
@@ -16,6 +18,8 @@ from robocloud.errors import (
     error_class_for,
 )
 from robocloud.ledger.errors import RevertError, RpcError, TransactionTimeoutError
+
+ROOT = CID.from_block(b"a directory, say")
 
 
 def api(status: int, code: str = "some_code", **details: object) -> ApiError:
@@ -71,6 +75,8 @@ def api(status: int, code: str = "some_code", **details: object) -> ApiError:
         (FormatError("bad CAR"), ExitCode.INVALID_ANSWER, "nothing was written"),
         (ConfigurationError("bad url"), ExitCode.USAGE, "ROBOCLOUD_*_URL"),
         (KeystoreError("no keystore"), ExitCode.ERROR, None),
+        (NotAFileError(ROOT, "a directory"), ExitCode.USAGE, "the CID of a file"),
+        (LocalContentError("d/link is a symbolic link"), ExitCode.ERROR, None),
         (PermissionError(13, "Permission denied"), ExitCode.ERROR, None),
         (KeyboardInterrupt(), ExitCode.INTERRUPTED, None),
     ],
