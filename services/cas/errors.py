@@ -22,6 +22,7 @@ from services.cas.uploads import (
     InvalidPath,
     NoFilePart,
     TooManyParts,
+    TooManyRoots,
 )
 from services.common.errors import ErrorMap, ErrorRule
 
@@ -72,6 +73,11 @@ ERRORS = ErrorMap(
             413, "too_many_entries", lambda exc: {"field": "entries", "limit": exc.limit}
         ),
         InvalidBlock: ErrorRule(400, "invalid_block", lambda exc: {"index": exc.index}),
+        TooManyRoots: ErrorRule(
+            400,
+            "too_many_roots",
+            lambda exc: {"field": "roots", "count": exc.count, "limit": exc.limit},
+        ),
         PathNotFound: ErrorRule(
             404, "path_not_found", lambda exc: {"segment": exc.segment, "cid": str(exc.at)}
         ),

@@ -318,10 +318,21 @@ class ContentStore:
         except UnixfsError as exc:
             raise InvalidDag(root, str(exc)) from exc
 
-    def import_car(self, staging: Staging, source: ByteSource) -> list[CID]:
-        """Stage every block of a CAR; any bad block raises and the caller discards it all."""
+    def import_car(
+        self,
+        staging: Staging,
+        source: ByteSource,
+        check_roots: Callable[[list[CID]], None] | None = None,
+    ) -> list[CID]:
+        """Stage every block of a CAR; any bad block raises and the caller discards it all.
+
+        ``check_roots`` sees the header's roots before any block is read, and may refuse them
+        by raising: an import over many CARs bounds its roots before it hashes their blocks.
+        """
         try:
             reader = CarReader(source)
+            if check_roots is not None:
+                check_roots(reader.roots)
             for block in reader:
                 staging.add(block.cid, block.data)
         except CarError as exc:

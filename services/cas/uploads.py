@@ -21,6 +21,7 @@ from typing import Generic, Protocol, TypeVar
 import anyio
 from anyio.streams.memory import MemoryObjectReceiveStream
 
+from robocloud.car import MAX_ROOTS
 from robocloud.cid import CID, DAG_PB, Block
 from robocloud.dagpb import DagPbError, PBNode
 from robocloud.directory import DirectoryBuilder, split_path
@@ -52,6 +53,17 @@ class InvalidPath(ValueError):
 class TooManyParts(ValueError):
     def __init__(self, limit: int) -> None:
         super().__init__(f"the upload holds more than {limit} files and directories")
+        self.limit = limit
+
+
+class TooManyRoots(ValueError):
+    """A ``dag/import`` whose CARs name more distinct roots, together, than one header may."""
+
+    def __init__(self, count: int, limit: int) -> None:
+        super().__init__(
+            f"the CARs name at least {count} distinct roots together, more than {limit}"
+        )
+        self.count = count
         self.limit = limit
 
 
@@ -304,13 +316,18 @@ def _post_order(path: str) -> tuple[bytes, ...]:
 
 
 class CarImport:
-    """``dag/import``: each CAR part spooled to a file, then every block verified and staged."""
+    """``dag/import``: each CAR part spooled to a file, then every block verified and staged.
+
+    The roots of all parts are one set in first-seen order (kubo's answer names each once),
+    at most ``MAX_ROOTS`` of them, as one header may hold: 400 parts of 1,024 roots each
+    were 409,600 roots walked, pinned and answered (488 MiB of memory, a 103 MiB answer).
+    """
 
     def __init__(self, store: ContentStore, *, pin_roots: bool) -> None:
         self.store = store
         self.pin_roots = pin_roots
         self.staging = store.blocks.stage()
-        self.roots: list[CID] = []
+        self.roots: dict[CID, None] = {}
         self._file: tempfile._TemporaryFileWrapper[bytes] | None = None
 
     def directory(self, name: str) -> None:
@@ -329,8 +346,15 @@ class CarImport:
         with self._file as spooled:
             spooled.flush()
             spooled.seek(0)
-            self.roots.extend(self.store.import_car(self.staging, spooled))
+            self.store.import_car(self.staging, spooled, self._take_roots)
         self._file = None
+
+    def _take_roots(self, roots: list[CID]) -> None:
+        """Add a header's roots to the set; ``TooManyRoots`` once they pass ``MAX_ROOTS``,
+        before this part's blocks are read and before anything is stored or pinned."""
+        self.roots.update(dict.fromkeys(roots))
+        if len(self.roots) > MAX_ROOTS:
+            raise TooManyRoots(len(self.roots), MAX_ROOTS)
 
     def commit(self, owner: str) -> list[ImportedRoot]:
         """Walk every root's DAG first (one too deep or malformed rejects the whole import),
@@ -338,7 +362,7 @@ class CarImport:
 
         The roots share one walk (``ContentStore.missing_blocks``): a CAR naming one large
         DAG under many roots costs one pass over its blocks."""
-        missing = dict(self.store.missing_blocks(self.roots, self.staging))
+        missing = dict(self.store.missing_blocks(list(self.roots), self.staging))
         self.staging.commit()
         if not self.pin_roots:
             return [ImportedRoot(root, "") for root in self.roots]

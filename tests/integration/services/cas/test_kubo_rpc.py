@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+from typing import Any
 
 import httpx
 import pytest
@@ -11,12 +12,18 @@ import pytest
 import robocloud
 from robocloud.car import CarReader, write_car
 from robocloud.cas import Cas
-from robocloud.cid import CID, DAG_PB, RAW
+from robocloud.cid import CID, DAG_PB, RAW, Block
 from robocloud.client import ServiceClient
 from robocloud.dagpb import PBNode
 from robocloud.errors import ApiError
 from robocloud.unixfs import ImportParams, import_bytes
-from tests.integration.services.cas.conftest import error_of, multipart, repo_stat, store_unchanged
+from tests.integration.services.cas.conftest import (
+    error_of,
+    multipart,
+    pin_list,
+    repo_stat,
+    store_unchanged,
+)
 from tests.procs import ServiceProcess
 from tests.unit.robocloud.ipfs_vectors import PROFILES, car_path, input_named, vectors
 
@@ -48,7 +55,7 @@ def expected_cid(name: str, profile: str) -> str:
     raise KeyError((name, profile))
 
 
-def add_lines(client: ServiceClient, body: bytes, content_type: str, **params: object) -> list:
+def add_lines(client: ServiceClient, body: bytes, content_type: str, **params: object) -> list[Any]:
     response = client.request(
         "POST", "/api/v0/add", params=params, content=body, headers={"Content-Type": content_type}
     )
@@ -204,7 +211,7 @@ def test_dag_export_is_a_verifiable_car(cas: Cas, cas_service: ServiceProcess) -
     "fixture", vectors()["cars"][:4], ids=lambda c: str(c["path"]).rsplit("/", 1)[-1]
 )
 def test_dag_import_of_conformance_cars(
-    signed: ServiceClient, cas_service: ServiceProcess, fixture: dict
+    signed: ServiceClient, cas_service: ServiceProcess, fixture: dict[str, Any]
 ) -> None:
     raw = car_path(str(fixture["path"])).read_bytes()
     roots = CarReader(io.BytesIO(raw)).roots
@@ -232,6 +239,47 @@ def test_dag_import_round_trip_pins_roots(
     assert json.loads(response.text) == {"Root": {"Cid": {"/": str(root)}, "PinErrorMsg": ""}}
     pins = httpx.post(f"{cas_service.url}/api/v0/pin/ls").json()["Keys"]
     assert pins[str(root)]["Owners"] == [signed.identity.address]  # type: ignore[union-attr]
+
+
+def import_cars(signed: ServiceClient, *cars: bytes) -> httpx.Response:
+    body, content_type = multipart(*((f"{index}.car", car) for index, car in enumerate(cars)))
+    return signed.request(
+        "POST", "/api/v0/dag/import", content=body, headers={"Content-Type": content_type}
+    )
+
+
+def test_dag_import_answers_a_root_named_by_two_cars_once(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    """kubo keeps the roots of all parts in one set; each is walked, pinned and answered
+    once, in the order first named."""
+    blocks, root = import_bytes(b"named twice" * 100, ImportParams())
+    other = Block(CID.from_block(b"named once"), b"named once")
+    first = b"".join(write_car([root], blocks))
+    second = b"".join(write_car([root, other.cid], [*blocks, other]))
+    response = import_cars(signed, first, second)
+    answers = [json.loads(line)["Root"] for line in response.text.splitlines()]
+    assert answers == [
+        {"Cid": {"/": str(root)}, "PinErrorMsg": ""},
+        {"Cid": {"/": str(other.cid)}, "PinErrorMsg": ""},
+    ]
+    assert {str(root), str(other.cid)} <= pin_list(cas_service.url)["Keys"].keys()
+
+
+def test_dag_import_of_more_roots_than_a_header_holds_over_its_cars_stores_nothing(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    """Each header holds at most 1,024 roots, but the parts had no bound together: 400 CARs
+    of 1,024 roots were 409,600 roots walked, pinned and answered (488 MiB, a 103 MiB
+    answer). The distinct roots of one import are bounded as one header's are."""
+    leaves = [Block(CID.from_block(data), data) for data in (b"root %d" % i for i in range(1025))]
+    first = b"".join(write_car([leaf.cid for leaf in leaves[:1024]], leaves[:1024]))
+    again = b"".join(write_car([leaves[0].cid], leaves[:1]))
+    second = b"".join(write_car([leaves[1024].cid], leaves[1024:]))
+    with store_unchanged(cas_service), pytest.raises(ApiError) as exc:
+        import_cars(signed, first, again, second)
+    details = error_of(exc, 400, "too_many_roots").details
+    assert details == {"field": "roots", "count": 1025, "limit": 1024}
 
 
 def test_version_answers_like_kubo(cas_service: ServiceProcess) -> None:

@@ -55,7 +55,7 @@ def test_a_dag_named_under_many_roots_is_walked_once_and_pinned_in_one_line(
     journal = tmp_path / "pins.log"
     before = journal.read_bytes().count(b"\n") if journal.exists() else 0
     answers = imported(store, roots, [*blocks, *shared])
-    assert answers == [ImportedRoot(root, "") for root in roots]
+    assert answers == [ImportedRoot(root, "") for root in dict.fromkeys(roots)]  # each once
     assert set(reads.values()) == {1}
     assert len(reads) == len(blocks) + len(shared)
     assert journal.read_bytes().count(b"\n") == before + 1
