@@ -24,6 +24,7 @@ from services.cas import kubo
 from services.cas.app import build_app
 from services.cas.settings import CasSettings
 from services.cas.store import ContentStore
+from services.common.slots import Slots
 
 ROBOT = "0x" + "ab" * 20
 ENTRIES = 300
@@ -135,3 +136,70 @@ def test_ls_of_more_arguments_than_its_limit_is_refused_naming_arg(
     assert error["code"] == "too_many_arguments"
     assert error["details"] == {"field": "arg", "limit": kubo.MAX_LS_ARGS}
     assert not reads
+
+
+def test_dag_json_of_a_directory_is_its_node_on_get_and_head(app: FastAPI) -> None:
+    store = store_of(app)
+    (one, two) = store.put_blocks([b"one", b"two!"], RAW, ROBOT, pin=False)
+    directory = put_directory(store, [Link(two, "b", 4), Link(one, "a", 3)])
+
+    got = call(app, "GET", f"/ipfs/{directory}", params={"format": "dag-json"})
+    head = call(app, "HEAD", f"/ipfs/{directory}", params={"format": "dag-json"})
+
+    assert got.status_code == 200, got.text
+    assert got.headers["content-type"] == "application/vnd.ipld.dag-json"
+    assert got.json() == {
+        "Data": {"/": {"bytes": "CAE"}},  # UnixFS Data, type Directory
+        "Links": [
+            {"Hash": {"/": str(one)}, "Name": "a", "Tsize": 3},
+            {"Hash": {"/": str(two)}, "Name": "b", "Tsize": 4},
+        ],
+    }
+    assert head.status_code == 200
+    assert head.content == b""
+    assert head.headers["content-length"] == str(len(got.content))
+
+
+LISTINGS: dict[str, tuple[str, str, dict[str, Any]]] = {
+    "gateway-html": ("GET", "/ipfs/{cid}/", {"headers": {"Accept": "text/html"}}),
+    "kubo-ls": ("POST", "/api/v0/ls", {"params": {"arg": "{cid}"}}),
+    "dag-json": ("GET", "/ipfs/{cid}", {"params": {"format": "dag-json"}}),
+    "dag-json-head": ("HEAD", "/ipfs/{cid}", {"params": {"format": "dag-json"}}),
+}
+
+
+@pytest.mark.parametrize("listing", LISTINGS)
+def test_listings_and_dag_json_wait_for_a_listing_turn_then_are_busy(
+    app: FastAPI, listing: str
+) -> None:
+    """A node as dag-json was decoded and encoded on the event loop (0.8 s for 65,536 links,
+    20 requests held every route 12.5 s): it now takes the listing turns, and is refused
+    like a listing when none comes free."""
+    store = store_of(app)
+    (leaf,) = store.put_blocks([b"leaf"], RAW, ROBOT, pin=False)
+    directory = put_directory(store, [Link(leaf, "leaf", 4)])
+    slots = app.state.listing_slots = Slots("listing", 2, 0.05)
+    method, path, options = LISTINGS[listing]
+    path = path.format(cid=directory)
+    if "params" in options:
+        options = {"params": {k: v.format(cid=directory) for k, v in options["params"].items()}}
+
+    async def busy_then_free() -> tuple[httpx.Response, httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://cas") as client:
+            releases = [await slots.hold() for _ in range(slots.count)]
+            try:
+                busy = await client.request(method, path, **options)
+            finally:
+                for release in releases:
+                    release()
+            return busy, await client.request(method, path, **options)
+
+    busy, free = asyncio.run(busy_then_free())
+
+    assert busy.status_code == 503, busy.text
+    assert busy.headers["retry-after"] == "1"
+    if method != "HEAD":
+        error = busy.json()["error"]
+        assert (error["code"], error["details"]) == ("busy", {"slots": 2, "wait_s": 0.05})
+    assert free.status_code == 200
