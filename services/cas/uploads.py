@@ -258,13 +258,16 @@ class FileAdder:
                 self.staging.add(block.cid, block.data)
 
     def commit(self, owner: str) -> list[Added]:
-        """Kubo's order: the files as they came, the directories after their contents."""
+        """Kubo's order: the files as they came, the directories after their contents.
+
+        Every top-level item is pinned in one journal line: all or none, one fsync (they were
+        pinned one a line, 2,003 fsyncs for 2,000 files, and a crash kept the first few).
+        """
         directories = self._build_directories() if self._is_tree() else []
         if not self.only_hash:
             self.staging.commit()
             if self.pin:
-                for root in self._roots(directories):
-                    self.store.pins.add(root.cid, owner)
+                self.store.pins.add_all([root.cid for root in self._roots(directories)], owner)
         return self.files + directories
 
     def _is_tree(self) -> bool:
