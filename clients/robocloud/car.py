@@ -1,8 +1,14 @@
-"""CARv1: the transport of DAGs between robocloud and the IPFS ecosystem.
+"""CARs: the transport of DAGs between robocloud and the IPFS ecosystem.
 
-A CAR is a varint-framed dag-cbor header ``{"roots": [...], "version": 1}`` followed by
+A CARv1 is a varint-framed dag-cbor header ``{"roots": [...], "version": 1}`` followed by
 varint-framed ``(CID, block)`` sections. The reader verifies every block against its CID as
 it streams past, so a CAR from anywhere can be trusted block by block.
+
+The reader also takes a CARv2 (https://ipld.io/specs/transport/car/carv2/), as kubo's
+``dag import`` does: the 11-byte pragma, a 40-byte header (characteristics, data offset, data
+size, index offset), then a CARv1 payload at the data offset, which is read with every bound
+of a CARv1 and no further than the data size. The index is never read: import needs none, and
+nothing in it is trusted. The writer writes CARv1 only, as kubo's ``dag export`` does.
 """
 
 from __future__ import annotations
@@ -21,6 +27,30 @@ MAX_ROOTS = 1024
 MAX_SECTION_BYTES = 8 << 20
 """go-car's default section limit: a block and its CID (bitswap moves blocks up to 2 MiB)."""
 CID_TAG = 42
+
+CARV2_PRAGMA = bytes.fromhex("0aa16776657273696f6e02")
+"""The varint 10 and the dag-cbor ``{"version": 2}``: a CARv1 header a CARv1 reader refuses."""
+CARV2_HEADER_BYTES = 40
+CARV2_PREFIX_BYTES = len(CARV2_PRAGMA) + CARV2_HEADER_BYTES
+"""51: where a CARv2's payload may start at the earliest."""
+CARV2_CHARACTERISTICS = {
+    0: "fully-indexed",
+    1: "dfs-order",
+    2: "duplicates",
+    3: "no-duplicates",
+    4: "zero-terminated-payload",
+    5: "trailer-message",
+}
+"""The characteristics the CARv2 spec defines, by bit: bit 0 is the left-most bit of the
+first byte (go-car's ``fullyIndexedCharPos``, bit 7 of its little-endian ``Hi``).
+
+Bits 0-3 and 5 describe the index, the order of blocks, duplicates, or bytes after the
+payload, none of which an import reads: they are taken. Bit 4 (a payload that ends at a
+zero-length section rather than at the data size) is refused, as go-car (kubo) cannot read it
+either; 2 and 3 together are refused as the spec calls them exclusive; any other bit is
+refused, because a future characteristic may move the payload (as bit 4 does) and reading it
+as if it were unset could import something other than what the writer meant."""
+_SKIP_CHUNK = 1 << 16
 
 
 class ByteSource(Protocol):
@@ -157,9 +187,10 @@ class _Cbor:
 class _Stream:
     """A byte source that counts what it has given, so errors can say where in the CAR."""
 
-    def __init__(self, source: ByteSource) -> None:
+    def __init__(self, source: ByteSource, offset: int = 0, end: int | None = None) -> None:
         self.source = source
-        self.offset = 0
+        self.offset = offset
+        self.cut = "" if end is None else f" (the CARv2 data size ends the payload at byte {end})"
 
     def varint(self) -> int | None:
         """A multiformats varint (at most 9 bytes, minimal); ``None`` at a clean end."""
@@ -170,7 +201,7 @@ class _Stream:
             if not byte:
                 if index == 0:
                     return None
-                raise CarError(f"truncated CAR: the varint at byte {at} ends early")
+                raise CarError(f"truncated CAR: the varint at byte {at} ends early{self.cut}")
             self.offset += 1
             value |= (byte[0] & 0x7F) << shift
             if not byte[0] & 0x80:
@@ -185,29 +216,142 @@ class _Stream:
         if len(data) != size:
             raise CarError(
                 f"truncated CAR: {size} bytes due at byte {self.offset}, {len(data)} there"
+                f"{self.cut}"
             )
         self.offset += size
         return data
 
 
+class _Payload:
+    """A CARv2's CARv1 payload: ``size`` bytes of ``source`` starting at file byte ``start``.
+
+    Gives nothing past the data size, and refuses a CAR that ends before it, so the payload's
+    own reader sees a clean end only where the data size says the payload ends."""
+
+    def __init__(self, source: ByteSource, start: int, size: int) -> None:
+        self.source = source
+        self.start = start
+        self.size = size
+        self.given = 0
+
+    def read(self, size: int = -1, /) -> bytes:
+        left = self.size - self.given
+        wanted = left if size < 0 else min(size, left)
+        data = b""
+        while len(data) < wanted:
+            more = self.source.read(wanted - len(data))
+            if not more:
+                raise CarError(
+                    f"CARv2 data size {self.size} runs past the end of the CAR: the payload "
+                    f"from byte {self.start} would end at byte {self.start + self.size}, the "
+                    f"CAR ends at byte {self.start + self.given + len(data)}"
+                )
+            data += more
+        self.given += len(data)
+        return data
+
+
+def _read_header(stream: _Stream) -> tuple[object, bytes]:
+    """A CAR header at ``stream``'s offset: its decoded CBOR item and its raw bytes."""
+    size = stream.varint()
+    if size is None or size == 0:
+        raise CarError(f"missing CAR header at byte {stream.offset}")
+    if size > MAX_HEADER_BYTES:
+        raise CarError(f"a CAR header of {size} bytes, more than {MAX_HEADER_BYTES}")
+    raw = stream.exactly(size)
+    cbor = _Cbor(raw)
+    header = cbor.item()
+    if cbor.pos != size:
+        raise CarError(f"{size - cbor.pos} bytes after the CAR header's CBOR item")
+    return header, raw
+
+
+def _version(header: object) -> object:
+    return header.get("version") if isinstance(header, dict) else None
+
+
+def _check_characteristics(field: bytes) -> None:
+    bits = [bit for bit in range(8 * len(field)) if field[bit // 8] & (0x80 >> (bit % 8))]
+    unknown = [bit for bit in bits if bit not in CARV2_CHARACTERISTICS]
+    if unknown:
+        shown = ", ".join(map(str, unknown[:8])) + (", ..." if len(unknown) > 8 else "")
+        raise CarError(
+            f"unknown CARv2 characteristics bits set: {shown} (the spec defines bits 0-5; an "
+            f"unknown one may change where the payload is, so it is not ignored)"
+        )
+    if 4 in bits:
+        raise CarError(
+            "CARv2 characteristic bit 4 (zero-terminated-payload) is not supported: the "
+            "payload must end at its data size"
+        )
+    if 2 in bits and 3 in bits:
+        raise CarError(
+            "CARv2 characteristics bits 2 (duplicates) and 3 (no-duplicates) are both set; "
+            "the spec makes them exclusive"
+        )
+
+
+def _open_v2(outer: _Stream) -> _Stream:
+    """Read a CARv2's header after its pragma and skip to its payload; the payload's stream."""
+    fixed = outer.source.read(CARV2_HEADER_BYTES)
+    if len(fixed) != CARV2_HEADER_BYTES:
+        raise CarError(
+            f"truncated CARv2 header: {CARV2_HEADER_BYTES} bytes due at byte {outer.offset}, "
+            f"{len(fixed)} there"
+        )
+    outer.offset += CARV2_HEADER_BYTES
+    _check_characteristics(fixed[:16])
+    offset, size, index = (int.from_bytes(fixed[at : at + 8], "little") for at in (16, 24, 32))
+    if offset < CARV2_PREFIX_BYTES:
+        raise CarError(
+            f"CARv2 data offset {offset} is inside the pragma and header, which end at byte "
+            f"{CARV2_PREFIX_BYTES}"
+        )
+    if size == 0:
+        raise CarError("CARv2 data size 0: the CAR has no CARv1 payload")
+    if 0 < index < offset + size:
+        raise CarError(
+            f"CARv2 index offset {index} is inside the payload (bytes {offset} to "
+            f"{offset + size}); an index follows the payload"
+        )
+    while outer.offset < offset:
+        skipped = len(outer.source.read(min(_SKIP_CHUNK, offset - outer.offset)))
+        if not skipped:
+            raise CarError(
+                f"CARv2 data offset {offset} is beyond the end of the CAR at byte {outer.offset}"
+            )
+        outer.offset += skipped
+    return _Stream(_Payload(outer.source, offset, size), offset, offset + size)
+
+
 class CarReader:
-    """Iterate the verified blocks of a CARv1 stream; ``roots`` is read at construction."""
+    """Iterate the verified blocks of a CARv1 or CARv2 stream; ``roots`` is read at
+    construction, ``version`` says which. The stream is read once, from its start; a CARv2's
+    is read no further than its payload's end, so its index (or whatever follows) is never
+    read, and is bounded only by whatever bounds the stream (an upload's own limit)."""
 
     def __init__(self, stream: ByteSource, *, max_section: int = MAX_SECTION_BYTES) -> None:
         self.stream = _Stream(stream)
         self.max_section = max_section
-        size = self.stream.varint()
-        if size is None or size == 0:
-            raise CarError("missing CAR header")
-        if size > MAX_HEADER_BYTES:
-            raise CarError(f"a CAR header of {size} bytes, more than {MAX_HEADER_BYTES}")
-        cbor = _Cbor(self.stream.exactly(size))
-        header = cbor.item()
-        if cbor.pos != size:
-            raise CarError(f"{size - cbor.pos} bytes after the CAR header's CBOR item")
-        if not isinstance(header, dict) or header.get("version") != 1:
-            raise CarError("not a CARv1 header (version must be 1)")
-        roots = header.get("roots")
+        self.version = 1
+        header, raw = _read_header(self.stream)
+        if _version(header) == 2:
+            if encode_varint(len(raw)) + raw != CARV2_PRAGMA:
+                raise CarError(
+                    f"a version 2 CAR header that is not the CARv2 pragma {CARV2_PRAGMA.hex()}"
+                )
+            self.version = 2
+            self.stream = _open_v2(self.stream)
+            at = self.stream.offset
+            header, _ = _read_header(self.stream)
+            if _version(header) != 1:
+                raise CarError(
+                    f"the CARv2 payload at byte {at} is not a CARv1 (its header's version "
+                    f"must be 1)"
+                )
+        elif _version(header) != 1:
+            raise CarError("not a CARv1 or CARv2 header (version must be 1 or 2)")
+        roots = header.get("roots") if isinstance(header, dict) else None
         if not isinstance(roots, list) or not all(isinstance(r, CID) for r in roots):
             raise CarError("CAR header roots must be a list of CIDs")
         self.roots: list[CID] = roots
