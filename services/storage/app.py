@@ -312,7 +312,11 @@ def _cas_offload(node: StorageNode, settings: StorageSettings) -> Offload:
 def _open_records(app: FastAPI, settings: StorageSettings, node: StorageNode) -> None:
     collect_garbage_less_often()
     data_dir = settings.resolved_data_dir()
-    app.state.catalog = Catalog(data_dir / "catalog", max_versions=settings.storage_max_templates)
+    app.state.catalog = Catalog(
+        data_dir / "catalog",
+        max_versions=settings.storage_max_templates,
+        max_bytes=settings.storage_max_template_bytes,
+    )
     app.state.record_logs = node.logs
     app.state.records = RecordStore(
         data_dir,

@@ -7,9 +7,9 @@ Merkle leaves refer to it by id, so an edit would silently retype data already p
 edit of an approved version is refused; the designer makes a new version instead. A rejected
 version may be edited, which makes it a draft again.
 
-The catalog is small (a version is at most a few kilobytes) and lives in memory; every change
-is one fsynced line of a journal, compacted at each start, so a change acknowledged survives
-kill -9.
+The catalog lives in memory, bounded in versions and in bytes (a version's fields may hold
+a hundred kilobytes, so a count alone let 100,000 of them take 79 GiB); every change is one
+fsynced line of a journal, compacted at each start, so a change acknowledged survives kill -9.
 """
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ STATUSES: tuple[Status, ...] = ("draft", "submitted", "approved", "rejected")
 Decision = Literal["approve", "reject"]
 MAX_REASON = 1024
 DEFAULT_MAX_VERSIONS = 100_000
+DEFAULT_MAX_BYTES = 64 * 1024 * 1024
+"""Bytes of the versions' journal lines, which their size in memory follows (about 5x)."""
 
 
 class CatalogError(Exception):
@@ -96,9 +98,10 @@ class TemplateNotApproved(CatalogError):
 
 
 class CatalogFull(CatalogError):
-    def __init__(self, limit: int) -> None:
-        super().__init__(f"the catalog holds its limit of {limit} template versions")
+    def __init__(self, limit: int, unit: str = "template versions") -> None:
+        super().__init__(f"the catalog holds its limit of {limit} {unit}")
         self.limit = limit
+        self.unit = unit
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,10 @@ class TemplateVersion:
         )
 
 
+def _line(version: TemplateVersion) -> str:
+    return json.dumps(version.to_json(), separators=(",", ":"))
+
+
 def _evaluated(document: Any, name: str, version: int) -> Template:
     """``document`` (fields, description; name and version optional) as version ``version``."""
     if not isinstance(document, dict):
@@ -174,30 +181,42 @@ class Catalog:
         root: Path,
         *,
         max_versions: int = DEFAULT_MAX_VERSIONS,
+        max_bytes: int = DEFAULT_MAX_BYTES,
         clock: Callable[[], float] = time.time,
     ) -> None:
         root.mkdir(parents=True, exist_ok=True)
         self.max_versions = max_versions
+        self.max_bytes = max_bytes
         self.clock = clock
         self._lock = threading.Lock()
         self._versions: dict[str, TemplateVersion] = {}
+        self._sizes: dict[str, int] = {}
+        """Each version's journal line, in bytes; their sum is what ``max_bytes`` bounds."""
+        self._bytes = 0
         self._latest: dict[str, int] = {}
         self._journal = AppendLog(root / "catalog.log")
         for line in self._journal.read_lines():
-            self._remember(TemplateVersion.from_json(json.loads(line)))
-        self._journal.rewrite([json.dumps(v.to_json()) for v in self._versions.values()])
+            self._remember(TemplateVersion.from_json(json.loads(line)), len(line))
+        self._journal.rewrite([_line(v) for v in self._versions.values()])
 
     def close(self) -> None:
         self._journal.close()
 
-    def _remember(self, version: TemplateVersion) -> None:
+    def _remember(self, version: TemplateVersion, size: int) -> None:
+        self._bytes += size - self._sizes.get(version.id, 0)
+        self._sizes[version.id] = size
         self._versions[version.id] = version
         name = version.template.name
         self._latest[name] = max(self._latest.get(name, 0), version.template.version)
 
     def _store(self, version: TemplateVersion) -> TemplateVersion:
-        self._journal.append(json.dumps(version.to_json(), separators=(",", ":")))
-        self._remember(version)
+        """Journal and keep ``version``; :class:`CatalogFull` when it would take the catalog
+        past ``max_bytes`` (an edit counts as the change in its size)."""
+        line = _line(version)
+        if self._bytes - self._sizes.get(version.id, 0) + len(line) > self.max_bytes:
+            raise CatalogFull(self.max_bytes, "bytes of templates")
+        self._journal.append(line)
+        self._remember(version, len(line))
         return version
 
     def _now(self) -> int:
@@ -321,3 +340,25 @@ class Catalog:
         if start is not None:
             chosen = [v for v in chosen if (v.template.name, v.template.version) > start]
         return chosen[:limit]
+
+    def page(
+        self,
+        *,
+        name: str | None = None,
+        status: Status | None = None,
+        after: str | None = None,
+        limit: int = 100,
+        max_bytes: int,
+    ) -> tuple[tuple[TemplateVersion, ...], bool]:
+        """At most ``limit`` versions in ``list``'s order and at most ``max_bytes`` of them
+        (always one), and whether more follow: a thousand large versions made one answer of
+        tens of megabytes."""
+        versions = self.list(name=name, status=status, after=after, limit=limit + 1)
+        taken = 0
+        size = 0
+        for version in versions[:limit]:
+            size += self._sizes.get(version.id, 0)
+            if taken and size > max_bytes:
+                break
+            taken += 1
+        return tuple(versions[:taken]), taken < len(versions)

@@ -118,7 +118,9 @@ ERRORS = ErrorMap(
             "template_not_approved",
             lambda exc: {"template": exc.template_id, "status": exc.status},
         ),
-        CatalogFull: ErrorRule(507, "catalog_full", lambda exc: {"limit": exc.limit}),
+        CatalogFull: ErrorRule(
+            507, "catalog_full", lambda exc: {"limit": exc.limit, "unit": exc.unit}
+        ),
         RecordInvalid: ErrorRule(400, "invalid_record", lambda exc: {"field": exc.path}),
         RecordRejected: ErrorRule(
             400,

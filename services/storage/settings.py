@@ -108,6 +108,12 @@ class StorageSettings(ServiceSettings):
     storage_max_templates: int = Field(
         default=100_000, gt=0, description="template versions the catalog holds at most"
     )
+    storage_max_template_bytes: int = Field(
+        default=64 * 1024**2,
+        gt=0,
+        description="bytes of template versions (as journalled) the catalog holds at most; "
+        "its memory is about five times that",
+    )
 
     # ----- bag ingestion and export (engineer bags) -----
     storage_max_bag_bytes: int = Field(

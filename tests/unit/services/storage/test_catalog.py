@@ -124,3 +124,52 @@ def test_the_catalog_survives_a_restart_and_is_bounded(tmp_path: Path) -> None:
     reopened.new_version("gps", {"fields": {"lat": "float"}}, author=AUTHOR)
     reopened.close()
     assert [v.id for v in Catalog(tmp_path).list(name="gps")] == ["gps@1", "gps@2"]
+
+
+def _big(name: str, fields: int = 200) -> dict[str, Any]:
+    """A template of about ``fields`` * 20 bytes, as large as a stranger may make one."""
+    return {"name": name, "fields": {f"field_{i:04d}": "float" for i in range(fields)}}
+
+
+def test_the_catalog_is_bounded_in_bytes_and_an_edit_counts_its_growth(tmp_path: Path) -> None:
+    """The count alone let 100,000 versions of 160 KB each take 79 GiB of memory."""
+    measure = Catalog(tmp_path / "measure")
+    measure.create(_big("a"), author=AUTHOR)
+    measure.create(_big("b", 100), author=AUTHOR)
+    sizes = [len(line) for line in (tmp_path / "measure" / "catalog.log").read_bytes().split()]
+    limit = sum(sizes) + 1000
+    catalog = Catalog(tmp_path / "c", max_bytes=limit)
+    catalog.create(_big("a"), author=AUTHOR)
+    catalog.create(_big("b", 100), author=AUTHOR)
+    journal = (tmp_path / "c" / "catalog.log").read_bytes()
+    with pytest.raises(CatalogFull, match=f"its limit of {limit} bytes of templates"):
+        catalog.create(_big("c"), author=AUTHOR)
+    with pytest.raises(CatalogFull, match="bytes of templates"):
+        catalog.edit("b@1", {"fields": _big("b")["fields"]}, author=AUTHOR)
+    assert (tmp_path / "c" / "catalog.log").read_bytes() == journal
+    assert [v.id for v in catalog.list()] == ["a@1", "b@1"]
+    assert len(catalog.get("b@1").template.fields) == 100
+    catalog.edit("b@1", {"fields": {"x": "int"}}, author=AUTHOR)
+    catalog.create(_big("c", 100), author=AUTHOR)
+    catalog.close()
+    reopened = Catalog(tmp_path / "c", max_bytes=limit)
+    with pytest.raises(CatalogFull, match="bytes of templates"):
+        reopened.create(_big("d"), author=AUTHOR)
+    reopened.close()
+
+
+def test_a_page_stops_at_its_byte_budget_but_holds_at_least_one_version(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path)
+    for name in ("a", "b", "c"):
+        catalog.create(_big(name), author=AUTHOR)
+    size = len((tmp_path / "catalog.log").read_bytes()) // 3
+    versions, more = catalog.page(limit=10, max_bytes=2 * size + 10)
+    assert ([v.id for v in versions], more) == (["a@1", "b@1"], True)
+    versions, more = catalog.page(after="b@1", limit=10, max_bytes=2 * size + 10)
+    assert ([v.id for v in versions], more) == (["c@1"], False)
+    versions, more = catalog.page(limit=10, max_bytes=1)
+    assert ([v.id for v in versions], more) == (["a@1"], True)
+    versions, more = catalog.page(limit=3, max_bytes=10 * size)
+    assert ([v.id for v in versions], more) == (["a@1", "b@1", "c@1"], False)
+    versions, more = catalog.page(limit=2, max_bytes=10 * size)
+    assert ([v.id for v in versions], more) == (["a@1", "b@1"], True)
