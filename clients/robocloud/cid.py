@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import re
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -120,6 +121,13 @@ def b58decode(text: str) -> bytes:
     return b"\0" * (len(text) - len(text.lstrip("1"))) + body
 
 
+_BASE32 = re.compile(r"[A-Za-z2-7]*")
+_BASE16 = re.compile(r"[0-9A-Fa-f]*")
+_ALPHABETS = {"b": _BASE32, "B": _BASE32, "f": _BASE16, "F": _BASE16}
+"""Each multibase's characters as go-multibase (kubo's) takes them, either case: Python's
+decoders also took padding (``=``) and hex with spaces between its bytes, which it refuses."""
+
+
 @dataclass(frozen=True, slots=True)
 class CID:
     """A parsed CID; ``multihash`` holds the whole multihash (code, length, digest)."""
@@ -137,11 +145,11 @@ class CID:
             if len(text) == 46 and text.startswith("Qm"):
                 return cls.from_bytes(b58decode(text))
             prefix, body = text[:1], text[1:]
-            if prefix == "b":
-                padded = body.upper() + "=" * (-len(body) % 8)
-                binary = base64.b32decode(padded)
-            elif prefix == "B":
-                binary = base64.b32decode(body + "=" * (-len(body) % 8))
+            alphabet = _ALPHABETS.get(prefix)
+            if alphabet is not None and not alphabet.fullmatch(body):
+                raise ValueError(f"a character outside multibase {prefix!r}'s alphabet")
+            if prefix in ("b", "B"):
+                binary = base64.b32decode(body.upper() + "=" * (-len(body) % 8))
             elif prefix == "z":
                 binary = b58decode(body)
             elif prefix in ("f", "F"):

@@ -50,8 +50,10 @@ def test_v0_is_base58_dag_pb_and_converts_to_v1() -> None:
         "f01551220" + CID.decode(HELLO).digest.hex(),
         "B" + HELLO[1:].upper(),
         "z" + b58encode(CID.decode(HELLO).binary),
+        "b" + HELLO[1:20].upper() + HELLO[20:],
+        "F01551220" + CID.decode(HELLO).digest.hex().upper(),
     ],
-    ids=["base16", "base32-upper", "base58btc"],
+    ids=["base16", "base32-upper", "base58btc", "base32-mixed-case", "base16-upper-digits"],
 )
 def test_other_multibases_are_accepted_as_input(text: str) -> None:
     assert str(CID.decode(text)) == HELLO
@@ -69,6 +71,10 @@ def test_other_multibases_are_accepted_as_input(text: str) -> None:
         ("f015512" + "10" + "00" * 16, "32 bytes"),
         ("f01551320" + "00" * 32, "unsupported multihash"),
         ("f02551220" + "00" * 32, "version"),
+        ("f01 55 12 20" + "00" * 32, "outside multibase 'f'"),
+        ("F01551220" + "00" * 31 + "\t00", "outside multibase 'F'"),
+        (HELLO[:-2] + "==", "outside multibase 'b'"),
+        ("b" + HELLO[1:-1] + "\n", "outside multibase 'b'"),
     ],
 )
 def test_invalid_cid_is_rejected_quoting_it(text: str, reason: str) -> None:
