@@ -35,13 +35,17 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import enum
+import errno
 import logging
 import os
 import pickle
+import platform
 import queue
+import re
 import resource
 import select
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -304,7 +308,7 @@ class _Worker:
                 "UpdateRejectedError",
                 "this endpoint answers queries only: SPARQL updates are rejected",
             )
-        refused = _outside_reach(parsed)
+        refused = _lexical_hazard(text) or _outside_reach(parsed)
         if refused is not None:
             return ("error", "QueryRefusedError", refused)
         kind = parsed[1].name.removesuffix("Query").upper()
@@ -354,6 +358,33 @@ class _Worker:
         return ("ok", answer)
 
 
+_HAZARD = re.compile(r"\r(?!\n)|\\[uU][0-9A-Fa-f]")
+"""A carriage return that no line feed follows, or a backslash-u escape."""
+
+
+def _lexical_hazard(text: str) -> str | None:
+    """Why the text is refused, if rdflib (whose parse ``_outside_reach`` checks) and Oxigraph
+    (which parses the text again to run it) could read it as different tokens: the check is
+    only as good as their agreement, and two disagreements hid SERVICE from it. rdflib ends a
+    ``#`` comment at a line feed only, Oxigraph at a carriage return too, so in
+    ``# \\r SERVICE <...> { } \\n`` Oxigraph ran what rdflib took for a comment. And rdflib
+    expands ``\\u`` escapes over the whole text before parsing where Oxigraph expands them
+    inside strings and IRIs only, so ``"a\\u005C" SERVICE ... '"'`` is one string to rdflib
+    and a SERVICE call between two strings to Oxigraph. Without either, both read the same
+    characters: whitespace and comments alike (a ``\\r\\n`` ends a comment for both), and
+    strings and IRIs by the same grammar. Characters can be sent as themselves (UTF-8)
+    instead of escaped. The worker's network filter (``_forbid_network``) stands behind this
+    check for any disagreement not yet found."""
+    found = _HAZARD.search(text)
+    if found is None:
+        return None
+    what = "a carriage return not followed by a line feed" if found[0] == "\r" else "a \\u escape"
+    return (
+        f"{what} (at character {found.start()}) is refused: rdflib and Oxigraph read it "
+        "differently, which could hide SERVICE from the check; send characters as themselves"
+    )
+
+
 def _outside_reach(parsed: Any) -> str | None:
     """Why the query is refused, if it asks the worker to fetch anything: ``SERVICE`` makes
     rdflib send HTTP requests wherever the query says, and ``FROM`` loads graphs from URLs."""
@@ -395,9 +426,70 @@ def _die_with_parent() -> None:
         libc.prctl(1, signal.SIGKILL)
 
 
+_SECCOMP_ABI = {"x86_64": (0xC000003E, 41), "aarch64": (0xC00000B7, 198)}
+"""Per machine: Linux's AUDIT_ARCH value for its native ABI, and the number of socket(2)."""
+
+
+class _SockFilter(ctypes.Structure):
+    _fields_ = [
+        ("code", ctypes.c_ushort),
+        ("jt", ctypes.c_ubyte),
+        ("jf", ctypes.c_ubyte),
+        ("k", ctypes.c_uint32),
+    ]
+
+
+class _SockFprog(ctypes.Structure):
+    _fields_ = [("len", ctypes.c_ushort), ("filter", ctypes.POINTER(_SockFilter))]
+
+
+def _network_filter(arch: int, socket_call: int) -> list[tuple[int, int, int, int]]:
+    """A seccomp program: ``socket(AF_INET or AF_INET6, ...)`` and every call made through
+    another ABI than the machine's own (i386, x32) fail with EACCES; the rest goes through."""
+    load, equal, answer = 0x20, 0x15, 0x06  # BPF_LD|BPF_W|BPF_ABS, BPF_JMP|BPF_JEQ|BPF_K, BPF_RET
+    at_least = 0x35  # BPF_JMP|BPF_JGE|BPF_K
+    allow, refuse = 0x7FFF0000, 0x00050000 | errno.EACCES  # SECCOMP_RET_ALLOW, _RET_ERRNO
+    return [
+        (load, 0, 0, 4),  # seccomp_data.arch
+        (equal, 0, 7, arch),
+        (load, 0, 0, 0),  # seccomp_data.nr
+        (at_least, 5, 0, 0x40000000),  # x86-64's x32 calls, numbered from this bit
+        (equal, 0, 3, socket_call),
+        (load, 0, 0, 16),  # the low half of seccomp_data.args[0]: the address family
+        (equal, 2, 0, socket.AF_INET),
+        (equal, 1, 0, socket.AF_INET6),
+        (answer, 0, 0, allow),
+        (answer, 0, 0, refuse),
+    ]
+
+
+def _forbid_network() -> bool:
+    """Make this process and the executors it forks unable to open an IP socket, so that no
+    query can make it send a request, whatever a parser lets through: ``SERVICE`` is refused
+    on rdflib's parse, but Oxigraph parses the text again and, given SERVICE, would POST to
+    any address, internal ones included, with no switch in pyoxigraph to stop it. The worker
+    reads descriptions from files and speaks to the service over pipes, so it needs no
+    network. False where Linux's seccomp is not to be had (another system or machine)."""
+    abi = _SECCOMP_ABI.get(platform.machine())
+    if abi is None or not sys.platform.startswith("linux"):
+        return False
+    program = _network_filter(*abi)
+    instructions = (_SockFilter * len(program))(*(_SockFilter(*step) for step in program))
+    prog = _SockFprog(len(program), instructions)
+    libc = ctypes.CDLL(None, use_errno=True)
+    no_new_privs, set_seccomp, filter_mode = 38, 22, 2
+    if libc.prctl(no_new_privs, 1, 0, 0, 0) != 0:
+        return False
+    return bool(libc.prctl(set_seccomp, filter_mode, ctypes.byref(prog), 0, 0) == 0)
+
+
 def worker_main(argv: Sequence[str]) -> None:
     """``python -m services.storage.sparql DIRECTORY STORE MEMORY_BYTES``."""
     _die_with_parent()
+    if not _forbid_network():
+        print(
+            "sparql worker: no seccomp here: queries are not kept off the network", file=sys.stderr
+        )
     directory, store, memory = Path(argv[0]), argv[1], int(argv[2])
     _limit_memory(memory)
     sys.setrecursionlimit(10_000)

@@ -8,6 +8,7 @@ One cas and one storage service (anchoring and the ledger follower off) serve th
 from __future__ import annotations
 
 import csv
+import http.server
 import io
 import threading
 import time
@@ -397,6 +398,70 @@ def test_a_deeply_nested_query_is_a_syntax_error_and_the_workers_survive(
     error(answer, 400, "sparql_syntax")
     rows = httpx.get(services.sparql, params={"query": FILES_QUERY}).json()["results"]["bindings"]
     assert [row["file"]["value"] for row in rows] == [JPEG_FILE]
+
+
+class Listener:
+    """An HTTP server on a free loopback port that notes each request it is sent: an
+    internal service a federated query must never reach."""
+
+    def __init__(self) -> None:
+        seen: list[str] = []
+        self.requests = seen
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_GET(self) -> None:
+                self.note()
+
+            def do_POST(self) -> None:
+                self.note()
+
+            def note(self) -> None:
+                seen.append(f"{self.command} {self.path}")
+                self.send_response(500)
+                self.end_headers()
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.port = self.server.server_address[1]
+
+    def __enter__(self) -> Listener:
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.mark.parametrize(
+    ("template", "reason"),
+    [
+        (
+            "SELECT * WHERE { # \r SERVICE <http://127.0.0.1:{port}/internal> { ?a ?b ?c } \n}",
+            "a carriage return not followed by a line feed (at character 19) is refused",
+        ),
+        (
+            'SELECT * WHERE { BIND("a\\u005C" AS ?x) '
+            "SERVICE <http://127.0.0.1:{port}/internal> { ?a ?b ?c } BIND('\" AS ?v) #' AS ?w) \n}",
+            "a \\u escape (at character 24) is refused",
+        ),
+    ],
+)
+def test_a_service_call_hidden_from_the_check_reaches_nothing(
+    services: Services, template: str, reason: str
+) -> None:
+    """rdflib's parse, which the check reads, saw a comment or one long string where
+    Oxigraph, which runs the text, saw SERVICE: the storage service POSTed to the address the
+    query named and answered with what it got there. Sent unsigned, as anyone can."""
+    before = services.stored()
+    with Listener() as listener:
+        query = template.replace("{port}", str(listener.port))
+        answer = httpx.get(services.sparql, params={"query": query})
+        error(answer, 400, "sparql_query_refused")
+        message = answer.json()["error"]["message"]
+        assert message.startswith(reason), message
+        assert "SERVICE" in message
+        assert listener.requests == []
+    unchanged(services, before)
 
 
 def test_a_post_that_is_neither_a_form_nor_a_query_is_415(services: Services) -> None:

@@ -4,6 +4,8 @@ files (additions seen by the next query, a query past its deadline killed and re
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -170,6 +172,57 @@ def test_a_query_that_would_fetch_from_elsewhere_is_refused(
 ) -> None:
     with pytest.raises(QueryRefusedError, match=message):
         pool.query(query, None)
+
+
+CR_COMMENT = "SELECT * WHERE { # \r SERVICE <http://127.0.0.1:1/> { ?a ?b ?c } \n}"
+ESCAPED_QUOTE = (
+    'SELECT * WHERE { BIND("a\\u005C" AS ?x) SERVICE <http://127.0.0.1:1/> { ?a ?b ?c } '
+    "BIND('\" AS ?v) #' AS ?w) \n}"
+)
+
+
+@pytest.mark.parametrize(
+    ("query", "message"),
+    [
+        (CR_COMMENT, r"a carriage return not followed by a line feed \(at character 19\)"),
+        (ESCAPED_QUOTE, r"a \\u escape \(at character 24\)"),
+        ('ASK { ?s ?p "\\U0001F600" }', r"a \\u escape"),
+    ],
+)
+def test_text_rdflib_and_oxigraph_would_read_apart_is_refused(
+    pool: SparqlWorkers, query: str, message: str
+) -> None:
+    """Each of the first two hid a SERVICE from the check on rdflib's parse, and Oxigraph,
+    parsing the text again, ran it: a comment that rdflib ends at a line feed only, and an
+    escape rdflib expands before parsing (to a backslash that swallows a quote)."""
+    with pytest.raises(QueryRefusedError, match=message):
+        pool.query(query, None)
+
+
+def test_a_comment_ended_by_crlf_is_read_alike_and_taken(pool: SparqlWorkers) -> None:
+    _, body = pool.query(PREFIX + "ASK { # a comment\r\n ?s a rc:File }", None)
+    assert json.loads(body)["boolean"] is True
+
+
+def test_a_worker_cannot_open_an_ip_socket() -> None:
+    """The net behind the text checks: whatever a parser lets through, no query can make a
+    worker (or an executor it forks) send a request. Unix sockets stay open to it."""
+    probe = (
+        "import socket\n"
+        "from services.storage.sparql import _forbid_network\n"
+        "assert _forbid_network()\n"
+        "socket.socket(socket.AF_UNIX).close()\n"
+        "for family in (socket.AF_INET, socket.AF_INET6):\n"
+        "    try:\n"
+        "        socket.socket(family)\n"
+        "    except PermissionError:\n"
+        "        continue\n"
+        "    raise SystemExit(f'{family!r} opened')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
 
 
 def test_a_query_past_its_deadline_is_killed_and_its_worker_free_at_once(
