@@ -148,6 +148,23 @@ class RecordProof:
             ),
         )
 
+    def to_json(self) -> dict[str, Any]:
+        """The proof document again, made only of the fields parsed: once verified, a
+        consumer can trust every key, where the node's whole answer may carry others."""
+        return {
+            "record": self.record,
+            "leaf_index": self.leaf_index,
+            "tree_size": self.tree_size,
+            "template_root": self.template_root.hex(),
+            "inclusion": [node.hex() for node in self.inclusion],
+            "epoch": self.epoch,
+            "tmt_leaf_index": self.tmt_leaf_index,
+            "tmt_size": self.tmt_size,
+            "tmt_inclusion": [node.hex() for node in self.tmt_inclusion],
+            "tmt_root": self.tmt_root.hex(),
+            "anchor": self.anchor.describe(),
+        }
+
     @property
     def template(self) -> str:
         return str(self.record["template"])

@@ -63,7 +63,7 @@ def verify(
             node=checksum(node) if node else None,
         )
     if as_json:
-        show_json({"id": str(parsed), "verified": True, **body})
+        show_json({"id": str(parsed), "verified": True, **proof.to_json()})
         return
     show(
         *rows(

@@ -156,3 +156,11 @@ def test_malformed_proof_fields_are_named(change: dict[str, Any], field: str) ->
     with pytest.raises(ProofFormatError) as refused:
         RecordProof.from_json({**document, **change})
     assert refused.value.field == field
+
+
+def test_a_parsed_proof_is_its_document_without_what_the_node_added() -> None:
+    """``verify --json`` printed the node's whole answer beside ``"verified": true``, so a
+    field the proof does not cover (or an ``id`` of another record) read as verified."""
+    document = proof_document()
+    added = {**document, "id": "other-1-0", "verified": False, "note": "trust me"}
+    assert RecordProof.from_json(added).to_json() == document
