@@ -11,7 +11,8 @@ block store (random access: a byte range touches only the blocks it needs, UnixF
 while keeping the blocks it visits (a CAR of a byte range), and :func:`assemble_file` a CAR's
 stream of blocks (the SDK's verified download). All therefore keep the same rules: file
 nodes only, every child the size its parent declares, no path deeper than
-:data:`MAX_DAG_DEPTH`, no more blocks visited than :func:`visit_budget` allows.
+:data:`MAX_DAG_DEPTH`, no more blocks visited than :func:`visit_budget` allows and no
+more bytes of blocks read than :func:`read_budget` allows.
 Nothing here recurses, so a hostile DAG meets a named limit, never Python's stack (which
 py_ecc lets grow to 100,000 frames, past what the C stack holds).
 """
@@ -325,13 +326,15 @@ class FileNode(NamedTuple):
 
     ``data`` is the content the block holds itself (all of a raw leaf), ``links`` and
     ``sizes`` its children and the content size it declares for each, ``size`` the content
-    it stands for (its data plus its children's declared sizes).
+    it stands for (its data plus its children's declared sizes), ``read`` the bytes it took
+    to get it (its whole block, whatever the block carries beside the content).
     """
 
     data: bytes
     links: Sequence[CID]
     sizes: Sequence[int]
     size: int
+    read: int
 
 
 NodeSource = Callable[[CID], FileNode]
@@ -368,7 +371,7 @@ def file_node(cid: CID, block: bytes) -> FileNode:
     it states a filesize, exactly its data plus its blocksizes.
     """
     if cid.codec == RAW:
-        return FileNode(block, (), (), len(block))
+        return FileNode(block, (), (), len(block), len(block))
     if cid.codec != DAG_PB:
         raise UnixfsError(f"{cid} is neither raw nor dag-pb")
     node, unixfs = decode_node(cid, block)
@@ -382,7 +385,9 @@ def file_node(cid: CID, block: bytes) -> FileNode:
             f"{cid} declares a file of {unixfs.filesize} bytes but its data and blocksizes "
             f"add up to {size}"
         )
-    return FileNode(unixfs.data, [link.cid for link in node.links], unixfs.blocksizes, size)
+    return FileNode(
+        unixfs.data, [link.cid for link in node.links], unixfs.blocksizes, size, len(block)
+    )
 
 
 def file_size(root: CID, get_block: GetBlock) -> int:
@@ -450,12 +455,13 @@ def read_nodes(
     children, so memory grows with the depth and never with the fan-out. A child is visited
     only when its part of the file meets the range (a whole read visits every one, empty
     ones too, as a CAR carries them). Each child must stand for exactly the size its parent
-    declared for it, no path may be deeper than ``MAX_DAG_DEPTH``, and the blocks visited
-    may not outnumber what :func:`visit_budget` allows for the bytes yielded: a lying or
-    hostile DAG raises :class:`UnixfsError` naming the block, so a server that already
-    promised a length cuts the response off instead of sending a short body as if it were
-    complete, and no DAG makes a read work long for little (a few blocks linked thousands
-    of times over, each standing for nothing or behind a long chain).
+    declared for it, no path may be deeper than ``MAX_DAG_DEPTH``, the blocks visited may
+    not outnumber what :func:`visit_budget` allows for the bytes yielded, nor their bytes
+    (``FileNode.read``) pass what :func:`read_budget` allows: a lying or hostile DAG raises
+    :class:`UnixfsError` naming the block, so a server that already promised a length cuts
+    the response off instead of sending a short body as if it were complete, and no DAG
+    makes a read work long for little (a few blocks linked thousands of times over, each
+    standing for nothing, behind a long chain, or carrying megabytes beside its one byte).
     """
     if offset < 0 or (length is not None and length < 0):
         raise UnixfsError(f"no bytes at offset {offset}, length {length}")
@@ -463,7 +469,7 @@ def read_nodes(
     if end is not None and end == offset:
         return
     frames: list[Iterator[_Span]] = [iter((_Span(root, offset, end, None, 0),))]
-    visited = yielded = 0
+    visited = yielded = read = 0
     while frames:
         span = next(frames[-1], None)
         if span is None:
@@ -481,13 +487,20 @@ def read_nodes(
                 f"(the limit; at {span.cid}, byte {span.at}): its blocks repeat to no end"
             )
         node = node_of(span.cid)
+        piece = node.data[span.start : span.end] if span.start < len(node.data) else b""
+        read += node.read
+        if read > read_budget(yielded + len(piece)):
+            raise UnixfsError(
+                f"{root} takes more than {read_budget(yielded + len(piece))} bytes of blocks "
+                f"for its first {yielded + len(piece)} bytes (the limit; at {span.cid}, byte "
+                f"{span.at}): its blocks hold far more than the file"
+            )
         if span.declared is not None and node.size != span.declared:
             raise UnixfsError(
                 f"{span.cid} holds {node.size} bytes but its parent in {root} declares "
                 f"{span.declared} (the block at byte {span.at} of the file)"
             )
-        if span.start < len(node.data):
-            piece = node.data[span.start : span.end]
+        if piece:
             yielded += len(piece)
             yield piece
         if node.links:
@@ -504,6 +517,36 @@ def visit_budget(yielded: int) -> int:
     subtree standing for nothing, or a byte behind a long chain, runs out of it.
     """
     return 2 * yielded + 2 * (MAX_DAG_DEPTH + 1)
+
+
+READ_FACTOR = 256
+"""Bytes of blocks a read may take per byte it yields, beyond :data:`READ_ALLOWANCE`.
+
+A file's blocks hold its content plus their protobuf: a few bytes per dag-pb leaf and about
+50 per link (a 36-byte CID, its Tsize, the child's blocksize). Files of kubo's chunks read at
+1.0x; the worst any importer makes, one-byte chunks under 2 links, hold a leaf and a
+two-link node per byte: 100x to 108x measured (CIDv0 or v1, raw or dag-pb leaves), under 200x
+with 64-byte hashes. 256 reads every such file, while a block carrying megabytes beside the
+one byte it stands for (an unknown UnixFS field) is refused after a few visits: a read
+hashes at most 256 bytes per byte sent (a fraction of a microsecond, less than the Python
+work of one of the two block visits per byte :func:`visit_budget` already allows)."""
+
+READ_ALLOWANCE = 4 * MAX_CHUNK_SIZE
+"""Bytes of blocks (8 MiB) any read may take beyond ``READ_FACTOR`` per byte: what the two
+root-to-leaf paths a range starts and ends on hold outside it. Each ends in a leaf the range
+may cut (at most ``MAX_CHUNK_SIZE``, 2 MiB; kubo's chunks stop at 1 MiB) and passes inner
+nodes whose other links lead outside the range: 2 MiB, two levels of nodes as large as kubo
+makes a block (1 MiB) or the 1,025 levels of ``MAX_DAG_DEPTH`` at 2 KiB, where an importer's
+file is at most a few levels of 10 to 60 KiB (174 or 1,024 links)."""
+
+
+def read_budget(yielded: int) -> int:
+    """How many bytes of blocks a read may have taken once it has yielded ``yielded`` bytes
+    (counting those of the block just read): ``READ_FACTOR`` per byte plus
+    ``READ_ALLOWANCE``. The bytes of a block visited twice count twice, as they are read and
+    hashed twice; the check comes after a block is fetched, so a refused read has taken at
+    most one block more than its budget."""
+    return READ_FACTOR * yielded + READ_ALLOWANCE
 
 
 def _children(node: FileNode, span: _Span) -> Iterator[_Span]:
@@ -594,7 +637,7 @@ class _CarOrder:
         leaf = self._leaves.get(cid.binary)
         if leaf is not None:
             data = self._reread(leaf >> 32, leaf & 0xFFFFFFFF)
-            return FileNode(data, (), (), len(data))
+            return FileNode(data, (), (), len(data), len(data))
         return self._next_node(cid)
 
     def _next_node(self, cid: CID) -> FileNode:

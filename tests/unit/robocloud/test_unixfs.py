@@ -14,13 +14,15 @@ import pytest
 
 from robocloud.car import CarReader, write_car
 from robocloud.cid import CID, DAG_PB, RAW, Block
-from robocloud.dagpb import MAX_LINKS, Link, PBNode
+from robocloud.dagpb import MAX_LINKS, Link, PBNode, len_field
 from robocloud.unixfs import (
     DIRECTORY,
     FILE,
     HAMT_SHARD,
     MAX_DAG_DEPTH,
     MURMUR3_X64_64,
+    READ_ALLOWANCE,
+    READ_FACTOR,
     Importer,
     ImportParams,
     UnixfsData,
@@ -31,6 +33,7 @@ from robocloud.unixfs import (
     import_bytes,
     list_directory,
     parse_chunker,
+    read_budget,
     read_file,
     visit_budget,
     walk_dag,
@@ -565,6 +568,153 @@ def test_an_imported_file_of_one_byte_chunks_under_two_links_is_within_budget() 
     assert b"".join(read_file(root, store.__getitem__, 1000, 1)) == data[1000:1001]
     with io.BytesIO() as out:
         assert assemble_file(root, iter(car_blocks(root, store)), out, lambda _: None) == len(data)
+
+
+def padded_leaf(junk: int) -> tuple[CID, bytes]:
+    """A file node of one byte that also carries ``junk`` bytes in a UnixFS field no reader
+    knows (number 15): valid, and skipped, but read and hashed whenever the node is."""
+    unixfs = UnixfsData(FILE, b"!", 1).encode() + len_field(15, b"\0" * junk)
+    encoded = PBNode([], unixfs).encode()
+    return CID.from_block(encoded, DAG_PB, 1), encoded
+
+
+def padded_file(junk: int, count: int) -> tuple[CID, dict[CID, bytes]]:
+    """A file of ``count`` bytes: one root linking ``count`` times to a padded leaf."""
+    leaf, leaf_block = padded_leaf(junk)
+    root, root_block = fan(leaf, 1, count)
+    return root, {leaf: leaf_block, root: root_block}
+
+
+class Counted:
+    """A block getter over ``store`` that counts the bytes it hands out."""
+
+    def __init__(self, store: dict[CID, bytes]) -> None:
+        self.store = store
+        self.bytes = 0
+
+    def __call__(self, cid: CID) -> bytes:
+        block = self.store[cid]
+        self.bytes += len(block)
+        return block
+
+
+def test_a_block_carrying_megabytes_beside_its_byte_is_refused_after_the_read_budget() -> None:
+    """A leaf of one byte and 1 MiB of junk, linked 64 times: well within two visits per
+    byte, but each visit reads and hashes 1 MiB (with 8 MiB, a CAR section's most, ~19 ms
+    per byte sent). Every read path stops once the bytes read pass the budget, one block
+    over it at most, where it read 64 MiB before."""
+    root, blocks = padded_file(1 << 20, 64)
+    leaf_size = len(blocks[padded_leaf(1 << 20)[0]])
+    assert file_size(root, blocks.__getitem__) == 64
+    assert visit_budget(0) > 64  # the block count alone lets its 65 visits through
+    message = f"{root} takes more than .* bytes of blocks for its first .* bytes"
+    reads: list[Callable[[Counted], object]] = [
+        lambda get: b"".join(read_file(root, get)),
+        lambda get: b"".join(read_file(root, get, 3, 60)),
+        lambda get: list(file_range_blocks(root, get, 3, 63)),
+        lambda get: list(file_range_blocks(root, get, 0, None)),
+    ]
+    for read in reads:
+        get = Counted(blocks)
+        with pytest.raises(UnixfsError, match=message):
+            read(get)
+        assert READ_ALLOWANCE < get.bytes <= read_budget(64) + leaf_size
+        assert get.bytes < 10 * leaf_size  # of the 64 leaf reads the file asks for
+
+
+def test_inner_blocks_carrying_megabytes_are_refused_when_a_stream_replays_them() -> None:
+    """A CAR carries a repeated block once, so the stream hashes the padded block once; an
+    inner node that repeats is decoded again each time, and that is what the budget counts."""
+    root, blocks = padded_file(1 << 20, 64)
+    assert len(car_blocks(root, blocks)) == 2
+    with io.BytesIO() as out:
+        assert assemble_file(root, iter(car_blocks(root, blocks)), out, lambda _: None) == 64
+    padded_inner = PBNode(
+        [Link(CID.from_block(b"!", RAW, 1), "", 1)],
+        UnixfsData(FILE, b"", 1, [1]).encode() + len_field(15, b"\0" * (1 << 20)),
+    ).encode()
+    inner = CID.from_block(padded_inner, DAG_PB, 1)
+    top, top_block = fan(inner, 1, 64)
+    store = {top: top_block, inner: padded_inner, CID.from_block(b"!", RAW, 1): b"!"}
+    with pytest.raises(UnixfsError, match=f"{top} takes more than .* bytes of blocks"):
+        assemble_file(top, iter(car_blocks(top, store)), io.BytesIO(), lambda _: None)
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        ImportParams.from_options(),
+        ImportParams.from_options(profile="unixfs-v1-2025"),
+        ImportParams(chunk_size=4096, max_links=16),
+        ImportParams(cid_version=0, raw_leaves=False, chunk_size=1000, max_links=174),
+    ],
+    ids=["kubo-v0", "v1-2025", "4k-16-links", "1000-bytes-dag-pb-leaves"],
+)
+def test_an_honest_file_of_several_mib_reads_whole_and_in_ranges(params: ImportParams) -> None:
+    """An importer's blocks hold its content and a little protobuf: whole reads take 1.0x to
+    1.06x, far inside the budget; a one-byte range takes the paths to it, within the
+    allowance."""
+    data = bytes(range(256)) * (6 * 4096) + b"tail"  # 6 MiB and 4 bytes
+    blocks, root = import_bytes(data, params)
+    store = dict(blocks)
+    get = Counted(store)
+    assert b"".join(read_file(root, get)) == data
+    assert len(data) <= get.bytes <= 1.06 * len(data)
+    with io.BytesIO() as out:
+        assert assemble_file(root, iter(car_blocks(root, store)), out, lambda _: None) == len(data)
+    for offset in (0, params.chunk_size - 1, len(data) // 2, len(data) - 1):
+        get = Counted(store)
+        assert b"".join(read_file(root, get, offset, 2)) == data[offset : offset + 2]
+        assert get.bytes <= READ_ALLOWANCE
+        covering = list(file_range_blocks(root, store.__getitem__, offset, offset + 2))
+        assert len(covering) <= 2 * 4
+
+
+def test_one_byte_chunks_beyond_the_allowance_read_within_the_factor() -> None:
+    """The most bytes of blocks per byte an importer makes: a leaf and a two-link node per
+    byte, about 104x; 84 KiB of them take 9 MB, past the allowance, within the factor."""
+    data = bytes(range(256)) * 336
+    blocks, root = import_bytes(data, ImportParams(cid_version=0, chunk_size=1, max_links=2))
+    store = dict(blocks)
+    get = Counted(store)
+    assert b"".join(read_file(root, get)) == data
+    assert READ_ALLOWANCE < get.bytes < READ_FACTOR // 2 * len(data)
+    with io.BytesIO() as out:
+        assert assemble_file(root, iter(car_blocks(root, store)), out, lambda _: None) == len(data)
+
+
+def test_every_file_of_the_ipfs_fixtures_reads_within_both_budgets() -> None:
+    """Each file node of the gateway conformance CARs (HAMT directories' files among them)
+    whose blocks the CAR holds reads whole."""
+    read = 0
+    for path in sorted(car_path("car").rglob("*.car")):
+        with path.open("rb") as stream:
+            store = {block.cid: block.data for block in CarReader(stream)}
+        for cid, block in store.items():
+            if cid.codec != DAG_PB or PBNode.decode(block).data is None:
+                continue
+            if UnixfsData.decode(PBNode.decode(block).data or b"").type != FILE:
+                continue
+            if any(link not in store for link, _ in walk_links(cid, store)):
+                continue
+            content = b"".join(read_file(cid, store.__getitem__))
+            assert len(content) == file_size(cid, store.__getitem__)
+            read += 1
+    assert read >= 10
+
+
+def walk_links(root: CID, store: dict[CID, bytes]) -> list[tuple[CID, CID]]:
+    """Every (child, parent) link under ``root`` among the blocks ``store`` holds."""
+    found: list[tuple[CID, CID]] = []
+    stack = [root]
+    while stack:
+        cid = stack.pop()
+        if cid.codec != DAG_PB or cid not in store:
+            continue
+        for link in PBNode.decode(store[cid]).links:
+            found.append((link.cid, cid))
+            stack.append(link.cid)
+    return found
 
 
 def test_a_walk_cut_short_takes_back_the_blocks_it_did_not_finish() -> None:
