@@ -13,6 +13,7 @@ from services.cas.store import (
     InvalidDag,
     NotAFile,
     ReadBudgetExceeded,
+    TooManyEntries,
     UnknownScope,
     UnpinnedArgument,
 )
@@ -48,6 +49,11 @@ ERRORS = ErrorMap(
             400,
             "too_much_to_read",
             lambda exc: {"field": "arg", "cid": str(exc.cid), "limit_bytes": exc.limit},
+        ),
+        TooManyEntries: ErrorRule(
+            400,
+            "too_many_entries",
+            lambda exc: {"cid": str(exc.directory), "limit": exc.limit},
         ),
         UnknownScope: ErrorRule(400, "invalid_dag_scope", lambda _: {"field": "dag-scope"}),
         UnpinnedArgument: ErrorRule(400, "not_pinned", _cid),

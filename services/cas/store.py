@@ -45,6 +45,9 @@ from services.cas.pins import PinSet
 log = logging.getLogger("robocloud.cas.store")
 
 DAG_SCOPES = ("block", "entity", "all")
+MAX_LISTED_ENTRIES = 100_000
+"""Entries one directory listing (``ls``, the gateway's page, ``format=dag-json`` of a
+shard) answers with: about 30 MB of HTML or 15 MB of JSON."""
 
 
 class BlockUnavailable(LookupError):
@@ -101,6 +104,16 @@ class ReadBudgetExceeded(ValueError):
             f"reading block {cid} would take this request past {limit} bytes of blocks read"
         )
         self.cid = cid
+        self.limit = limit
+
+
+class TooManyEntries(ValueError):
+    """A directory (a HAMT, whose shards may hold millions of names) with more entries than
+    one listing answers."""
+
+    def __init__(self, directory: CID, limit: int) -> None:
+        super().__init__(f"{directory} has more than {limit} entries, more than one listing holds")
+        self.directory = directory
         self.limit = limit
 
 
@@ -242,13 +255,22 @@ class ContentStore:
     def entries(
         self, directory: CID, *, use_peers: bool = True, get: GetBlock | None = None
     ) -> list[Link]:
-        """A directory's entries (a sharded one's from every shard); ``NotADirectory`` else."""
+        """A directory's entries (a sharded one's from every shard); ``NotADirectory`` else,
+        and ``TooManyEntries`` past ``MAX_LISTED_ENTRIES``, before its other shards are read:
+        each entry costs a few hundred bytes of memory and of answer."""
         try:
-            return list(list_entries(directory, self._getter(use_peers, get)))
+            found = list(
+                itertools.islice(
+                    list_entries(directory, self._getter(use_peers, get)), MAX_LISTED_ENTRIES + 1
+                )
+            )
         except PathError:
             raise
         except UnixfsError as exc:
             raise InvalidDag(directory, str(exc)) from exc
+        if len(found) > MAX_LISTED_ENTRIES:
+            raise TooManyEntries(directory, MAX_LISTED_ENTRIES)
+        return found
 
     def kind(self, cid: CID, *, use_peers: bool = True, get: GetBlock | None = None) -> UnixfsKind:
         """What a CID names, from its root block: a file, a directory, or another block.
@@ -513,6 +535,7 @@ class BudgetedReads:
         self._limit = limit
         self._kinds: dict[CID, UnixfsKind] = {}
         self.spent = 0
+        self.listed = 0
 
     def get(self, cid: CID) -> bytes:
         """A verified block, charged to the budget by the size the index gives."""
@@ -526,7 +549,12 @@ class BudgetedReads:
         return self._store.resolve(root, segments, get=self.get)
 
     def entries(self, directory: CID) -> list[Link]:
-        return self._store.entries(directory, get=self.get)
+        """``ContentStore.entries``, at most ``MAX_LISTED_ENTRIES`` over the request."""
+        found = self._store.entries(directory, get=self.get)
+        self.listed += len(found)
+        if self.listed > MAX_LISTED_ENTRIES:
+            raise TooManyEntries(directory, MAX_LISTED_ENTRIES)
+        return found
 
     def kind(self, cid: CID) -> UnixfsKind:
         """``ContentStore.kind``, remembered: entries that repeat a CID read its block once."""

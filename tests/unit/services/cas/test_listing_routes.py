@@ -21,6 +21,7 @@ from robocloud.dagpb import Link, PBNode
 from robocloud.directory import directory_node
 from robocloud.unixfs import FILE, UnixfsData
 from services.cas import kubo
+from services.cas import store as store_module
 from services.cas.app import build_app
 from services.cas.settings import CasSettings
 from services.cas.store import ContentStore
@@ -203,3 +204,43 @@ def test_listings_and_dag_json_wait_for_a_listing_turn_then_are_busy(
         error = busy.json()["error"]
         assert (error["code"], error["details"]) == ("busy", {"slots": 2, "wait_s": 0.05})
     assert free.status_code == 200
+
+
+@pytest.mark.parametrize("listing", ["gateway-html", "kubo-ls"])
+def test_a_directory_with_more_entries_than_a_listing_holds_is_refused_naming_it(
+    app: FastAPI, monkeypatch: pytest.MonkeyPatch, listing: str
+) -> None:
+    """A HAMT may hold millions of names in a few hundred MB of shards, within the read
+    budget; every entry was listed in memory and in one answer."""
+    monkeypatch.setattr(store_module, "MAX_LISTED_ENTRIES", 10)
+    store = store_of(app)
+    (leaf,) = store.put_blocks([b"leaf"], RAW, ROBOT, pin=False)
+    fits = put_directory(store, [Link(leaf, f"f{i:02d}", 4) for i in range(10)])
+    too_many = put_directory(store, [Link(leaf, f"f{i:02d}", 4) for i in range(11)])
+    method, path, options = LISTINGS[listing]
+
+    def listed(directory: CID) -> httpx.Response:
+        if "params" in options:
+            return call(app, method, path, params={"arg": str(directory)})
+        return call(app, method, path.format(cid=directory), **options)
+
+    assert listed(fits).status_code == 200
+    refused = listed(too_many)
+    assert refused.status_code == 400, refused.text
+    error = refused.json()["error"]
+    assert error["code"] == "too_many_entries"
+    assert error["details"] == {"cid": str(too_many), "limit": 10}
+
+
+def test_ls_lists_at_most_so_many_entries_over_all_its_arguments(
+    app: FastAPI, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(store_module, "MAX_LISTED_ENTRIES", 10)
+    store = store_of(app)
+    (leaf,) = store.put_blocks([b"leaf"], RAW, ROBOT, pin=False)
+    six = put_directory(store, [Link(leaf, f"f{i}", 4) for i in range(6)])
+
+    answer = call(app, "POST", "/api/v0/ls", params=[("arg", str(six))] * 2)
+
+    assert answer.status_code == 400, answer.text
+    assert answer.json()["error"]["code"] == "too_many_entries"
