@@ -236,3 +236,44 @@ def _merged_metadata(parts: list[dict[str, Any]]) -> str:
     text = io.StringIO()
     YAML(typ="safe").dump({"rosbag2_bagfile_information": merged}, text)
     return text.getvalue()
+
+
+def write_mcap_bomb(path: Path, declared: int = 1 << 30) -> int:
+    """An MCAP file of one zstd chunk of ``declared`` bytes (one unknown record of zeros), a
+    few KiB on disk: the decompression bomb a bag reader must refuse. Returns the chunk's
+    offset. Compressed a MiB at a time, so writing it never holds the whole."""
+    from backports import zstd
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import Chunk, DataEnd, Footer, Header
+
+    compressor = zstd.ZstdCompressor()
+    record = b"\x80" + (declared - 9).to_bytes(8, "little")
+    parts = [compressor.compress(record)]
+    zeros = bytes(1 << 20)
+    left = declared - len(record)
+    while left > 0:
+        parts.append(compressor.compress(zeros[: min(left, len(zeros))]))
+        left -= len(zeros)
+    parts.append(compressor.flush())
+    builder = RecordBuilder()
+    Header(profile="ros2", library="bomb").write(builder)
+    offset = len(b"\x89MCAP0\r\n") + builder.count
+    chunk = Chunk("zstd", b"".join(parts), 0, 0, 0, declared)
+    chunk.write(builder)
+    DataEnd(0).write(builder)
+    Footer(0, 0, 0).write(builder)
+    path.write_bytes(b"\x89MCAP0\r\n" + builder.end() + b"\x89MCAP0\r\n")
+    return offset
+
+
+def write_ros1_big_chunk(path: Path, size: int) -> Path:
+    """A ROS 1 bag (lz4) of one ``std_msgs/msg/String`` of ``size`` zeros, so one chunk that
+    decompresses to a little more: a few hundred KiB on disk."""
+    store = get_typestore(Stores.ROS1_NOETIC)
+    writer = Rosbag1Writer(path)
+    writer.set_compression(Rosbag1Writer.CompressionFormat.LZ4)
+    with writer:
+        connection = writer.add_connection("/big", "std_msgs/msg/String", typestore=store)
+        text = store.types["std_msgs/msg/String"](data="\0" * size)
+        writer.write(connection, START_NS, store.serialize_ros1(text, "std_msgs/msg/String"))
+    return path

@@ -17,24 +17,30 @@ generation; a type found in neither cannot be decoded and is reported as such.
 
 from __future__ import annotations
 
+import bz2
 import heapq
 from collections import Counter
 from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
+from functools import partial
 from itertools import pairwise
 from operator import itemgetter
 from pathlib import Path
 from typing import Any, Literal, Self
 
+import lz4.frame  # type: ignore[import-untyped]
+from backports import zstd
 from mcap.records import Chunk, Message, MessageIndex, Statistics
 from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 from rosbags.interfaces import Connection, MessageDefinitionFormat, Nodetype
 from rosbags.rosbag1 import Reader as Rosbag1Reader
 from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
+from rosbags.rosbag1 import reader as rosbag1_reader
 from rosbags.rosbag2 import Reader as Rosbag2Reader
 from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError
+from rosbags.rosbag2 import storage_mcap as rosbag2_mcap
 from rosbags.typesys import Stores, TypesysError, get_types_from_idl, get_types_from_msg
 from rosbags.typesys import get_typestore as bundled_typestore
 from rosbags.typesys.store import Typestore
@@ -44,6 +50,12 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 SQLITE_MAGIC = b"SQLite format 3\x00"
 IDL_SEPARATOR = "=" * 80 + "\n"
 BYTE_TYPES = frozenset({"uint8", "byte", "char"})
+MAX_CHUNK_BYTES = 64 * 1024**2
+"""The most one chunk (MCAP or ROS 1) may hold decompressed. Every reader here decompresses a
+chunk whole, so a chunk is what a bag can make the service hold at once, and compression
+lets a few bytes claim anything: 32 KiB of zstd declaring 1 GiB of zeros took 2.1 GiB. Real
+writers stay far below: rosbag2's MCAP plugin closes a chunk at 1 MiB (the largest in the
+recordings under shared/data is 1.02 MiB), rosbag and rosbags' ROS 1 writers at 768 KiB."""
 
 
 class BagFormat(Enum):
@@ -74,6 +86,64 @@ class BagUnreadable(BagError):
 
 class BagCorrupt(BagError):
     """A bag that is truncated or whose bytes are damaged."""
+
+
+class ChunkTooLarge(ValueError):
+    """A chunk that decompresses (or says it does) to more than it may: see
+    :data:`MAX_CHUNK_BYTES`. A ValueError, as rosbags' own failures to read a chunk are."""
+
+
+_DECOMPRESSORS: dict[str, Callable[[], Any]] = {
+    "zstd": zstd.ZstdDecompressor,
+    "lz4": lz4.frame.LZ4FrameDecompressor,
+    "bz2": bz2.BZ2Decompressor,
+}
+"""Incremental decompressors: unlike a whole-buffer ``decompress``, each stops at a length."""
+
+
+def inflate(compression: str, data: bytes, limit: int = MAX_CHUNK_BYTES) -> bytes:
+    """``data`` decompressed, refused as soon as it passes ``limit`` bytes, so a bomb costs
+    ``limit`` bytes and no more. One whole frame (stream) only: writers give a chunk one, and
+    whatever followed it would otherwise decompress unbounded in rosbags after this check."""
+    if not compression:
+        inflated = data
+    else:
+        decompressor = _DECOMPRESSORS[compression]()
+        inflated = decompressor.decompress(data, max_length=limit + 1)
+        if len(inflated) <= limit and (not decompressor.eof or decompressor.unused_data):
+            raise ValueError(f"the chunk's {compression} data is not one whole frame")
+    if len(inflated) > limit:
+        raise ChunkTooLarge(
+            f"chunk decompresses to more than {limit} bytes ({compression or 'uncompressed'})"
+        )
+    return inflated
+
+
+def inflate_declared(compression: str, data: bytes, declared: int) -> bytes:
+    """A chunk that declares its size (MCAP's ``uncompressed_size``) decompressed: refused
+    before any decompression when it declares more than :data:`MAX_CHUNK_BYTES`, and as soon
+    as it passes what it declares."""
+    if declared > MAX_CHUNK_BYTES:
+        raise ChunkTooLarge(
+            f"chunk declares {declared} bytes decompressed, more than the {MAX_CHUNK_BYTES} "
+            "a chunk may hold"
+        )
+    return inflate(compression, data, declared)
+
+
+def _bound_rosbags() -> None:
+    """Give rosbags' readers the bounded decompressors: they decompress each chunk whole
+    (bz2, lz4, zstd) however large it grows, and ingestion reads a bag with them, in staging
+    processes even before :func:`check_mcap` has seen the file. rosbags looks them up by
+    compression name in these module tables when it reads a chunk (ROS 1: when it opens the
+    bag), so replacing the entries reaches every reader in the process."""
+    for name in ("bz2", "lz4"):
+        rosbag1_reader.decompressors[name] = partial(inflate, name)
+    for name in ("lz4", "zstd"):
+        rosbag2_mcap.DECOMPRESSORS[name] = partial(inflate_declared, name)
+
+
+_bound_rosbags()
 
 
 class MissingDefinition(Exception):
@@ -177,6 +247,11 @@ def check_mcap(path: Path) -> None:
     is the last check left); this pass turns any damage it can see into :class:`BagCorrupt`
     with the offset of the chunk or record where it was found, when there is one. It costs one
     decompression of every chunk.
+
+    Each chunk is decompressed within what it declares and :data:`MAX_CHUNK_BYTES`
+    (:class:`BagUnreadable` past that, naming the chunk's offset and the sizes), never by
+    the mcap library, which takes a chunk's word for its size (zstd) or takes no bound at all
+    (lz4).
     """
     with path.open("rb") as stream:
         reader = StreamReader(stream, validate_crcs=True, emit_chunks=True)
@@ -197,19 +272,27 @@ def check_mcap(path: Path) -> None:
                     _check_chunk_count(chunk, indexed, path)
                     chunk, indexed = None, 0
                 if isinstance(record, Chunk):
-                    found = breakup_chunk(record, validate_crc=True)
+                    found = breakup_chunk(_inflated(record), validate_crc=True)
                     chunk = (offset, sum(isinstance(each, Message) for each in found))
                     in_chunks += chunk[1]
                 offset = stream.tell()
             _check_chunk_count(chunk, indexed, path)
         except BagCorrupt:
             raise
+        except ChunkTooLarge as exc:
+            raise BagUnreadable(str(exc), path=path, offset=offset) from None
         except CRCValidationError as exc:
             raise BagCorrupt(str(exc), path=path, offset=offset) from None
         except Exception as exc:  # the mcap library and zstd raise anything on damaged bytes
             raise BagCorrupt(
                 f"damaged MCAP record: {_reason(exc)}", path=path, offset=offset
             ) from None
+
+
+def _inflated(chunk: Chunk) -> Chunk:
+    """``chunk`` with its records decompressed within bounds (:func:`inflate_declared`)."""
+    data = inflate_declared(chunk.compression, chunk.data, chunk.uncompressed_size)
+    return replace(chunk, compression="", data=data)
 
 
 def _check_chunk_count(chunk: tuple[int, int] | None, indexed: int, path: Path) -> None:
@@ -299,6 +382,8 @@ class Bag:
             reader.open()
         except Rosbag2ReaderError as exc:
             raise _classify_ros2(exc, self.path) from None
+        except ChunkTooLarge as exc:
+            raise self._refusal(exc, self.path, reader) from None
         except (TypesysError, KeyError, ValueError, OSError) as exc:
             raise BagCorrupt(_reason(exc), path=self.path) from None
         except Exception as exc:  # rosbags' readers parse with ord(), struct and asserts
@@ -315,9 +400,7 @@ class Bag:
         if storages is None:
             storages = [storage]
         elif storage.metadata.compression_mode == "message":
-            from backports import zstd
-
-            self._decompress = zstd.decompress
+            self._decompress = partial(inflate, "zstd")
         self._sources = [(each, self._group(each.connections)) for each in storages]
 
     def check_files(self) -> None:
@@ -427,6 +510,8 @@ class Bag:
                 read[raw.id] += 1
                 payload = decompress(data) if decompress is not None else data
                 yield by_id[raw.id], t_ns, payload
+        except ChunkTooLarge as exc:
+            raise self._refusal(exc, path, source) from None
         except (Rosbag1ReaderError, Rosbag2ReaderError, OSError, RuntimeError, ValueError) as exc:
             offset = _bad_ros1_chunk(source) if self._is_ros1 else None
             raise BagCorrupt(_reason(exc), path=path, offset=offset) from None
@@ -441,6 +526,19 @@ class Bag:
                     f"counts {raw.msgcount}",
                     path=path,
                 )
+
+    def _refusal(self, exc: ChunkTooLarge, path: Path, source: Any) -> BagError:
+        """The refusal of a chunk rosbags was decompressing, naming the chunk's offset, which
+        rosbags does not tell: a ROS 1 bag's chunks are tried again one by one, MCAP files
+        walked by :func:`check_mcap`, which refuses the same chunk before decompressing it."""
+        if self._is_ros1:
+            return BagUnreadable(str(exc), path=path, offset=_bad_ros1_chunk(source))
+        try:
+            for each in [path] if path.suffix == ".mcap" else self._mcap_files():
+                check_mcap(each)
+        except BagError as found:
+            return found
+        return BagUnreadable(str(exc), path=path)
 
     def deserialize(self, connection: BagConnection, t_ns: int, raw: bytes) -> Any:
         """One message as rosbags deserializes it (a dataclass per message type)."""

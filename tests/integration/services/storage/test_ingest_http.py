@@ -22,8 +22,9 @@ from robocloud.ingest import Ingest
 from robocloud.ledger import LedgerService
 from robocloud.storage import Storage as StorageClient
 from robocloud.unixfs import import_bytes
+from services.storage.bags import MAX_CHUNK_BYTES
 from services.storage.matcher import draft_template
-from tests.bagfactory import typestore_for, write_bag
+from tests.bagfactory import typestore_for, write_bag, write_mcap_bomb, write_ros1_big_chunk
 from tests.conftest import ServiceFactory
 from tests.procs import SHARED_DATA, ServiceProcess
 from tests.waiting import wait_for
@@ -149,6 +150,35 @@ def test_an_mcap_cut_after_its_magic_fails_as_a_corrupt_bag(
         "(TypeError: ord() expected a character, but string of length 0 found)"
     )
     assert failed["records"] == {"staged": 0, "committed": 0}
+
+
+@pytest.mark.parametrize("kind", ["mcap", "ros1"])
+def test_a_decompression_bomb_fails_its_job_naming_the_chunk_and_stores_nothing(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path, kind: str
+) -> None:
+    """32 KiB of MCAP declaring a 1 GiB zstd chunk took the service to 2.1 GiB; a ROS 1
+    chunk past the limit (rosbags decompresses it whole) is refused the same way."""
+    if kind == "mcap":
+        bag = tmp_path / "bomb.mcap"
+        offset = write_mcap_bomb(bag)
+        name, reason = "bag.mcap", f"chunk declares {1 << 30} bytes decompressed, more than the"
+    else:
+        bag = write_ros1_big_chunk(tmp_path / "big.bag", MAX_CHUNK_BYTES)
+        offset, name = 13 + 4096, "bag.bag"
+        reason = f"chunk decompresses to more than {MAX_CHUNK_BYTES} bytes (lz4)"
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        text = approve(client, "std_msgs/msg/String")
+        ingest.bind(text, msgtype="std_msgs/msg/String")
+        failed = ingest.wait(ingest.upload(bag)["id"], timeout_s=120)
+        error = failed["error"]
+        assert (failed["status"], error["code"], error["details"]) == (
+            "failed",
+            "bag_unreadable",
+            {"file": name, "offset": offset},
+        )
+        assert f"{name} at byte {offset}: {reason}" in error["message"]
+        assert failed["records"] == {"staged": 0, "committed": 0}
+        assert client.get_json("/v1/records", params={"template": text})["records"] == []
 
 
 def test_a_real_recording_is_ingested_through_the_draft_its_job_proposes(

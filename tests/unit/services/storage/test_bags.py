@@ -4,6 +4,7 @@ rosbags' own reader; truncated, corrupt and undefined input."""
 from __future__ import annotations
 
 import json
+import resource
 import shutil
 from collections import Counter
 from pathlib import Path
@@ -15,14 +16,24 @@ from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from services.storage.bags import (
+    MAX_CHUNK_BYTES,
     Bag,
     BagCorrupt,
     BagFormat,
     BagUnreadable,
+    ChunkTooLarge,
     MessageUndecodable,
     MissingDefinition,
+    inflate_declared,
 )
-from tests.bagfactory import START_NS, TOPICS, BagKind, write_bag
+from tests.bagfactory import (
+    START_NS,
+    TOPICS,
+    BagKind,
+    write_bag,
+    write_mcap_bomb,
+    write_ros1_big_chunk,
+)
 from tests.rosbags_compare import assert_matches_rosbags
 
 DATA = Path(__file__).resolve().parents[5] / "shared" / "data"
@@ -321,3 +332,43 @@ def test_bare_file_with_the_wrong_suffix(tmp_path: Path) -> None:
     renamed.write_bytes(source.read_bytes())
     with pytest.raises(BagUnreadable, match=r"\*\.mcap"):
         Bag.open(renamed)
+
+
+def test_an_mcap_chunk_declaring_more_than_a_chunk_may_hold_is_refused_unread(
+    tmp_path: Path,
+) -> None:
+    """32 KiB of zstd declaring 1 GiB of zeros: the mcap library decompressed it whole (2.1
+    GiB in the service). Refused on its declaration, before a byte is decompressed, both by
+    the check and by rosbags' reader (which staging processes open unchecked)."""
+    bomb = tmp_path / "bomb.mcap"
+    offset = write_mcap_bomb(bomb)
+    assert bomb.stat().st_size < 64 * 1024
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    for check in (True, False):
+        with pytest.raises(BagUnreadable) as refused:
+            Bag.open(bomb, check=check)
+        assert refused.value.offset == offset
+        assert refused.value.reason == (
+            f"chunk declares {1 << 30} bytes decompressed, more than the {MAX_CHUNK_BYTES} "
+            "a chunk may hold"
+        )
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 64 * 1024  # KiB
+
+
+def test_a_chunk_past_its_declared_size_is_cut_off_there() -> None:
+    from backports import zstd
+
+    with pytest.raises(ChunkTooLarge, match="more than 1024 bytes"):
+        inflate_declared("zstd", zstd.compress(bytes(1 << 20)), 1024)
+    assert inflate_declared("zstd", zstd.compress(b"x" * 1024), 1024) == b"x" * 1024
+    with pytest.raises(ValueError, match="not one whole frame"):
+        inflate_declared("zstd", zstd.compress(b"x") + zstd.compress(bytes(1 << 20)), 1024)
+
+
+def test_a_ros1_chunk_past_the_limit_is_refused_naming_it(tmp_path: Path) -> None:
+    """rosbags decompresses a ROS 1 chunk whole (bz2, lz4) and keeps no size to check it by."""
+    bag = write_ros1_big_chunk(tmp_path / "big.bag", MAX_CHUNK_BYTES)
+    with Bag.open(bag) as opened, pytest.raises(BagUnreadable) as refused:
+        list(opened.messages())
+    assert refused.value.offset == 13 + 4096  # after the magic and the bag header record
+    assert refused.value.reason == f"chunk decompresses to more than {MAX_CHUNK_BYTES} bytes (lz4)"
