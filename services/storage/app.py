@@ -206,7 +206,7 @@ def _knowledge_router(settings: StorageSettings) -> APIRouter:
         if kind == "application/sparql-query":
             query: str | None = raw.decode("utf-8", errors="replace")
         elif kind == "application/x-www-form-urlencoded":
-            parameters += parse_qsl(raw.decode("utf-8", errors="replace"), max_num_fields=32)
+            parameters += _form_fields(raw)
             query = one(parameters, "query")
         else:
             raise UnsupportedMediaType(
@@ -234,6 +234,26 @@ def _knowledge_router(settings: StorageSettings) -> APIRouter:
         return {"applications": found}
 
     return router
+
+
+MAX_FORM_FIELDS = 32
+"""Fields a SPARQL query form may hold: the protocol names a handful (query, format or
+output, the graph URIs, which are refused), so this leaves room and bounds the parse."""
+
+
+def _form_fields(raw: bytes) -> list[tuple[str, str]]:
+    """A form body's fields; past :data:`MAX_FORM_FIELDS`, 400 ``invalid_parameter`` naming
+    how many it holds: ``parse_qsl`` raises ValueError there, which answered 500."""
+    text = raw.decode("utf-8", errors="replace")
+    try:
+        return parse_qsl(text, max_num_fields=MAX_FORM_FIELDS)
+    except ValueError:
+        fields = text.count("&") + 1  # as parse_qsl counts them
+        raise BadRequest(
+            f"the form holds {fields} fields, more than the {MAX_FORM_FIELDS} it may",
+            code="invalid_parameter",
+            details={"field": "body", "fields": fields, "limit": MAX_FORM_FIELDS},
+        ) from None
 
 
 def _open_knowledge(settings: StorageSettings) -> KnowledgeBase:

@@ -464,6 +464,20 @@ def test_a_service_call_hidden_from_the_check_reaches_nothing(
     unchanged(services, before)
 
 
+def test_a_form_of_too_many_fields_is_named_not_a_500(services: Services) -> None:
+    """parse_qsl raised ValueError past 32 fields, answered 500 internal_error."""
+    before = services.stored()
+    form = "&".join(["query=" + UPDATE.replace(" ", "+")] + [f"f{i}=x" for i in range(40)])
+    answer = httpx.post(
+        services.sparql,
+        content=form,
+        headers={"Content-Type": "application/x-www-form-urlencoded"},
+    )
+    assert error(answer, 400, "invalid_parameter") == {"field": "body", "fields": 41, "limit": 32}
+    assert "41 fields" in answer.json()["error"]["message"]
+    unchanged(services, before)
+
+
 def test_a_post_that_is_neither_a_form_nor_a_query_is_415(services: Services) -> None:
     answer = httpx.post(
         services.sparql, content=b"{}", headers={"Content-Type": "application/json"}
