@@ -90,7 +90,10 @@ ATTRIBUTES: Final[dict[str, tuple[URIRef, type]]] = {
 """Attributes a file carries and a port requires, by their Python name."""
 
 NAME = re.compile(r"[a-z][a-z0-9_]{0,62}")
-MEDIA_TYPE = re.compile(r"[a-z]+/[A-Za-z0-9][A-Za-z0-9!#$&^_.+-]*")
+MEDIA_TYPE = re.compile(r"[a-z]+/[A-Za-z0-9][A-Za-z0-9!#$&_.+-]*")
+"""RFC 6838's restricted-name characters but ``^``, which no IRI may hold (N-Triples' and
+SPARQL's IRIREF refuse it): a type with one could never be a description's, and its IRI broke
+the query it went into, so it is refused as the parameter it came in."""
 _IRI = r"<([^\x00-\x20<>\"{}|^`\\]*)>"
 _LITERAL = r"\"((?:[^\"\\\n\r]|\\[\"\\nr])*)\"(?:@([a-z]+(?:-[a-z0-9]+)*)|\^\^" + _IRI + r")?"
 _LINE = re.compile(f"{_IRI} {_IRI} (?:{_IRI}|{_LITERAL}) \\.")

@@ -600,6 +600,8 @@ def test_applications_consuming_jpeg_are_found_with_their_ports(services: Servic
         ("consumes=jpeg", "consumes"),
         ("consumes=image/jpeg&produces=ipfs://nope", "produces"),
         ("consumes=%3E%20.%20%7D", "consumes"),
+        ("consumes=image/a%5Eb", "consumes"),  # RFC 6838 allows ^, an IRI does not
+        ("consumes=image/jpeg&produces=text/a%5Eb", "produces"),
     ],
 )
 def test_a_bad_type_is_named(services: Services, query: str, field: str) -> None:
