@@ -27,7 +27,7 @@ from robocloud import bounded_json
 from robocloud.signing import LOCAL_DEPLOYMENT
 from services.common.audience import ServiceAudience, learn_from_ledger
 from services.common.auth import SignedAddress, build_authorizer
-from services.common.bodies import read_json
+from services.common.bodies import SMALL_JSON_BODY, read_json
 from services.common.errors import (
     COMMON_ERRORS,
     ErrorMap,
@@ -200,8 +200,9 @@ def create_app(
     """Build a service app.
 
     ``unsigned_paths`` are write routes that carry their own authentication (the chain's
-    JSON-RPC, whose transactions are signed by Ethereum keys). ``body_limits`` raises the
-    body limit under a path prefix (uploads) above ``settings.max_body_bytes``. ``errors``
+    JSON-RPC, whose transactions are signed by Ethereum keys). ``body_limits`` sets the
+    body limit under a path prefix: above ``settings.max_body_bytes`` for uploads, below it
+    for routes of a few fields (``/v1/whoami`` has ``SMALL_JSON_BODY``). ``errors``
     maps the service's domain exceptions to HTTP errors (see ``services.common.errors``),
     beside ``COMMON_ERRORS`` for the SDK's format errors.
 
@@ -267,7 +268,11 @@ def create_app(
         max_clock_skew_s=settings.max_clock_skew_s,
         unsigned_paths=unsigned_paths,
     )
-    app.add_middleware(BodyLimitLayer, default_limit=settings.max_body_bytes, limits=body_limits)
+    app.add_middleware(
+        BodyLimitLayer,
+        default_limit=settings.max_body_bytes,
+        limits={"/v1/whoami": min(SMALL_JSON_BODY, settings.max_body_bytes), **(body_limits or {})},
+    )
     app.add_middleware(AccessLogLayer, metrics=metrics)
     app.add_middleware(RequestIdLayer)
     return app

@@ -23,7 +23,7 @@ from robocloud.ledger import ContractAddresses
 from robocloud.signing import chain_deployment_id
 from services.common.app import create_app
 from services.common.auth import SignedAddress
-from services.common.bodies import read_json
+from services.common.bodies import SMALL_JSON_BODY, read_json
 from services.common.errors import Forbidden, Unavailable
 from services.common.slots import Slots
 from services.ledger import views
@@ -213,6 +213,7 @@ def build_app(settings: LedgerSettings) -> FastAPI:
         readiness_checks=[chain_answers],
         lifespan=lifespan,
         unsigned_paths=["/rpc"],
+        body_limits={"/v1/faucet": min(SMALL_JSON_BODY, settings.max_body_bytes)},
         errors=ERRORS,
         description=services.ledger.__doc__ or "",
         deployment_source="service",
