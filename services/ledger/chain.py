@@ -167,6 +167,11 @@ class EmbeddedChain:
         with self._lock:
             self._db.close()
 
+    def exclusive(self) -> FairLock:
+        """The chain's lock, to hold over calls that no other transaction may come between
+        (an operator key's pending nonce and the transaction that uses it)."""
+        return self._lock
+
     def on_block(self, listener: BlockListener) -> None:
         """Call ``listener`` with every block mined from now on, before its sender is answered."""
         self._listeners.append(listener)

@@ -66,19 +66,24 @@ def send_as(
     value: int = 0,
     gas: int = 21_000,
 ) -> bytes:
-    """Sign a transaction with an operator key and mine it; its hash."""
-    transaction: dict[str, Any] = {
-        "chainId": chain.chain_id,
-        "nonce": chain.nonce(bytes.fromhex(identity.address[2:]), "pending"),
-        "gas": gas,
-        "gasPrice": chain.base_fee() + PRIORITY_FEE_WEI,
-        "data": data,
-        "value": value,
-    }
-    if to is not None:
-        transaction["to"] = to
-    signed = identity.account.sign_transaction(transaction)
-    return chain.send_raw_transaction(bytes(signed.raw_transaction)).hash
+    """Sign a transaction with an operator key and mine it; its hash.
+
+    Under the chain's lock from the nonce to the send: two faucet requests at once read the
+    same pending nonce, and the second one's transaction was refused ("nonce too low").
+    """
+    with chain.exclusive():
+        transaction: dict[str, Any] = {
+            "chainId": chain.chain_id,
+            "nonce": chain.nonce(bytes.fromhex(identity.address[2:]), "pending"),
+            "gas": gas,
+            "gasPrice": chain.base_fee() + PRIORITY_FEE_WEI,
+            "data": data,
+            "value": value,
+        }
+        if to is not None:
+            transaction["to"] = to
+        signed = identity.account.sign_transaction(transaction)
+        return chain.send_raw_transaction(bytes(signed.raw_transaction)).hash
 
 
 def deploy(chain: EmbeddedChain, admin: Identity) -> Deployment:

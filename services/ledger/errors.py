@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from services.common.errors import ErrorMap, ErrorRule
 from services.ledger.faucet import RateLimited
-from services.ledger.node import FaucetUnavailable
+from services.ledger.node import FaucetFailed, FaucetUnavailable
 from services.ledger.views import InvalidAddress, InvalidLimit, RobotNotFound
 
 
@@ -18,6 +18,9 @@ ERRORS = ErrorMap(
         InvalidLimit: ErrorRule(400, "invalid_limit", lambda exc: {"limit": exc.value}),
         RobotNotFound: ErrorRule(404, "robot_not_found", lambda exc: {"address": exc.address}),
         FaucetUnavailable: ErrorRule(404, "faucet_unavailable"),
+        FaucetFailed: ErrorRule(
+            503, "faucet_failed", lambda _: {"retry_after": 1}, lambda _: {"Retry-After": "1"}
+        ),
         RateLimited: ErrorRule(
             429,
             "faucet_rate_limited",

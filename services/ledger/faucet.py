@@ -73,12 +73,13 @@ class FaucetLimits:
             self._window.append(now)
 
     def release(self, address: str) -> None:
-        """Undo the grant of a request whose transaction failed, so it may retry at once."""
+        """Undo the grant of a request whose transaction failed, so it may retry at once; its
+        own place in the minute's budget is given back, not the newest grant's."""
         with self._lock:
             self._db.execute("DELETE FROM grants WHERE address = ?", (address,))
-            self._last.pop(address, None)
-            if self._window:
-                self._window.pop()
+            granted_at = self._last.pop(address, None)
+            if granted_at is not None and granted_at in self._window:
+                self._window.remove(granted_at)
 
     def close(self) -> None:
         with self._lock:

@@ -30,6 +30,11 @@ class FaucetUnavailable(Exception):
     """This ledger has no faucet (an external node: fund robots there)."""
 
 
+class FaucetFailed(Exception):
+    """The chain refused the faucet's transaction (its key out of funds): the grant was given
+    back, so the robot may ask again."""
+
+
 class Ledger(Protocol):
     chain_id: int
     deployment: Deployment
@@ -129,9 +134,9 @@ class EmbeddedLedger:
         self.limits.acquire(address)
         try:
             tx_hash = send_as(self.chain, self.faucet_key, address, value=self.faucet_amount_wei)
-        except ChainError:
+        except ChainError as exc:
             self.limits.release(address)
-            raise
+            raise FaucetFailed(str(exc)) from exc
         located = self.chain.locate(tx_hash)
         return {
             "address": address,

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
 import httpx
 import pytest
 
 from robocloud.identity import Identity
-from tests.integration.services.ledger.conftest import Service, faucet, head, rpc
+from tests.integration.services.ledger.conftest import Service, faucet, head, rpc, start_ledger
 
 
 def _balance(service: Service, address: str) -> int:
@@ -60,6 +63,37 @@ def test_faucet_funds_the_signer_once_then_429(service: Service) -> None:
     assert again.json()["error"]["code"] == "faucet_rate_limited"
     assert head(service.url) == before
     assert _balance(service, identity.address) == funded
+
+
+def test_robots_asking_the_faucet_at_once_are_all_funded(service: Service) -> None:
+    """Each request read the faucet's pending nonce outside the chain's lock: of 32 at once,
+    18 got 500 internal_error ("nonce too low"), and their grants were spent."""
+    robots = [Identity.generate() for _ in range(16)]
+    with ThreadPoolExecutor(len(robots)) as pool:
+        answers = list(pool.map(lambda robot: faucet(service.url, robot), robots))
+    assert [answer.status_code for answer in answers] == [200] * len(robots), [
+        answer.text for answer in answers if answer.status_code != 200
+    ]
+    assert len({answer.json()["tx"] for answer in answers}) == len(robots)
+    assert {_balance(service, robot.address) for robot in robots} == {10**18}
+
+
+def test_a_faucet_the_chain_refuses_is_503_and_gives_the_grant_back(tmp_path: Path) -> None:
+    """A ChainError had no HTTP answer: 500 internal_error, "see the service log"."""
+    process = start_ledger(tmp_path / "data", {"ROBOCLOUD_LEDGER_FAUCET_AMOUNT_WEI": str(10**40)})
+    try:
+        robot = Identity.generate()
+        before = head(process.url)
+        for _ in range(2):  # given back: the second try is refused the same, not 429
+            refused = faucet(process.url, robot)
+            assert refused.status_code == 503, refused.text
+            assert refused.headers["Retry-After"] == "1"
+            error = refused.json()["error"]
+            assert error["code"] == "faucet_failed"
+            assert "insufficient funds" in error["message"]
+        assert head(process.url) == before
+    finally:
+        process.stop()
 
 
 def test_faucet_funds_only_its_signer(service: Service) -> None:

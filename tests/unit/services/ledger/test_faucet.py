@@ -68,6 +68,22 @@ def test_a_released_grant_may_retry_at_once_even_after_a_reopen(opened: Opener) 
     opened().acquire("0xA")
 
 
+def test_a_release_gives_back_its_own_place_in_the_minutes_budget(
+    clock: Clock, opened: Opener
+) -> None:
+    """It gave back the newest grant's place and kept the failed one's: once that expired,
+    three grants fit in 31 s under a budget of two a minute."""
+    limits = opened(per_minute=2)
+    limits.acquire("0xA")
+    clock.now += 30
+    limits.acquire("0xB")
+    limits.release("0xA")
+    clock.now += 31
+    limits.acquire("0xC")
+    with pytest.raises(RateLimited, match="budget for this minute"):
+        limits.acquire("0xD")
+
+
 def test_global_budget_per_minute(clock: Clock, opened: Opener) -> None:
     limits = opened(per_minute=2)
     limits.acquire("0xA")
