@@ -9,7 +9,7 @@ require registration (it runs with ``AnySigner`` whatever ``ROBOCLOUD_AUTH`` say
 from __future__ import annotations
 
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -45,6 +45,13 @@ UINT64_MAX = 2**64 - 1
 
 class FaucetRequest(BaseModel):
     address: str = Field(max_length=64)
+
+
+async def _read(view: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
+    """A view of the event index, on a worker thread: its SQLite queries (a scan of every
+    anchor unfiltered) and the index's lock, held while a block is indexed, kept the event
+    loop and every other request waiting."""
+    return await anyio.to_thread.run_sync(lambda: view(*args))
 
 
 def _ledger(request: Request) -> Ledger:
@@ -84,12 +91,12 @@ def _router() -> APIRouter:
     @router.get("/v1/robots/{address}")
     async def robot(request: Request, address: str) -> dict[str, Any]:
         """A robot: status (registered or pending), metadata CID, activity, roles (indexed)."""
-        return views.robot(_ledger(request), address)
+        return await _read(views.robot, _ledger(request), address)
 
     @router.get("/v1/registrations")
     async def registrations(request: Request, limit: int = 100) -> dict[str, Any]:
         """Registrations awaiting the admin or a registrar (the Approved mode), oldest first."""
-        return views.pending_registrations(_ledger(request), limit)
+        return await _read(views.pending_registrations, _ledger(request), limit)
 
     @router.get("/v1/advertisements")
     async def advertisements(
@@ -100,7 +107,7 @@ def _router() -> APIRouter:
         limit: int = 100,
     ) -> dict[str, Any]:
         """Advertised events, oldest first, by CID and/or advertiser."""
-        return views.advertisements(_ledger(request), cid, advertiser, since, limit)
+        return await _read(views.advertisements, _ledger(request), cid, advertiser, since, limit)
 
     @router.get("/v1/anchors")
     async def anchors(
@@ -110,7 +117,7 @@ def _router() -> APIRouter:
         limit: int = 100,
     ) -> dict[str, Any]:
         """Anchored TMT roots by storage node and/or epoch."""
-        return views.anchors(_ledger(request), node, epoch, limit)
+        return await _read(views.anchors, _ledger(request), node, epoch, limit)
 
     @router.get("/v1/blocks/latest")
     async def latest_block(request: Request) -> dict[str, Any]:

@@ -77,6 +77,8 @@ CREATE TABLE IF NOT EXISTS anchors (
     PRIMARY KEY (node, epoch)
 ) WITHOUT ROWID;
 CREATE INDEX IF NOT EXISTS anchors_epoch ON anchors (epoch);
+CREATE INDEX IF NOT EXISTS anchors_block ON anchors (block_number, node);
+CREATE INDEX IF NOT EXISTS anchors_node_block ON anchors (node, block_number);
 """
 """``anchors.epoch`` and ``anchors.record_count`` hold ``biased`` values."""
 
