@@ -21,6 +21,12 @@ read held the stream open with the read-ahead behind it: a hundred such connecti
 h11 buffers at most one head, and its own bound (``h11_max_incomplete_event_size``) is set to
 the same limit as a backstop for pipelined requests, whose bytes may arrive together with an
 earlier request's body.
+A request h11 cannot frame (a bad or doubled ``Content-Length``, a transfer coding other than
+chunked, a bad chunk size, no ``Host``, a malformed header line) is answered in the error model
+too, ``bad_http_request`` with h11's reason and its status (400; 501 for a transfer coding it
+does not implement, as RFC 9112 section 6.1 asks), and the connection closed: uvicorn answered
+a plain-text "Invalid HTTP request received." that said neither what was wrong nor which
+request id to quote.
 """
 
 from __future__ import annotations
@@ -45,6 +51,9 @@ log = logging.getLogger("robocloud.http")
 
 _BLANK_LINE = re.compile(rb"\n\r?\n")
 """The end of a head as h11 finds it (a CRLF or bare LF line, then an empty one)."""
+_MAX_REASON_CHARS = 200
+"""How much of h11's reason a ``bad_http_request`` quotes: it may hold a whole header line."""
+_UNPRINTABLE = re.compile(r"[^\x20-\x7e]")
 
 
 @dataclass(frozen=True)
@@ -112,6 +121,31 @@ class HeadMeter:
         return None
 
 
+class _ErrorKeepingConnection(h11.Connection):
+    """h11's connection, keeping the protocol error it raised and whether the request's body
+    was arriving then: uvicorn catches the error and keeps neither."""
+
+    error: h11.RemoteProtocolError | None = None
+    error_in_body = False
+
+    def next_event(self) -> h11.Event | type[h11.NEED_DATA] | type[h11.PAUSED]:
+        in_body = self.their_state is h11.SEND_BODY
+        try:
+            return super().next_event()
+        except h11.RemoteProtocolError as exc:
+            self.error, self.error_in_body = exc, in_body
+            raise
+
+
+def _quoted_reason(exc: h11.RemoteProtocolError | None, fallback: str) -> str:
+    """h11's reason for refusing a request, printable ASCII and bounded: it quotes the
+    client's own bytes, which go back in the answer and into the log."""
+    reason = _UNPRINTABLE.sub("?", str(exc) if exc is not None else fallback)
+    if len(reason) > _MAX_REASON_CHARS:
+        reason = reason[: _MAX_REASON_CHARS - 3] + "..."
+    return reason
+
+
 class BoundedH11Protocol(H11Protocol):
     """uvicorn's h11 protocol with :class:`HeadMeter` in front of the parser.
 
@@ -127,6 +161,10 @@ class BoundedH11Protocol(H11Protocol):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self._framing = _ErrorKeepingConnection(
+            h11.SERVER, self.config.h11_max_incomplete_event_size or self.max_header_bytes
+        )
+        self.conn = self._framing
         self._head = HeadMeter(self.max_request_line_bytes, self.max_header_bytes)
         self._head_deadline: asyncio.TimerHandle | None = None
         self._send_deadline: asyncio.TimerHandle | None = None
@@ -200,6 +238,28 @@ class BoundedH11Protocol(H11Protocol):
             self._request_id(),
             self._path(),
         )
+
+    def send_400_response(self, msg: str) -> None:
+        """h11 refused the request's framing (uvicorn calls this with its own fixed ``msg``):
+        answer ``bad_http_request`` with h11's reason and close. If the body was arriving,
+        the route sees its client gone; if its answer had started, the connection is dropped,
+        since nothing can be answered in the middle of an answer."""
+        error, in_body = self._framing.error, self._framing.error_in_body
+        reason = _quoted_reason(error, msg)
+        if in_body and self.cycle is not None and self.cycle.response_started:
+            self._drop(f"badly framed request body ({reason})", {})
+            return
+        status = error.error_status_hint if error is not None else 400
+        refusal = Refusal(
+            status, "bad_http_request", f"the request is not valid HTTP/1.1: {reason}", {}
+        )
+        if not in_body or self.cycle is None:
+            self._refuse(refusal)
+            return
+        self.scope[SERVER_ANSWER_SCOPE_KEY] = status  # type: ignore[literal-required]
+        self.cycle.disconnected = True
+        self.cycle.message_event.set()
+        self._refuse(refusal, self._request_id(), self._path())
 
     def pause_writing(self) -> None:
         """The client is not taking the answer as fast as it is written: it has
