@@ -21,6 +21,7 @@ import abc
 import hashlib
 import json
 import logging
+import math
 import re
 import time
 import uuid
@@ -40,11 +41,12 @@ from services.common.errors import (
     PayloadTooLarge,
     ServiceError,
     Unauthorized,
+    Unavailable,
     error_body,
 )
 from services.common.logs import request_id_var
 from services.common.metrics import ServiceMetrics
-from services.common.nonces import NonceStore
+from services.common.nonces import NonceStore, NonceStoreFull
 from services.common.slots import client_key, client_var
 
 log = logging.getLogger("robocloud.http")
@@ -342,12 +344,27 @@ class SignatureLayer:
             if isinstance(exc, WrongAudienceError):
                 details |= {"expected": exc.expected, "received": exc.received}
             raise Unauthorized(exc.message, code=exc.code, details=details) from exc
-        if not self.nonces.use(verified.address, verified.nonce, verified.timestamp):
+        self._use_nonce(verified.address, verified.nonce, verified.timestamp)
+        scope.setdefault("state", {})["signature"] = verified
+        await self.authorizer.authorize(verified.address)
+        return verified.content_sha256
+
+    def _use_nonce(self, address: str, nonce: str, timestamp: int) -> None:
+        """Record the request's nonce: 401 if it was used, 503 if the store is full (a full
+        store refuses new nonces rather than forget live ones, which would allow replays)."""
+        try:
+            fresh = self.nonces.use(address, nonce, timestamp)
+        except NonceStoreFull as full:
+            seconds = max(1, math.ceil(full.retry_after_s))
+            raise Unavailable(
+                "the service holds as many recent nonces as it can; retry later",
+                code="nonce_store_full",
+                details={"limit": full.limit, "retry_after": seconds},
+                headers={"Retry-After": str(seconds)},
+            ) from full
+        if not fresh:
             raise Unauthorized(
                 "this nonce was already used by this address",
                 code="replayed_nonce",
                 details={"header": "X-Robocloud-Nonce"},
             )
-        scope.setdefault("state", {})["signature"] = verified
-        await self.authorizer.authorize(verified.address)
-        return verified.content_sha256

@@ -266,11 +266,12 @@ def signature_layer(
     *,
     authorizer: Authorizer | None = None,
     audience: ServiceAudience | None = None,
+    nonces: NonceStore | None = None,
 ) -> SignatureLayer:
     return SignatureLayer(
         app,
         audience=audience or ServiceAudience("cas", "local", source="test"),
-        nonces=NonceStore(tmp_path / "nonces.log", 300),
+        nonces=nonces if nonces is not None else NonceStore(tmp_path / "nonces.log", 300),
         authorizer=authorizer or AnySigner(),
         max_clock_skew_s=300,
         unsigned_paths=["/rpc"],
@@ -342,6 +343,20 @@ def test_replayed_nonce_is_401(tmp_path: Path) -> None:
     assert call(app, "POST", "/w", headers=headers).status_code == 200
     error = error_of(call(app, "POST", "/w", headers=headers), 401, "replayed_nonce")
     assert error["details"] == {"header": HEADER_NONCE}
+
+
+def test_a_full_nonce_store_is_503_with_retry_after_and_records_nothing(tmp_path: Path) -> None:
+    robot = Identity.generate()
+    nonces = NonceStore(tmp_path / "nonces.log", 300, max_entries=1)
+    app = signature_layer(tmp_path, echo, nonces=nonces)
+    first = signed(robot, "/w")
+    assert call(app, "POST", "/w", headers=first).status_code == 200
+    response = call(app, "POST", "/w", headers=signed(robot, "/w"))
+    error = error_of(response, 503, "nonce_store_full")
+    assert error["details"]["limit"] == 1
+    assert response.headers["retry-after"] == str(error["details"]["retry_after"])
+    assert len(nonces) == 1
+    error_of(call(app, "POST", "/w", headers=first), 401, "replayed_nonce")
 
 
 class Listed:

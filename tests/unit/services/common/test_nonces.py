@@ -7,7 +7,9 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from services.common.nonces import NonceStore
+import pytest
+
+from services.common.nonces import NonceStore, NonceStoreFull
 
 ADDRESS = "0x2c7536E3605D9C16a7a3D7b1898e529396a65c23"
 
@@ -113,3 +115,33 @@ def test_compaction_keeps_what_is_live_across_a_restart(tmp_path: Path) -> None:
     assert path.read_text().splitlines() == [f"{ADDRESS.lower()} kept-nonce-000001 {now + 301}"]
     store.close()
     assert not NonceStore(path, window_s=300).use(ADDRESS, "kept-nonce-000001", now)
+
+
+def test_a_full_store_refuses_a_new_nonce_and_records_nothing(tmp_path: Path) -> None:
+    """Forgetting a live nonce to make room would let its request be replayed: refuse instead,
+    saying when the oldest one expires."""
+    path = tmp_path / "nonces.log"
+    store = NonceStore(path, window_s=300, max_entries=2)
+    now = int(time.time())
+    assert store.use(ADDRESS, "oldest-nonce-0001", now - 100)
+    assert store.use(ADDRESS, "newest-nonce-0001", now)
+    journal = path.read_text()
+    with pytest.raises(NonceStoreFull) as full:
+        store.use(ADDRESS, "refused-nonce-001", now)
+    assert full.value.limit == 2
+    assert 100 < full.value.retry_after_s <= 201, "the oldest expires at now - 100 + 301"
+    assert len(store) == 2
+    assert path.read_text() == journal
+    assert not store.use(ADDRESS, "oldest-nonce-0001", now - 100), "a replay is still refused"
+    store.close()
+    with pytest.raises(NonceStoreFull):
+        NonceStore(path, window_s=300, max_entries=2).use(ADDRESS, "refused-nonce-001", now)
+
+
+def test_expired_nonces_make_room_in_a_full_store(tmp_path: Path) -> None:
+    store = NonceStore(tmp_path / "nonces.log", window_s=300, max_entries=1)
+    now = int(time.time())
+    assert store.use(ADDRESS, "expired-nonce-001", now - 400)
+    assert store.use(ADDRESS, "live-nonce-000001", now)
+    with pytest.raises(NonceStoreFull):
+        store.use(ADDRESS, "live-nonce-000002", now)
