@@ -38,6 +38,7 @@ from services.common.audience import ServiceAudience
 from services.common.auth import Authorizer
 from services.common.errors import (
     BadRequest,
+    Forbidden,
     PayloadTooLarge,
     ServiceError,
     Unauthorized,
@@ -60,6 +61,9 @@ SERVER_ANSWER_SCOPE_KEY = "robocloud.server_answer"
 """The status the server protocol answered itself while the app still ran (a 408 for a body
 that stopped coming): what the access log records instead of the app's disconnection."""
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{8,64}")
+UNKNOWN_SIGNER = "address_not_allowed"
+"""The code of the authorizer's 403 for a signer it knows nothing of (no registration): the
+one refusal that leaves the request's nonce unused (see :class:`SignatureLayer`)."""
 
 
 async def send_error(send: Send, error: ServiceError) -> None:
@@ -287,11 +291,22 @@ class SignatureLayer:
     """Writes (every method but GET, HEAD and OPTIONS) must be signed for this service.
 
     Before the body is read, in order: the audience must be known (503), the signature
-    headers valid for this audience (401, see ``robocloud.signing``), the nonce unused (401
-    ``replayed_nonce``), and only then is the authorizer asked (403, or 503 when the ledger
-    cannot say): a replay costs no registry lookup. While the body streams its SHA-256 is
-    checked against the signed one (400). Paths in ``unsigned_paths`` carry their own
-    authentication (the chain's JSON-RPC).
+    headers valid for this audience (401, see ``robocloud.signing``), the signer authorized
+    (403, or 503 when the ledger cannot say), and the nonce unused (401 ``replayed_nonce``).
+    While the body streams its SHA-256 is checked against the signed one (400). Paths in
+    ``unsigned_paths`` carry their own authentication (the chain's JSON-RPC).
+
+    The nonce is recorded after the authorizer answered, so that a stranger (a self-made key
+    the registry has no record of, 403 ``address_not_allowed``) leaves nothing behind: free
+    keys would otherwise fill the nonce store, and a full store refuses every robot's writes.
+    Replays stay refused: the check and the record are one step under the store's lock,
+    taken after the authorizer's await, so of two copies racing one gets through; a replay
+    costs an authorizer lookup, cached. Every other answer records the nonce, refusals
+    included, so that they are final: a 503 (the ledger down), after which the SDK retries
+    with a fresh nonce, and a 403 for a known robot (pending, inactive) cannot be replayed
+    into success once the ledger answers or the robot is approved. A stranger's refused
+    request can: if its key is registered and approved within the clock window, a copy of
+    it succeeds once (never twice), even if its robot sent the same write again meanwhile.
     """
 
     def __init__(
@@ -344,9 +359,14 @@ class SignatureLayer:
             if isinstance(exc, WrongAudienceError):
                 details |= {"expected": exc.expected, "received": exc.received}
             raise Unauthorized(exc.message, code=exc.code, details=details) from exc
-        self._use_nonce(verified.address, verified.nonce, verified.timestamp)
         scope.setdefault("state", {})["signature"] = verified
-        await self.authorizer.authorize(verified.address)
+        try:
+            await self.authorizer.authorize(verified.address)
+        except Exception as refused:
+            if not (isinstance(refused, Forbidden) and refused.code == UNKNOWN_SIGNER):
+                self._use_nonce(verified.address, verified.nonce, verified.timestamp)
+            raise
+        self._use_nonce(verified.address, verified.nonce, verified.timestamp)
         return verified.content_sha256
 
     def _use_nonce(self, address: str, nonce: str, timestamp: int) -> None:

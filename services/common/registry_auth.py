@@ -24,6 +24,7 @@ from robocloud.errors import ApiError, InvalidAnswerError, TransportError
 from robocloud.ledger import LedgerService
 from robocloud.ledger.models import RegisteredRobot
 from services.common.errors import Forbidden, Unavailable
+from services.common.middleware import UNKNOWN_SIGNER
 
 MAX_CACHED = 10_000
 
@@ -57,7 +58,7 @@ class RegistryAuthorizer:
             raise Forbidden(
                 f"address {address} is not a registered robot on the ledger "
                 "(`robocloud register` registers it)",
-                code="address_not_allowed",
+                code=UNKNOWN_SIGNER,
                 details={"address": address},
             )
         if robot.pending:

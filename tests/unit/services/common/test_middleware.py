@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,10 +25,11 @@ from robocloud.identity import Identity
 from robocloud.signing import HEADER_AUDIENCE, HEADER_NONCE, sign_request
 from services.common.audience import ServiceAudience
 from services.common.auth import AnySigner, Authorizer
-from services.common.errors import Forbidden
+from services.common.errors import Forbidden, ServiceError, Unavailable
 from services.common.logs import request_id_var
 from services.common.metrics import ServiceMetrics
 from services.common.middleware import (
+    UNKNOWN_SIGNER,
     AccessLogLayer,
     BodyLimitLayer,
     RequestIdLayer,
@@ -360,33 +361,90 @@ def test_a_full_nonce_store_is_503_with_retry_after_and_records_nothing(tmp_path
 
 
 class Listed:
-    """An authorizer that lets in the addresses it holds (the registry's answer, fixed)."""
+    """An authorizer that lets in the addresses it holds (the registry's answer, fixed) and
+    refuses others with ``refusal`` (by default the registry's answer for a stranger)."""
 
-    def __init__(self) -> None:
+    def __init__(self, refusal: Callable[[str], ServiceError] | None = None) -> None:
         self.addresses: set[str] = set()
+        self.refusal = refusal or stranger
+        self.asked = 0
 
     async def authorize(self, address: str, role: str | None = None) -> None:
+        self.asked += 1
         if address not in self.addresses:
-            raise Forbidden(
-                f"address {address} is not allowed",
-                code="address_not_allowed",
-                details={"address": address},
-            )
+            raise self.refusal(address)
 
     def close(self) -> None:
         return None
 
 
-def test_nonce_is_checked_before_the_authorizer_is_asked(tmp_path: Path) -> None:
-    """A refused signer's replay is refused for its nonce: no second authorizer lookup, and a
-    request refused once (403, or 503 while the ledger is down) can never be replayed into
-    success later, after the signer was registered."""
+def stranger(address: str) -> ServiceError:
+    return Forbidden(
+        f"address {address} is not a registered robot",
+        code=UNKNOWN_SIGNER,
+        details={"address": address},
+    )
+
+
+def test_a_stranger_refused_leaves_no_nonce(tmp_path: Path) -> None:
+    """Self-made keys cost nothing: were their nonces kept, they would fill the store."""
+    robot = Identity.generate()
+    nonces = NonceStore(tmp_path / "nonces.log", 300)
+    app = signature_layer(tmp_path, never_called, authorizer=Listed(), nonces=nonces)
+    for _ in range(3):
+        first = error_of(call(app, "POST", "/w", headers=signed(robot, "/w")), 403, UNKNOWN_SIGNER)
+        assert first["details"] == {"address": robot.address}
+    assert len(nonces) == 0
+    assert (tmp_path / "nonces.log").read_text() == ""
+
+
+def test_a_replay_is_refused_though_the_authorizer_is_asked_first(tmp_path: Path) -> None:
     robot = Identity.generate()
     listed = Listed()
+    listed.addresses.add(robot.address)
+    app = signature_layer(tmp_path, echo, authorizer=listed)
+    headers = signed(robot, "/w")
+    assert call(app, "POST", "/w", headers=headers).json()["signer"] == robot.address
+    error_of(call(app, "POST", "/w", headers=headers), 401, "replayed_nonce")
+    assert listed.asked == 2
+
+
+def test_copies_of_a_request_racing_past_the_authorizer_let_one_through(tmp_path: Path) -> None:
+    """The nonce is checked and recorded in one step after the authorizer's await."""
+    robot = Identity.generate()
+    listed = Listed()
+    listed.addresses.add(robot.address)
+    app = signature_layer(tmp_path, echo, authorizer=listed)
+    headers = signed(robot, "/w")
+
+    async def race() -> list[int]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            copies = [client.post("/w", headers=headers) for _ in range(8)]
+            return [response.status_code for response in await asyncio.gather(*copies)]
+
+    assert sorted(asyncio.run(race())) == [200] + [401] * 7
+
+
+@pytest.mark.parametrize(
+    "refusal",
+    [
+        lambda address: Forbidden("awaits approval", code="registration_pending"),
+        lambda address: Unavailable("cannot reach the ledger", code="ledger_unreachable"),
+    ],
+    ids=["pending-robot", "ledger-down"],
+)
+def test_other_refusals_use_up_the_nonce_so_they_are_final(
+    tmp_path: Path, refusal: Callable[[str], ServiceError]
+) -> None:
+    """A request refused (403 for a known robot, 503 while the ledger is down, after which the
+    SDK retries with a fresh nonce) cannot be replayed into success once the signer is let in."""
+    robot = Identity.generate()
+    listed = Listed(refusal)
     app = signature_layer(tmp_path, never_called, authorizer=listed)
     headers = signed(robot, "/w")
-    first = error_of(call(app, "POST", "/w", headers=headers), 403, "address_not_allowed")
-    assert first["details"] == {"address": robot.address}
+    first = call(app, "POST", "/w", headers=headers)
+    assert first.status_code in (403, 503)
     listed.addresses.add(robot.address)
     error_of(call(app, "POST", "/w", headers=headers), 401, "replayed_nonce")
 
