@@ -15,6 +15,7 @@ itself any role on its ledger anyway. A robot's key does not belong there.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Iterable
 
 import anyio
@@ -27,6 +28,8 @@ from services.common.errors import Forbidden, Unavailable
 from services.common.middleware import UNKNOWN_SIGNER
 
 MAX_CACHED = 10_000
+"""Registry answers kept at once. Past it the least recently used goes, one at a time:
+strangers' one-off addresses then push out each other, not the robots that keep writing."""
 
 
 class RegistryAuthorizer:
@@ -41,6 +44,7 @@ class RegistryAuthorizer:
         negative_cache_s: float = 2.0,
         timeout_s: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
+        max_cached: int = MAX_CACHED,
     ) -> None:
         self.ledger_url = ledger_url.rstrip("/")
         self.ledger = LedgerService(self.ledger_url, timeout=timeout_s, retries=1)
@@ -48,7 +52,8 @@ class RegistryAuthorizer:
         self.cache_s = cache_s
         self.negative_cache_s = negative_cache_s
         self.clock = clock
-        self._cache: dict[str, tuple[float, RegisteredRobot | None]] = {}
+        self.max_cached = max_cached
+        self._cache: OrderedDict[str, tuple[float, RegisteredRobot | None]] = OrderedDict()
 
     async def authorize(self, address: str, role: str | None = None) -> None:
         if address in self.allowed:
@@ -86,14 +91,16 @@ class RegistryAuthorizer:
         now = self.clock()
         cached = self._cache.get(address)
         if cached is not None and cached[0] > now:
+            self._cache.move_to_end(address)
             return cached[1]
         robot = await self._fetch(address)
-        if len(self._cache) >= MAX_CACHED:
-            self._cache.clear()
         lifetime = (
             self.cache_s if robot is not None and not robot.pending else self.negative_cache_s
         )
         self._cache[address] = (now + lifetime, robot)
+        self._cache.move_to_end(address)
+        while len(self._cache) > self.max_cached:
+            self._cache.popitem(last=False)
         return robot
 
     async def _fetch(self, address: str) -> RegisteredRobot | None:
