@@ -28,6 +28,7 @@ import uuid
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+import anyio
 from starlette.datastructures import Headers
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -325,6 +326,9 @@ class SignatureLayer:
         self.authorizer = authorizer
         self.max_clock_skew_s = max_clock_skew_s
         self.unsigned_paths = frozenset(unsigned_paths)
+        self._journal = anyio.CapacityLimiter(1)
+        """One worker thread records nonces (the store's lock serialises them anyway), so a
+        burst of signed writes waits on the event loop, not in threads others need."""
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if (
@@ -364,16 +368,23 @@ class SignatureLayer:
             await self.authorizer.authorize(verified.address)
         except Exception as refused:
             if not (isinstance(refused, Forbidden) and refused.code == UNKNOWN_SIGNER):
-                self._use_nonce(verified.address, verified.nonce, verified.timestamp)
+                await self._use_nonce(verified.address, verified.nonce, verified.timestamp)
             raise
-        self._use_nonce(verified.address, verified.nonce, verified.timestamp)
+        await self._use_nonce(verified.address, verified.nonce, verified.timestamp)
         return verified.content_sha256
 
-    def _use_nonce(self, address: str, nonce: str, timestamp: int) -> None:
+    async def _use_nonce(self, address: str, nonce: str, timestamp: int) -> None:
         """Record the request's nonce: 401 if it was used, 503 if the store is full (a full
-        store refuses new nonces rather than forget live ones, which would allow replays)."""
+        store refuses new nonces rather than forget live ones, which would allow replays).
+
+        The store fsyncs its journal before it returns, and the request goes on only then, so
+        a nonce acknowledged survives kill -9; it does so on a worker thread, since an fsync
+        per signed write on the event loop held every other request behind the disk.
+        """
         try:
-            fresh = self.nonces.use(address, nonce, timestamp)
+            fresh = await anyio.to_thread.run_sync(
+                self.nonces.use, address, nonce, timestamp, limiter=self._journal
+            )
         except NonceStoreFull as full:
             seconds = max(1, math.ceil(full.retry_after_s))
             raise Unavailable(

@@ -9,10 +9,12 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
+import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
+import anyio
 import httpx
 import pytest
 from prometheus_client import Counter
@@ -358,6 +360,40 @@ def test_a_full_nonce_store_is_503_with_retry_after_and_records_nothing(tmp_path
     assert response.headers["retry-after"] == str(error["details"]["retry_after"])
     assert len(nonces) == 1
     error_of(call(app, "POST", "/w", headers=first), 401, "replayed_nonce")
+
+
+class HeldStore(NonceStore):
+    """A nonce store whose recording waits until the test lets it go (a slow fsync)."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path, 300)
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
+    def use(self, address: str, nonce: str, timestamp: int) -> bool:
+        self.entered.set()
+        self.release.wait(timeout=10)
+        return super().use(address, nonce, timestamp)
+
+
+def test_other_requests_are_served_while_a_nonce_is_being_made_durable(tmp_path: Path) -> None:
+    """The journal's fsync runs on a worker thread: on the event loop it held every request
+    behind the disk."""
+    robot = Identity.generate()
+    nonces = HeldStore(tmp_path / "nonces.log")
+    app = signature_layer(tmp_path, echo, nonces=nonces)
+
+    async def go() -> None:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            write = asyncio.create_task(client.post("/w", headers=signed(robot, "/w")))
+            assert await anyio.to_thread.run_sync(nonces.entered.wait, 10)
+            assert (await client.get("/r")).status_code == 200
+            assert not write.done(), "the write waits for its nonce to be durable"
+            nonces.release.set()
+            assert (await write).json()["signer"] == robot.address
+
+    asyncio.run(go())
 
 
 class Listed:
