@@ -17,6 +17,10 @@ from robocloud.bounded_json import JsonDepthError, JsonError
 from robocloud.cid import CIDError
 from services.common.slots import ShareBusy, SlotsBusy
 
+UNKNOWN_SIGNER = "address_not_allowed"
+"""The code of an authorizer's 403 for a signer it knows nothing of (no registration): the
+one refusal that leaves the request's nonce unused (see ``middleware.SignatureLayer``)."""
+
 
 class ServiceError(Exception):
     """An error with an HTTP status, a snake_case code and details naming what is wrong."""

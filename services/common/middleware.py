@@ -38,6 +38,7 @@ from robocloud.signing import HEADER_CONTENT_SHA256, WrongAudienceError, verify_
 from services.common.audience import ServiceAudience
 from services.common.auth import Authorizer
 from services.common.errors import (
+    UNKNOWN_SIGNER,
     BadRequest,
     Forbidden,
     PayloadTooLarge,
@@ -62,9 +63,6 @@ SERVER_ANSWER_SCOPE_KEY = "robocloud.server_answer"
 """The status the server protocol answered itself while the app still ran (a 408 for a body
 that stopped coming): what the access log records instead of the app's disconnection."""
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{8,64}")
-UNKNOWN_SIGNER = "address_not_allowed"
-"""The code of the authorizer's 403 for a signer it knows nothing of (no registration): the
-one refusal that leaves the request's nonce unused (see :class:`SignatureLayer`)."""
 
 
 async def send_error(send: Send, error: ServiceError) -> None:

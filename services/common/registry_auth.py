@@ -24,8 +24,7 @@ from eth_utils.address import is_address, to_checksum_address
 from robocloud.errors import ApiError, InvalidAnswerError, TransportError
 from robocloud.ledger import LedgerService
 from robocloud.ledger.models import RegisteredRobot
-from services.common.errors import Forbidden, Unavailable
-from services.common.middleware import UNKNOWN_SIGNER
+from services.common.errors import UNKNOWN_SIGNER, Forbidden, Unavailable
 
 MAX_CACHED = 10_000
 """Registry answers kept at once. Past it the least recently used goes, one at a time:
