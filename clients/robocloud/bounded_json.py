@@ -54,6 +54,17 @@ class JsonSurrogateError(JsonError):
     """
 
 
+class JsonDuplicateKeyError(JsonError):
+    """An object naming one key twice. JSON's grammar lets it through and ``json`` keeps the
+    last value, but I-JSON (RFC 7493) forbids it: another reader keeping the first would read
+    another document under the same signature, and JCS (RFC 8785), which hashes records for
+    their Merkle proofs, is defined on I-JSON only."""
+
+    def __init__(self, key: str) -> None:
+        super().__init__(f"the key {key[:80]!r} appears twice in one object")
+        self.key = key
+
+
 class JsonDepthError(JsonError):
     """A document nested deeper than the reader's bound; ``max_depth`` is that bound."""
 
@@ -91,8 +102,9 @@ def loads(
 ) -> Any:
     """Parse ``document``; raise :class:`JsonDepthError` or :class:`JsonError` when it is bad.
 
-    ``object_pairs_hook`` is ``json``'s: a reader that must see duplicate keys (templates
-    name each one as a problem) gets every check here all the same.
+    An object naming a key twice is :class:`JsonDuplicateKeyError`, unless the reader passes
+    ``object_pairs_hook`` (``json``'s) to see such keys itself (templates name each one as a
+    problem); it gets every other check here all the same.
     """
     raw = document.encode() if isinstance(document, str) else document
     if exceeds_depth(raw, max_depth):
@@ -103,7 +115,7 @@ def loads(
             parse_int=_integer,
             parse_float=_real,
             parse_constant=_not_a_number,
-            object_pairs_hook=object_pairs_hook,
+            object_pairs_hook=object_pairs_hook or _unique_keys,
         )
     except RecursionError as exc:
         raise JsonDepthError(max_depth) from exc
@@ -114,6 +126,18 @@ def loads(
     if SURROGATE_ESCAPE.search(raw) and _holds_lone_surrogate(parsed):
         raise JsonSurrogateError("a string holds a lone UTF-16 surrogate, which is not text")
     return parsed
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An object's members as a dict, none named twice (about 10 % on a parse)."""
+    members = dict(pairs)
+    if len(members) != len(pairs):
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise JsonDuplicateKeyError(key)
+            seen.add(key)
+    return members
 
 
 def _holds_lone_surrogate(document: Any) -> bool:

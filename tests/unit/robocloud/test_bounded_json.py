@@ -10,6 +10,7 @@ import pytest
 
 from robocloud.bounded_json import (
     JsonDepthError,
+    JsonDuplicateKeyError,
     JsonError,
     JsonNumberError,
     JsonSurrogateError,
@@ -123,3 +124,23 @@ def test_strings_holding_a_lone_surrogate_are_refused(document: bytes) -> None:
 def test_surrogate_pairs_and_escaped_backslashes_are_text() -> None:
     assert loads(rb'{"a": "\ud83d\ude00"}') == {"a": "\N{GRINNING FACE}"}
     assert loads(rb'["\\ud800"]') == ["\\ud800"]
+
+
+@pytest.mark.parametrize(
+    ("document", "key"),
+    [
+        (b'{"challenge": "a", "challenge": "b"}', "challenge"),
+        (b'[{"ok": 1}, {"deep": {"x": 1, "y": 2, "x": 3}}]', "x"),
+        (b'{"\\u0061": 1, "a": 2}', "a"),
+    ],
+)
+def test_an_object_naming_a_key_twice_is_refused_naming_it(document: bytes, key: str) -> None:
+    """``json`` kept the last value: a signed body read one way here and another by a reader
+    keeping the first, and a record's JCS hash was of a document I-JSON does not allow."""
+    with pytest.raises(JsonDuplicateKeyError, match=f"the key '{key}' appears twice"):
+        loads(document)
+
+
+def test_a_reader_with_its_own_hook_sees_repeated_keys_itself() -> None:
+    pairs = loads(b'{"a": 1, "a": 2}', object_pairs_hook=lambda found: found)
+    assert pairs == [("a", 1), ("a", 2)]
