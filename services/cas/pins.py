@@ -65,10 +65,6 @@ class PinSet:
         if not owners:
             self._owners.pop(cid, None)
 
-    def add(self, cid: CID, owner: str) -> bool:
-        """Pin ``cid`` for ``owner``; False if that robot had already pinned it."""
-        return bool(self.add_all([cid], owner))
-
     def add_all(self, cids: list[CID], owner: str) -> list[CID]:
         """Pin every CID for ``owner`` in one turn of the lock; returns those newly pinned.
 

@@ -16,9 +16,9 @@ ONE, TWO = CID.from_block(b"one"), CID.from_block(b"two")
 
 def test_two_robots_pin_the_same_cid_and_each_owns_its_pin(tmp_path: Path) -> None:
     pins = PinSet(tmp_path / "pins.log")
-    assert pins.add(ONE, ALICE)
-    assert not pins.add(ONE, ALICE)
-    assert pins.add(ONE, BOB)
+    assert pins.add_all([ONE], ALICE) == [ONE]
+    assert pins.add_all([ONE], ALICE) == []
+    assert pins.add_all([ONE], BOB) == [ONE]
     assert pins.owners(ONE) == {ALICE, BOB}
     pins.remove([ONE], ALICE)
     assert pins.snapshot() == {ONE: frozenset({BOB})}
@@ -26,7 +26,7 @@ def test_two_robots_pin_the_same_cid_and_each_owns_its_pin(tmp_path: Path) -> No
 
 def test_removing_another_robots_pin_is_refused(tmp_path: Path) -> None:
     pins = PinSet(tmp_path / "pins.log")
-    pins.add(ONE, ALICE)
+    pins.add_all([ONE], ALICE)
     with pytest.raises(PinNotOwned) as raised:
         pins.remove([ONE], BOB)
     assert (raised.value.cid, raised.value.owner) == (ONE, BOB)
@@ -35,7 +35,7 @@ def test_removing_another_robots_pin_is_refused(tmp_path: Path) -> None:
 
 def test_removal_is_all_or_nothing(tmp_path: Path) -> None:
     pins = PinSet(tmp_path / "pins.log")
-    pins.add(ONE, ALICE)
+    pins.add_all([ONE], ALICE)
     with pytest.raises(NotPinned) as raised:
         pins.remove([ONE, TWO], ALICE)
     assert raised.value.cid == TWO
@@ -45,9 +45,9 @@ def test_removal_is_all_or_nothing(tmp_path: Path) -> None:
 def test_the_journal_is_replayed_and_compacted_on_open(tmp_path: Path) -> None:
     path = tmp_path / "pins.log"
     pins = PinSet(path)
-    pins.add(ONE, ALICE)
-    pins.add(TWO, ALICE)
-    pins.add(TWO, BOB)
+    pins.add_all([ONE], ALICE)
+    pins.add_all([TWO], ALICE)
+    pins.add_all([TWO], BOB)
     pins.remove([TWO], ALICE)
     pins.close()
     assert len(path.read_text().splitlines()) == 4
@@ -62,7 +62,7 @@ def test_a_many_root_pin_torn_by_a_crash_leaves_none_of_its_roots(tmp_path: Path
     read. With a line a root, the first roots of a pin/add stayed pinned after the crash."""
     path = tmp_path / "pins.log"
     pins = PinSet(path)
-    pins.add(ONE, BOB)
+    pins.add_all([ONE], BOB)
     roots = [CID.from_block(bytes([n])) for n in range(50)]
     assert pins.add_all(roots, ALICE) == roots
     pins.close()
