@@ -416,7 +416,14 @@ class Anchorer:
             found = ledger.anchors(
                 node=self.node.address, epoch=epoch, from_block=existing.block_number
             )
-            tx = found[0].tx_hash if found and found[0].tx_hash else None
+            tx = next(
+                (
+                    anchor.tx_hash
+                    for anchor in found
+                    if anchor.root == tree.root and anchor.block_number == existing.block_number
+                ),
+                None,
+            )
             if tx is None:
                 raise AnchorConflict(f"epoch {epoch} is anchored, but no Anchored event shows it")
             anchored = existing.block_number

@@ -8,6 +8,7 @@ and reads is encoded and decoded by ``eth-abi`` against exactly what was deploye
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass
 from importlib.resources import files
 from typing import Any
@@ -150,9 +151,9 @@ class ContractAbi:
             event=str(entry["name"]),
             args=args,
             address=to_checksum_address(str(log["address"])),
-            block_number=int(str(log["blockNumber"]), 16),
+            block_number=_uint64(log["blockNumber"]),
             tx_hash=str(log["transactionHash"]),
-            log_index=int(str(log["logIndex"]), 16),
+            log_index=_uint64(log["logIndex"]),
         )
 
     def decode_error(self, data: bytes) -> str | None:
@@ -162,6 +163,17 @@ class ContractAbi:
             return None
         values = decode([abi_type(p) for p in entry["inputs"]], data[4:])
         return f"{entry['name']}({', '.join(repr(v) for v in values)})"
+
+
+_QUANTITY = re.compile(r"0x(?:0|[1-9a-fA-F][0-9a-fA-F]{0,15})")
+
+
+def _uint64(value: Any) -> int:
+    """A log's block number or index: a JSON-RPC quantity within uint64. ``int(x, 16)`` took
+    ``"-5"`` and numbers of any size, which a storage node then published as its anchor's."""
+    if not isinstance(value, str) or not _QUANTITY.fullmatch(value):
+        raise ValueError(f"{str(value)[:40]!r} is not a uint64 quantity")
+    return int(value, 16)
 
 
 def decode_revert(data: bytes, contracts: list[ContractAbi] | None = None) -> str:
@@ -179,6 +191,18 @@ def decode_revert(data: bytes, contracts: list[ContractAbi] | None = None) -> st
             custom = contract.decode_error(data)
             if custom is not None:
                 return custom
-    except (DecodingError, UnicodeDecodeError):  # a reason that is not UTF-8: a node's lie
-        pass
-    return f"execution reverted with undecodable data 0x{data.hex()}"
+    except (DecodingError, UnicodeDecodeError, OverflowError):  # a node's lie: not UTF-8,
+        pass  # or a length word of 2^256-1
+    return f"execution reverted with undecodable data {bounded_hex(data)}"
+
+
+MAX_SHOWN_BYTES = 512
+"""Bytes of revert data or an error message an exception's text shows: a node may send
+megabytes, which a service would keep, log and serve."""
+
+
+def bounded_hex(data: bytes) -> str:
+    """``0x``-hex of ``data``, its first ``MAX_SHOWN_BYTES`` and its length when longer."""
+    if len(data) <= MAX_SHOWN_BYTES:
+        return "0x" + data.hex()
+    return f"0x{data[:MAX_SHOWN_BYTES].hex()}... ({len(data)} bytes)"

@@ -172,6 +172,25 @@ class LedgerService(ServiceClient):
         return events
 
 
+def _check_filtered(raw: Any, log: DecodedLog, topics: list[str | None], from_block: int) -> None:
+    """A log ``eth_getLogs`` answered must be one the filter asked for: its topics those the
+    filter names, its block not before ``from_block``. A storage node recovering after a
+    crash took another node's anchor, of another epoch and an older block, for its own."""
+    sent = raw.get("topics") if isinstance(raw, dict) else None
+    sent = [str(topic).lower() for topic in sent] if isinstance(sent, list) else []
+    for position, wanted in enumerate(topics):
+        if wanted is not None and (position >= len(sent) or sent[position] != wanted.lower()):
+            raise InvalidAnswerError(
+                f"the node answered eth_getLogs with a {log.event} log whose topic {position} "
+                f"is not the filter's (block {log.block_number}, transaction {log.tx_hash})"
+            )
+    if log.block_number < from_block:
+        raise InvalidAnswerError(
+            f"the node answered eth_getLogs with a {log.event} log of block {log.block_number}, "
+            f"before the filter's {from_block}"
+        )
+
+
 def _decoded(contract: ContractAbi, log: Any) -> DecodedLog | None:
     """``contract.decode_log`` of a log a node sent; a malformed one is an
     ``InvalidAnswerError`` (a node's word, not a bug here)."""
@@ -310,7 +329,11 @@ class Ledger(Closeable):
 
     @property
     def chain_id(self) -> int:
-        """The node's chain id, checked against the deployment's when there is one."""
+        """The node's chain id, checked against the deployment's when there is one; with a
+        key, the one its transactions are signed for, asked once: a storage node asked again
+        after anchoring and published whatever a node answered then beside its anchor."""
+        if self._transactor is not None:
+            return self._transactor.chain_id
         return check_chain(quantity(self.rpc.request("eth_chainId", [])), self.expected_chain_id)
 
     def block_number(self) -> int:
@@ -357,8 +380,9 @@ class Ledger(Closeable):
         receipt = self._send(
             self.registry, self.addresses.registry, "advertise", cid, description_cid
         )
+        expected = {"advertiser": self._signer().address, "cid": cid}
         return self._advertised(
-            self._one_log(receipt, self.registry, self.addresses.registry, "Advertised")
+            self._one_log(receipt, self.registry, self.addresses.registry, "Advertised", expected)
         )
 
     def grant_role(self, account: str, role: Role) -> Receipt:
@@ -459,8 +483,14 @@ class Ledger(Closeable):
         receipt = self._send(
             self.anchor_log, self.addresses.anchor_log, "anchor", epoch, root, record_count
         )
+        expected = {
+            "node": self._signer().address,
+            "epoch": epoch,
+            "root": root,
+            "recordCount": record_count,
+        }
         return self._anchored(
-            self._one_log(receipt, self.anchor_log, self.addresses.anchor_log, "Anchored")
+            self._one_log(receipt, self.anchor_log, self.addresses.anchor_log, "Anchored", expected)
         )
 
     def anchor_at(self, node: str, epoch: int) -> Anchor | None:
@@ -538,14 +568,28 @@ class Ledger(Closeable):
         raw_logs = self.rpc.request("eth_getLogs", [query])
         if not isinstance(raw_logs, list):
             raise InvalidAnswerError("the node's answer to eth_getLogs is not a list")
-        decoded = [_decoded(contract, log) for log in raw_logs]
-        return [log for log in decoded if log is not None and log.address == checksum(address)]
+        found = []
+        for raw in raw_logs:
+            log = _decoded(contract, raw)
+            if log is None or log.address != checksum(address):
+                continue
+            _check_filtered(raw, log, topics, from_block)
+            found.append(log)
+        return found
 
     @staticmethod
-    def _one_log(receipt: Receipt, contract: ContractAbi, address: str, event: str) -> DecodedLog:
-        """The transaction's ``event`` as emitted by the contract at ``address``: a log of the
-        same shape from any other contract (one the transaction called, or one the node made
-        up) says nothing about robocloud's."""
+    def _one_log(
+        receipt: Receipt,
+        contract: ContractAbi,
+        address: str,
+        event: str,
+        expected: dict[str, Any],
+    ) -> DecodedLog:
+        """The transaction's ``event`` as emitted by the contract at ``address`` in the
+        receipt's block, its arguments ``expected``: a log of the same shape from any other
+        contract (one the transaction called, or one the node made up) says nothing about
+        robocloud's, and arguments the node invents (another node, another epoch) would be
+        returned as this transaction's."""
         for raw in receipt.logs:
             log = _decoded(contract, raw)
             if (
@@ -554,6 +598,12 @@ class Ledger(Closeable):
                 and log.address == checksum(address)
                 and log.tx_hash.lower() == receipt.tx_hash.lower()
             ):
+                differing = [name for name, value in expected.items() if log.args[name] != value]
+                if differing or log.block_number != receipt.block_number:
+                    raise InvalidAnswerError(
+                        f"the node's {event} event of transaction {receipt.tx_hash} is not the "
+                        f"transaction's: its {', '.join(differing) or 'block'} differ"
+                    )
                 return log
         raise LedgerError(f"transaction {receipt.tx_hash} emitted no {event} event of {address}")
 

@@ -13,6 +13,17 @@ from typing import Any
 
 from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
 
+MAX_SHOWN_CHARS = 1024
+"""Characters of a node's message or revert reason an exception's text holds: a node may send
+megabytes, which a service keeps (the anchorer's last error), logs and serves."""
+
+
+def shown_text(text: str) -> str:
+    """``text`` whole, or its first ``MAX_SHOWN_CHARS`` and how long it was."""
+    if len(text) <= MAX_SHOWN_CHARS:
+        return text
+    return f"{text[:MAX_SHOWN_CHARS]}... ({len(text)} characters)"
+
 
 class LedgerError(RobocloudError):
     """Base of every ledger client error."""
@@ -36,7 +47,7 @@ class RpcError(LedgerError):
         status: int = 200,
         request_id: str | None = None,
     ) -> None:
-        super().__init__(f"{method}: {message} (JSON-RPC error {code})")
+        super().__init__(f"{method}: {shown_text(message)} (JSON-RPC error {code})")
         self.method = method
         self.code = code
         self.message = message
@@ -54,7 +65,7 @@ class RevertError(LedgerError):
 
     def __init__(self, reason: str, *, tx_hash: str | None = None, data: bytes = b"") -> None:
         where = f" in transaction {tx_hash}" if tx_hash else ""
-        super().__init__(f"reverted{where}: {reason}")
+        super().__init__(f"reverted{where}: {shown_text(reason)}")
         self.reason = reason
         self.tx_hash = tx_hash
         self.data = data

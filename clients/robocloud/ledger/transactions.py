@@ -83,8 +83,14 @@ class FeeLimits:
             )
 
 
+MAX_CHAIN_ID = 2**64 - 1
+
+
 def check_chain(found: int, expected: int | None) -> int:
-    """``found``, the node's chain id, if it is the one the robot expects (None: any)."""
+    """``found``, the node's chain id, if it is the one the robot expects (None: any) and
+    within EIP-2294's bound (2^64 - 1, which signatures and stored anchors hold)."""
+    if found > MAX_CHAIN_ID:
+        raise InvalidAnswerError(f"the node serves chain {found}, past EIP-2294's {MAX_CHAIN_ID}")
     if expected is not None and found != expected:
         raise DeploymentMismatchError(
             f"the node serves chain {found}, but the robot's deployment is on chain {expected} "
@@ -121,7 +127,7 @@ class Receipt:
                 tx_hash=str(raw["transactionHash"]),
                 block_number=quantity(raw["blockNumber"]),
                 block_hash=str(raw["blockHash"]),
-                status=quantity(raw["status"]),
+                status=_status(raw["status"]),
                 gas_used=quantity(raw["gasUsed"]),
                 contract_address=(
                     to_checksum_address(raw["contractAddress"])
@@ -135,6 +141,27 @@ class Receipt:
                 f"the node sent a malformed transaction receipt ({type(exc).__name__}: "
                 f"{str(exc)[:200]})"
             ) from exc
+
+
+def _status(value: Any) -> int:
+    """A receipt's status, 1 (success) or 0 (reverted): any other was taken for success."""
+    status = quantity(value)
+    if status not in (0, 1):
+        raise ValueError(f"status {status}, neither 0 nor 1")
+    return status
+
+
+MAX_NONCE = 2**64 - 2
+"""The highest nonce a transaction may carry (EIP-2681: an account's nonce stops below 2^64-1)."""
+
+
+def _nonce(value: Any) -> int:
+    """The node's next nonce for the robot, refused past EIP-2681's bound: a transaction
+    signed with it could never be mined, only kept by the node."""
+    nonce = quantity(value)
+    if nonce > MAX_NONCE:
+        raise InvalidAnswerError(f"the node sent the nonce {nonce}, past EIP-2681's {MAX_NONCE}")
+    return nonce
 
 
 def _receipt_of(tx_hash: str, raw: Any) -> Receipt:
@@ -208,7 +235,7 @@ class Transactor:
         self.limits.check(gas, gas_price)
         transaction: dict[str, Any] = {
             "chainId": chain_id,
-            "nonce": quantity(self.rpc.request("eth_getTransactionCount", [address, "pending"])),
+            "nonce": _nonce(self.rpc.request("eth_getTransactionCount", [address, "pending"])),
             "gas": gas,
             "gasPrice": gas_price,
             "data": data,

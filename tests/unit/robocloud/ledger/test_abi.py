@@ -7,6 +7,7 @@ from eth_abi.abi import decode, encode
 from eth_utils.crypto import keccak
 
 from robocloud.ledger.abi import ERROR_SELECTOR, PANIC_SELECTOR, ContractAbi, decode_revert
+from robocloud.ledger.errors import RevertError, RpcError
 
 ADDRESS = "0x5B38Da6a701c568545dCfcB03FcB875f56beddC4"
 
@@ -107,3 +108,23 @@ def test_decode_revert_custom_errors_from_an_abi() -> None:
     data = keccak(text="TooLate(uint64)")[:4] + encode(["uint64"], [5])
     assert decode_revert(data, [contract]) == "TooLate(5)"
     assert decode_revert(data).startswith("execution reverted with undecodable data")
+
+
+def test_a_revert_reason_claiming_2_to_the_256_bytes_is_shown_as_hex() -> None:
+    """eth_abi raised OverflowError, which escaped as a traceback."""
+    data = ERROR_SELECTOR + (32).to_bytes(32, "big") + b"\xff" * 32
+    assert decode_revert(data) == f"execution reverted with undecodable data 0x{data.hex()}"
+
+
+def test_megabytes_from_a_node_are_not_kept_whole_in_an_error() -> None:
+    """The storage node kept a 40-million-character error as its anchorer's last error,
+    logged it and served it on /v1/node."""
+    data = b"\x01\x02\x03\x04" + b"\xee" * (20 << 20)
+    shown = decode_revert(data)
+    assert len(shown) < 2_000
+    assert shown.endswith(f"({len(data)} bytes)")
+    error = RpcError("eth_call", -32000, "x" * (30 << 20))
+    assert len(str(error)) < 2_000
+    assert f"({30 << 20} characters)" in str(error)
+    assert len(error.message) == 30 << 20
+    assert len(str(RevertError("y" * (1 << 20)))) < 2_000

@@ -365,3 +365,101 @@ def test_verify_ends_in_one_line_on_a_malformed_chain_id(chain_id: str) -> None:
     assert result.exit_code == 6, result.output
     assert result.stderr.startswith("error: the node sent")
     assert result.stderr.count("\n") == 1
+
+
+def receipt_with(robot: Identity, **changes: Any) -> Callable[[list[Any]], Any]:
+    """The honest receipt of the transaction sent, its log changed by ``changes``."""
+
+    def receipt(params: list[Any]) -> dict[str, Any]:
+        honest_receipt = honest(robot.address)["eth_getTransactionReceipt"](params)
+        log = {**advertised_log(robot.address, params[0]), **changes.pop("log", {})}
+        return {**honest_receipt, "logs": [log], **changes}
+
+    return receipt
+
+
+@pytest.mark.parametrize(
+    ("changes", "error", "message"),
+    [
+        ({"log": {"topics": None}}, InvalidAnswerError, "advertiser differ"),
+        ({"log": {"blockNumber": "0x6"}}, InvalidAnswerError, "block differ"),
+        ({"log": {"blockNumber": "-5"}}, InvalidAnswerError, "malformed log of Registry"),
+        ({"log": {"blockNumber": "0x" + "f" * 17}}, InvalidAnswerError, "malformed log"),
+        ({"status": "0x2"}, TransactionMismatchError, "receipt for 0x"),
+    ],
+    ids=["another-advertiser", "another-block", "negative-block", "huge-block", "status-2"],
+)
+def test_an_event_or_receipt_the_node_invents_is_not_the_transactions(
+    changes: dict[str, Any], error: type[Exception], message: str
+) -> None:
+    """The event's arguments, its block and the receipt's status were the node's word: a
+    robot was told of another robot's advertisement, block -5, or success for status 2."""
+    robot = Identity.generate()
+    if changes.get("log", {}).get("topics", 1) is None:
+        changes["log"]["topics"] = advertised_log(Identity.generate().address, "0x")["topics"]
+    with (
+        lying_ledger(robot, eth_getTransactionReceipt=receipt_with(robot, **changes)) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(error, match=message),
+    ):
+        ledger.advertise(CONTENT)
+
+
+def test_a_nonce_past_eip_2681_is_refused_before_signing() -> None:
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot, eth_getTransactionCount=lambda _: hex(2**64 - 1)) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match="EIP-2681"),
+    ):
+        ledger.advertise(CONTENT)
+    assert "eth_sendRawTransaction" not in methods(server)
+
+
+@pytest.mark.parametrize(
+    ("log_changes", "message"),
+    [
+        ({"topics": None}, "topic 2 is not the filter's"),
+        ({"blockNumber": "0x1"}, "before the filter's 3"),
+    ],
+    ids=["another-advertiser", "before-from-block"],
+)
+def test_logs_the_filter_did_not_ask_for_are_refused(
+    log_changes: dict[str, Any], message: str
+) -> None:
+    """A storage node recovering from a crash took another node's anchor, of an older
+    block, for its own: the node's logs were checked for their contract only."""
+    robot = Identity.generate()
+    if log_changes.get("topics", 1) is None:
+        log_changes["topics"] = advertised_log(Identity.generate().address, "0x")["topics"]
+    log = {**advertised_log(robot.address, "0x" + "ab" * 32), **log_changes}
+    with (
+        lying_ledger(robot, eth_getLogs=lambda _: [log]) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match=message),
+    ):
+        ledger.advertisements(advertiser=robot.address, from_block=3)
+
+
+def test_the_chain_id_a_robot_reports_is_the_one_it_signed_for() -> None:
+    """A storage node asked eth_chainId again after anchoring and published the answer
+    (chain 1) beside an anchor signed for chain 1337: every proof of that epoch then failed."""
+    robot = Identity.generate()
+    answers = iter([hex(1337), hex(1), hex(1)])
+    with (
+        lying_ledger(robot, eth_chainId=lambda _: next(answers)) as server,
+        Ledger.connect(server.url, robot) as ledger,
+    ):
+        ledger.advertise(CONTENT)
+        assert ledger.chain_id == 1337
+
+
+def test_a_chain_id_past_uint64_is_refused_before_signing() -> None:
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot, eth_chainId=lambda _: hex(2**64)) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match="EIP-2294"),
+    ):
+        ledger.advertise(CONTENT)
+    assert "eth_sendRawTransaction" not in methods(server)
