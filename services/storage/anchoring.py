@@ -25,12 +25,12 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
 from robocloud import jcs
-from robocloud.ledger import Ledger
+from robocloud.ledger import Anchor, Ledger
 from robocloud.proofs import AnchorRef, RecordId
 from services.common.durable import open_sqlite
 from services.storage.identity import NodeIdentity, Standing
@@ -413,19 +413,7 @@ class Anchorer:
                     f"AnchorLog holds {existing.root.hex()} for epoch {epoch}, "
                     f"this node cut {tree.root.hex()}"
                 )
-            found = ledger.anchors(
-                node=self.node.address, epoch=epoch, from_block=existing.block_number
-            )
-            tx = next(
-                (
-                    anchor.tx_hash
-                    for anchor in found
-                    if anchor.root == tree.root and anchor.block_number == existing.block_number
-                ),
-                None,
-            )
-            if tx is None:
-                raise AnchorConflict(f"epoch {epoch} is anchored, but no Anchored event shows it")
+            tx = self._recorded_tx(ledger, existing)
             anchored = existing.block_number
         else:
             result = ledger.anchor(epoch, tree.root, tree.record_count)
@@ -435,6 +423,24 @@ class Anchorer:
         self.last_error = None
         log.info("anchored", extra={"epoch": epoch, "tx": tx, "records": tree.record_count})
         return True
+
+    def _recorded_tx(self, ledger: Ledger, existing: Anchor) -> str:
+        """The transaction of the ``Anchored`` event that is ``existing``, this node's anchor
+        as ``anchorAt`` holds it: same node, epoch, root, count, time and block. A node's
+        ``eth_getLogs`` answered another node's anchor, of another epoch and block, which
+        was recorded as this node's; an event that is not the anchor itself is never taken."""
+        found = ledger.anchors(
+            node=existing.node,
+            epoch=existing.epoch,
+            from_block=existing.block_number,
+            to_block=existing.block_number,
+        )
+        for anchor in found:
+            if anchor.tx_hash and replace(anchor, tx_hash=None) == existing:
+                return anchor.tx_hash
+        raise AnchorConflict(
+            f"epoch {existing.epoch} is anchored, but no Anchored event of this node shows it"
+        )
 
     def _ensure_standing(self, ledger: Ledger) -> None:
         if self.standing is Standing.ANCHORING:

@@ -84,6 +84,10 @@ def _topic_uint(value: int) -> str:
     return "0x" + value.to_bytes(32, "big").hex()
 
 
+_Blocks = tuple[int, int | None]
+"""An ``eth_getLogs`` filter's ``fromBlock`` and ``toBlock`` (None: the latest block)."""
+
+
 class LedgerService(ServiceClient):
     """The ledger service's REST routes: where the contracts are, the faucet, indexed reads.
 
@@ -172,22 +176,33 @@ class LedgerService(ServiceClient):
         return events
 
 
-def _check_filtered(raw: Any, log: DecodedLog, topics: list[str | None], from_block: int) -> None:
-    """A log ``eth_getLogs`` answered must be one the filter asked for: its topics those the
-    filter names, its block not before ``from_block``. A storage node recovering after a
-    crash took another node's anchor, of another epoch and an older block, for its own."""
+def _check_filtered(
+    contract: ContractAbi, raw: Any, log: DecodedLog, topics: list[str | None], blocks: _Blocks
+) -> None:
+    """A log ``eth_getLogs`` answered must be one the filter asked for: its indexed arguments
+    those the filter names, its block within the filter's range. A storage node recovering
+    after a crash took another node's anchor, of another epoch and an older block, for its
+    own; the refusal names what differs, so an operator can tell a lying node from a bug."""
     sent = raw.get("topics") if isinstance(raw, dict) else None
     sent = [str(topic).lower() for topic in sent] if isinstance(sent, list) else []
-    for position, wanted in enumerate(topics):
-        if wanted is not None and (position >= len(sent) or sent[position] != wanted.lower()):
-            raise InvalidAnswerError(
-                f"the node answered eth_getLogs with a {log.event} log whose topic {position} "
-                f"is not the filter's (block {log.block_number}, transaction {log.tx_hash})"
-            )
-    if log.block_number < from_block:
+    inputs = contract.events[log.event]["inputs"]
+    names = ["event", *(str(param["name"]) for param in inputs if param["indexed"])]
+    differing = [
+        names[position] if position < len(names) else f"topic {position}"
+        for position, wanted in enumerate(topics)
+        if wanted is not None and (position >= len(sent) or sent[position] != wanted.lower())
+    ]
+    if differing:
+        raise InvalidAnswerError(
+            f"the node answered eth_getLogs with a {log.event} log whose "
+            f"{', '.join(differing)} differ from the filter's (block {log.block_number}, "
+            f"transaction {log.tx_hash[:80]})"
+        )
+    first, last = blocks
+    if log.block_number < first or (last is not None and log.block_number > last):
         raise InvalidAnswerError(
             f"the node answered eth_getLogs with a {log.event} log of block {log.block_number}, "
-            f"before the filter's {from_block}"
+            f"outside the filter's blocks {first} to {'latest' if last is None else last}"
         )
 
 
@@ -473,7 +488,7 @@ class Ledger(Closeable):
             "0x" + keccak(cid).hex() if cid is not None else None,
             _topic_address(advertiser) if advertiser is not None else None,
         ]
-        logs = self._logs(self.registry, self.addresses.registry, topics, from_block)
+        logs = self._logs(self.registry, self.addresses.registry, topics, (from_block, None))
         return [self._advertised(log) for log in logs]
 
     # ----- AnchorLog -----
@@ -511,15 +526,22 @@ class Ledger(Closeable):
         return self.anchor_at(target, epoch)
 
     def anchors(
-        self, *, node: str | None = None, epoch: int | None = None, from_block: int = 0
+        self,
+        *,
+        node: str | None = None,
+        epoch: int | None = None,
+        from_block: int = 0,
+        to_block: int | None = None,
     ) -> list[Anchor]:
-        """Every ``Anchored`` event matching the filters, oldest first (``eth_getLogs``)."""
+        """Every ``Anchored`` event matching the filters, oldest first (``eth_getLogs``), in
+        blocks ``from_block`` to ``to_block`` (None: the latest)."""
         topics: list[str | None] = [
             "0x" + self.anchor_log.event_topic("Anchored").hex(),
             _topic_address(node) if node is not None else None,
             _topic_uint(epoch) if epoch is not None else None,
         ]
-        logs = self._logs(self.anchor_log, self.addresses.anchor_log, topics, from_block)
+        blocks = (from_block, to_block)
+        logs = self._logs(self.anchor_log, self.addresses.anchor_log, topics, blocks)
         return [self._anchored(log) for log in logs]
 
     # ----- internals -----
@@ -555,15 +577,16 @@ class Ledger(Closeable):
             ) from exc
 
     def _logs(
-        self, contract: ContractAbi, address: str, topics: list[str | None], from_block: int
+        self, contract: ContractAbi, address: str, topics: list[str | None], blocks: _Blocks
     ) -> list[DecodedLog]:
         while topics and topics[-1] is None:
             topics.pop()
+        first, last = blocks
         query = {
             "address": address,
             "topics": topics,
-            "fromBlock": hex(from_block),
-            "toBlock": "latest",
+            "fromBlock": hex(first),
+            "toBlock": "latest" if last is None else hex(last),
         }
         raw_logs = self.rpc.request("eth_getLogs", [query])
         if not isinstance(raw_logs, list):
@@ -573,7 +596,7 @@ class Ledger(Closeable):
             log = _decoded(contract, raw)
             if log is None or log.address != checksum(address):
                 continue
-            _check_filtered(raw, log, topics, from_block)
+            _check_filtered(contract, raw, log, topics, blocks)
             found.append(log)
         return found
 

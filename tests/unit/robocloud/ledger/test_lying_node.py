@@ -419,8 +419,8 @@ def test_a_nonce_past_eip_2681_is_refused_before_signing() -> None:
 @pytest.mark.parametrize(
     ("log_changes", "message"),
     [
-        ({"topics": None}, "topic 2 is not the filter's"),
-        ({"blockNumber": "0x1"}, "before the filter's 3"),
+        ({"topics": None}, "log whose advertiser differ from the filter's"),
+        ({"blockNumber": "0x1"}, "outside the filter's blocks 3 to latest"),
     ],
     ids=["another-advertiser", "before-from-block"],
 )
@@ -463,3 +463,66 @@ def test_a_chain_id_past_uint64_is_refused_before_signing() -> None:
     ):
         ledger.advertise(CONTENT)
     assert "eth_sendRawTransaction" not in methods(server)
+
+
+ANCHOR_LOG_ABI = ContractAbi.load("AnchorLog")
+ROOT = b"\xaa" * 32
+
+
+def anchored_log(node: str, epoch: int, block: int, root: bytes = ROOT) -> dict[str, Any]:
+    """The ``Anchored`` event AnchorLog emits for ``node``'s ``epoch`` in ``block``."""
+    return {
+        "address": ANCHOR_LOG,
+        "topics": [
+            "0x" + ANCHOR_LOG_ABI.event_topic("Anchored").hex(),
+            "0x" + "00" * 12 + node[2:].lower(),
+            "0x" + epoch.to_bytes(32, "big").hex(),
+        ],
+        "data": "0x" + encode(["bytes32", "uint64", "uint64"], [root, 3, 1_700_000_000]).hex(),
+        "blockNumber": hex(block),
+        "transactionHash": "0x" + "ab" * 32,
+        "logIndex": "0x0",
+    }
+
+
+@pytest.mark.parametrize(
+    ("log", "message"),
+    [
+        (anchored_log("0x" + "44" * 20, 1, 9), "log whose node differ"),
+        (anchored_log(REGISTRY, 77, 9), "log whose epoch differ"),
+        (anchored_log("0x" + "44" * 20, 77, 9), "log whose node, epoch differ"),
+        (anchored_log(REGISTRY, 1, 8), "of block 8, outside the filter's blocks 9 to 9"),
+        (anchored_log(REGISTRY, 1, 10), "of block 10, outside the filter's blocks 9 to 9"),
+    ],
+    ids=["another-node", "another-epoch", "both", "before-from-block", "after-to-block"],
+)
+def test_anchors_the_filter_did_not_ask_for_are_refused_naming_what_differs(
+    log: dict[str, Any], message: str
+) -> None:
+    """The node's word on which anchors match was taken: another node's anchor of epoch 77,
+    at a block before fromBlock, came back as the one asked for."""
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot, eth_getLogs=lambda _: [log]) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match=message),
+    ):
+        ledger.anchors(node=REGISTRY, epoch=1, from_block=9, to_block=9)
+
+
+def test_anchors_asks_for_the_blocks_it_names() -> None:
+    robot = Identity.generate()
+    queries: list[Any] = []
+
+    def logs(params: list[Any]) -> list[Any]:
+        queries.append(params[0])
+        return [anchored_log(REGISTRY, 1, 9)]
+
+    with (
+        lying_ledger(robot, eth_getLogs=logs) as server,
+        Ledger.connect(server.url, robot) as ledger,
+    ):
+        (anchor,) = ledger.anchors(node=REGISTRY, epoch=1, from_block=9, to_block=9)
+        ledger.anchors(node=REGISTRY)
+    assert (anchor.node, anchor.epoch, anchor.root, anchor.block_number) == (REGISTRY, 1, ROOT, 9)
+    assert [(q["fromBlock"], q["toBlock"]) for q in queries] == [("0x9", "0x9"), ("0x0", "latest")]

@@ -1,0 +1,176 @@
+"""What the anchorer records as an epoch's anchor, from a JSON-RPC node that lies.
+
+The record (chain id, contract, transaction, block) is published with every proof of the
+epoch and never revisited: an epoch marked anchored with another node's transaction, another
+chain or a made-up block leaves every proof of it failing for good.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from eth_abi.abi import encode
+
+from robocloud.errors import InvalidAnswerError
+from robocloud.identity import Identity
+from robocloud.ledger import Anchor, ContractAbi, Ledger
+from robocloud.ledger.client import ContractAddresses
+from robocloud.ledger.rpc import JsonRpcClient
+from robocloud.proofs import AnchorRef
+from services.storage.anchoring import AnchorConflict, Anchorer, EpochStore, LedgerAndCas
+from services.storage.identity import NodeIdentity, Standing
+from services.storage.recordlog import RecordLogs
+from services.storage.tmt import EpochTree, TemplateHead
+
+REGISTRY = "0x" + "22" * 20
+ANCHOR_LOG = "0x" + "33" * 20
+OTHER_NODE = "0x" + "44" * 20
+ANCHOR_LOG_ABI = ContractAbi.load("AnchorLog")
+ANCHORED_AT = 1_700_000_000
+BLOCK = 9
+Answers = dict[str, Callable[[list[Any]], Any]]
+TREE = EpochTree.build(1, [TemplateHead("state", 3, b"\x01" * 32)])
+TX = "0x" + "ab" * 32
+
+
+class Cas:
+    def add_bytes(self, data: bytes) -> str:
+        return "bafkmanifest"
+
+
+def anchored_log(node: str, epoch: int, root: bytes, count: int, block: int) -> dict[str, Any]:
+    """The ``Anchored`` event AnchorLog emits for ``node``'s ``epoch``."""
+    data = encode(["bytes32", "uint64", "uint64"], [root, count, ANCHORED_AT])
+    return {
+        "address": ANCHOR_LOG,
+        "topics": [
+            "0x" + ANCHOR_LOG_ABI.event_topic("Anchored").hex(),
+            "0x" + "00" * 12 + node[2:].lower(),
+            "0x" + epoch.to_bytes(32, "big").hex(),
+        ],
+        "data": "0x" + data.hex(),
+        "blockNumber": hex(block),
+        "transactionHash": TX,
+        "logIndex": "0x0",
+    }
+
+
+def holding_the_root(**answers: Callable[[list[Any]], Any]) -> Answers:
+    """A node whose ``anchorAt`` holds ``TREE``'s root as the node's epoch 1, in ``BLOCK``
+    (a crash after mining, before recording), answering ``answers`` besides."""
+    values = [TREE.root, TREE.record_count, ANCHORED_AT, BLOCK]
+    result = "0x" + encode(["bytes32", "uint64", "uint64", "uint64"], values).hex()
+    return {"eth_chainId": lambda _: hex(1337), "eth_call": lambda _: result, **answers}
+
+
+def rpc(answers: Answers) -> JsonRpcClient:
+    def handle(request: httpx.Request) -> httpx.Response:
+        call = json.loads(request.content)
+        result = answers[call["method"]](call["params"])
+        return httpx.Response(200, json={"jsonrpc": "2.0", "id": call["id"], "result": result})
+
+    return JsonRpcClient("http://node/rpc", transport=httpx.MockTransport(handle), retries=0)
+
+
+@pytest.fixture
+def anchorer(tmp_path: Path) -> Iterator[Callable[[Answers], Anchorer]]:
+    """An anchorer whose epoch 1 is ``TREE``, cut and pending, on a node answering ``answers``."""
+    opened: list[Any] = []
+    identity = Identity.generate()
+
+    def make(answers: Answers) -> Anchorer:
+        logs = RecordLogs(tmp_path / "logs")
+        epochs = EpochStore(tmp_path / "epochs.sqlite", identity.address)
+        assert epochs.cut(list(TREE.heads)) == TREE
+        ledger = Ledger(rpc(answers), ContractAddresses(REGISTRY, ANCHOR_LOG), identity)
+        chain = LedgerAndCas(ledger, Cas())
+        anchorer = Anchorer(
+            logs,
+            epochs,
+            NodeIdentity(identity),
+            lambda: chain,
+            epoch_s=60,
+            epoch_records=1000,
+            retry_s=1,
+            register=False,
+        )
+        anchorer.standing = Standing.ANCHORING
+        opened.extend([chain, epochs, logs])
+        return anchorer
+
+    yield make
+    for thing in opened:
+        thing.close()
+
+
+def recorded(anchorer: Anchorer) -> AnchorRef | None:
+    """What the anchorer recorded as epoch 1's anchor."""
+    epoch = anchorer.epochs.get(1)
+    assert epoch is not None
+    return epoch.anchor
+
+
+def own_log(address: str, **changes: Any) -> dict[str, Any]:
+    """The Anchored event of ``TREE`` by ``address`` in ``BLOCK``, with ``changes``."""
+    event = {"node": address, "epoch": 1, "root": TREE.root, "count": TREE.record_count}
+    return anchored_log(**{**event, "block": BLOCK, **changes})
+
+
+def test_a_root_found_on_chain_is_recorded_with_its_own_event(
+    anchorer: Callable[[Answers], Anchorer],
+) -> None:
+    queries: list[Any] = []
+
+    def logs(params: list[Any]) -> list[Any]:
+        queries.append(params[0])
+        return [own_log(node.node.address)]
+
+    node = anchorer(holding_the_root(eth_getLogs=logs))
+    assert node.anchor_next()
+    assert recorded(node) == AnchorRef(1337, ANCHOR_LOG, node.node.address, 1, TX, BLOCK)
+    assert [(q["fromBlock"], q["toBlock"]) for q in queries] == [(hex(BLOCK), hex(BLOCK))]
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"node": OTHER_NODE, "epoch": 77, "block": BLOCK - 1},
+        {"block": BLOCK + 1},
+        {"root": b"\xee" * 32},
+        {"count": 999},
+    ],
+    ids=["another-nodes-anchor", "a-later-block", "another-root", "another-count"],
+)
+def test_an_event_that_is_not_the_nodes_anchor_is_never_recorded(
+    anchorer: Callable[[Answers], Anchorer], changes: dict[str, Any]
+) -> None:
+    """The node's eth_getLogs answered another node's anchor (epoch 77, a block before
+    fromBlock, transaction 0xabab...), which was recorded as this node's for good."""
+    lie: list[dict[str, Any]] = []
+    node = anchorer(holding_the_root(eth_getLogs=lambda _: lie))
+    lie.append(own_log(node.node.address, **changes))
+    with pytest.raises(
+        (InvalidAnswerError, AnchorConflict), match=r"differ|outside|no Anchored event of this"
+    ):
+        node.anchor_next()
+    assert recorded(node) is None
+
+
+def test_the_anchorer_checks_the_event_whatever_the_sdk_lets_through(
+    anchorer: Callable[[Answers], Anchorer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The anchorer took any event of its root and block, leaving node and epoch to the
+    filter's checks."""
+    node = anchorer(holding_the_root())
+    own = Anchor(node.node.address, 1, TREE.root, TREE.record_count, ANCHORED_AT, BLOCK, TX)
+    for other in (replace(own, node=OTHER_NODE), replace(own, epoch=77)):
+        monkeypatch.setattr(Ledger, "anchors", lambda *_, found=other, **__: [found])
+        with pytest.raises(AnchorConflict, match="no Anchored event of this node"):
+            node.anchor_next()
+    assert recorded(node) is None
