@@ -83,12 +83,15 @@ class FeeLimits:
             )
 
 
-MAX_CHAIN_ID = 2**64 - 1
+MAX_CHAIN_ID = (2**64 - 1) // 2 - 36
+"""EIP-2294's bound, so that an EIP-155 ``v`` (``2 * chainId + 36``) fits in 64 bits. It
+also fits the storage node's SQLite integers: the 2^64 - 1 allowed before let a chain id
+past 2^63 be signed for and sent, then raise OverflowError recording the anchor, forever."""
 
 
 def check_chain(found: int, expected: int | None) -> int:
     """``found``, the node's chain id, if it is the one the robot expects (None: any) and
-    within EIP-2294's bound (2^64 - 1, which signatures and stored anchors hold)."""
+    within EIP-2294's bound (``MAX_CHAIN_ID``)."""
     if found > MAX_CHAIN_ID:
         raise InvalidAnswerError(f"the node serves chain {found}, past EIP-2294's {MAX_CHAIN_ID}")
     if expected is not None and found != expected:

@@ -29,7 +29,7 @@ from robocloud.ledger.errors import (
     FeeLimitError,
     TransactionMismatchError,
 )
-from robocloud.ledger.transactions import FeeLimits, quantity
+from robocloud.ledger.transactions import MAX_CHAIN_ID, FeeLimits, quantity
 from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
 
 REGISTRY = "0x" + "22" * 20
@@ -454,10 +454,13 @@ def test_the_chain_id_a_robot_reports_is_the_one_it_signed_for() -> None:
         assert ledger.chain_id == 1337
 
 
-def test_a_chain_id_past_uint64_is_refused_before_signing() -> None:
+@pytest.mark.parametrize("chain_id", [2**64, 2**63, MAX_CHAIN_ID + 1], ids=hex)
+def test_a_chain_id_past_eip_2294_is_refused_before_signing(chain_id: int) -> None:
+    """A chain id up to 2^64 - 1 was signed for: past 2^63 the storage node sent its anchor,
+    then raised OverflowError recording it, at every retry."""
     robot = Identity.generate()
     with (
-        lying_ledger(robot, eth_chainId=lambda _: hex(2**64)) as server,
+        lying_ledger(robot, eth_chainId=lambda _: hex(chain_id)) as server,
         Ledger.connect(server.url, robot) as ledger,
         pytest.raises(InvalidAnswerError, match="EIP-2294"),
     ):
@@ -526,3 +529,13 @@ def test_anchors_asks_for_the_blocks_it_names() -> None:
         ledger.anchors(node=REGISTRY)
     assert (anchor.node, anchor.epoch, anchor.root, anchor.block_number) == (REGISTRY, 1, ROOT, 9)
     assert [(q["fromBlock"], q["toBlock"]) for q in queries] == [("0x9", "0x9"), ("0x0", "latest")]
+
+
+def test_the_highest_chain_id_eip_2294_allows_is_signed_for() -> None:
+    robot = Identity.generate()
+    with (
+        lying_ledger(robot, eth_chainId=lambda _: hex(MAX_CHAIN_ID)) as server,
+        Ledger.connect(server.url, robot) as ledger,
+    ):
+        ledger.advertise(CONTENT)
+        assert ledger.chain_id == MAX_CHAIN_ID == 2**63 - 37

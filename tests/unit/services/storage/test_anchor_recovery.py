@@ -16,6 +16,7 @@ from typing import Any
 import httpx
 import pytest
 from eth_abi.abi import encode
+from eth_utils.crypto import keccak
 
 from robocloud.errors import InvalidAnswerError
 from robocloud.identity import Identity
@@ -79,12 +80,13 @@ def rpc(answers: Answers) -> JsonRpcClient:
 
 
 @pytest.fixture
-def anchorer(tmp_path: Path) -> Iterator[Callable[[Answers], Anchorer]]:
-    """An anchorer whose epoch 1 is ``TREE``, cut and pending, on a node answering ``answers``."""
+def anchorer(tmp_path: Path) -> Iterator[Callable[..., Anchorer]]:
+    """An anchorer signing with ``identity`` (a new one by default) whose epoch 1 is
+    ``TREE``, cut and pending, on a node answering ``answers``."""
     opened: list[Any] = []
-    identity = Identity.generate()
 
-    def make(answers: Answers) -> Anchorer:
+    def make(answers: Answers, identity: Identity | None = None) -> Anchorer:
+        identity = identity or Identity.generate()
         logs = RecordLogs(tmp_path / "logs")
         epochs = EpochStore(tmp_path / "epochs.sqlite", identity.address)
         assert epochs.cut(list(TREE.heads)) == TREE
@@ -123,7 +125,7 @@ def own_log(address: str, **changes: Any) -> dict[str, Any]:
 
 
 def test_a_root_found_on_chain_is_recorded_with_its_own_event(
-    anchorer: Callable[[Answers], Anchorer],
+    anchorer: Callable[..., Anchorer],
 ) -> None:
     queries: list[Any] = []
 
@@ -148,7 +150,7 @@ def test_a_root_found_on_chain_is_recorded_with_its_own_event(
     ids=["another-nodes-anchor", "a-later-block", "another-root", "another-count"],
 )
 def test_an_event_that_is_not_the_nodes_anchor_is_never_recorded(
-    anchorer: Callable[[Answers], Anchorer], changes: dict[str, Any]
+    anchorer: Callable[..., Anchorer], changes: dict[str, Any]
 ) -> None:
     """The node's eth_getLogs answered another node's anchor (epoch 77, a block before
     fromBlock, transaction 0xabab...), which was recorded as this node's for good."""
@@ -163,7 +165,7 @@ def test_an_event_that_is_not_the_nodes_anchor_is_never_recorded(
 
 
 def test_the_anchorer_checks_the_event_whatever_the_sdk_lets_through(
-    anchorer: Callable[[Answers], Anchorer], monkeypatch: pytest.MonkeyPatch
+    anchorer: Callable[..., Anchorer], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The anchorer took any event of its root and block, leaving node and epoch to the
     filter's checks."""
@@ -173,4 +175,73 @@ def test_the_anchorer_checks_the_event_whatever_the_sdk_lets_through(
         monkeypatch.setattr(Ledger, "anchors", lambda *_, found=other, **__: [found])
         with pytest.raises(AnchorConflict, match="no Anchored event of this node"):
             node.anchor_next()
+    assert recorded(node) is None
+
+
+ANCHORING_NODE = Identity.generate()
+
+
+def anchoring(chain_ids: list[int], log_block: int = BLOCK) -> Answers:
+    """A node holding nothing for epoch 1 that mines the anchor in ``BLOCK``, its event in
+    ``log_block``, and answers ``eth_chainId`` with ``chain_ids`` in turn (the last for good)."""
+    empty = "0x" + encode(["bytes32", "uint64", "uint64", "uint64"], [bytes(32), 0, 0, 0]).hex()
+
+    def chain_id(_: list[Any]) -> str:
+        return hex(chain_ids.pop(0) if len(chain_ids) > 1 else chain_ids[0])
+
+    def receipt(params: list[Any]) -> dict[str, Any]:
+        log = {**own_log(ANCHORING_NODE.address, block=log_block), "transactionHash": params[0]}
+        return {
+            "transactionHash": params[0],
+            "blockNumber": hex(BLOCK),
+            "blockHash": "0x" + "cd" * 32,
+            "status": "0x1",
+            "gasUsed": "0x5208",
+            "logs": [log],
+        }
+
+    return {
+        "eth_chainId": chain_id,
+        "eth_call": lambda _: empty,
+        "eth_estimateGas": lambda _: hex(100_000),
+        "eth_gasPrice": lambda _: hex(10**9),
+        "eth_getTransactionCount": lambda _: "0x0",
+        "eth_sendRawTransaction": lambda params: "0x" + keccak(hexstr=params[0]).hex(),
+        "eth_getTransactionReceipt": receipt,
+    }
+
+
+def test_an_anchor_is_recorded_with_the_chain_it_was_signed_for(
+    anchorer: Callable[..., Anchorer],
+) -> None:
+    """The anchorer asked eth_chainId again after sending and recorded the second answer
+    (chain 1) beside a transaction signed for 1337: every proof of the epoch then failed."""
+    node = anchorer(anchoring([1337, 1]), identity=ANCHORING_NODE)
+    assert node.anchor_next()
+    anchor = recorded(node)
+    assert anchor is not None
+    assert (anchor.chain_id, anchor.block) == (1337, BLOCK)
+
+
+def test_an_event_of_another_block_than_the_receipts_is_never_recorded(
+    anchorer: Callable[..., Anchorer],
+) -> None:
+    node = anchorer(anchoring([1337], log_block=BLOCK + 1), identity=ANCHORING_NODE)
+    with pytest.raises(InvalidAnswerError, match="block differ"):
+        node.anchor_next()
+    assert recorded(node) is None
+
+
+def test_a_chain_id_sqlite_cannot_hold_is_refused_before_sending(
+    anchorer: Callable[..., Anchorer],
+) -> None:
+    """Chain id 2^63 was signed for and sent, then recording the anchor raised OverflowError
+    at every retry."""
+
+    def send(_: list[Any]) -> str:
+        pytest.fail("the anchor was sent")
+
+    node = anchorer({**anchoring([2**63]), "eth_sendRawTransaction": send}, identity=ANCHORING_NODE)
+    with pytest.raises(InvalidAnswerError, match="EIP-2294"):
+        node.anchor_next()
     assert recorded(node) is None
