@@ -395,7 +395,12 @@ class Ledger(Closeable):
         receipt = self._send(
             self.registry, self.addresses.registry, "advertise", cid, description_cid
         )
-        expected = {"advertiser": self._signer().address, "cid": cid}
+        expected = {
+            "cidHash": keccak(cid),
+            "advertiser": self._signer().address,
+            "cid": cid,
+            "descriptionCid": description_cid,
+        }
         return self._advertised(
             self._one_log(receipt, self.registry, self.addresses.registry, "Advertised", expected)
         )

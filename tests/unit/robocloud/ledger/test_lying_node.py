@@ -42,14 +42,21 @@ Answers = dict[str, Callable[[list[Any]], Any]]
 runner = CliRunner()
 
 
-def advertised_log(robot: str, tx_hash: str, address: str = REGISTRY) -> dict[str, Any]:
+def advertised_log(
+    robot: str,
+    tx_hash: str,
+    address: str = REGISTRY,
+    *,
+    cid_hash: bytes = keccak(CONTENT),
+    description: bytes = b"",
+) -> dict[str, Any]:
     """The ``Advertised`` event a Registry at ``address`` emits for ``robot``."""
-    data = encode(["bytes", "bytes", "bool", "uint64"], [CONTENT, b"", True, 1_700_000_000])
+    data = encode(["bytes", "bytes", "bool", "uint64"], [CONTENT, description, True, 1_700_000_000])
     return {
         "address": address,
         "topics": [
             "0x" + REGISTRY_ABI.event_topic("Advertised").hex(),
-            "0x" + keccak(CONTENT).hex(),
+            "0x" + cid_hash.hex(),
             "0x" + "00" * 12 + robot[2:].lower(),
         ],
         "data": "0x" + data.hex(),
@@ -539,3 +546,72 @@ def test_the_highest_chain_id_eip_2294_allows_is_signed_for() -> None:
     ):
         ledger.advertise(CONTENT)
         assert ledger.chain_id == MAX_CHAIN_ID == 2**63 - 37
+
+
+@pytest.mark.parametrize(
+    ("log", "message"),
+    [
+        ({"cid_hash": keccak(b"another")}, "cidHash differ"),
+        ({"description": CONTENT}, "descriptionCid differ"),
+    ],
+    ids=["another-cid-hash", "another-description"],
+)
+def test_an_advertisement_event_must_carry_what_was_sent(log: dict[str, Any], message: str) -> None:
+    """The indexed CID hash and the description CID were the node's word: the robot was told
+    its advertisement described content it never named."""
+    robot = Identity.generate()
+
+    def receipt(params: list[Any]) -> dict[str, Any]:
+        honest_receipt = honest(robot.address)["eth_getTransactionReceipt"](params)
+        return {**honest_receipt, "logs": [advertised_log(robot.address, params[0], **log)]}
+
+    with (
+        lying_ledger(robot, eth_getTransactionReceipt=receipt) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match=message),
+    ):
+        ledger.advertise(CONTENT)
+
+
+def anchor_receipt(node: str, epoch: int, block: int) -> Callable[[list[Any]], Any]:
+    """A receipt of block 5 whose one log is ``node``'s Anchored event of ``epoch``."""
+
+    def receipt(params: list[Any]) -> dict[str, Any]:
+        mined = honest(node)["eth_getTransactionReceipt"](params)
+        return {
+            **mined,
+            "logs": [{**anchored_log(node, epoch, block), "transactionHash": params[0]}],
+        }
+
+    return receipt
+
+
+def test_a_robots_anchor_is_the_event_of_its_transaction() -> None:
+    robot = Identity.generate()
+    receipt = anchor_receipt(robot.address, 1, 5)
+    with (
+        lying_ledger(robot, eth_getTransactionReceipt=receipt) as server,
+        Ledger.connect(server.url, robot) as ledger,
+    ):
+        anchor = ledger.anchor(1, ROOT, 3)
+    assert (anchor.node, anchor.epoch, anchor.block_number) == (robot.address, 1, 5)
+
+
+@pytest.mark.parametrize(
+    ("event", "message"),
+    [(("0x" + "33" * 20, 999, 5), "node, epoch differ"), ((None, 1, 6), "block differ")],
+    ids=["another-node-and-epoch", "another-block"],
+)
+def test_an_anchor_event_the_node_invents_is_not_the_transactions(
+    event: tuple[str | None, int, int], message: str
+) -> None:
+    """anchor(1, 0xaa..., 3) returned Anchor(node=0x3333..., epoch=999, block_number=-5)."""
+    robot = Identity.generate()
+    node, epoch, block = event
+    receipt = anchor_receipt(node or robot.address, epoch, block)
+    with (
+        lying_ledger(robot, eth_getTransactionReceipt=receipt) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match=message),
+    ):
+        ledger.anchor(1, ROOT, 3)
