@@ -191,8 +191,11 @@ def decode_revert(data: bytes, contracts: list[ContractAbi] | None = None) -> st
             custom = contract.decode_error(data)
             if custom is not None:
                 return custom
-    except (DecodingError, UnicodeDecodeError, OverflowError):  # a node's lie: not UTF-8,
-        pass  # or a length word of 2^256-1
+    except (DecodingError, UnicodeDecodeError, OverflowError):
+        # What eth_abi's decoders raise on data: DecodingError (short data, bad padding or
+        # pointer), UnicodeDecodeError (a string not UTF-8) and OverflowError (a length word
+        # past 2^63, which a read cannot take); their ValueErrors are for malformed types only.
+        pass
     return f"execution reverted with undecodable data {bounded_hex(data)}"
 
 

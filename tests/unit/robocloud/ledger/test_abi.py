@@ -110,9 +110,17 @@ def test_decode_revert_custom_errors_from_an_abi() -> None:
     assert decode_revert(data).startswith("execution reverted with undecodable data")
 
 
-def test_a_revert_reason_claiming_2_to_the_256_bytes_is_shown_as_hex() -> None:
-    """eth_abi raised OverflowError, which escaped as a traceback."""
-    data = ERROR_SELECTOR + (32).to_bytes(32, "big") + b"\xff" * 32
+@pytest.mark.parametrize(
+    ("offset", "length"),
+    [(32, 2**256 - 1), (2**256 - 1, 5), (2**64, 5), (32, 2**64)],
+    ids=["length-2^256-1", "offset-2^256-1", "offset-2^64", "length-2^64"],
+)
+def test_an_error_string_with_a_hostile_offset_or_length_is_shown_as_hex(
+    offset: int, length: int
+) -> None:
+    """eth_abi raised OverflowError on a length or offset word past what a seek takes, which
+    escaped from register, is_active and estimate_gas as a traceback."""
+    data = ERROR_SELECTOR + offset.to_bytes(32, "big") + length.to_bytes(32, "big") + b"ab"
     assert decode_revert(data) == f"execution reverted with undecodable data 0x{data.hex()}"
 
 
