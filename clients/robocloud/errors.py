@@ -106,6 +106,19 @@ class InvalidAnswerError(RobocloudError):
     """
 
 
+MAX_SHOWN_CHARS = 1024
+"""Characters of a peer's error message or revert reason an exception's text holds: a peer
+may send megabytes, which a service keeps (the storage node's last anchoring error), logs and
+serves. The whole text stays on the exception's own attribute (``message``, ``reason``)."""
+
+
+def shown_text(text: str) -> str:
+    """``text`` whole, or its first ``MAX_SHOWN_CHARS`` and how long it was."""
+    if len(text) <= MAX_SHOWN_CHARS:
+        return text
+    return f"{text[:MAX_SHOWN_CHARS]}... ({len(text)} characters)"
+
+
 class ApiError(RobocloudError):
     """A service answered with an error status and (usually) the JSON error model."""
 
@@ -117,7 +130,7 @@ class ApiError(RobocloudError):
         details: dict[str, Any] | None = None,
         request_id: str | None = None,
     ) -> None:
-        super().__init__(f"{status} {code}: {message}")
+        super().__init__(f"{status} {shown_text(code)}: {shown_text(message)}")
         self.status = status
         self.code = code
         self.message = message

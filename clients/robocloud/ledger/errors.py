@@ -11,18 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
-
-MAX_SHOWN_CHARS = 1024
-"""Characters of a node's message or revert reason an exception's text holds: a node may send
-megabytes, which a service keeps (the anchorer's last error), logs and serves."""
-
-
-def shown_text(text: str) -> str:
-    """``text`` whole, or its first ``MAX_SHOWN_CHARS`` and how long it was."""
-    if len(text) <= MAX_SHOWN_CHARS:
-        return text
-    return f"{text[:MAX_SHOWN_CHARS]}... ({len(text)} characters)"
+from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError, shown_text
 
 
 class LedgerError(RobocloudError):

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import httpx
+import pytest
 from eth_abi.abi import encode
 
+from robocloud.errors import ApiError
 from robocloud.ledger.abi import ERROR_SELECTOR, ContractAbi
 from robocloud.ledger.errors import RpcError
-from robocloud.ledger.rpc import as_revert
+from robocloud.ledger.rpc import JsonRpcClient, as_revert
 
 REASON = "Registry: already registered"
 DATA = "0x" + (ERROR_SELECTOR + encode(["string"], [REASON])).hex()
@@ -41,3 +44,21 @@ def test_message_only_shape() -> None:
 def test_other_errors_are_not_reverts() -> None:
     assert as_revert(RpcError("eth_sendRawTransaction", -32000, "nonce too low"), CONTRACTS) is None
     assert as_revert(RpcError("eth_call", -32602, "invalid params", "0xzz"), CONTRACTS) is None
+
+
+def test_a_nodes_megabyte_error_page_is_not_kept_whole_in_the_error() -> None:
+    """A node answering HTTP 500 with a 30 MiB JSON error message raised an ApiError of that
+    size, which the storage node kept as its last anchoring error, logged and served."""
+    huge = "x" * (30 << 20)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(500, json={"error": {"code": "internal", "message": huge}})
+
+    with (
+        JsonRpcClient("http://node/rpc", transport=httpx.MockTransport(answer), retries=0) as rpc,
+        pytest.raises(ApiError) as error,
+    ):
+        rpc.request("eth_chainId", [])
+    assert len(str(error.value)) < 2_000
+    assert str(error.value).endswith(f"... ({len(huge)} characters)")
+    assert error.value.message == huge
