@@ -295,8 +295,14 @@ def test_an_idle_worker_forks_a_fresh_executor_that_shares_its_pages_again(
 
 
 def executor_of(worker: int) -> int:
-    """The pid of the worker's one child, its executor."""
-    (child,) = Path(f"/proc/{worker}/task/{worker}/children").read_text().split()
+    """The pid of the worker's one child, its executor, once there is one: the worker says it
+    may say it is ready before its executor shows in /proc (a CI run found none there)."""
+
+    def children() -> list[str] | None:
+        found = Path(f"/proc/{worker}/task/{worker}/children").read_text().split()
+        return found if len(found) == 1 else None
+
+    (child,) = wait_for(children, "the worker's executor")
     return int(child)
 
 
