@@ -137,6 +137,9 @@ def test_storage_node_anchors_and_anyone_reads(
     assert (latest.epoch, latest.root, latest.record_count) == (4, b"\x44" * 32, 9)
     assert reader.anchors(node=address) == [first, second]
     assert reader.anchors(node=address, epoch=4) == [second]
+    block = second.block_number
+    assert reader.anchors(node=address, from_block=block, to_block=block) == [second]
+    assert reader.anchors(node=address, to_block=first.block_number) == [first]
     reader.close()
 
 
