@@ -19,7 +19,8 @@ from __future__ import annotations
 import math
 import re
 from array import array
-from collections.abc import Callable, Iterable, Iterator
+from bisect import bisect_right
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -345,12 +346,13 @@ class QueryEngine:
         for segment in sealed:
             if segment.first + segment.count - 1 <= skip or self._pruned(segment, query, indexed):
                 continue
-            positions = self._candidates(views, segment, query, indexed, keyword_hits)
+            candidates = self._candidates(views, segment, query, indexed, keyword_hits)
+            positions = _after(candidates, skip - segment.first)
+            if not positions:
+                continue
             docs = views.docs(segment) if segment_filter is not None else None
             for position in positions:
                 index = segment.first + position
-                if index <= skip:
-                    continue
                 scan.scanned += 1
                 if docs is None or segment_filter is None or segment_filter(docs[position]):
                     scan.found.append((template_id, index))
@@ -391,7 +393,7 @@ class QueryEngine:
         query: RecordQuery,
         indexed: list[Comparison],
         keyword_hits: set[int] | None,
-    ) -> Iterable[int]:
+    ) -> Sequence[int]:
         """Positions in the segment the indexes allow, in order."""
         sets: list[array[int]] = []
         if query.start is not None or query.end is not None:
@@ -480,6 +482,12 @@ class QueryEngine:
         for doc in tail:
             if keep is None or keep(doc):
                 yield doc
+
+
+def _after(positions: Sequence[int], skip: int) -> Sequence[int]:
+    """The sorted ``positions`` past ``skip`` (a cursor's position in the segment, negative
+    for none): a segment left with none is never decoded, which costs more than its indexes."""
+    return positions[bisect_right(positions, skip) :]
 
 
 def _check_window(start: int | None, end: int | None) -> None:

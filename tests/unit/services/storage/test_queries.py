@@ -9,6 +9,7 @@ import pytest
 from services.storage.catalog import TemplateNotFound
 from services.storage.queries import QueryEngine, QueryInvalid, RecordQuery
 from services.storage.recordstore import RecordStore
+from services.storage.segments import Doc, SealedSegment, TemplateSegments
 from tests.unit.services.storage.conftest import (
     AUTHOR,
     ROBOT_A,
@@ -82,6 +83,47 @@ def test_keywords_find_records_once_indexed(open_store: StoreFactory) -> None:
     with pytest.raises(QueryInvalid) as empty:
         engine.records(RecordQuery(keywords="  ,; "))
     assert empty.value.parameter == "keywords"
+
+
+def segments_read(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The first index of each sealed segment whose documents a query asks for, in order."""
+    read: list[int] = []
+    docs = TemplateSegments.docs
+
+    def counted(views: TemplateSegments, segment: SealedSegment) -> list[Doc]:
+        read.append(segment.first)
+        return docs(views, segment)
+
+    monkeypatch.setattr(TemplateSegments, "docs", counted)
+    return read
+
+
+@pytest.mark.parametrize(
+    ("query", "found"),
+    [
+        (RecordQuery(template="state@1", keywords="docked", robot=ROBOT_A), [10, 12, 14]),
+        (RecordQuery(template="state@1", where=("count=3", "pose.x<=2"), robot=ROBOT_A), []),
+        (
+            RecordQuery(template="state@1", keywords="docked", robot=ROBOT_A, cursor="state@1/14"),
+            [],
+        ),
+    ],
+)
+def test_a_segment_left_without_candidates_is_never_decoded(
+    open_store: StoreFactory,
+    monkeypatch: pytest.MonkeyPatch,
+    query: RecordQuery,
+    found: list[int],
+) -> None:
+    """A segment's documents were decoded for the robot filter before the indexes (keywords,
+    comparisons, the cursor) said whether any of its positions was left: a query whose
+    keywords hit one segment decoded all six."""
+    store = _filled(open_store)
+    store.index_keywords()
+    read = segments_read(monkeypatch)
+    page = QueryEngine(store).records(query)
+    assert [stored.record["t"] for stored in page.records] == found
+    assert read == ([0] if found else [])
 
 
 @pytest.mark.parametrize(
