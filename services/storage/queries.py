@@ -36,6 +36,7 @@ MAX_WHERE = 16
 MAX_SCANNED = 1_000_000
 """Documents one page may examine before it answers with a cursor."""
 MAX_INTERVAL_SCAN = 2_000_000
+"""Documents one intervals answer may examine, whatever their robot, before it is refused."""
 WHERE = re.compile(r"([a-z][a-z0-9_.]{0,639})\s*(==|!=|<=|>=|=|<|>)(.*)", re.DOTALL)
 ORDERING = frozenset(("<", "<=", ">", ">="))
 TEXT_KINDS = frozenset(("string", "image", "file"))
@@ -445,13 +446,7 @@ class QueryEngine:
             return []
         query = RecordQuery(template=template_id, robot=robot, start=start, end=end)
         by_robot: dict[str, list[tuple[int, int, bool]]] = {}
-        for scanned, doc in enumerate(self._window_docs(views, query), start=1):
-            if scanned > MAX_INTERVAL_SCAN:
-                raise QueryInvalid(
-                    "start",
-                    f"more than {MAX_INTERVAL_SCAN} records; narrow the time window",
-                    code="query_too_broad",
-                )
+        for doc in self._window_docs(views, query):
             by_robot.setdefault(doc["_robot"], []).append(
                 (doc["_t"], doc["_i"], state.matches(doc[state.field]))
             )
@@ -469,19 +464,37 @@ class QueryEngine:
         return intervals
 
     def _window_docs(self, views: TemplateSegments, query: RecordQuery) -> Iterator[Doc]:
-        sealed, tail = views.snapshot()
+        """The documents in ``query``'s window of its robot (if it names one), in log order.
+
+        ``MAX_INTERVAL_SCAN`` counts every document examined, kept or not: no index knows the
+        robots, so a robot with few records (or none) in a broad window costs as much as all
+        of them, and it is refused as too broad as they are. Counting only the kept ones let
+        a robot without records decode every segment with no bound.
+        """
         keep = self._doc_filter(query, [], indexed_done=False)
+        for examined, doc in enumerate(self._in_window(views, query), start=1):
+            if examined > MAX_INTERVAL_SCAN:
+                raise QueryInvalid(
+                    "start",
+                    f"more than {MAX_INTERVAL_SCAN} records in the window, of any robot; "
+                    "narrow the time window",
+                    code="query_too_broad",
+                )
+            if keep is None or keep(doc):
+                yield doc
+
+    def _in_window(self, views: TemplateSegments, query: RecordQuery) -> Iterator[Doc]:
+        """The sealed documents the time index leaves in ``query``'s window, then the tail's
+        (which has no index); a segment the index leaves empty is not decoded."""
+        sealed, tail = views.snapshot()
         for segment in sealed:
             if self._pruned(segment, query, []):
                 continue
-            docs = views.docs(segment)
-            for position in self._candidates(views, segment, query, [], None):
-                doc = docs[position]
-                if keep is None or keep(doc):
-                    yield doc
-        for doc in tail:
-            if keep is None or keep(doc):
-                yield doc
+            positions = self._candidates(views, segment, query, [], None)
+            if positions:
+                docs = views.docs(segment)
+                yield from (docs[position] for position in positions)
+        yield from tail
 
 
 def _after(positions: Sequence[int], skip: int) -> Sequence[int]:

@@ -6,12 +6,14 @@ from typing import Any
 
 import pytest
 
+from services.storage import queries
 from services.storage.catalog import TemplateNotFound
 from services.storage.queries import QueryEngine, QueryInvalid, RecordQuery
 from services.storage.recordstore import RecordStore
 from services.storage.segments import Doc, SealedSegment, TemplateSegments
 from tests.unit.services.storage.conftest import (
     AUTHOR,
+    REVIEWER,
     ROBOT_A,
     ROBOT_B,
     StoreFactory,
@@ -190,6 +192,24 @@ def test_intervals_per_robot(open_store: StoreFactory) -> None:
     with pytest.raises(QueryInvalid) as inverted:  # answered [] while records refused it
         engine.intervals("state@1", "mode", "docked", start=40, end=10)
     assert (inverted.value.parameter, str(inverted.value)) == ("start", "start: is after end")
+
+
+def test_the_interval_bound_counts_every_record_examined_whatever_its_robot(
+    open_store: StoreFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The bound counted only the asked robot's records, so a robot that wrote none had every
+    segment of the window decoded, with no bound at all."""
+    store = _filled(open_store)
+    monkeypatch.setattr(queries, "MAX_INTERVAL_SCAN", 50)
+    engine = QueryEngine(store)
+    for robot in (REVIEWER, ROBOT_A):  # REVIEWER wrote no record; ROBOT_A wrote 50 of 100
+        with pytest.raises(QueryInvalid) as broad:
+            engine.intervals("state@1", "mode", "docked", robot=robot)
+        assert (broad.value.parameter, broad.value.code) == ("start", "query_too_broad")
+    # 32 records in the window and the tail's 4 are examined: within the bound.
+    assert engine.intervals("state@1", "mode", "docked", robot=REVIEWER, end=32) == []
+    narrow = engine.intervals("state@1", "mode", "docked", robot=ROBOT_A, end=32)
+    assert [(i.robot, i.enter, i.exit) for i in narrow] == [(ROBOT_A, 10, 16)]
 
 
 def test_interval_field_and_value_are_never_read_as_where_syntax(
