@@ -2,8 +2,9 @@
 
 Every view of the records (segments, time and numeric indexes, keywords) is derived from these
 logs and rebuilt past its last durable mark at start, so the logs alone decide what was
-acknowledged. A write is acknowledged when :meth:`RecordLogs.append` returns: by then its
-records and their leaf hashes are on disk (one group commit per call, never one per record).
+acknowledged. A write is acknowledged when :meth:`RecordLogs.append_batch` returns: by then
+its records and their leaf hashes are on disk (one group commit per call, never one per
+record), in every log it names or in none.
 
 Each template version ``name@version`` has a directory under the root with three files:
 
@@ -17,6 +18,11 @@ Each template version ``name@version`` has a directory under the root with three
     the hash of every complete, aligned subtree of :data:`CHUNK` leaves, in order: derived
     from the index, fsynced with it when it grows, checked and completed at open.
 
+Beside the directories, ``batch.journal`` names the last batch (each log's first index and
+count) before any of its index entries is written. A batch over two logs whose first index
+reached the disk and whose second did not is undone at open: a request is stored whole or
+not at all, and a client that retries after the crash does not store the first part twice.
+
 Proofs need ``subtree(start, end)`` hashes. Subtrees of at least :data:`CHUNK` leaves are
 folded from the chunk hashes, kept in memory level by level (``n / CHUNK`` hashes, 4 KiB per
 million records per level); smaller ones are hashed from at most ``CHUNK`` leaf hashes read in
@@ -26,11 +32,15 @@ hundred hashes.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
+import logging
 import os
 import re
 import struct
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,6 +57,15 @@ READ_BATCH = 4096
 """Entries read per ``pread`` when iterating a log."""
 
 TEMPLATE_ID = re.compile(r"[a-z][a-z0-9_]{0,62}@[1-9][0-9]{0,8}")
+
+BATCH_JOURNAL = "batch.journal"
+"""Under the root: the last batch appended, named before its index entries are written."""
+
+JOURNAL_HEADER = struct.Struct(">I32s")
+"""The journal's head: its JSON's length and SHA-256."""
+JOURNAL_PAGE = 4096
+
+log_event = logging.getLogger("robocloud.storage.records")
 
 
 class RecordLogError(Exception):
@@ -105,6 +124,17 @@ def _pread_exact(fd: int, size: int, offset: int) -> bytes:
     return b"".join(parts)
 
 
+@dataclass(frozen=True)
+class _Staged:
+    """A batch's entries for one log, their frames on disk, their index entries not yet."""
+
+    log: _TemplateLog
+    first: int
+    count: int
+    index: bytes
+    records_end: int
+
+
 class _TemplateLog:
     """One template version's log; every method is called with ``lock`` held."""
 
@@ -116,6 +146,8 @@ class _TemplateLog:
         self._index = os.open(directory / "index.bin", os.O_RDWR | os.O_CREAT, 0o600)
         self._subtrees = os.open(directory / "subtrees.bin", os.O_RDWR | os.O_CREAT, 0o600)
         self.size = 0
+        self.indexed = 0
+        """Whole index entries found at open, before a torn tail was dropped."""
         self._records_end = 0
         self._levels: list[list[bytes]] = [[]]
         """``_levels[k][i]``: the hash of leaves ``[i * CHUNK * 2**k, (i + 1) * CHUNK * 2**k)``."""
@@ -130,6 +162,7 @@ class _TemplateLog:
         index_bytes = os.fstat(self._index).st_size
         records_bytes = os.fstat(self._records).st_size
         size = index_bytes // INDEX_ENTRY.size
+        self.indexed = size
         while size:
             offset, leaf = self._index_entry(size - 1)
             end = self._frame_end(offset, records_bytes)
@@ -207,7 +240,8 @@ class _TemplateLog:
     def leaf_hashes(self, start: int, stop: int) -> list[bytes]:
         return [leaf for _, leaf in self._index_range(start, stop)]
 
-    def append(self, entries: Sequence[LogEntry]) -> int:
+    def write_frames(self, entries: Sequence[LogEntry]) -> _Staged:
+        """Write and sync ``entries``' frames past the end; nothing counts until the index."""
         first = self.size
         frames: list[bytes] = []
         index: list[bytes] = []
@@ -218,22 +252,34 @@ class _TemplateLog:
             frames.append(entry.meta)
             index.append(INDEX_ENTRY.pack(offset, merkle.leaf_hash(entry.record)))
             offset += FRAME_HEADER.size + len(entry.record) + len(entry.meta)
-        records = b"".join(frames)
-        try:
-            os.lseek(self._records, self._records_end, os.SEEK_SET)
-            _write_all(self._records, records)
-            os.fdatasync(self._records)
-            os.lseek(self._index, first * INDEX_ENTRY.size, os.SEEK_SET)
-            _write_all(self._index, b"".join(index))
-            os.fdatasync(self._index)
-        except BaseException:
-            os.ftruncate(self._index, first * INDEX_ENTRY.size)
-            os.ftruncate(self._records, self._records_end)
-            raise
-        self._records_end = offset
-        self.size = first + len(entries)
+        staged = _Staged(self, first, len(entries), b"".join(index), offset)
+        os.lseek(self._records, self._records_end, os.SEEK_SET)
+        _write_all(self._records, b"".join(frames))
+        os.fdatasync(self._records)
+        return staged
+
+    def write_index(self, staged: _Staged) -> None:
+        """Commit ``staged``'s entries on disk; readers see them only after :meth:`publish`."""
+        os.lseek(self._index, staged.first * INDEX_ENTRY.size, os.SEEK_SET)
+        _write_all(self._index, staged.index)
+        os.fdatasync(self._index)
+
+    def discard(self, staged: _Staged) -> None:
+        """Undo a batch that failed before it was published: back to ``staged.first``."""
+        os.ftruncate(self._index, staged.first * INDEX_ENTRY.size)
+        os.ftruncate(self._records, self._records_end)
+        os.fdatasync(self._index)
+
+    def publish(self, staged: _Staged) -> None:
+        self._records_end = staged.records_end
+        self.size = staged.first + staged.count
         self._extend_chunks()
-        return first
+
+    def truncate(self, size: int) -> None:
+        """Drop every entry from ``size`` on, durably: the undo of a batch torn by a crash."""
+        os.ftruncate(self._index, size * INDEX_ENTRY.size)
+        os.fdatasync(self._index)
+        self._recover()
 
     def _extend_chunks(self) -> None:
         known = len(self._levels[0])
@@ -292,21 +338,62 @@ class _TemplateLog:
         )
 
 
+def _write_journal(fd: int, staged: Sequence[_Staged]) -> None:
+    """Name a batch before any of its index entries is written: its logs and their ranges,
+    behind their length and SHA-256, so that a journal torn by a crash reads as no batch.
+
+    Padded to whole pages and written in place: the file keeps its size from batch to
+    batch, so the sync writes one page of data and no metadata.
+    """
+    payload = json.dumps(
+        {part.log.template_id: [part.first, part.count] for part in staged},
+        separators=(",", ":"),
+    ).encode()
+    data = JOURNAL_HEADER.pack(len(payload), hashlib.sha256(payload).digest()) + payload
+    os.pwrite(fd, data.ljust(-(-len(data) // JOURNAL_PAGE) * JOURNAL_PAGE, b"\0"), 0)
+    os.fdatasync(fd)
+
+
+def _read_journal(fd: int) -> dict[str, tuple[int, int]] | None:
+    """The last batch the journal names, or None when it is empty or torn: a torn journal
+    means the crash came before the batch wrote any index entry."""
+    data = _pread_exact(fd, os.fstat(fd).st_size, 0)
+    if len(data) < JOURNAL_HEADER.size:
+        return None
+    length, digest = JOURNAL_HEADER.unpack_from(data)
+    payload = data[JOURNAL_HEADER.size : JOURNAL_HEADER.size + length]
+    if len(payload) != length or hashlib.sha256(payload).digest() != digest:
+        return None
+    named = json.loads(payload)
+    return {
+        template_id: (int(first), int(count))
+        for template_id, (first, count) in named.items()
+        if TEMPLATE_ID.fullmatch(template_id)
+    }
+
+
 class RecordLogs:
     """The logs of every template version under ``root``; safe to share between threads.
 
-    Appends to one template are serialised by its lock; appends to different templates and
-    reads of other templates proceed in parallel.
+    Appends are serialised (one batch journal); reads of a log wait only for an append to
+    that log.
     """
 
     def __init__(self, root: Path) -> None:
         self.directory = root
         root.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
+        self._append_lock = threading.Lock()
         self._logs: dict[str, _TemplateLog] = {}
         for directory in sorted(root.iterdir()):
             if directory.is_dir() and TEMPLATE_ID.fullmatch(directory.name):
                 self._logs[directory.name] = _TemplateLog(directory.name, directory)
+        journal = root / BATCH_JOURNAL
+        created = not journal.exists()
+        self._journal = os.open(journal, os.O_RDWR | os.O_CREAT, 0o600)
+        if created:
+            fsync_dir(root)
+        self._undo_torn_batch()
 
     def close(self) -> None:
         with self._lock:
@@ -314,6 +401,36 @@ class RecordLogs:
                 with log.lock:
                     log.close()
             self._logs.clear()
+            if self._journal >= 0:
+                os.close(self._journal)
+                self._journal = -1
+
+    def _undo_torn_batch(self) -> None:
+        """Truncate every log of the journal's batch to where the batch began, unless each
+        log's index holds all of its entries: a crash between two index writes left a part.
+
+        Index entries, not the size after recovery, decide: a frame damaged after it was
+        indexed (the disk, not a crash) costs its own entry at open, not its whole batch.
+        """
+        batch = _read_journal(self._journal)
+        if batch is None:
+            return
+        indexed = {
+            template_id: log.indexed if (log := self._logs.get(template_id)) else 0
+            for template_id in batch
+        }
+        if all(
+            indexed[template_id] >= first + count for template_id, (first, count) in batch.items()
+        ):
+            return
+        for template_id, (first, _) in batch.items():
+            log = self._logs.get(template_id)
+            if log is not None and log.size > first:
+                log.truncate(first)
+        log_event.warning(
+            "a batch torn by a crash was undone",
+            extra={"logs": {template_id: first for template_id, (first, _) in batch.items()}},
+        )
 
     def _log(self, template_id: str, *, create: bool = False) -> _TemplateLog | None:
         if not TEMPLATE_ID.fullmatch(template_id):
@@ -328,12 +445,43 @@ class RecordLogs:
 
     def append(self, template_id: str, entries: Sequence[LogEntry]) -> int:
         """Append ``entries`` in order; the index of the first. Durable when this returns."""
-        log = self._log(template_id, create=True)
-        assert log is not None
-        with log.lock:
-            if not entries:
-                return log.size
-            return log.append(entries)
+        return self.append_batch({template_id: entries})[template_id]
+
+    def append_batch(self, batch: Mapping[str, Sequence[LogEntry]]) -> dict[str, int]:
+        """Append to several logs as one write: each log's first new index.
+
+        Durable when this returns, and all or nothing across the logs, through a crash too:
+        every frame is synced, then the journal names the batch, then the indexes are
+        written; a start that finds the journal's batch in part undoes it
+        (:meth:`_undo_torn_batch`). Readers see the new entries only once every log holds
+        them, so nothing (a root anchored on chain, a keyword mark) can refer to a part.
+        """
+        logs = {template_id: self._log(template_id, create=True) for template_id in sorted(batch)}
+        with self._append_lock, contextlib.ExitStack() as held:
+            for log in logs.values():
+                assert log is not None
+                held.enter_context(log.lock)
+            staged: list[_Staged] = []
+            try:
+                for template_id, log in logs.items():
+                    assert log is not None
+                    if batch[template_id]:
+                        staged.append(log.write_frames(batch[template_id]))
+                if staged:
+                    _write_journal(self._journal, staged)
+                for part in staged:
+                    part.log.write_index(part)
+            except BaseException:
+                for part in staged:
+                    part.log.discard(part)
+                raise
+            for part in staged:
+                part.log.publish(part)
+            firsts = {part.log.template_id: part.first for part in staged}
+            return {
+                template_id: firsts.get(template_id, log.size if log is not None else 0)
+                for template_id, log in logs.items()
+            }
 
     def size(self, template_id: str) -> int:
         log = self._log(template_id)

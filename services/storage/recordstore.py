@@ -362,11 +362,15 @@ class RecordStore:
             groups.setdefault(encoded.template_id, []).append((position, encoded))
         ids: list[str] = [""] * len(records)
         with self._write_lock:
+            firsts = self.logs.append_batch(
+                {
+                    template_id: [LogEntry(record=item.canonical, meta=meta) for _, item in items]
+                    for template_id, items in groups.items()
+                }
+            )
             for template_id, items in groups.items():
                 views = self._open_views(template_id)
-                first = self.logs.append(
-                    template_id, [LogEntry(record=item.canonical, meta=meta) for _, item in items]
-                )
+                first = firsts[template_id]
                 if first != views.size:
                     raise RuntimeError(f"{template_id}: log at {first}, views at {views.size}")
                 views.add(

@@ -10,6 +10,7 @@ import pytest
 
 from robocloud import merkle
 from services.storage.recordlog import (
+    BATCH_JOURNAL,
     CHUNK,
     INDEX_ENTRY,
     EntryNotFound,
@@ -122,7 +123,8 @@ def test_a_malformed_template_id_is_refused_and_nothing_is_created(
     assert refused.value.template_id == template_id
     with pytest.raises(InvalidTemplateId):
         logs.size(template_id)
-    assert list((tmp_path / "logs").iterdir()) == []
+    assert [p.name for p in (tmp_path / "logs").iterdir()] == [BATCH_JOURNAL]
+    assert (tmp_path / "logs" / BATCH_JOURNAL).read_bytes() == b""
     assert sorted(p.name for p in tmp_path.iterdir()) == ["logs"]
 
 
@@ -271,3 +273,76 @@ def test_every_append_acknowledged_before_kill_9_survives(tmp_path: Path) -> Non
     assert [e.meta for e in stored] == [b'{"m":%d}' % i for i in range(size)]
     assert logs.root(IMU, size) == merkle.root([merkle.leaf_hash(e.record) for e in stored])
     assert logs.append(IMU, [LogEntry(b'{"i":"after"}', b"{}")]) == size
+
+
+GPS = "gps@1"
+
+
+def test_a_batch_over_logs_whose_index_reached_the_disk_in_part_is_undone_at_open(
+    tmp_path: Path,
+) -> None:
+    logs = RecordLogs(tmp_path)
+    assert logs.append_batch({IMU: entries(0, 3), GPS: entries(0, 4, GPS)}) == {IMU: 0, GPS: 0}
+    assert logs.append_batch({IMU: entries(3, 5), GPS: entries(4, 9, GPS)}) == {IMU: 3, GPS: 4}
+    logs.close()
+    with (tmp_path / GPS / "index.bin").open("r+b") as index:
+        index.truncate(6 * INDEX_ENTRY.size + 11)
+    reopened = RecordLogs(tmp_path)
+    assert reopened.sizes() == {GPS: 4, IMU: 3}
+    assert list(reopened.entries(IMU, 0, 10)) == entries(0, 3)
+    assert reopened.root(GPS, 4) == merkle.root(
+        [merkle.leaf_hash(e.record) for e in entries(0, 4, GPS)]
+    )
+    assert reopened.append_batch({IMU: entries(3, 4)}) == {IMU: 3}
+    reopened.close()
+    assert RecordLogs(tmp_path).sizes() == {GPS: 4, IMU: 4}
+
+
+def test_one_log_whose_batch_index_is_cut_loses_the_whole_batch(tmp_path: Path) -> None:
+    logs = RecordLogs(tmp_path)
+    logs.append(IMU, entries(0, 5))
+    logs.append(IMU, entries(5, 10))
+    logs.close()
+    with (tmp_path / IMU / "index.bin").open("r+b") as index:
+        index.truncate(7 * INDEX_ENTRY.size)
+    reopened = RecordLogs(tmp_path)
+    assert reopened.size(IMU) == 5
+    assert reopened.root(IMU, 5) == merkle.root(leaves(0, 5))
+
+
+@pytest.mark.parametrize("journal", [b"", b"\x00" * 40, b"torn"])
+def test_a_torn_or_empty_journal_undoes_nothing(tmp_path: Path, journal: bytes) -> None:
+    logs = RecordLogs(tmp_path)
+    logs.append_batch({IMU: entries(0, 3), GPS: entries(0, 4, GPS)})
+    logs.close()
+    (tmp_path / BATCH_JOURNAL).write_bytes(journal)
+    assert RecordLogs(tmp_path).sizes() == {GPS: 4, IMU: 3}
+
+
+TWO_LOG_WRITER = """
+import json, sys
+from pathlib import Path
+from services.storage.recordlog import LogEntry, RecordLogs
+
+logs = RecordLogs(Path(sys.argv[1]))
+batch = 0
+while True:
+    logs.append_batch({
+        "imu@1": [LogEntry(json.dumps([batch, k]).encode(), b"{}") for k in range(37)],
+        "gps@1": [LogEntry(json.dumps([batch, k]).encode(), b"{}") for k in range(11)],
+    })
+    print(batch, flush=True)
+    batch += 1
+"""
+
+
+def test_batches_over_two_logs_acknowledged_before_kill_9_survive_whole(tmp_path: Path) -> None:
+    acknowledged = acknowledged_before_kill(TWO_LOG_WRITER, tmp_path, 30)
+    logs = RecordLogs(tmp_path)
+    sizes = logs.sizes()
+    batches = sizes[IMU] // 37
+    assert batches > int(acknowledged[-1])
+    assert sizes == {IMU: 37 * batches, GPS: 11 * batches}
+    assert [json.loads(e.record) for e in logs.entries(GPS, 0, sizes[GPS])] == [
+        [b, k] for b in range(batches) for k in range(11)
+    ]

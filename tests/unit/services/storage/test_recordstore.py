@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -16,7 +21,15 @@ from services.storage.recordstore import (
     RecordRejected,
 )
 from services.storage.segments import MANIFEST, TABLE, DocumentForm, SegmentStorage
-from tests.unit.services.storage.conftest import AUTHOR, ROBOT_A, StoreFactory, state_record
+from tests.procs import REPO
+from tests.unit.services.storage.conftest import (
+    AUTHOR,
+    ROBOT_A,
+    STATE,
+    StoreFactory,
+    approve,
+    state_record,
+)
 
 
 def test_a_batch_is_logged_indexed_and_read_back(open_store: StoreFactory) -> None:
@@ -178,3 +191,91 @@ def test_an_ingest_batch_fits_the_segments(open_store: StoreFactory) -> None:
     assert store.fitting("state@1", 10) == 10
     store.append([state_record(t) for t in range(11)], author=AUTHOR)
     assert store.fitting("state@1", 50) == 48
+
+
+ARM = {**STATE, "name": "arm"}
+
+
+def two_template_batch(start: int) -> list[dict[str, object]]:
+    """Five records of arm@1, then seven of state@1: one request, two logs."""
+    arm = [{**state_record(t), "template": "arm@1"} for t in range(start, start + 5)]
+    return arm + [state_record(t) for t in range(start, start + 7)]
+
+
+CRASHING_WRITER = """
+import os, signal, sys
+from pathlib import Path
+from services.storage.catalog import Catalog
+from services.storage.recordlog import RecordLogs
+from services.storage.recordstore import RecordStore
+from tests.unit.services.storage.conftest import AUTHOR, STATE, approve
+from tests.unit.services.storage.test_recordstore import ARM, two_template_batch
+
+root = Path(sys.argv[1])
+catalog = Catalog(root / "catalog")
+approve(catalog, STATE)
+approve(catalog, ARM)
+store = RecordStore(root, RecordLogs(root / "logs"), catalog, segment_records=16)
+store.append(two_template_batch(0), author=AUTHOR)
+print("acknowledged", flush=True)
+synced = os.fdatasync
+
+def dying(fd):
+    synced(fd)
+    if os.readlink(f"/proc/self/fd/{fd}").endswith("/arm@1/index.bin"):
+        os.kill(os.getpid(), signal.SIGKILL)
+
+os.fdatasync = dying
+store.append(two_template_batch(100), author=AUTHOR)
+print("not acknowledged", flush=True)
+"""
+
+
+def test_a_batch_over_two_templates_killed_between_their_logs_is_stored_whole_or_not_at_all(
+    tmp_path: Path, open_store: StoreFactory
+) -> None:
+    writer = subprocess.run(
+        [sys.executable, "-c", CRASHING_WRITER, str(tmp_path)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={"PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
+        timeout=120,
+    )
+    assert writer.returncode == -signal.SIGKILL, writer.stderr
+    assert writer.stdout.split("\n") == ["acknowledged", ""]
+    store = open_store()
+    assert store.logs.sizes() == {"arm@1": 5, "state@1": 7}
+    with pytest.raises(RecordNotFound):
+        store.get("arm-1-5")
+    ids = store.append(two_template_batch(200), author=AUTHOR)
+    assert ids == [f"arm-1-{n}" for n in range(5, 10)] + [f"state-1-{n}" for n in range(7, 14)]
+    assert store.get("arm-1-5").record["t"] == 200
+    assert [views.size for views in (store.views("arm@1"), store.views("state@1")) if views] == [
+        10,
+        14,
+    ]
+
+
+def test_a_batch_whose_second_log_fails_leaves_the_first_unchanged(
+    open_store: StoreFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = open_store()
+    approve(store.catalog, ARM)
+    store.append(two_template_batch(0), author=AUTHOR)
+    synced = os.fdatasync
+
+    def failing(fd: int) -> None:
+        if os.readlink(f"/proc/self/fd/{fd}").endswith("/state@1/index.bin"):
+            raise OSError(errno.EIO, "Input/output error")
+        synced(fd)
+
+    monkeypatch.setattr(os, "fdatasync", failing)
+    with pytest.raises(OSError, match="Input/output error"):
+        store.append(two_template_batch(100), author=AUTHOR)
+    monkeypatch.undo()
+    assert store.logs.sizes() == {"arm@1": 5, "state@1": 7}
+    assert store.append(two_template_batch(200), author=AUTHOR)[0] == "arm-1-5"
+    store = open_store()
+    assert store.logs.sizes() == {"arm@1": 10, "state@1": 14}
+    assert [store.get(f"arm-1-{n}").record["t"] for n in (4, 5)] == [4, 200]
