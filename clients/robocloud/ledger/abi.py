@@ -151,7 +151,7 @@ class ContractAbi:
             event=str(entry["name"]),
             args=args,
             address=to_checksum_address(str(log["address"])),
-            block_number=_uint64(log["blockNumber"]),
+            block_number=check_block(_uint64(log["blockNumber"])),
             tx_hash=str(log["transactionHash"]),
             log_index=_uint64(log["logIndex"]),
         )
@@ -174,6 +174,20 @@ def _uint64(value: Any) -> int:
     if not isinstance(value, str) or not _QUANTITY.fullmatch(value):
         raise ValueError(f"{str(value)[:40]!r} is not a uint64 quantity")
     return int(value, 16)
+
+
+MAX_BLOCK_NUMBER = 2**63 - 1
+"""The last block number taken from a node, though blocks are uint64 on chain: geth reads a
+block number as an int64 (``rpc.BlockNumber``), so no later block can be asked for, and it
+is SQLite's largest integer. A receipt, log or ``anchorAt`` of block 2^63 was taken, and the
+storage node's anchorer, having sent its anchor, raised OverflowError recording it."""
+
+
+def check_block(number: int) -> int:
+    """``number``, a block number a node sent; a ``ValueError`` past ``MAX_BLOCK_NUMBER``."""
+    if number > MAX_BLOCK_NUMBER:
+        raise ValueError(f"block {number}, past 2^63 - 1, the last block a node can name")
+    return number
 
 
 def decode_revert(data: bytes, contracts: list[ContractAbi] | None = None) -> str:

@@ -22,7 +22,7 @@ from robocloud.client import Closeable, ServiceClient
 from robocloud.config import deployment_chain
 from robocloud.errors import InvalidAnswerError, MissingIdentityError, NotFoundError
 from robocloud.identity import Identity
-from robocloud.ledger.abi import ContractAbi, DecodedLog
+from robocloud.ledger.abi import ContractAbi, DecodedLog, check_block
 from robocloud.ledger.errors import (
     AddressError,
     ContractsUnavailableError,
@@ -521,6 +521,12 @@ class Ledger(Closeable):
         )
         if timestamp == 0:
             return None
+        try:
+            check_block(block)
+        except ValueError as exc:
+            raise InvalidAnswerError(
+                f"the node's answer to AnchorLog.anchorAt is not its result: {exc}"
+            ) from None
         return Anchor(target, epoch, root, count, timestamp, block)
 
     def latest_anchor(self, node: str) -> Anchor | None:

@@ -392,15 +392,30 @@ def receipt_with(robot: Identity, **changes: Any) -> Callable[[list[Any]], Any]:
         ({"log": {"blockNumber": "0x6"}}, InvalidAnswerError, "block differ"),
         ({"log": {"blockNumber": "-5"}}, InvalidAnswerError, "malformed log of Registry"),
         ({"log": {"blockNumber": "0x" + "f" * 17}}, InvalidAnswerError, "malformed log"),
+        ({"log": {"blockNumber": hex(2**63)}}, InvalidAnswerError, r"malformed log.*past 2\^63"),
+        (
+            {"blockNumber": hex(2**63), "log": {"blockNumber": hex(2**63)}},
+            TransactionMismatchError,
+            r"receipt for 0x.*block 9223372036854775808, past 2\^63 - 1",
+        ),
         ({"status": "0x2"}, TransactionMismatchError, "receipt for 0x"),
     ],
-    ids=["another-advertiser", "another-block", "negative-block", "huge-block", "status-2"],
+    ids=[
+        "another-advertiser",
+        "another-block",
+        "negative-block",
+        "huge-block",
+        "log-block-past-int64",
+        "receipt-block-past-int64",
+        "status-2",
+    ],
 )
 def test_an_event_or_receipt_the_node_invents_is_not_the_transactions(
     changes: dict[str, Any], error: type[Exception], message: str
 ) -> None:
     """The event's arguments, its block and the receipt's status were the node's word: a
-    robot was told of another robot's advertisement, block -5, or success for status 2."""
+    robot was told of another robot's advertisement, block -5, or success for status 2; a
+    block past 2^63 - 1 was taken, which a storage node then failed to record (OverflowError)."""
     robot = Identity.generate()
     if changes.get("log", {}).get("topics", 1) is None:
         changes["log"]["topics"] = advertised_log(Identity.generate().address, "0x")["topics"]

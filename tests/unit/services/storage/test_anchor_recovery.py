@@ -62,10 +62,10 @@ def anchored_log(node: str, epoch: int, root: bytes, count: int, block: int) -> 
     }
 
 
-def holding_the_root(**answers: Callable[[list[Any]], Any]) -> Answers:
-    """A node whose ``anchorAt`` holds ``TREE``'s root as the node's epoch 1, in ``BLOCK``
+def holding_the_root(block: int = BLOCK, **answers: Callable[[list[Any]], Any]) -> Answers:
+    """A node whose ``anchorAt`` holds ``TREE``'s root as the node's epoch 1, in ``block``
     (a crash after mining, before recording), answering ``answers`` besides."""
-    values = [TREE.root, TREE.record_count, ANCHORED_AT, BLOCK]
+    values = [TREE.root, TREE.record_count, ANCHORED_AT, block]
     result = "0x" + encode(["bytes32", "uint64", "uint64", "uint64"], values).hex()
     return {"eth_chainId": lambda _: hex(1337), "eth_call": lambda _: result, **answers}
 
@@ -181,19 +181,21 @@ def test_the_anchorer_checks_the_event_whatever_the_sdk_lets_through(
 ANCHORING_NODE = Identity.generate()
 
 
-def anchoring(chain_ids: list[int], log_block: int = BLOCK) -> Answers:
-    """A node holding nothing for epoch 1 that mines the anchor in ``BLOCK``, its event in
-    ``log_block``, and answers ``eth_chainId`` with ``chain_ids`` in turn (the last for good)."""
+def anchoring(chain_ids: list[int], block: int = BLOCK, log_block: int | None = None) -> Answers:
+    """A node holding nothing for epoch 1 that mines the anchor in ``block``, its event in
+    ``log_block`` (the same by default), and answers ``eth_chainId`` with ``chain_ids`` in
+    turn (the last for good)."""
     empty = "0x" + encode(["bytes32", "uint64", "uint64", "uint64"], [bytes(32), 0, 0, 0]).hex()
 
     def chain_id(_: list[Any]) -> str:
         return hex(chain_ids.pop(0) if len(chain_ids) > 1 else chain_ids[0])
 
     def receipt(params: list[Any]) -> dict[str, Any]:
-        log = {**own_log(ANCHORING_NODE.address, block=log_block), "transactionHash": params[0]}
+        event = own_log(ANCHORING_NODE.address, block=block if log_block is None else log_block)
+        log = {**event, "transactionHash": params[0]}
         return {
             "transactionHash": params[0],
-            "blockNumber": hex(BLOCK),
+            "blockNumber": hex(block),
             "blockHash": "0x" + "cd" * 32,
             "status": "0x1",
             "gasUsed": "0x5208",
@@ -245,3 +247,39 @@ def test_a_chain_id_sqlite_cannot_hold_is_refused_before_sending(
     with pytest.raises(InvalidAnswerError, match="EIP-2294"):
         node.anchor_next()
     assert recorded(node) is None
+
+
+def honest_after_sending() -> Answers:
+    """The honest node after the anchor of ``ANCHORING_NODE`` was mined in ``BLOCK``."""
+    return holding_the_root(eth_getLogs=lambda _: [own_log(ANCHORING_NODE.address)])
+
+
+@pytest.mark.parametrize("block", [2**63, 2**64 - 1], ids=hex)
+@pytest.mark.parametrize("where", ["receipt", "anchorAt"])
+def test_a_block_sqlite_cannot_hold_is_refused_until_an_honest_node_shows_the_anchor(
+    anchorer: Callable[..., Anchorer], where: str, block: int
+) -> None:
+    """A block past 2^63 - 1 (a uint64, in a receipt and its event, or in anchorAt after a
+    crash) was taken: recording it raised OverflowError, after the anchor was sent, at every
+    retry. It is refused as the node's answer, nothing is recorded, and the next attempt
+    records the anchor from an honest node."""
+    if where == "receipt":
+        answers = anchoring([1337], block=block)
+    else:
+        lie = [own_log(ANCHORING_NODE.address, block=block)]
+        answers = holding_the_root(block, eth_getLogs=lambda _: lie)
+    node = anchorer(answers, identity=ANCHORING_NODE)
+    with pytest.raises(InvalidAnswerError, match=f"block {block}, past 2\\^63 - 1"):
+        node.anchor_next()
+    assert recorded(node) is None
+    answers.update(honest_after_sending())
+    assert node.anchor_next()
+    assert recorded(node) == AnchorRef(1337, ANCHOR_LOG, ANCHORING_NODE.address, 1, TX, BLOCK)
+
+
+def test_the_last_block_sqlite_holds_is_recorded(anchorer: Callable[..., Anchorer]) -> None:
+    node = anchorer(anchoring([1337], block=2**63 - 1), identity=ANCHORING_NODE)
+    assert node.anchor_next()
+    anchor = recorded(node)
+    assert anchor is not None
+    assert anchor.block == 2**63 - 1
