@@ -211,11 +211,12 @@ class _Stream:
             shift += 7
         raise CarError(f"CAR varint at byte {at} is longer than {MAX_VARINT_BYTES} bytes")
 
-    def exactly(self, size: int) -> bytes:
+    def exactly(self, size: int, what: str = "CAR") -> bytes:
+        """``size`` bytes, or a :class:`CarError` naming ``what`` was cut short and where."""
         data = self.source.read(size)
         if len(data) != size:
             raise CarError(
-                f"truncated CAR: {size} bytes due at byte {self.offset}, {len(data)} there"
+                f"truncated {what}: {size} bytes due at byte {self.offset}, {len(data)} there"
                 f"{self.cut}"
             )
         self.offset += size
@@ -293,13 +294,7 @@ def _check_characteristics(field: bytes) -> None:
 
 def _open_v2(outer: _Stream) -> _Stream:
     """Read a CARv2's header after its pragma and skip to its payload; the payload's stream."""
-    fixed = outer.source.read(CARV2_HEADER_BYTES)
-    if len(fixed) != CARV2_HEADER_BYTES:
-        raise CarError(
-            f"truncated CARv2 header: {CARV2_HEADER_BYTES} bytes due at byte {outer.offset}, "
-            f"{len(fixed)} there"
-        )
-    outer.offset += CARV2_HEADER_BYTES
+    fixed = outer.exactly(CARV2_HEADER_BYTES, "CARv2 header")
     _check_characteristics(fixed[:16])
     offset, size, index = (int.from_bytes(fixed[at : at + 8], "little") for at in (16, 24, 32))
     if offset < CARV2_PREFIX_BYTES:
