@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import re
 from array import array
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -216,6 +216,26 @@ class _Scan:
         return len(self.found) > self.limit or self.stopped_at is not None
 
 
+@dataclass(frozen=True)
+class _KeywordHits:
+    """One template's keyword hits, sorted once per query: each segment takes its own by
+    bisection, where walking every hit for every segment cost hits times segments."""
+
+    indexes: list[int]
+
+    @classmethod
+    def of(cls, hits: dict[str, set[int]], template_id: str) -> _KeywordHits:
+        return cls(sorted(hits.get(template_id, ())))
+
+    def between(self, start: int, stop: int) -> list[int]:
+        """The hits in ``[start, stop)``."""
+        return self.indexes[bisect_left(self.indexes, start) : bisect_left(self.indexes, stop)]
+
+    def __contains__(self, index: int) -> bool:
+        found = bisect_left(self.indexes, index)
+        return found < len(self.indexes) and self.indexes[found] == index
+
+
 def _bounds(comparison: Comparison) -> tuple[float | None, float | None, bool, bool]:
     value = float(comparison.value)
     return {
@@ -284,8 +304,8 @@ class QueryEngine:
             if after is not None and template_id < after[0]:
                 continue
             skip = after[1] if after is not None and template_id == after[0] else -1
-            keyword_hits = hits.get(template_id, set()) if hits is not None else None
-            if keyword_hits is not None and not keyword_hits:
+            keyword_hits = _KeywordHits.of(hits, template_id) if hits is not None else None
+            if keyword_hits is not None and not keyword_hits.indexes:
                 continue
             self._scan(views, query, comparisons[template_id], keyword_hits, skip, scan)
             if scan.full:
@@ -336,7 +356,7 @@ class QueryEngine:
         views: TemplateSegments,
         query: RecordQuery,
         comparisons: list[Comparison],
-        keyword_hits: set[int] | None,
+        keyword_hits: _KeywordHits | None,
         skip: int,
         scan: _Scan,
     ) -> None:
@@ -393,7 +413,7 @@ class QueryEngine:
         segment: SealedSegment,
         query: RecordQuery,
         indexed: list[Comparison],
-        keyword_hits: set[int] | None,
+        keyword_hits: _KeywordHits | None,
     ) -> Sequence[int]:
         """Positions in the segment the indexes allow, in order."""
         sets: list[array[int]] = []
@@ -404,10 +424,8 @@ class QueryEngine:
             index = views.index(segment, comparison.field)
             sets.append(index.between(low, high, low_open=low_open, high_open=high_open))
         if keyword_hits is not None:
-            stop = segment.first + segment.count
-            sets.append(
-                array("I", (i - segment.first for i in keyword_hits if segment.first <= i < stop))
-            )
+            inside = keyword_hits.between(segment.first, segment.first + segment.count)
+            sets.append(array("I", (i - segment.first for i in inside)))
         if not sets:
             return range(segment.count)
         sets.sort(key=len)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -85,6 +86,36 @@ def test_keywords_find_records_once_indexed(open_store: StoreFactory) -> None:
     with pytest.raises(QueryInvalid) as empty:
         engine.records(RecordQuery(keywords="  ,; "))
     assert empty.value.parameter == "keywords"
+
+
+class WalkedHits(set[int]):
+    """Keyword hits that count the indexes walked over them."""
+
+    walked = 0
+
+    def __iter__(self) -> Iterator[int]:
+        for index in super().__iter__():
+            WalkedHits.walked += 1
+            yield index
+
+
+def test_keyword_hits_are_walked_once_per_query_not_once_per_segment(
+    open_store: StoreFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each segment walked every hit of its template to find its own, hits times segments;
+    the hits are sorted once and each segment (and the tail) finds its own by bisection."""
+    store = _filled(open_store)
+    store.index_keywords()
+    search = store.keywords.search
+
+    def walked_hits(words: list[str], template_id: str | None) -> dict[str, set[int]]:
+        return {name: WalkedHits(hits) for name, hits in search(words, template_id).items()}
+
+    monkeypatch.setattr(store.keywords, "search", walked_hits)
+    monkeypatch.setattr(WalkedHits, "walked", 0)
+    page = QueryEngine(store).records(RecordQuery(keywords="moving", robot=ROBOT_B))
+    assert [stored.record["t"] for stored in page.records] == list(range(15, 100, 2))
+    assert WalkedHits.walked == 85
 
 
 def segments_read(monkeypatch: pytest.MonkeyPatch) -> list[int]:
