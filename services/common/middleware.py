@@ -43,13 +43,14 @@ from services.common.errors import (
     Forbidden,
     PayloadTooLarge,
     ServiceError,
+    TooManyRequests,
     Unauthorized,
     Unavailable,
     error_body,
 )
 from services.common.logs import request_id_var
 from services.common.metrics import ServiceMetrics
-from services.common.nonces import NonceStore, NonceStoreFull
+from services.common.nonces import NonceQuotaExceeded, NonceStore, NonceStoreFull
 from services.common.slots import client_key, client_var
 
 log = logging.getLogger("robocloud.http")
@@ -372,8 +373,9 @@ class SignatureLayer:
         return verified.content_sha256
 
     async def _use_nonce(self, address: str, nonce: str, timestamp: int) -> None:
-        """Record the request's nonce: 401 if it was used, 503 if the store is full (a full
-        store refuses new nonces rather than forget live ones, which would allow replays).
+        """Record the request's nonce: 401 if it was used, 429 if its signer holds its share
+        of the store, 503 if the store is full (a full store refuses new nonces rather than
+        forget live ones, which would allow replays).
 
         The store fsyncs its journal before it returns, and the request goes on only then, so
         a nonce acknowledged survives kill -9; it does so on a worker thread, since an fsync
@@ -383,6 +385,14 @@ class SignatureLayer:
             fresh = await anyio.to_thread.run_sync(
                 self.nonces.use, address, nonce, timestamp, limiter=self._journal
             )
+        except NonceQuotaExceeded as quota:
+            raise TooManyRequests(
+                f"this address holds its limit of {quota.limit} signed requests within the "
+                "clock window; retry later",
+                code="nonce_quota_exceeded",
+                retry_after_s=math.ceil(quota.retry_after_s),
+                details={"limit": quota.limit},
+            ) from quota
         except NonceStoreFull as full:
             seconds = max(1, math.ceil(full.retry_after_s))
             raise Unavailable(

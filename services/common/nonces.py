@@ -9,6 +9,10 @@ The store holds at most ``max_entries`` live nonces. When it is full a new nonce
 (:class:`NonceStoreFull`, answered 503 with ``Retry-After``) rather than an old one forgotten,
 since forgetting a live nonce would let its request be replayed. Without a bound one client
 signing 760 requests a second grew it by 180 MB of memory and 40 MB of journal per window.
+
+One address holds at most ``max_per_address`` of them (:class:`NonceQuotaExceeded`, answered
+429): with the whole store as its only bound, one approved robot signing as fast as it could
+filled it and refused every other robot's writes for the rest of the window.
 """
 
 from __future__ import annotations
@@ -25,6 +29,22 @@ MAX_LIVE_NONCES = 200_000
 18 MB of journal at worst. A nonce lives about ``window_s`` (300 s by default) past a
 current timestamp, so this admits some 650 signed writes a second, sustained, to one service:
 more than one service's fsynced journal and routes take."""
+
+
+MAX_LIVE_NONCES_PER_ADDRESS = MAX_LIVE_NONCES // 8
+"""One address's share: some 80 signed writes a second, sustained over the window; it takes
+eight robots at that rate, not one, to fill the store."""
+
+
+class NonceQuotaExceeded(Exception):
+    """This address holds its share of live nonces; its oldest expires ``retry_after_s``
+    from now."""
+
+    def __init__(self, address: str, limit: int, retry_after_s: float) -> None:
+        super().__init__(f"{address} holds its limit of {limit} live nonces")
+        self.address = address
+        self.limit = limit
+        self.retry_after_s = retry_after_s
 
 
 class NonceStoreFull(Exception):
@@ -44,14 +64,18 @@ class NonceStore:
         *,
         compact_after: int = 10_000,
         max_entries: int = MAX_LIVE_NONCES,
+        max_per_address: int = MAX_LIVE_NONCES_PER_ADDRESS,
     ) -> None:
         self.window_s = window_s
         self.compact_after = compact_after
         self.max_entries = max_entries
+        self.max_per_address = max_per_address
         self._log = AppendLog(path)
         self._lock = threading.Lock()
         self._expiry: dict[tuple[str, str], float] = {}
         self._heap: list[tuple[float, str, str]] = []
+        self._by_address: dict[str, list[float]] = {}
+        """Each address's live expiries, a heap: its count and its oldest."""
         self._appended = 0
         now = time.time()
         for line in self._log.read_lines():
@@ -62,7 +86,8 @@ class NonceStore:
     def use(self, address: str, nonce: str, timestamp: int) -> bool:
         """Record the nonce; ``False`` if this address already used it within the window.
 
-        Raises :class:`NonceStoreFull`, recording nothing, when ``max_entries`` are live.
+        Raises :class:`NonceQuotaExceeded` when the address holds ``max_per_address`` live
+        nonces, :class:`NonceStoreFull` when ``max_entries`` are live, recording nothing.
         """
         key = (address.lower(), nonce)
         expires = float(timestamp + self.window_s + 1)
@@ -71,6 +96,9 @@ class NonceStore:
             self._expire(now)
             if key in self._expiry:
                 return False
+            held = self._by_address.get(key[0], [])
+            if len(held) >= self.max_per_address:
+                raise NonceQuotaExceeded(address, self.max_per_address, held[0] - now)
             if len(self._expiry) >= self.max_entries:
                 raise NonceStoreFull(self.max_entries, self._heap[0][0] - now)
             self._log.append(f"{key[0]} {nonce} {expires:.0f}")
@@ -91,11 +119,18 @@ class NonceStore:
     def _remember(self, address: str, nonce: str, expires: float) -> None:
         self._expiry[(address, nonce)] = expires
         heapq.heappush(self._heap, (expires, address, nonce))
+        heapq.heappush(self._by_address.setdefault(address, []), expires)
 
     def _expire(self, now: float) -> None:
+        """Forget what expired. The store's heap gives entries up in order of expiry, so each
+        is the oldest of its address's too."""
         while self._heap and self._heap[0][0] <= now:
             _, address, nonce = heapq.heappop(self._heap)
             self._expiry.pop((address, nonce), None)
+            held = self._by_address[address]
+            heapq.heappop(held)
+            if not held:
+                del self._by_address[address]
 
     def _compact(self) -> None:
         lines = [f"{a} {n} {e:.0f}" for (a, n), e in self._expiry.items()]

@@ -362,6 +362,26 @@ def test_a_full_nonce_store_is_503_with_retry_after_and_records_nothing(tmp_path
     error_of(call(app, "POST", "/w", headers=first), 401, "replayed_nonce")
 
 
+def test_one_signer_past_its_share_of_nonces_is_429_and_others_still_write(
+    tmp_path: Path,
+) -> None:
+    """One robot signing as fast as it can used to fill the whole store and lock every
+    other robot out of writing for the rest of the clock window."""
+    busy, other = Identity.generate(), Identity.generate()
+    nonces = NonceStore(tmp_path / "nonces.log", 300, max_entries=10, max_per_address=3)
+    app = signature_layer(tmp_path, echo, nonces=nonces)
+    for _ in range(3):
+        assert call(app, "POST", "/w", headers=signed(busy, "/w")).json()["signer"] == busy.address
+    response = call(app, "POST", "/w", headers=signed(busy, "/w"))
+    error = error_of(response, 429, "nonce_quota_exceeded")
+    assert error["details"]["limit"] == 3
+    assert 299 <= error["details"]["retry_after"] <= 302
+    assert response.headers["retry-after"] == str(error["details"]["retry_after"])
+    assert len(nonces) == 3
+    assert call(app, "POST", "/w", headers=signed(other, "/w")).json()["signer"] == other.address
+    assert len(nonces) == 4
+
+
 class HeldStore(NonceStore):
     """A nonce store whose recording waits until the test lets it go (a slow fsync)."""
 

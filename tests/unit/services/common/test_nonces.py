@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from services.common.nonces import NonceStore, NonceStoreFull
+from services.common.nonces import NonceQuotaExceeded, NonceStore, NonceStoreFull
 
 ADDRESS = "0x2c7536E3605D9C16a7a3D7b1898e529396a65c23"
 
@@ -145,3 +145,25 @@ def test_expired_nonces_make_room_in_a_full_store(tmp_path: Path) -> None:
     assert store.use(ADDRESS, "live-nonce-000001", now)
     with pytest.raises(NonceStoreFull):
         store.use(ADDRESS, "live-nonce-000002", now)
+
+
+def test_an_address_past_its_share_is_refused_until_its_oldest_nonce_expires(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "nonces.log"
+    store = NonceStore(path, window_s=1, max_entries=10, max_per_address=2)
+    now = int(time.time())
+    assert store.use(ADDRESS, "a" * 16, now - 2)
+    assert store.use(ADDRESS, "b" * 16, now + 60)
+    assert store.use(ADDRESS, "c" * 16, now)
+    with pytest.raises(NonceQuotaExceeded) as refused:
+        store.use(ADDRESS.lower(), "d" * 16, now)
+    assert (refused.value.address, refused.value.limit) == (ADDRESS.lower(), 2)
+    assert 0 < refused.value.retry_after_s <= 2
+    assert not store.use(ADDRESS, "c" * 16, now)
+    assert store.use("0x" + "1" * 40, "d" * 16, now)
+    store.close()
+    reopened = NonceStore(path, window_s=1, max_entries=10, max_per_address=2)
+    with pytest.raises(NonceQuotaExceeded):
+        reopened.use(ADDRESS, "e" * 16, now)
+    assert len(reopened) == 3
