@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,13 +24,14 @@ from robocloud.cid import CID
 from robocloud.cli import app
 from robocloud.errors import ConfigurationError, InvalidAnswerError
 from robocloud.identity import Identity
-from robocloud.ledger import ContractAbi, Ledger, LedgerError
+from robocloud.ledger import Anchor, ContractAbi, Ledger, LedgerError
 from robocloud.ledger.errors import (
     DeploymentMismatchError,
     FeeLimitError,
     TransactionMismatchError,
 )
 from robocloud.ledger.transactions import MAX_CHAIN_ID, FeeLimits, quantity
+from tests.ledger_logs import anchored_log
 from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
 
 REGISTRY = "0x" + "22" * 20
@@ -490,43 +492,30 @@ def test_a_chain_id_past_eip_2294_is_refused_before_signing(chain_id: int) -> No
     assert "eth_sendRawTransaction" not in methods(server)
 
 
-ANCHOR_LOG_ABI = ContractAbi.load("AnchorLog")
 ROOT = b"\xaa" * 32
-
-
-def anchored_log(node: str, epoch: int, block: int, root: bytes = ROOT) -> dict[str, Any]:
-    """The ``Anchored`` event AnchorLog emits for ``node``'s ``epoch`` in ``block``."""
-    return {
-        "address": ANCHOR_LOG,
-        "topics": [
-            "0x" + ANCHOR_LOG_ABI.event_topic("Anchored").hex(),
-            "0x" + "00" * 12 + node[2:].lower(),
-            "0x" + epoch.to_bytes(32, "big").hex(),
-        ],
-        "data": "0x" + encode(["bytes32", "uint64", "uint64"], [root, 3, 1_700_000_000]).hex(),
-        "blockNumber": hex(block),
-        "transactionHash": "0x" + "ab" * 32,
-        "logIndex": "0x0",
-    }
+OTHER_NODE = "0x" + "44" * 20
+ANCHOR = Anchor(REGISTRY, 1, ROOT, 3, 1_700_000_000, 9, "0x" + "ab" * 32)
+"""The anchor asked for below: ``REGISTRY`` stands for a storage node, anchoring epoch 1."""
 
 
 @pytest.mark.parametrize(
-    ("log", "message"),
+    ("changes", "message"),
     [
-        (anchored_log("0x" + "44" * 20, 1, 9), "log whose node differ"),
-        (anchored_log(REGISTRY, 77, 9), "log whose epoch differ"),
-        (anchored_log("0x" + "44" * 20, 77, 9), "log whose node, epoch differ"),
-        (anchored_log(REGISTRY, 1, 8), "of block 8, outside the filter's blocks 9 to 9"),
-        (anchored_log(REGISTRY, 1, 10), "of block 10, outside the filter's blocks 9 to 9"),
+        ({"node": OTHER_NODE}, "log whose node differ"),
+        ({"epoch": 77}, "log whose epoch differ"),
+        ({"node": OTHER_NODE, "epoch": 77}, "log whose node, epoch differ"),
+        ({"block_number": 8}, "of block 8, outside the filter's blocks 9 to 9"),
+        ({"block_number": 10}, "of block 10, outside the filter's blocks 9 to 9"),
     ],
     ids=["another-node", "another-epoch", "both", "before-from-block", "after-to-block"],
 )
 def test_anchors_the_filter_did_not_ask_for_are_refused_naming_what_differs(
-    log: dict[str, Any], message: str
+    changes: dict[str, Any], message: str
 ) -> None:
     """The node's word on which anchors match was taken: another node's anchor of epoch 77,
     at a block before fromBlock, came back as the one asked for."""
     robot = Identity.generate()
+    log = anchored_log(ANCHOR_LOG, replace(ANCHOR, **changes))
     with (
         lying_ledger(robot, eth_getLogs=lambda _: [log]) as server,
         Ledger.connect(server.url, robot) as ledger,
@@ -541,7 +530,7 @@ def test_anchors_asks_for_the_blocks_it_names() -> None:
 
     def logs(params: list[Any]) -> list[Any]:
         queries.append(params[0])
-        return [anchored_log(REGISTRY, 1, 9)]
+        return [anchored_log(ANCHOR_LOG, ANCHOR)]
 
     with (
         lying_ledger(robot, eth_getLogs=logs) as server,
@@ -549,7 +538,7 @@ def test_anchors_asks_for_the_blocks_it_names() -> None:
     ):
         (anchor,) = ledger.anchors(node=REGISTRY, epoch=1, from_block=9, to_block=9)
         ledger.anchors(node=REGISTRY)
-    assert (anchor.node, anchor.epoch, anchor.root, anchor.block_number) == (REGISTRY, 1, ROOT, 9)
+    assert anchor == ANCHOR
     assert [(q["fromBlock"], q["toBlock"]) for q in queries] == [("0x9", "0x9"), ("0x0", "latest")]
 
 
@@ -593,10 +582,8 @@ def anchor_receipt(node: str, epoch: int, block: int) -> Callable[[list[Any]], A
 
     def receipt(params: list[Any]) -> dict[str, Any]:
         mined = honest(node)["eth_getTransactionReceipt"](params)
-        return {
-            **mined,
-            "logs": [{**anchored_log(node, epoch, block), "transactionHash": params[0]}],
-        }
+        anchor = replace(ANCHOR, node=node, epoch=epoch, block_number=block, tx_hash=params[0])
+        return {**mined, "logs": [anchored_log(ANCHOR_LOG, anchor)]}
 
     return receipt
 

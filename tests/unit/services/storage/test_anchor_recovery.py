@@ -20,7 +20,7 @@ from eth_utils.crypto import keccak
 
 from robocloud.errors import InvalidAnswerError
 from robocloud.identity import Identity
-from robocloud.ledger import Anchor, ContractAbi, Ledger
+from robocloud.ledger import Anchor, Ledger
 from robocloud.ledger.client import ContractAddresses
 from robocloud.ledger.rpc import JsonRpcClient
 from robocloud.proofs import AnchorRef
@@ -28,11 +28,11 @@ from services.storage.anchoring import AnchorConflict, Anchorer, EpochStore, Led
 from services.storage.identity import NodeIdentity, Standing
 from services.storage.recordlog import RecordLogs
 from services.storage.tmt import EpochTree, TemplateHead
+from tests.ledger_logs import anchored_log
 
 REGISTRY = "0x" + "22" * 20
 ANCHOR_LOG = "0x" + "33" * 20
 OTHER_NODE = "0x" + "44" * 20
-ANCHOR_LOG_ABI = ContractAbi.load("AnchorLog")
 ANCHORED_AT = 1_700_000_000
 BLOCK = 9
 Answers = dict[str, Callable[[list[Any]], Any]]
@@ -43,23 +43,6 @@ TX = "0x" + "ab" * 32
 class Cas:
     def add_bytes(self, data: bytes) -> str:
         return "bafkmanifest"
-
-
-def anchored_log(node: str, epoch: int, root: bytes, count: int, block: int) -> dict[str, Any]:
-    """The ``Anchored`` event AnchorLog emits for ``node``'s ``epoch``."""
-    data = encode(["bytes32", "uint64", "uint64"], [root, count, ANCHORED_AT])
-    return {
-        "address": ANCHOR_LOG,
-        "topics": [
-            "0x" + ANCHOR_LOG_ABI.event_topic("Anchored").hex(),
-            "0x" + "00" * 12 + node[2:].lower(),
-            "0x" + epoch.to_bytes(32, "big").hex(),
-        ],
-        "data": "0x" + data.hex(),
-        "blockNumber": hex(block),
-        "transactionHash": TX,
-        "logIndex": "0x0",
-    }
 
 
 def holding_the_root(block: int = BLOCK, **answers: Callable[[list[Any]], Any]) -> Answers:
@@ -118,10 +101,14 @@ def recorded(anchorer: Anchorer) -> AnchorRef | None:
     return epoch.anchor
 
 
+def own_anchor(address: str) -> Anchor:
+    """``address``'s anchor of ``TREE`` as epoch 1, in ``BLOCK`` by transaction ``TX``."""
+    return Anchor(address, 1, TREE.root, TREE.record_count, ANCHORED_AT, BLOCK, TX)
+
+
 def own_log(address: str, **changes: Any) -> dict[str, Any]:
-    """The Anchored event of ``TREE`` by ``address`` in ``BLOCK``, with ``changes``."""
-    event = {"node": address, "epoch": 1, "root": TREE.root, "count": TREE.record_count}
-    return anchored_log(**{**event, "block": BLOCK, **changes})
+    """The Anchored event of ``own_anchor(address)``, with ``changes`` to its fields."""
+    return anchored_log(ANCHOR_LOG, replace(own_anchor(address), **changes))
 
 
 def test_a_root_found_on_chain_is_recorded_with_its_own_event(
@@ -142,10 +129,10 @@ def test_a_root_found_on_chain_is_recorded_with_its_own_event(
 @pytest.mark.parametrize(
     "changes",
     [
-        {"node": OTHER_NODE, "epoch": 77, "block": BLOCK - 1},
-        {"block": BLOCK + 1},
+        {"node": OTHER_NODE, "epoch": 77, "block_number": BLOCK - 1},
+        {"block_number": BLOCK + 1},
         {"root": b"\xee" * 32},
-        {"count": 999},
+        {"record_count": 999},
     ],
     ids=["another-nodes-anchor", "a-later-block", "another-root", "another-count"],
 )
@@ -170,7 +157,7 @@ def test_the_anchorer_checks_the_event_whatever_the_sdk_lets_through(
     """The anchorer took any event of its root and block, leaving node and epoch to the
     filter's checks."""
     node = anchorer(holding_the_root())
-    own = Anchor(node.node.address, 1, TREE.root, TREE.record_count, ANCHORED_AT, BLOCK, TX)
+    own = own_anchor(node.node.address)
     for other in (replace(own, node=OTHER_NODE), replace(own, epoch=77)):
         monkeypatch.setattr(Ledger, "anchors", lambda *_, found=other, **__: [found])
         with pytest.raises(AnchorConflict, match="no Anchored event of this node"):
@@ -191,8 +178,8 @@ def anchoring(chain_ids: list[int], block: int = BLOCK, log_block: int | None = 
         return hex(chain_ids.pop(0) if len(chain_ids) > 1 else chain_ids[0])
 
     def receipt(params: list[Any]) -> dict[str, Any]:
-        event = own_log(ANCHORING_NODE.address, block=block if log_block is None else log_block)
-        log = {**event, "transactionHash": params[0]}
+        mined = block if log_block is None else log_block
+        log = own_log(ANCHORING_NODE.address, block_number=mined, tx_hash=params[0])
         return {
             "transactionHash": params[0],
             "blockNumber": hex(block),
@@ -266,7 +253,7 @@ def test_a_block_sqlite_cannot_hold_is_refused_until_an_honest_node_shows_the_an
     if where == "receipt":
         answers = anchoring([1337], block=block)
     else:
-        lie = [own_log(ANCHORING_NODE.address, block=block)]
+        lie = [own_log(ANCHORING_NODE.address, block_number=block)]
         answers = holding_the_root(block, eth_getLogs=lambda _: lie)
     node = anchorer(answers, identity=ANCHORING_NODE)
     with pytest.raises(InvalidAnswerError, match=f"block {block}, past 2\\^63 - 1"):
