@@ -353,7 +353,11 @@ class RecordStore:
         return self.append_encoded(self.encode(records), author=author)
 
     def append_encoded(self, records: Sequence[EncodedRecord], *, author: Authorship) -> list[str]:
-        """Log durably and index records :meth:`encode` made; their ids in the same order."""
+        """Log durably and index records :meth:`encode` made; their ids in the same order.
+
+        One log batch whatever templates the records name: a request is stored whole or not
+        at all, through a crash too, so a client's retry never stores a part twice.
+        """
         if not records:
             return []
         meta = author.meta()
