@@ -19,10 +19,10 @@ from services.common.responses import stream_in_turn
 from services.common.slots import Slots
 from services.storage.bags import SUFFIXES, detect_format
 from services.storage.casbags import BagBounds, fetch_bag
-from services.storage.export import jsonl_stream, mcap_stream
+from services.storage.export import Encoder, JsonLinesEncoder, McapEncoder
 from services.storage.ingest import IngestJobs
 from services.storage.matcher import Bindings
-from services.storage.queries import QueryEngine
+from services.storage.queries import Page, QueryEngine
 from services.storage.records_api import RecordFilters, authorship_of, in_query_slot
 
 router = APIRouter(tags=["ingest"])
@@ -129,30 +129,41 @@ async def bind(
     return bindings.to_json()
 
 
-def _pages(engine: QueryEngine, filters: RecordFilters, first: Any, limit: int) -> Iterator[Any]:
+def _encoded_pages(
+    engine: QueryEngine, filters: RecordFilters, first: Page, limit: int, encoder: Encoder
+) -> Iterator[bytes]:
+    """The export's bytes, one query page read and encoded per item (the first page was
+    read already), the last item closing the file.
+
+    Each item is one turn of a query slot, so a turn scans what one ``GET /v1/records`` page
+    may (``MAX_SCANNED`` documents). Pulling records until an encoded chunk filled read as
+    many pages as that took in one turn: an export for a robot with no records scanned the
+    whole template without giving its turn back."""
     page, sent = first, 0
     while True:
-        for stored in page.records:
-            if sent == limit:
-                return
-            yield stored.record
-            sent += 1
-        if page.next is None:
+        records = [stored.record for stored in page.records[: limit - sent]]
+        sent += len(records)
+        encoded = encoder.add(records)
+        if page.next is None or sent == limit:
+            yield encoded + encoder.finish()
             return
+        yield encoded
         page = engine.records(filters.query(EXPORT_PAGE, page.next))
 
 
 async def _in_query_slots(chunks: Iterator[bytes], slots: Slots) -> AsyncIterator[bytes]:
     """Pull a blocking generator off the event loop, each chunk (a page read, encoded) in a
     query slot as ``GET /v1/records`` takes; an export that finds none in time breaks off,
-    which the client sees as a cut stream, never as a shorter complete one."""
+    which the client sees as a cut stream, never as a shorter complete one. A page that
+    completed no bytes sends nothing."""
     done = object()
     while True:
         chunk = await slots.run_sync(lambda: next(chunks, done))
         if chunk is done:
             return
         assert isinstance(chunk, bytes)
-        yield chunk
+        if chunk:
+            yield chunk
 
 
 @router.get("/v1/export")
@@ -174,12 +185,13 @@ async def export(
 
     async def open_body() -> AsyncIterator[bytes]:
         first = await in_query_slot(request, lambda: engine.records(query))
-        records = _pages(engine, filters, first, limit)
+        encoder: Encoder
         if format == "mcap":
             catalog = request.app.state.catalog
-            chunks = mcap_stream(records, lambda template_id: catalog.get(template_id).template)
+            encoder = McapEncoder(lambda template_id: catalog.get(template_id).template)
         else:
-            chunks = jsonl_stream(records)
+            encoder = JsonLinesEncoder()
+        chunks = _encoded_pages(engine, filters, first, limit, encoder)
         return _in_query_slots(chunks, request.app.state.query_slots)
 
     return await stream_in_turn(

@@ -1,8 +1,11 @@
 """Records out as files others read: JSON lines, and MCAP that the mcap library (and Foxglove)
 open directly.
 
-Both are streams of byte chunks produced as records arrive, so an export of a million records
-holds one MCAP chunk (``chunk_size``) in memory, never the whole answer.
+Both are encoders fed records a batch at a time (``add``, then ``finish``), each batch answered
+with the bytes it completed, so an export of a million records holds one MCAP chunk
+(``chunk_size``) in memory, never the whole answer, and its caller decides how much work one
+call does (the service: one query page). ``jsonl_stream`` and ``mcap_stream`` encode a whole
+iterable, yielding as the bytes come.
 
 MCAP layout: one schema per template (encoding ``jsonschema``, name the template id, the JSON
 Schema of a whole record), one channel per (topic, template) with message encoding ``json``,
@@ -15,7 +18,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterable, Iterator
-from typing import Any
+from typing import Any, Protocol
 
 from mcap.writer import CompressionType, Writer
 
@@ -32,14 +35,37 @@ def record_json(record: dict[str, Any]) -> bytes:
     ).encode()
 
 
+class Encoder(Protocol):
+    """A file format written a batch of records at a time."""
+
+    def add(self, records: Iterable[dict[str, Any]]) -> bytes:
+        """The bytes that ``records`` completed (possibly none yet)."""
+        ...
+
+    def finish(self) -> bytes:
+        """The bytes that close the file."""
+        ...
+
+
+class JsonLinesEncoder:
+    """One record per line: each batch is its lines, and nothing closes the file."""
+
+    def add(self, records: Iterable[dict[str, Any]]) -> bytes:
+        return b"".join(record_json(record) + b"\n" for record in records)
+
+    def finish(self) -> bytes:
+        return b""
+
+
 def jsonl_stream(
     records: Iterable[dict[str, Any]], *, batch_bytes: int = 1 << 16
 ) -> Iterator[bytes]:
     """One record per line, yielded in pieces of about ``batch_bytes``."""
+    encoder = JsonLinesEncoder()
     pending: list[bytes] = []
     size = 0
     for record in records:
-        line = record_json(record) + b"\n"
+        line = encoder.add((record,))
         pending.append(line)
         size += len(line)
         if size >= batch_bytes:
@@ -128,6 +154,71 @@ class _Drain:
         return taken
 
 
+class McapEncoder:
+    """An MCAP file whose bytes leave as each chunk closes: a batch is answered with the
+    chunks it closed, so the bytes do not depend on how the records were batched."""
+
+    def __init__(
+        self,
+        template_of: Callable[[str], Template],
+        *,
+        chunk_size: int = 1 << 20,
+        compression: CompressionType = CompressionType.ZSTD,
+    ) -> None:
+        self._template_of = template_of
+        self._drain = _Drain()
+        self._writer = Writer(
+            self._drain,  # type: ignore[arg-type]
+            chunk_size=chunk_size,
+            compression=compression,
+        )
+        self._writer.start(profile="", library=MCAP_LIBRARY)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[tuple[str, str], int] = {}
+        self._sequence = 0
+
+    def add(self, records: Iterable[dict[str, Any]]) -> bytes:
+        for record in records:
+            self._writer.add_message(
+                channel_id=self._channel(record["template"], record["topic"]),
+                log_time=record["t"],
+                publish_time=record["t"],
+                data=record_json(record),
+                sequence=self._sequence,
+            )
+            self._sequence = (self._sequence + 1) & 0xFFFFFFFF
+        return self._drain.take()
+
+    def finish(self) -> bytes:
+        self._writer.finish()  # type: ignore[no-untyped-call]
+        return self._drain.take()
+
+    def _channel(self, template_id: str, topic: str) -> int:
+        """The channel of (topic, template), registered with its schema when first seen."""
+        channel = self._channels.get((topic, template_id))
+        if channel is None:
+            channel = self._writer.register_channel(
+                topic=topic,
+                message_encoding="json",
+                schema_id=self._schema(template_id),
+                metadata={"template": template_id},
+            )
+            self._channels[topic, template_id] = channel
+        return channel
+
+    def _schema(self, template_id: str) -> int:
+        schema = self._schemas.get(template_id)
+        if schema is None:
+            document = record_schema(self._template_of(template_id))
+            schema = self._writer.register_schema(
+                name=template_id,
+                encoding="jsonschema",
+                data=json.dumps(document, sort_keys=True).encode(),
+            )
+            self._schemas[template_id] = schema
+        return schema
+
+
 def mcap_stream(
     records: Iterable[dict[str, Any]],
     template_of: Callable[[str], Template],
@@ -136,41 +227,8 @@ def mcap_stream(
     compression: CompressionType = CompressionType.ZSTD,
 ) -> Iterator[bytes]:
     """An MCAP file of ``records``, yielded as each chunk closes."""
-    drain = _Drain()
-    writer = Writer(drain, chunk_size=chunk_size, compression=compression)  # type: ignore[arg-type]
-    writer.start(profile="", library=MCAP_LIBRARY)
-    schemas: dict[str, int] = {}
-    channels: dict[tuple[str, str], int] = {}
-    sequence = 0
+    encoder = McapEncoder(template_of, chunk_size=chunk_size, compression=compression)
     for record in records:
-        template_id, topic = record["template"], record["topic"]
-        channel = channels.get((topic, template_id))
-        if channel is None:
-            schema = schemas.get(template_id)
-            if schema is None:
-                document = record_schema(template_of(template_id))
-                schema = writer.register_schema(
-                    name=template_id,
-                    encoding="jsonschema",
-                    data=json.dumps(document, sort_keys=True).encode(),
-                )
-                schemas[template_id] = schema
-            channel = writer.register_channel(
-                topic=topic,
-                message_encoding="json",
-                schema_id=schema,
-                metadata={"template": template_id},
-            )
-            channels[topic, template_id] = channel
-        writer.add_message(
-            channel_id=channel,
-            log_time=record["t"],
-            publish_time=record["t"],
-            data=record_json(record),
-            sequence=sequence,
-        )
-        sequence = (sequence + 1) & 0xFFFFFFFF
-        if drain.tell() and (taken := drain.take()):
+        if taken := encoder.add((record,)):
             yield taken
-    writer.finish()  # type: ignore[no-untyped-call]
-    yield drain.take()
+    yield encoder.finish()

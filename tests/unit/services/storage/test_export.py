@@ -2,21 +2,39 @@
 
 from __future__ import annotations
 
+import asyncio
 import io
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
+import httpx
+import pytest
+from fastapi import FastAPI
 from mcap.reader import make_reader
 
 from robocloud.identity import Identity
 from robocloud.templates import Template, parse_template, validate_record
+from services.common.slots import Slots
+from services.storage import bags_api, queries
 from services.storage.bags import Bag
 from services.storage.export import jsonl_stream, mcap_stream, record_schema
 from services.storage.matcher import compile_converter, draft_template, record_topic
+from services.storage.queries import Page, QueryEngine, RecordQuery
+from services.storage.recordstore import RecordStore
 from tests.bagfactory import write_bag
 from tests.blobs import MemoryBlobs
+from tests.unit.services.storage.conftest import (
+    AUTHOR,
+    REVIEWER,
+    ROBOT_A,
+    ROBOT_B,
+    StoreFactory,
+    state_record,
+)
+
+T = TypeVar("T")
 
 
 def bag_records(tmp_path: Path, count: int) -> tuple[list[dict[str, Any]], dict[str, Template]]:
@@ -149,3 +167,68 @@ def test_empty_export_is_a_valid_mcap() -> None:
     assert summary.statistics is not None
     assert summary.statistics.message_count == 0
     assert b"".join(jsonl_stream([])) == b""
+
+
+class TurnsCounted(Slots):
+    """Query slots that count the pages each of their turns reads."""
+
+    def __init__(self) -> None:
+        super().__init__("query", 2, 5.0)
+        self.pages: list[int] = []
+
+    async def run_sync(self, work: Callable[[], T]) -> T:
+        self.pages.append(0)
+        return await super().run_sync(work)
+
+
+def exported(store: RecordStore, slots: TurnsCounted, params: dict[str, str]) -> httpx.Response:
+    """``GET /v1/export`` in process, counting each query page against the turn reading it."""
+    app = FastAPI()
+    app.include_router(bags_api.router)
+    engine = QueryEngine(store)
+    records = engine.records
+
+    def counted(query: RecordQuery) -> Page:
+        slots.pages[-1] += 1
+        return records(query)
+
+    engine.records = counted  # type: ignore[method-assign]
+    app.state.queries = engine
+    app.state.catalog = store.catalog
+    app.state.query_slots = slots
+    app.state.export_slots = Slots("export", 2, 5.0)
+
+    async def get() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://storage") as client:
+            return await client.get("/v1/export", params=params)
+
+    return asyncio.run(get())
+
+
+@pytest.mark.parametrize("robot", [REVIEWER, ROBOT_B])
+@pytest.mark.parametrize("format", ["jsonl", "mcap"])
+def test_each_query_slot_turn_of_an_export_reads_one_page(
+    open_store: StoreFactory, monkeypatch: pytest.MonkeyPatch, robot: str, format: str
+) -> None:
+    """An export pulled records until an encoded chunk filled, in one query-slot turn: for a
+    robot with no records (REVIEWER wrote none) every page scanned its ``MAX_SCANNED``
+    documents and found nothing, so one turn scanned the whole template. A turn now reads
+    one page, as ``GET /v1/records`` does, and the file is the same."""
+    store = open_store()
+    records = [state_record(t, robot=ROBOT_A if t % 2 else ROBOT_B) for t in range(100)]
+    store.append(records, author=AUTHOR)
+    whole = QueryEngine(store).records(RecordQuery(template="state@1", robot=robot, limit=100))
+    expected = [stored.record for stored in whole.records]
+    assert len(expected) == (50 if robot == ROBOT_B else 0)
+    monkeypatch.setattr(queries, "MAX_SCANNED", 16)
+    slots = TurnsCounted()
+    answer = exported(store, slots, {"template": "state@1", "robot": robot, "format": format})
+    assert answer.status_code == 200
+    assert max(slots.pages) == 1
+    assert sum(slots.pages) == 7  # 96 sealed records 16 a page, then the tail's 4
+    if format == "jsonl":
+        assert answer.content == b"".join(jsonl_stream(expected))
+    else:
+        templates = {"state@1": store.catalog.get("state@1").template}
+        assert answer.content == b"".join(mcap_stream(expected, templates.__getitem__))
