@@ -4,8 +4,7 @@ open directly.
 Both are encoders fed records a batch at a time (``add``, then ``finish``), each batch answered
 with the bytes it completed, so an export of a million records holds one MCAP chunk
 (``chunk_size``) in memory, never the whole answer, and its caller decides how much work one
-call does (the service: one query page). ``jsonl_stream`` and ``mcap_stream`` encode a whole
-iterable, yielding as the bytes come.
+call does (the service: one query page).
 
 MCAP layout: one schema per template (encoding ``jsonschema``, name the template id, the JSON
 Schema of a whole record), one channel per (topic, template) with message encoding ``json``,
@@ -17,7 +16,7 @@ the ``ros2`` profile) cannot decode them; the mcap library can, and that is what
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 from mcap.writer import CompressionType, Writer
@@ -55,24 +54,6 @@ class JsonLinesEncoder:
 
     def finish(self) -> bytes:
         return b""
-
-
-def jsonl_stream(
-    records: Iterable[dict[str, Any]], *, batch_bytes: int = 1 << 16
-) -> Iterator[bytes]:
-    """One record per line, yielded in pieces of about ``batch_bytes``."""
-    encoder = JsonLinesEncoder()
-    pending: list[bytes] = []
-    size = 0
-    for record in records:
-        line = encoder.add((record,))
-        pending.append(line)
-        size += len(line)
-        if size >= batch_bytes:
-            yield b"".join(pending)
-            pending, size = [], 0
-    if pending:
-        yield b"".join(pending)
 
 
 def field_schema(kind: FieldType) -> dict[str, Any]:
@@ -217,18 +198,3 @@ class McapEncoder:
             )
             self._schemas[template_id] = schema
         return schema
-
-
-def mcap_stream(
-    records: Iterable[dict[str, Any]],
-    template_of: Callable[[str], Template],
-    *,
-    chunk_size: int = 1 << 20,
-    compression: CompressionType = CompressionType.ZSTD,
-) -> Iterator[bytes]:
-    """An MCAP file of ``records``, yielded as each chunk closes."""
-    encoder = McapEncoder(template_of, chunk_size=chunk_size, compression=compression)
-    for record in records:
-        if taken := encoder.add((record,)):
-            yield taken
-    yield encoder.finish()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -19,7 +19,7 @@ from robocloud.templates import Template, parse_template, validate_record
 from services.common.slots import Slots
 from services.storage import bags_api, queries
 from services.storage.bags import Bag
-from services.storage.export import jsonl_stream, mcap_stream, record_schema
+from services.storage.export import Encoder, JsonLinesEncoder, McapEncoder, record_schema
 from services.storage.matcher import compile_converter, draft_template, record_topic
 from services.storage.queries import Page, QueryEngine, RecordQuery
 from services.storage.recordstore import RecordStore
@@ -35,6 +35,24 @@ from tests.unit.services.storage.conftest import (
 )
 
 T = TypeVar("T")
+
+
+def encoded(encoder: Encoder, records: Iterable[dict[str, Any]]) -> Iterator[bytes]:
+    """The file of ``records``, fed one at a time, yielded as ``encoder`` completes bytes."""
+    for record in records:
+        if taken := encoder.add((record,)):
+            yield taken
+    yield encoder.finish()
+
+
+def mcap_of(
+    records: Iterable[dict[str, Any]], templates: dict[str, Template], chunk_size: int = 1 << 20
+) -> Iterator[bytes]:
+    return encoded(McapEncoder(templates.__getitem__, chunk_size=chunk_size), records)
+
+
+def jsonl_of(records: Iterable[dict[str, Any]]) -> bytes:
+    return b"".join(encoded(JsonLinesEncoder(), records))
 
 
 def bag_records(tmp_path: Path, count: int) -> tuple[list[dict[str, Any]], dict[str, Template]]:
@@ -71,7 +89,7 @@ def bag_records(tmp_path: Path, count: int) -> tuple[list[dict[str, Any]], dict[
 
 def test_mcap_export_reads_back_with_the_mcap_library(tmp_path: Path) -> None:
     records, templates = bag_records(tmp_path, 120)
-    exported = b"".join(mcap_stream(records, templates.__getitem__, chunk_size=4096))
+    exported = b"".join(mcap_of(records, templates, chunk_size=4096))
     reader = make_reader(io.BytesIO(exported))
     summary = reader.get_summary()
     assert summary is not None
@@ -133,7 +151,7 @@ def test_record_schema_describes_the_template() -> None:
 
 def test_jsonl_export_is_one_record_per_line(tmp_path: Path) -> None:
     records, _ = bag_records(tmp_path, 50)
-    exported = b"".join(jsonl_stream(records, batch_bytes=1024))
+    exported = jsonl_of(records)
     lines = exported.split(b"\n")
     assert lines[-1] == b""
     assert [json.loads(line) for line in lines[:-1]] == records
@@ -149,24 +167,24 @@ def counting(records: list[dict[str, Any]], consumed: list[int]) -> Iterator[dic
 def test_exports_stream_while_records_arrive(tmp_path: Path) -> None:
     records, templates = bag_records(tmp_path, 400)
     consumed = [0]
-    stream = mcap_stream(counting(records, consumed), templates.__getitem__, chunk_size=2048)
+    stream = mcap_of(counting(records, consumed), templates, chunk_size=2048)
     next(stream)
     assert consumed[0] < len(records)
     rest = b"".join(stream)
     assert rest
     consumed = [0]
-    lines = jsonl_stream(counting(records, consumed), batch_bytes=4096)
+    lines = encoded(JsonLinesEncoder(), counting(records, consumed))
     next(lines)
     assert consumed[0] < len(records)
 
 
 def test_empty_export_is_a_valid_mcap() -> None:
-    exported = b"".join(mcap_stream([], lambda template_id: parse_template({})))
+    exported = b"".join(encoded(McapEncoder(lambda template_id: parse_template({})), []))
     summary = make_reader(io.BytesIO(exported)).get_summary()
     assert summary is not None
     assert summary.statistics is not None
     assert summary.statistics.message_count == 0
-    assert b"".join(jsonl_stream([])) == b""
+    assert jsonl_of([]) == b""
 
 
 class TurnsCounted(Slots):
@@ -228,7 +246,7 @@ def test_each_query_slot_turn_of_an_export_reads_one_page(
     assert max(slots.pages) == 1
     assert sum(slots.pages) == 7  # 96 sealed records 16 a page, then the tail's 4
     if format == "jsonl":
-        assert answer.content == b"".join(jsonl_stream(expected))
+        assert answer.content == jsonl_of(expected)
     else:
         templates = {"state@1": store.catalog.get("state@1").template}
-        assert answer.content == b"".join(mcap_stream(expected, templates.__getitem__))
+        assert answer.content == b"".join(mcap_of(expected, templates))
