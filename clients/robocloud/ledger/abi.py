@@ -152,7 +152,7 @@ class ContractAbi:
             args=args,
             address=to_checksum_address(str(log["address"])),
             block_number=check_block(_uint64(log["blockNumber"])),
-            tx_hash=str(log["transactionHash"]),
+            tx_hash=check_hash(log["transactionHash"]),
             log_index=_uint64(log["logIndex"]),
         )
 
@@ -188,6 +188,19 @@ def check_block(number: int) -> int:
     if number > MAX_BLOCK_NUMBER:
         raise ValueError(f"block {number}, past 2^63 - 1, the last block a node can name")
     return number
+
+
+_HASH = re.compile(r"0x[0-9a-fA-F]{64}")
+
+
+def check_hash(value: Any) -> str:
+    """A 32-byte hash a node sent (a transaction's, a block's) as lower-case ``0x``-hex, the
+    way ``transaction_hash`` writes one; a ``ValueError`` for anything else. ``str()`` of the
+    node's word was taken: a storage node recovering from a crash recorded and published as
+    its anchor's transaction whatever text the log held."""
+    if not isinstance(value, str) or not _HASH.fullmatch(value):
+        raise ValueError(f"{str(value)[:80]!r} is not a 32-byte hash (0x and 64 hex digits)")
+    return value.lower()
 
 
 def decode_revert(data: bytes, contracts: list[ContractAbi] | None = None) -> str:

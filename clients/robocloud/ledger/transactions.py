@@ -24,7 +24,7 @@ from eth_utils.crypto import keccak
 from robocloud import config
 from robocloud.errors import InvalidAnswerError
 from robocloud.identity import Identity
-from robocloud.ledger.abi import ContractAbi, check_block
+from robocloud.ledger.abi import ContractAbi, check_block, check_hash
 from robocloud.ledger.errors import (
     DeploymentMismatchError,
     FeeLimitError,
@@ -127,9 +127,9 @@ class Receipt:
             if not isinstance(logs, list):
                 raise TypeError(f"logs is {type(logs).__name__}, not a list")
             return cls(
-                tx_hash=str(raw["transactionHash"]),
+                tx_hash=check_hash(raw["transactionHash"]),
                 block_number=check_block(quantity(raw["blockNumber"])),
-                block_hash=str(raw["blockHash"]),
+                block_hash=check_hash(raw["blockHash"]),
                 status=_status(raw["status"]),
                 gas_used=quantity(raw["gasUsed"]),
                 contract_address=(

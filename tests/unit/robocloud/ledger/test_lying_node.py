@@ -401,6 +401,10 @@ def receipt_with(robot: Identity, **changes: Any) -> Callable[[list[Any]], Any]:
             r"receipt for 0x.*block 9223372036854775808, past 2\^63 - 1",
         ),
         ({"status": "0x2"}, TransactionMismatchError, "receipt for 0x"),
+        ({"log": {"transactionHash": "0x" + "ab" * 31}}, InvalidAnswerError, "32-byte hash"),
+        ({"log": {"transactionHash": None}}, InvalidAnswerError, "malformed log of Registry"),
+        ({"blockHash": "0xcd"}, TransactionMismatchError, "receipt for 0x.*32-byte hash"),
+        ({"blockHash": "0x" + "zz" * 32}, TransactionMismatchError, "receipt for 0x"),
     ],
     ids=[
         "another-advertiser",
@@ -410,6 +414,10 @@ def receipt_with(robot: Identity, **changes: Any) -> Callable[[list[Any]], Any]:
         "log-block-past-int64",
         "receipt-block-past-int64",
         "status-2",
+        "log-tx-hash-short",
+        "log-tx-hash-null",
+        "receipt-block-hash-short",
+        "receipt-block-hash-not-hex",
     ],
 )
 def test_an_event_or_receipt_the_node_invents_is_not_the_transactions(
@@ -522,6 +530,38 @@ def test_anchors_the_filter_did_not_ask_for_are_refused_naming_what_differs(
         pytest.raises(InvalidAnswerError, match=message),
     ):
         ledger.anchors(node=REGISTRY, epoch=1, from_block=9, to_block=9)
+
+
+@pytest.mark.parametrize(
+    "tx_hash",
+    ["0x" + "ab" * 31, "0x" + "ab" * 33, "ab" * 32, "0x" + "zz" * 32, "0x" + "ab" * 4096, 7],
+    ids=["short", "long", "no-0x", "not-hex", "8-KiB", "a-number"],
+)
+def test_an_anchor_whose_transaction_is_not_a_hash_is_refused(tx_hash: Any) -> None:
+    """A log's ``transactionHash`` was ``str()`` of whatever the node sent: a storage node
+    recovering from a crash recorded it and published it as its anchor's transaction."""
+    robot = Identity.generate()
+    log = {**anchored_log(ANCHOR_LOG, ANCHOR), "transactionHash": tx_hash}
+    with (
+        lying_ledger(robot, eth_getLogs=lambda _: [log]) as server,
+        Ledger.connect(server.url, robot) as ledger,
+        pytest.raises(InvalidAnswerError, match="malformed log of AnchorLog") as err,
+    ):
+        ledger.anchors(node=REGISTRY, epoch=1, from_block=9, to_block=9)
+    assert len(str(err.value)) < 400
+
+
+def test_a_transaction_hash_is_read_in_lower_case() -> None:
+    """The hash a robot computes for its own transaction is lower-case hex: an anchor's
+    transaction read back from a node is written the same way, whatever case it used."""
+    robot = Identity.generate()
+    log = {**anchored_log(ANCHOR_LOG, ANCHOR), "transactionHash": "0x" + "AB" * 32}
+    with (
+        lying_ledger(robot, eth_getLogs=lambda _: [log]) as server,
+        Ledger.connect(server.url, robot) as ledger,
+    ):
+        (anchor,) = ledger.anchors(node=REGISTRY, epoch=1, from_block=9, to_block=9)
+    assert anchor == ANCHOR
 
 
 def test_anchors_asks_for_the_blocks_it_names() -> None:
