@@ -8,8 +8,10 @@ field rather than eth-tester's Python-side representation.
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import rlp
 from eth.abc import BlockAPI, BlockHeaderAPI, ReceiptAPI, SignedTransactionAPI
@@ -17,9 +19,12 @@ from eth.vm.forks.prague.constants import SET_CODE_TRANSACTION_TYPE
 from eth_utils.address import to_checksum_address
 from eth_utils.crypto import keccak
 
+from robocloud.errors import InvalidAnswerError, shown_text
+from robocloud.ledger.abi import check_hash, uint64_quantity
 from services.ledger.chain import gas_used_by, receipt_status
 
 ZERO_ADDRESS = b"\x00" * 20
+T = TypeVar("T")
 
 
 def quantity(value: int) -> str:
@@ -61,22 +66,80 @@ class LogEntry:
         }
 
     @classmethod
-    def from_rpc(cls, log: dict[str, Any]) -> LogEntry:
-        """Parse a node's JSON-RPC log object (external-node mode)."""
+    def from_rpc(cls, log: Any) -> LogEntry:
+        """Parse a log object another node sent (external-node mode), field by field as the
+        spec writes it, or refuse it as the node's ``InvalidAnswerError`` naming the field.
+
+        ``int(x, 16)`` took ``-5`` and numbers of any size: a negative block was stored, and
+        a log of block 2^63 failed every indexing round with OverflowError, forever. Numbers
+        are strict quantities (the SDK's parser) that SQLite holds; hashes and topics are 32
+        bytes, the address 20.
+        """
+        if not isinstance(log, dict):
+            raise InvalidAnswerError(
+                f"the node answered eth_getLogs with {shown_text(repr(log))} for a log object"
+            )
         return cls(
-            block_number=int(str(log["blockNumber"]), 16),
-            block_hash=_bytes(log["blockHash"]),
-            tx_hash=_bytes(log["transactionHash"]),
-            tx_index=int(str(log["transactionIndex"]), 16),
-            log_index=int(str(log["logIndex"]), 16),
-            address=_bytes(log["address"]),
-            topics=tuple(_bytes(topic) for topic in log.get("topics", [])),
-            data=_bytes(log.get("data", "0x")),
+            block_number=_field(log, "blockNumber", _stored_number),
+            block_hash=_field(log, "blockHash", _hash),
+            tx_hash=_field(log, "transactionHash", _hash),
+            tx_index=_field(log, "transactionIndex", _stored_number),
+            log_index=_field(log, "logIndex", _stored_number),
+            address=_field(log, "address", _address),
+            topics=_field(log, "topics", _topics),
+            data=_field(log, "data", _data),
         )
 
 
-def _bytes(value: object) -> bytes:
-    return bytes.fromhex(str(value).removeprefix("0x"))
+MAX_SQLITE_INTEGER = 2**63 - 1
+"""SQLite's largest integer: the event index stores block numbers, indexes and times as they
+are, so a node's log naming a larger one is refused before it reaches the index."""
+MAX_TOPICS = 4
+_DATA = re.compile(r"0x(?:[0-9a-fA-F]{2})*")
+_ADDRESS = re.compile(r"0x[0-9a-fA-F]{40}")
+
+
+def _field(log: dict[str, Any], name: str, parse: Callable[[Any], T]) -> T:
+    """``parse`` of the log's ``name``; a refusal names the field (the parsers show its
+    value, cut short)."""
+    try:
+        return parse(log.get(name))
+    except ValueError as exc:
+        raise InvalidAnswerError(
+            f"the node answered eth_getLogs with a malformed log: {name}: {exc}"
+        ) from None
+
+
+def _stored_number(value: Any) -> int:
+    """A block number or index, refused past SQLite's integers (2^63 - 1, also the last
+    block geth can name): the index stores them as they are."""
+    number = uint64_quantity(value)
+    if number > MAX_SQLITE_INTEGER:
+        raise ValueError(f"{number} is past 2^63 - 1, the largest integer the index holds")
+    return number
+
+
+def _hash(value: Any) -> bytes:
+    return bytes.fromhex(check_hash(value)[2:])
+
+
+def _address(value: Any) -> bytes:
+    if not isinstance(value, str) or not _ADDRESS.fullmatch(value):
+        raise ValueError(f"{str(value)[:80]!r} is not an address (0x and 40 hex digits)")
+    return bytes.fromhex(value[2:])
+
+
+def _topics(value: Any) -> tuple[bytes, ...]:
+    if not isinstance(value, list) or len(value) > MAX_TOPICS:
+        shown = f"{len(value)} topics" if isinstance(value, list) else f"{str(value)[:80]!r}"
+        raise ValueError(f"{shown}, not a list of at most {MAX_TOPICS} topics")
+    return tuple(_hash(topic) for topic in value)
+
+
+def _data(value: Any) -> bytes:
+    if not isinstance(value, str) or not _DATA.fullmatch(value):
+        raise ValueError(f"{str(value)[:80]!r} is not 0x-hex bytes")
+    return bytes.fromhex(value[2:])
 
 
 def block_logs(block: BlockAPI, receipts: tuple[ReceiptAPI, ...]) -> list[LogEntry]:

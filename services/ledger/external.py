@@ -12,7 +12,9 @@ from the event loop (``forwarding``).
 
 The event index follows the node by polling ``eth_getLogs`` for the two contracts in bounded
 block ranges, ``confirmations`` blocks behind the head. Before each round it checks that the
-last indexed block is still canonical; after a reorganisation it rewinds and re-reads.
+last indexed block is still canonical; after a reorganisation it rewinds and re-reads. The
+node's logs are its word: a malformed one, or one it was not asked for, stops the round at
+its page, which is logged and asked again next round (``poll_once``).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from typing import Any
 import anyio
 from eth_utils.address import is_address, to_checksum_address
 
+from robocloud.errors import InvalidAnswerError, shown_text
 from robocloud.identity import Identity
 from robocloud.ledger import (
     ContractAbi,
@@ -34,6 +37,7 @@ from robocloud.ledger import (
     RpcError,
     Transactor,
 )
+from robocloud.ledger.abi import check_block, check_hash
 from robocloud.ledger.transactions import quantity
 from services.common.durable import atomic_write
 from services.ledger.contracts import Deployment, artifact, must_switch_mode
@@ -65,7 +69,7 @@ class ExternalLedger:
             data_dir / "index.sqlite", self.deployment.registry, self.deployment.anchor_log
         )
         self.dispatcher = Dispatcher({}, fallback=self.forward, costly=COSTLY_METHODS)
-        self.poll_once()
+        self.index_round()
         log.info(
             "following external node",
             extra={"chain_id": self.chain_id, **self.deployment.addresses()},
@@ -157,23 +161,51 @@ class ExternalLedger:
         """Poll the node for new events until cancelled; a failed round is retried."""
         while True:
             await anyio.sleep(self.settings.ledger_poll_interval_s)
-            try:
-                await anyio.to_thread.run_sync(self.poll_once)
-            except Exception:
-                log.exception("indexing round failed; retrying")
+            await anyio.to_thread.run_sync(self.index_round)
+
+    def index_round(self) -> None:
+        """``poll_once``, its failure logged for the next round to retry. A node's malformed
+        answer is logged as such, without a traceback: it is the node's fault, not a bug
+        here, and what is wrong (the field and its value) is the whole story."""
+        try:
+            self.poll_once()
+        except InvalidAnswerError as exc:
+            log.error(
+                "indexing stopped at the node's malformed answer; the next round retries it",
+                extra={"error": str(exc)},
+            )
+        except Exception:
+            log.exception("indexing round failed; retrying")
 
     def poll_once(self) -> None:
-        """Index every confirmed block after the cursor, a bounded range per request."""
-        head = (
-            quantity(self.rpc.request("eth_blockNumber", [])) - self.settings.ledger_confirmations
-        )
+        """Index every confirmed block after the cursor, a bounded range per request.
+
+        Each page is checked whole before any of it is stored: a log the node sends
+        malformed, or outside the blocks and contracts asked for, is an
+        ``InvalidAnswerError`` that leaves the cursor before its page. The page is asked
+        again next round rather than skipped, since skipping would leave out of the index
+        for good an event that an honest node (the same one fixed, or another) shows.
+        """
+        try:
+            head = check_block(quantity(self.rpc.request("eth_blockNumber", [])))
+        except ValueError as exc:
+            raise InvalidAnswerError(f"the node's eth_blockNumber: {exc}") from None
+        head -= self.settings.ledger_confirmations
         start = self._resume_point()
         page = self.settings.ledger_log_page_blocks
         addresses = [self.deployment.registry, self.deployment.anchor_log]
+        asked = {bytes.fromhex(address[2:]) for address in addresses}
         for first in range(start, head + 1, page):
             last = min(first + page - 1, head)
             query = {"address": addresses, "fromBlock": hex(first), "toBlock": hex(last)}
-            logs = [LogEntry.from_rpc(raw) for raw in self.rpc.request("eth_getLogs", [query])]
+            answer = self.rpc.request("eth_getLogs", [query])
+            if not isinstance(answer, list):
+                raise InvalidAnswerError(
+                    f"the node answered eth_getLogs with {shown_text(repr(answer))}, not a list"
+                )
+            logs = [LogEntry.from_rpc(raw) for raw in answer]
+            for entry in logs:
+                _check_asked(entry, first, last, asked)
             self.index.add_block(last, self._block_hash(last), logs)
 
     def _resume_point(self) -> int:
@@ -189,8 +221,14 @@ class ExternalLedger:
         return keep + 1
 
     def _block_hash(self, number: int) -> bytes:
+        """The hash of block ``number``, which the cursor stores and compares."""
         block = self.rpc.request("eth_getBlockByNumber", [hex(number), False])
-        return bytes.fromhex(str(block["hash"]).removeprefix("0x"))
+        try:
+            return bytes.fromhex(check_hash(block["hash"])[2:])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvalidAnswerError(
+                f"the node's block {number}'s hash: {shown_text(str(exc))}"
+            ) from None
 
     # ----- the rest of the Ledger interface -----
 
@@ -213,3 +251,19 @@ class ExternalLedger:
     def close(self) -> None:
         self.index.close()
         self.rpc.close()
+
+
+def _check_asked(entry: LogEntry, first: int, last: int, addresses: set[bytes]) -> None:
+    """Refuse a log ``eth_getLogs`` was not asked for, as the SDK does (``Ledger._logs``):
+    one of another block would be stored where the index was not looking, one of another
+    contract was never the deployment's."""
+    if not first <= entry.block_number <= last:
+        raise InvalidAnswerError(
+            f"the node answered eth_getLogs with a log of block {entry.block_number}, outside "
+            f"the blocks {first} to {last} asked for"
+        )
+    if entry.address not in addresses:
+        raise InvalidAnswerError(
+            f"the node answered eth_getLogs with a log of address "
+            f"{to_checksum_address(entry.address)}, not one asked for"
+        )

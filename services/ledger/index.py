@@ -31,7 +31,7 @@ from typing import Any
 
 from robocloud.ledger.abi import ContractAbi, DecodedLog
 from services.common.durable import open_sqlite
-from services.ledger.encoding import LogEntry
+from services.ledger.encoding import MAX_SQLITE_INTEGER, LogEntry
 
 log = logging.getLogger("robocloud.ledger.index")
 
@@ -94,7 +94,6 @@ MIGRATIONS = {
     "record_count = record_count - 9223372036854775807 - 1",
 }
 UINT64_BIAS = 2**63
-MAX_SQLITE_INTEGER = 2**63 - 1
 
 
 def biased(value: int) -> int:
@@ -397,17 +396,30 @@ def _entry(row: Sequence[Any]) -> LogEntry:
     )
 
 
+def _time(log: DecodedLog) -> int:
+    """The event's uint64 ``timestamp`` as stored, refused past SQLite's integers naming
+    the event and the time (``_apply`` then leaves the event out). Only a node's lie or a
+    clock set past the year 292 billion names one; OverflowError did not say which value."""
+    timestamp = int(log.args["timestamp"])
+    if timestamp > MAX_SQLITE_INTEGER:
+        raise ValueError(
+            f"{log.event} timestamp {timestamp} is past 2^63 - 1, the largest integer the "
+            "index holds"
+        )
+    return timestamp
+
+
 def _registered(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
     db.execute(
         "INSERT OR REPLACE INTO robots VALUES (?, ?, ?, ?, 1, 0)",
-        (log.args["robot"], log.args["metadataCid"], log.args["timestamp"], entry.block_number),
+        (log.args["robot"], log.args["metadataCid"], _time(log), entry.block_number),
     )
 
 
 def _requested(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
     db.execute(
         "INSERT OR REPLACE INTO registrations VALUES (?, ?, ?, ?)",
-        (log.args["robot"], log.args["metadataCid"], log.args["timestamp"], entry.block_number),
+        (log.args["robot"], log.args["metadataCid"], _time(log), entry.block_number),
     )
 
 
@@ -457,7 +469,7 @@ def _advertised(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> Non
             args["advertiser"],
             args["descriptionCid"],
             args["first"],
-            args["timestamp"],
+            _time(log),
             entry.tx_hash,
         ),
     )
@@ -472,7 +484,7 @@ def _anchored(db: sqlite3.Connection, log: DecodedLog, entry: LogEntry) -> None:
             biased(args["epoch"]),
             args["root"],
             biased(args["recordCount"]),
-            args["timestamp"],
+            _time(log),
             entry.block_number,
             entry.tx_hash,
         ),

@@ -151,9 +151,9 @@ class ContractAbi:
             event=str(entry["name"]),
             args=args,
             address=to_checksum_address(str(log["address"])),
-            block_number=check_block(_uint64(log["blockNumber"])),
+            block_number=check_block(uint64_quantity(log["blockNumber"])),
             tx_hash=check_hash(log["transactionHash"]),
-            log_index=_uint64(log["logIndex"]),
+            log_index=uint64_quantity(log["logIndex"]),
         )
 
     def decode_error(self, data: bytes) -> str | None:
@@ -168,9 +168,11 @@ class ContractAbi:
 _QUANTITY = re.compile(r"0x(?:0|[1-9a-fA-F][0-9a-fA-F]{0,15})")
 
 
-def _uint64(value: Any) -> int:
-    """A log's block number or index: a JSON-RPC quantity within uint64. ``int(x, 16)`` took
-    ``"-5"`` and numbers of any size, which a storage node then published as its anchor's."""
+def uint64_quantity(value: Any) -> int:
+    """A log's block number or index: a JSON-RPC quantity (``0x``, no leading zeros) within
+    uint64; a ``ValueError`` for anything else. ``int(x, 16)`` took ``"-5"`` and numbers of
+    any size, which a storage node then published as its anchor's, and which wedged the
+    ledger's external-node index (it parses a node's logs with this too)."""
     if not isinstance(value, str) or not _QUANTITY.fullmatch(value):
         raise ValueError(f"{str(value)[:40]!r} is not a uint64 quantity")
     return int(value, 16)

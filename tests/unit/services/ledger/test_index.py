@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
@@ -192,6 +193,54 @@ def test_an_event_that_cannot_be_projected_still_indexes_its_block(
     assert index.robot(ROBOT) is not None
     assert index.robot("half-done") is None
     assert index.anchors(None, None, 100) == []
+
+
+@pytest.mark.parametrize("event", ["RobotRegistered", "Advertised", "Anchored"])
+def test_an_event_time_past_2_63_is_left_out_naming_it(
+    index: EventIndex, caplog: pytest.LogCaptureFixture, event: str
+) -> None:
+    """An event's uint64 time went into SQLite as it was: past 2^63 - 1 the projection
+    failed with OverflowError, which said nothing of which value. Such a time is no honest
+    clock's, but a chain's all the same (a node can set its next block's time), so the event
+    is left out, named, and its block indexed."""
+    time = 2**63
+    events = {
+        "RobotRegistered": log(
+            "RobotRegistered", 1, robot=ROBOT, metadataCid=METADATA, timestamp=time
+        ),
+        "Advertised": log(
+            "Advertised",
+            1,
+            cidHash=bytes(32),
+            advertiser=ROBOT,
+            cid=METADATA,
+            descriptionCid=b"",
+            first=True,
+            timestamp=time,
+        ),
+        "Anchored": log(
+            "Anchored",
+            1,
+            at=ANCHOR_LOG,
+            abi=ANCHOR_ABI,
+            node=ROBOT,
+            epoch=1,
+            root=bytes(32),
+            recordCount=1,
+            timestamp=time,
+        ),
+    }
+    with caplog.at_level(logging.ERROR, "robocloud.ledger.index"):
+        index.add_block(1, bytes(32), [events[event]])
+    (record,) = caplog.records
+    assert record.exc_info is not None
+    assert f"{event} timestamp 9223372036854775808 is past 2^63 - 1" in str(record.exc_info[1])
+    assert index.cursor() == (1, bytes(32))
+    assert len(index.logs(LogFilter(0, 1))) == 1
+    assert index.robot(ROBOT) is None
+    assert index.advertisements(None, None, 0, 10) == index.anchors(None, None, 10) == []
+    index.add_block(2, bytes(32), [registered(2)])
+    assert index.robot(ROBOT) is not None
 
 
 def test_an_index_of_the_first_schema_is_migrated_in_place(tmp_path: Path) -> None:
