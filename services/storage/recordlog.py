@@ -133,6 +133,8 @@ class _Staged:
     count: int
     index: bytes
     records_end: int
+    chunks: tuple[bytes, ...]
+    """Hashes of the chunks the batch completes."""
 
 
 class _TemplateLog:
@@ -151,6 +153,8 @@ class _TemplateLog:
         self._records_end = 0
         self._levels: list[list[bytes]] = [[]]
         """``_levels[k][i]``: the hash of leaves ``[i * CHUNK * 2**k, (i + 1) * CHUNK * 2**k)``."""
+        self._chunks_saved = 0
+        """How many of ``_levels[0]`` ``subtrees.bin`` holds."""
         self._recover()
 
     def close(self) -> None:
@@ -211,6 +215,7 @@ class _TemplateLog:
         self._levels = [[]]
         for chunk in chunks + missing:
             self._add_chunk(chunk)
+        self._chunks_saved = len(self._levels[0])
 
     def _chunk_from_leaves(self, chunk: int) -> bytes:
         return merkle.root(self.leaf_hashes(chunk * CHUNK, (chunk + 1) * CHUNK))
@@ -245,14 +250,18 @@ class _TemplateLog:
         first = self.size
         frames: list[bytes] = []
         index: list[bytes] = []
+        leaves: list[bytes] = []
         offset = self._records_end
         for entry in entries:
             frames.append(FRAME_HEADER.pack(len(entry.record), len(entry.meta)))
             frames.append(entry.record)
             frames.append(entry.meta)
-            index.append(INDEX_ENTRY.pack(offset, merkle.leaf_hash(entry.record)))
+            leaves.append(merkle.leaf_hash(entry.record))
+            index.append(INDEX_ENTRY.pack(offset, leaves[-1]))
             offset += FRAME_HEADER.size + len(entry.record) + len(entry.meta)
-        staged = _Staged(self, first, len(entries), b"".join(index), offset)
+        staged = _Staged(
+            self, first, len(entries), b"".join(index), offset, self._chunks_completed(leaves)
+        )
         os.lseek(self._records, self._records_end, os.SEEK_SET)
         _write_all(self._records, b"".join(frames))
         os.fdatasync(self._records)
@@ -270,26 +279,52 @@ class _TemplateLog:
         os.ftruncate(self._records, self._records_end)
         os.fdatasync(self._index)
 
+    def _chunks_completed(self, leaves: list[bytes]) -> tuple[bytes, ...]:
+        """The hashes of the chunks that ``leaves``, appended, complete: worked out before the
+        batch commits, so that nothing that reads the disk runs between commit and publish."""
+        start = len(self._levels[0]) * CHUNK
+        pending = self.leaf_hashes(start, self.size) + leaves
+        return tuple(
+            merkle.root(pending[at : at + CHUNK])
+            for at in range(0, len(pending) - CHUNK + 1, CHUNK)
+        )
+
     def publish(self, staged: _Staged) -> None:
+        """Show a committed batch to readers; no I/O, so it cannot fail halfway through a
+        batch and leave one log's part shown and another's hidden."""
         self._records_end = staged.records_end
         self.size = staged.first + staged.count
-        self._extend_chunks()
+        for chunk in staged.chunks:
+            self._add_chunk(chunk)
+
+    def save_chunks(self) -> None:
+        """Bring ``subtrees.bin`` up to the chunk hashes in memory.
+
+        A failure is logged, not raised: the batch is committed and shown by then, and the
+        file is only a cache that the next save, or the next open, completes.
+        """
+        saved = self._chunks_saved
+        unsaved = self._levels[0][saved:]
+        if not unsaved:
+            return
+        try:
+            os.pwrite(self._subtrees, b"".join(unsaved), saved * merkle.HASH_SIZE)
+            os.fdatasync(self._subtrees)
+        except OSError as exc:
+            log_event.warning(
+                "chunk hashes not saved; the next append or open saves them",
+                extra={"template": self.template_id, "error": str(exc)},
+            )
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._subtrees, saved * merkle.HASH_SIZE)
+            return
+        self._chunks_saved = len(self._levels[0])
 
     def truncate(self, size: int) -> None:
         """Drop every entry from ``size`` on, durably: the undo of a batch torn by a crash."""
         os.ftruncate(self._index, size * INDEX_ENTRY.size)
         os.fdatasync(self._index)
         self._recover()
-
-    def _extend_chunks(self) -> None:
-        known = len(self._levels[0])
-        new = [self._chunk_from_leaves(i) for i in range(known, self.size // CHUNK)]
-        if not new:
-            return
-        os.pwrite(self._subtrees, b"".join(new), known * merkle.HASH_SIZE)
-        os.fdatasync(self._subtrees)
-        for chunk in new:
-            self._add_chunk(chunk)
 
     def entry(self, index: int) -> LogEntry:
         if not 0 <= index < self.size:
@@ -477,6 +512,8 @@ class RecordLogs:
                 raise
             for part in staged:
                 part.log.publish(part)
+            for part in staged:
+                part.log.save_chunks()
             firsts = {part.log.template_id: part.first for part in staged}
             return {
                 template_id: firsts.get(template_id, log.size if log is not None else 0)

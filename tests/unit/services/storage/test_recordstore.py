@@ -15,6 +15,7 @@ from tinydb import TinyDB
 
 from robocloud.proofs import RecordIdError
 from robocloud.templates import canonical_record, parse_template
+from services.storage.recordlog import CHUNK
 from services.storage.recordstore import (
     OffloadFailed,
     RecordNotFound,
@@ -279,3 +280,33 @@ def test_a_batch_whose_second_log_fails_leaves_the_first_unchanged(
     store = open_store()
     assert store.logs.sizes() == {"arm@1": 10, "state@1": 14}
     assert [store.get(f"arm-1-{n}").record["t"] for n in (4, 5)] == [4, 200]
+
+
+def test_a_batch_whose_chunk_hashes_cannot_be_saved_is_stored_and_shown_whole(
+    open_store: StoreFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Saving the chunk hashes of a log after its batch committed failed with EIO, with the
+    first log shown and the second not: the second's later appends wrote over its
+    committed entries, and its stale tail came back at the next open."""
+    store = open_store()
+    approve(store.catalog, ARM)
+    arm = [{**state_record(t), "template": "arm@1"} for t in range(CHUNK - 1)]
+    store.append(arm, author=AUTHOR)
+    synced = os.fdatasync
+
+    def failing(fd: int) -> None:
+        if os.readlink(f"/proc/self/fd/{fd}").endswith("/arm@1/subtrees.bin"):
+            raise OSError(errno.EIO, "Input/output error")
+        synced(fd)
+
+    monkeypatch.setattr(os, "fdatasync", failing)
+    ids = store.append(two_template_batch(1000), author=AUTHOR)
+    assert (ids[0], ids[-1]) == (f"arm-1-{CHUNK - 1}", "state-1-6")
+    assert store.logs.sizes() == {"arm@1": CHUNK + 4, "state@1": 7}
+    assert store.append([state_record(2000)], author=AUTHOR) == ["state-1-7"]
+    monkeypatch.undo()
+    root = store.logs.root("arm@1", CHUNK)
+    store = open_store()
+    assert store.logs.sizes() == {"arm@1": CHUNK + 4, "state@1": 8}
+    assert store.logs.root("arm@1", CHUNK) == root
+    assert [store.get(f"state-1-{n}").record["t"] for n in (6, 7)] == [1006, 2000]
