@@ -274,10 +274,20 @@ class _TemplateLog:
         os.fdatasync(self._index)
 
     def discard(self, staged: _Staged) -> None:
-        """Undo a batch that failed before it was published: back to ``staged.first``."""
-        os.ftruncate(self._index, staged.first * INDEX_ENTRY.size)
-        os.ftruncate(self._records, self._records_end)
-        os.fdatasync(self._index)
+        """Undo a batch that failed before it was shown: back to ``staged.first``.
+
+        Best effort, as it runs while another error is raised: what it cannot truncate, the
+        next batch writes over from ``staged.first``, and the journal still names this one.
+        """
+        try:
+            os.ftruncate(self._index, staged.first * INDEX_ENTRY.size)
+            os.ftruncate(self._records, self._records_end)
+            os.fdatasync(self._index)
+        except OSError as exc:
+            log_event.warning(
+                "a failed batch not truncated",
+                extra={"template": self.template_id, "error": str(exc)},
+            )
 
     def _chunks_completed(self, leaves: list[bytes]) -> tuple[bytes, ...]:
         """The hashes of the chunks that ``leaves``, appended, complete: worked out before the
