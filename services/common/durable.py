@@ -7,6 +7,7 @@ State that changes record by record goes to SQLite instead, opened by ``open_sql
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import sqlite3
@@ -38,15 +39,20 @@ def fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+def write_all(fd: int, data: bytes) -> None:
+    """Write all of ``data``: ``os.write`` may write less (a disk filling, a file size limit)
+    and say so only in its count; what it cannot write at all raises."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view) :]
+
+
 def write_synced(path: Path, data: bytes, *, mode: int = 0o644) -> None:
     """Write ``path`` and fsync it, in place: for a file that nothing reads until a later
     atomic write (a manifest, say) names it, and that is removed if a crash comes first."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
     try:
-        view = memoryview(data)
-        while view:
-            written = os.write(fd, view)
-            view = view[written:]
+        write_all(fd, data)
         os.fsync(fd)
     finally:
         os.close(fd)
@@ -68,30 +74,50 @@ def atomic_write(path: Path, data: bytes, *, mode: int = 0o644) -> None:
 class AppendLog:
     """An append-only file of lines, fsynced per append: a journal that survives kill -9.
 
-    A torn last line (a crash mid-write) is dropped on read, since it was never acknowledged.
+    Every line in the file was acknowledged whole. A torn last line (a crash, or a disk that
+    filled, in the middle of a write) was not: it is cut off at open, and an append that fails
+    is cut off before its error is raised, since a line glued onto a torn one was read as one
+    garbled line (a store that could not start, a nonce forgotten and so replayable).
     """
 
     def __init__(self, path: Path) -> None:
         self.path = path
         path.parent.mkdir(parents=True, exist_ok=True)
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+        self._size = self._cut_torn_line()
+
+    def _cut_torn_line(self) -> int:
+        data = self.path.read_bytes()
+        whole = data.rfind(b"\n") + 1
+        if whole != len(data):
+            os.ftruncate(self._fd, whole)
+            os.fsync(self._fd)
+        return whole
 
     def append(self, line: str) -> None:
+        """Write ``line`` and sync it; on failure the file is as it was before, and it raises."""
         if "\n" in line:
             raise ValueError("a journal line cannot contain a newline")
-        os.write(self._fd, (line + "\n").encode())
-        os.fsync(self._fd)
+        data = (line + "\n").encode()
+        try:
+            write_all(self._fd, data)
+            os.fsync(self._fd)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._fd, self._size)
+            raise
+        self._size += len(data)
 
     def read_lines(self) -> list[str]:
-        data = self.path.read_bytes()
-        complete = data[: data.rfind(b"\n") + 1]
-        return complete.decode().splitlines()
+        return self.path.read_bytes().decode().splitlines()
 
     def rewrite(self, lines: list[str]) -> None:
         """Compact the log to ``lines`` atomically."""
-        atomic_write(self.path, "".join(f"{line}\n" for line in lines).encode(), mode=0o600)
+        data = "".join(f"{line}\n" for line in lines).encode()
+        atomic_write(self.path, data, mode=0o600)
         os.close(self._fd)
         self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+        self._size = len(data)
 
     def close(self) -> None:
         os.close(self._fd)
@@ -100,16 +126,29 @@ class AppendLog:
 def generated_secret(path: Path) -> str:
     """The secret kept in ``path`` (0600), generated and made durable the first time.
 
-    Created with ``O_EXCL``, so two processes starting together agree on one secret.
+    Written whole and synced under a temporary name, then linked into place: a crash leaves
+    the file whole or absent, and of two processes starting together the second's link fails
+    and it reads the first's secret. An empty file, which a crash between creating and
+    writing it used to leave (and the node then never started), counts as absent.
     """
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        return path.read_text().strip()
-    secret = secrets.token_urlsafe(32)
-    with os.fdopen(fd, "w") as handle:
-        handle.write(secret)
-        handle.flush()
-        os.fsync(handle.fileno())
-    fsync_dir(path.parent)
-    return secret
+    while True:
+        try:
+            existing: str | None = path.read_text().strip()
+        except FileNotFoundError:
+            existing = None
+        if existing:
+            return existing
+        secret = secrets.token_urlsafe(32)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        write_synced(tmp, secret.encode(), mode=0o600)
+        try:
+            if existing is None:
+                os.link(tmp, path)
+            else:
+                os.replace(tmp, path)
+        except FileExistsError:
+            continue
+        finally:
+            tmp.unlink(missing_ok=True)
+        fsync_dir(path.parent)
+        return secret

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from robocloud import merkle
-from services.common.durable import fsync_dir
+from services.common.durable import fsync_dir, write_all
 
 CHUNK_BITS = 8
 CHUNK = 1 << CHUNK_BITS
@@ -104,12 +104,6 @@ class LogEntry:
     """The canonical (JCS) record: the Merkle leaf's data."""
     meta: bytes
     """JSON, not hashed: signer address, signed request digest, signature, received time."""
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view) :]
 
 
 def _pread_exact(fd: int, size: int, offset: int) -> bytes:
@@ -263,14 +257,14 @@ class _TemplateLog:
             self, first, len(entries), b"".join(index), offset, self._chunks_completed(leaves)
         )
         os.lseek(self._records, self._records_end, os.SEEK_SET)
-        _write_all(self._records, b"".join(frames))
+        write_all(self._records, b"".join(frames))
         os.fdatasync(self._records)
         return staged
 
     def write_index(self, staged: _Staged) -> None:
         """Commit ``staged``'s entries on disk; readers see them only after :meth:`publish`."""
         os.lseek(self._index, staged.first * INDEX_ENTRY.size, os.SEEK_SET)
-        _write_all(self._index, staged.index)
+        write_all(self._index, staged.index)
         os.fdatasync(self._index)
 
     def discard(self, staged: _Staged) -> None:
