@@ -14,6 +14,7 @@ fields and its signature, so that authorship can be checked by anyone holding th
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import json
 import logging
@@ -103,6 +104,21 @@ class OffloadFailed(Exception):
         super().__init__(f"record {index}: {path}: storing the array in cas failed: {reason}")
         self.index = index
         self.path = path
+
+
+@contextlib.contextmanager
+def _views_behind_disk(template_id: str) -> Iterator[None]:
+    """Views that could not write a segment (a full disk) after the log committed: logged,
+    not raised. The records are durable and the views hold them in memory, sealing them on a
+    later add; raising answered a stored request as failed (its retry stored it twice) and
+    left the batch's other templates without it, refusing their writes until a restart."""
+    try:
+        yield
+    except OSError as exc:
+        log.warning(
+            "a segment was not written; its records wait in memory",
+            extra={"template": template_id, "error": str(exc)},
+        )
 
 
 def record_id(template_id: str, index: int) -> str:
@@ -377,9 +393,10 @@ class RecordStore:
                 first = firsts[template_id]
                 if first != views.size:
                     raise RuntimeError(f"{template_id}: log at {first}, views at {views.size}")
-                views.add(
-                    views.flatten(item.record, first + n) for n, (_, item) in enumerate(items)
-                )
+                with _views_behind_disk(template_id):
+                    views.add(
+                        views.flatten(item.record, first + n) for n, (_, item) in enumerate(items)
+                    )
                 prefix = record_id(template_id, 0)[:-1]
                 for n, (position, _) in enumerate(items, first):
                     ids[position] = f"{prefix}{n}"
@@ -407,7 +424,8 @@ class RecordStore:
             first = self.logs.append(template_id, entries)
             if first != views.size:
                 raise RuntimeError(f"{template_id}: log at {first}, views at {views.size}")
-            views.add_prepared(first, batch.documents)
+            with _views_behind_disk(template_id):
+                views.add_prepared(first, batch.documents)
             if batch.texts is not None:
                 self._hold_texts(template_id, first, batch.texts)
         self._wake.set()

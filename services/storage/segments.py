@@ -377,7 +377,11 @@ class TemplateSegments:
         return self.durable + len(self.tail)
 
     def add(self, docs: Iterable[Doc]) -> None:
-        """Add documents in index order; seal full segments with one batch write each."""
+        """Add documents in index order; seal full segments with one batch write each.
+
+        The documents are in the tail before any segment is written, so a write that fails
+        leaves every one of them held, and the next add seals them.
+        """
         with self._lock:
             for doc in docs:
                 if doc["_i"] != self.size:
@@ -397,25 +401,31 @@ class TemplateSegments:
     def add_prepared(self, first: int, documents: PreparedDocuments) -> None:
         """Add records ``first``... as :class:`DocumentForm` prepared them where they were
         staged: whole segments are written from the documents' bytes and rows, never parsed;
-        only records that join the tail (to complete it, or left over) are."""
+        only records that join the tail (to complete it, or left over) are.
+
+        Like :meth:`add`, every record is held when this returns or raises: a segment that
+        cannot be written leaves the rest in the tail, to be sealed by a later add.
+        """
         with self._lock:
             if first != self.size:
                 raise ValueError(f"document {first} arrives at {self.size}")
             count, at = len(documents.docs), 0
-            if self.tail:
-                at = min(count, self.segment_records - len(self.tail))
-                self.tail += documents.parsed(first, 0, at)
-                self._seal_full_tail()
-            while count - at >= self.segment_records:
-                stop = at + self.segment_records
-                segment = SealedSegment(first + at, self.segment_records, {})
-                self._write_segment(
-                    segment,
-                    documents.segment_file(first + at, at, stop),
-                    documents.rows_between(at, stop),
-                )
-                at = stop
-            self.tail += documents.parsed(first + at, at, count)
+            try:
+                if self.tail:
+                    at = min(count, self.segment_records - len(self.tail))
+                    self.tail += documents.parsed(first, 0, at)
+                    self._seal_full_tail()
+                while count - at >= self.segment_records:
+                    stop = at + self.segment_records
+                    segment = SealedSegment(first + at, self.segment_records, {})
+                    self._write_segment(
+                        segment,
+                        documents.segment_file(first + at, at, stop),
+                        documents.rows_between(at, stop),
+                    )
+                    at = stop
+            finally:
+                self.tail += documents.parsed(first + at, at, count)
 
     def _seal_full_tail(self) -> None:
         while len(self.tail) >= self.segment_records:

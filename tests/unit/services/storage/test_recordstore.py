@@ -15,13 +15,20 @@ from tinydb import TinyDB
 
 from robocloud.proofs import RecordIdError
 from robocloud.templates import canonical_record, parse_template
+from services.storage import segments
 from services.storage.recordlog import CHUNK
 from services.storage.recordstore import (
     OffloadFailed,
     RecordNotFound,
     RecordRejected,
 )
-from services.storage.segments import MANIFEST, TABLE, DocumentForm, SegmentStorage
+from services.storage.segments import (
+    MANIFEST,
+    TABLE,
+    DocumentForm,
+    PreparedDocuments,
+    SegmentStorage,
+)
 from tests.procs import REPO
 from tests.unit.services.storage.conftest import (
     AUTHOR,
@@ -310,3 +317,65 @@ def test_a_batch_whose_chunk_hashes_cannot_be_saved_is_stored_and_shown_whole(
     assert store.logs.sizes() == {"arm@1": CHUNK + 4, "state@1": 8}
     assert store.logs.root("arm@1", CHUNK) == root
     assert [store.get(f"state-1-{n}").record["t"] for n in (6, 7)] == [1006, 2000]
+
+
+def full_disk_under(directory_part: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Segment files whose path names ``directory_part`` cannot be written: ENOSPC."""
+    real = segments.write_synced
+
+    def refusing(path: Path, data: bytes, *, mode: int = 0o644) -> None:
+        if directory_part in str(path):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(path, data, mode=mode)
+
+    monkeypatch.setattr(segments, "write_synced", refusing)
+
+
+def test_a_segment_the_disk_cannot_take_leaves_the_request_stored_and_acknowledged(
+    open_store: StoreFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The log committed, then arm@1's segment hit a full disk: the request was answered 500
+    though stored (a retry stored it twice), and state@1's views never got their part, so
+    every later write to state@1 was stored and then refused until a restart."""
+    store = open_store()
+    approve(store.catalog, ARM)
+    store.append([{**state_record(t), "template": "arm@1"} for t in range(14)], author=AUTHOR)
+    full_disk_under("arm@1", monkeypatch)
+    ids = store.append(two_template_batch(100), author=AUTHOR)
+    assert ids[:2] == ["arm-1-14", "arm-1-15"]
+    arm, state = store.views("arm@1"), store.views("state@1")
+    assert arm is not None
+    assert state is not None
+    assert (arm.size, arm.durable, state.size) == (19, 0, 7)
+    assert store.append([state_record(200)], author=AUTHOR) == ["state-1-7"]
+    monkeypatch.undo()
+    assert store.append([{**state_record(300), "template": "arm@1"}], author=AUTHOR) == ["arm-1-19"]
+    assert (arm.size, arm.durable) == (20, 16)
+    assert [doc["_t"] for doc in arm.docs(arm.sealed[0])][-2:] == [100, 101]
+    store = open_store()
+    assert store.logs.sizes() == {"arm@1": 20, "state@1": 8}
+
+
+def test_prepared_records_a_segment_write_refuses_are_held_in_the_tail(
+    open_store: StoreFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An ingest batch whose second whole segment hit a full disk kept none of the records
+    from there on, so the views stayed behind the log and refused every later write."""
+    store = open_store()
+    store.append([state_record(t) for t in range(5)], author=AUTHOR)
+    views = store.views("state@1")
+    assert views is not None
+    prepared = [views.form.prepared(canonical_record(state_record(t))) for t in range(5, 48)]
+    documents = PreparedDocuments(
+        [doc + b"\n" for doc, _, _ in prepared],
+        b"".join(row for _, row, _ in prepared),
+        views.form.row.size,
+    )
+    full_disk_under(f"seg-{32:012d}", monkeypatch)
+    with pytest.raises(OSError, match="No space"):
+        views.add_prepared(5, documents)
+    assert (views.size, views.durable) == (48, 32)
+    monkeypatch.undo()
+    views.add([views.flatten(state_record(48), 48)])
+    assert (views.size, views.durable) == (49, 48)
+    assert [doc["_t"] for doc in views.docs(views.sealed[2])] == list(range(32, 48))
