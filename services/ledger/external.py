@@ -53,6 +53,11 @@ log = logging.getLogger("robocloud.ledger.external")
 
 REORG_DEPTH = 64
 DEPLOYMENT_FILE = "contracts.json"
+MAX_PAGES_PER_ROUND = 50
+"""Ranges of ``ledger_log_page_blocks`` one indexing round asks for at most. A round runs on
+a thread that start and shutdown wait for, so a head far ahead (after a long downtime, or a
+node that says its head is near 2^63) is caught up over many short rounds, not one endless
+one."""
 
 
 class ExternalLedger:
@@ -158,17 +163,21 @@ class ExternalLedger:
     # ----- index -----
 
     async def follow(self) -> None:
-        """Poll the node for new events until cancelled; a failed round is retried."""
+        """Poll the node for new events until cancelled; a failed round is retried, and a
+        round that stopped short of the head is followed at once by the next."""
+        reached = True
         while True:
-            await anyio.sleep(self.settings.ledger_poll_interval_s)
-            await anyio.to_thread.run_sync(self.index_round)
+            if reached:
+                await anyio.sleep(self.settings.ledger_poll_interval_s)
+            reached = await anyio.to_thread.run_sync(self.index_round)
 
-    def index_round(self) -> None:
-        """``poll_once``, its failure logged for the next round to retry. A node's malformed
-        answer is logged as such, without a traceback: it is the node's fault, not a bug
-        here, and what is wrong (the field and its value) is the whole story."""
+    def index_round(self) -> bool:
+        """``poll_once``, its failure logged for the next round to retry (True: wait before
+        it). A node's malformed answer is logged as such, without a traceback: it is the
+        node's fault, not a bug here, and what is wrong (the field and its value) is the
+        whole story."""
         try:
-            self.poll_once()
+            return self.poll_once()
         except InvalidAnswerError as exc:
             log.error(
                 "indexing stopped at the node's malformed answer; the next round retries it",
@@ -176,9 +185,11 @@ class ExternalLedger:
             )
         except Exception:
             log.exception("indexing round failed; retrying")
+        return True
 
-    def poll_once(self) -> None:
-        """Index every confirmed block after the cursor, a bounded range per request.
+    def poll_once(self) -> bool:
+        """Index the confirmed blocks after the cursor, a bounded range per request and at
+        most :data:`MAX_PAGES_PER_ROUND` ranges; True once the index reached the head.
 
         Each page is checked whole before any of it is stored: a log the node sends
         malformed, or outside the blocks and contracts asked for, is an
@@ -195,7 +206,8 @@ class ExternalLedger:
         page = self.settings.ledger_log_page_blocks
         addresses = [self.deployment.registry, self.deployment.anchor_log]
         asked = {bytes.fromhex(address[2:]) for address in addresses}
-        for first in range(start, head + 1, page):
+        pages = range(start, head + 1, page)
+        for first in pages[:MAX_PAGES_PER_ROUND]:
             last = min(first + page - 1, head)
             query = {"address": addresses, "fromBlock": hex(first), "toBlock": hex(last)}
             answer = self.rpc.request("eth_getLogs", [query])
@@ -207,6 +219,7 @@ class ExternalLedger:
             for entry in logs:
                 _check_asked(entry, first, last, asked)
             self.index.add_block(last, self._block_hash(last), logs)
+        return len(pages) <= MAX_PAGES_PER_ROUND
 
     def _resume_point(self) -> int:
         cursor = self.index.cursor()

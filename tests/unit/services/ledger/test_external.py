@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 
 from robocloud.errors import InvalidAnswerError
+from services.ledger import external
 from services.ledger.external import ExternalLedger
 from services.ledger.index import LogFilter
 from services.ledger.settings import LedgerSettings
@@ -204,3 +205,21 @@ def test_a_round_refused_at_start_is_logged_and_retried(
             assert indexed_blocks(ledger) == [1, 3]
         finally:
             ledger.close()
+
+
+def test_a_head_far_ahead_is_caught_up_over_bounded_rounds(
+    node: Node, ledger: ExternalLedger, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A node that says its head is near 2^63 held the indexing round, and the start and
+    shutdown that wait for it, for as many pages as it liked to answer."""
+    monkeypatch.setattr(external, "MAX_PAGES_PER_ROUND", 3)
+    node.head = 2**63 - 2
+    node.logs = {1: [rpc_log(1)], 9: [rpc_log(9)]}
+    assert ledger.poll_once() is False
+    assert ledger.index.cursor() == at(6)
+    assert ledger.index_round() is False
+    assert ledger.index.cursor() == at(12)
+    assert indexed_blocks(ledger) == [1, 9]
+    node.head = 14
+    assert ledger.poll_once() is True
+    assert ledger.index.cursor() == at(14)
