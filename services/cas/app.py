@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import partial
 from pathlib import Path
 
 import anyio
@@ -57,9 +58,15 @@ def _open_store(settings: CasSettings, app: FastAPI) -> ContentStore:
 
 
 async def _collect_periodically(store: ContentStore, settings: CasSettings) -> None:
+    """Collect every ``cas_gc_interval_s``; a round that fails (a full disk) is logged and
+    the next one tries again, since content keeps arriving and waiting to be collected."""
     while True:
         await anyio.sleep(settings.cas_gc_interval_s)
-        removed = await anyio.to_thread.run_sync(store.collect_garbage, settings.cas_gc_grace_s)
+        try:
+            removed = await anyio.to_thread.run_sync(store.collect_garbage, settings.cas_gc_grace_s)
+        except Exception:
+            log.exception("garbage collection failed; the next round tries again")
+            continue
         log.info("garbage collected", extra={"removed_blocks": len(removed)})
 
 
@@ -69,7 +76,9 @@ def build_app(settings: CasSettings) -> FastAPI:
         store: ContentStore = app.state.store
         async with anyio.create_task_group() as group:
             if settings.cas_gc_interval_s > 0:
-                group.start_soon(_collect_periodically, store, settings)
+                app.state.background.start(
+                    group, "garbage-collection", partial(_collect_periodically, store, settings)
+                )
             try:
                 yield
             finally:

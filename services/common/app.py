@@ -12,6 +12,7 @@ import json
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
+from functools import partial
 from typing import Any, Literal
 
 import anyio
@@ -27,6 +28,7 @@ from robocloud import bounded_json
 from robocloud.signing import LOCAL_DEPLOYMENT
 from services.common.audience import ServiceAudience, learn_from_ledger
 from services.common.auth import SignedAddress, build_authorizer
+from services.common.background import BackgroundTasks
 from services.common.bodies import SMALL_JSON_BODY, read_json
 from services.common.errors import (
     COMMON_ERRORS,
@@ -216,6 +218,7 @@ def create_app(
     data_dir = settings.resolved_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     metrics = ServiceMetrics(service)
+    background = BackgroundTasks()
     nonces = NonceStore(data_dir / "nonces.log", settings.max_clock_skew_s)
     authorizer = build_authorizer(settings)
     source = deployment_source or ("ledger" if settings.auth == "registered" else "settings")
@@ -230,7 +233,9 @@ def create_app(
         try:
             async with anyio.create_task_group() as tasks:
                 if source == "ledger":
-                    tasks.start_soon(_learn_deployment, audience, settings)
+                    background.start(
+                        tasks, "learn-deployment", partial(_learn_deployment, audience, settings)
+                    )
                 if lifespan is None:
                     yield
                 else:
@@ -254,7 +259,8 @@ def create_app(
     app.state.nonces = nonces
     app.state.authorizer = authorizer
     app.state.audience = audience
-    app.state.readiness_checks = [audience_known, *readiness_checks]
+    app.state.background = background
+    app.state.readiness_checks = [audience_known, background.all_running, *readiness_checks]
     _install_error_handlers(app, COMMON_ERRORS | (errors or ErrorMap({})))
     app.include_router(_framework_router(service, settings, audience))
     for router in routers:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from functools import partial
 from typing import Any
 
 import anyio
@@ -188,11 +189,14 @@ def build_app(settings: LedgerSettings) -> FastAPI:
         app.state.audience.learn(chain_deployment_id(ledger.chain_id, ledger.deployment.registry))
         try:
             async with anyio.create_task_group() as tasks:
+                background = app.state.background
                 follow = getattr(ledger, "follow", None)
                 if follow is not None:
-                    tasks.start_soon(follow)
+                    background.start(tasks, "index", follow)
                 if grants:
-                    tasks.start_soon(_grant_roles, ledger, settings, grants)
+                    background.start(
+                        tasks, "role-grants", partial(_grant_roles, ledger, settings, grants)
+                    )
                 yield
                 tasks.cancel_scope.cancel()
         finally:
