@@ -265,20 +265,25 @@ def test_a_batch_over_two_templates_killed_between_their_logs_is_stored_whole_or
     ]
 
 
+def failing_sync(path_suffix: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``os.fdatasync`` of a file whose path ends with ``path_suffix`` fails with EIO."""
+    synced = os.fdatasync
+
+    def failing(fd: int) -> None:
+        if os.readlink(f"/proc/self/fd/{fd}").endswith(path_suffix):
+            raise OSError(errno.EIO, "Input/output error")
+        synced(fd)
+
+    monkeypatch.setattr(os, "fdatasync", failing)
+
+
 def test_a_batch_whose_second_log_fails_leaves_the_first_unchanged(
     open_store: StoreFactory, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     store = open_store()
     approve(store.catalog, ARM)
     store.append(two_template_batch(0), author=AUTHOR)
-    synced = os.fdatasync
-
-    def failing(fd: int) -> None:
-        if os.readlink(f"/proc/self/fd/{fd}").endswith("/state@1/index.bin"):
-            raise OSError(errno.EIO, "Input/output error")
-        synced(fd)
-
-    monkeypatch.setattr(os, "fdatasync", failing)
+    failing_sync("/state@1/index.bin", monkeypatch)
     with pytest.raises(OSError, match="Input/output error"):
         store.append(two_template_batch(100), author=AUTHOR)
     monkeypatch.undo()
@@ -299,14 +304,7 @@ def test_a_batch_whose_chunk_hashes_cannot_be_saved_is_stored_and_shown_whole(
     approve(store.catalog, ARM)
     arm = [{**state_record(t), "template": "arm@1"} for t in range(CHUNK - 1)]
     store.append(arm, author=AUTHOR)
-    synced = os.fdatasync
-
-    def failing(fd: int) -> None:
-        if os.readlink(f"/proc/self/fd/{fd}").endswith("/arm@1/subtrees.bin"):
-            raise OSError(errno.EIO, "Input/output error")
-        synced(fd)
-
-    monkeypatch.setattr(os, "fdatasync", failing)
+    failing_sync("/arm@1/subtrees.bin", monkeypatch)
     ids = store.append(two_template_batch(1000), author=AUTHOR)
     assert (ids[0], ids[-1]) == (f"arm-1-{CHUNK - 1}", "state-1-6")
     assert store.logs.sizes() == {"arm@1": CHUNK + 4, "state@1": 7}
