@@ -224,24 +224,37 @@ class Blockstore:
         """Rewrite packs whose dead bytes reach the fraction; returns the bytes reclaimed."""
         reclaimed = 0
         for pack in list(self._members):
-            path = self.pack_path(pack)
             with self._lock:
                 live = dict(self._members.get(pack, {}))
-            try:
-                total = path.stat().st_size
-            except FileNotFoundError:
-                continue
-            dead = total - sum(location.length for location in live.values())
-            if total == 0 or dead / total < min_dead_fraction:
-                continue
-            with self.stage() as staged:
-                for multihash, location in live.items():
-                    with path.open("rb") as source:
-                        source.seek(location.offset)
-                        staged.write(multihash, source.read(location.length))
-                staged.commit(replacing=pack)
-            reclaimed += dead
+            dead = self._dead_bytes(pack, live)
+            worth_it = dead > 0 and dead >= min_dead_fraction * (dead + _length(live))
+            if worth_it and self._rewrite(pack, live):
+                reclaimed += dead
         return reclaimed
+
+    def _dead_bytes(self, pack: str, live: dict[bytes, Location]) -> int:
+        """Bytes of ``pack`` that ``live`` does not use; none when the pack is gone."""
+        try:
+            return self.pack_path(pack).stat().st_size - _length(live)
+        except FileNotFoundError:
+            return 0
+
+    def _rewrite(self, pack: str, live: dict[bytes, Location]) -> bool:
+        """Copy ``live`` into a new pack that replaces ``pack``; False when ``pack`` was gone.
+
+        A pack goes when its last block is deleted (a quarantine) while it is being read:
+        the copy then replaces nothing and ``_register`` drops it.
+        """
+        try:
+            source = self.pack_path(pack).open("rb")
+        except FileNotFoundError:
+            return False
+        with source, self.stage() as staged:
+            for multihash, location in live.items():
+                source.seek(location.offset)
+                staged.write(multihash, source.read(location.length))
+            staged.commit(replacing=pack)
+        return True
 
     def _write_index(self, pack: str) -> None:
         members = self._members[pack]
@@ -262,20 +275,29 @@ class Blockstore:
     def _register(
         self, pack: str, members: dict[bytes, Location], replacing: str | None, hold: Hold
     ) -> None:
+        """Make a committed pack's blocks visible and held by ``hold``.
+
+        An upload's block that another upload committed meanwhile is left out (and held, as
+        the upload relies on it); so is a compaction's copy of a block deleted while it was
+        copied, which would otherwise come back (every copy when the pack itself went).
+        """
         with self._lock:
-            duplicates: set[bytes] = set()
             if replacing is None:
-                duplicates = members.keys() & self._index.keys()
-                for multihash in duplicates:  # another upload committed it meanwhile
-                    del members[multihash]
+                stale = members.keys() & self._index.keys()
+                for multihash in stale:
+                    self._hold_locked(hold, multihash)
+            else:
+                stale = members.keys() - self._members.get(replacing, {}).keys()
+            for multihash in stale:
+                del members[multihash]
             self._members[pack] = members
             self._committed[pack] = self._committed.get(replacing or "", time.time())
             self._index.update(members)
-            for multihash in members.keys() | duplicates:
+            for multihash in members:
                 self._hold_locked(hold, multihash)
-            if replacing is not None and replacing in self._members:
+            if replacing in self._members:
                 self._drop_pack(replacing)
-            elif duplicates:
+            if stale:
                 self._write_index(pack)
 
     def _quarantine(self, cid: CID, location: Location, data: bytes) -> None:
@@ -388,6 +410,10 @@ class Staging:
             self.path.unlink(missing_ok=True)
         self._members.clear()
         self.hold.close()
+
+
+def _length(members: dict[bytes, Location]) -> int:
+    return sum(location.length for location in members.values())
 
 
 def _size_or_zero(path: Path) -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -138,6 +139,9 @@ class ContentStore:
         self.blocks = blocks
         self.pins = PinSet(root / "pins.log")
         self.peers = peers
+        self.collecting = threading.Lock()
+        """Held by a whole collection, compaction included: the periodic one and ``repo/gc``
+        ran at once, both rewrote the same pack, and the one that found it gone failed."""
 
     @classmethod
     def open(
@@ -455,8 +459,17 @@ class ContentStore:
         upload relied on are held until the pin is there (``blockstore.Hold``), and the last
         phase, under ``sweeping``, marks the pins made since the first snapshot before it
         deletes, so a DAG pinned meanwhile loses nothing.
+
+        One collection runs at a time (``collecting``): a second waits for the running one,
+        then makes its own, which sees the pins removed meanwhile; joining the running one
+        would have answered a robot that unpinned just before with what an older snapshot
+        of the pins left collectable.
         """
-        cutoff = (now if now is not None else time.time()) - grace_s
+        with self.collecting:
+            return self._collect(cutoff=(time.time() if now is None else now) - grace_s)
+
+    def _collect(self, cutoff: float) -> list[CID]:
+        """Mark, delete the unmarked blocks put before ``cutoff``, compact."""
         visited: set[tuple[int, bytes]] = set()
         live: set[bytes] = set()
         pinned = self.pins.snapshot()
