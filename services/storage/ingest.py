@@ -6,16 +6,19 @@ written; it is therefore built so that it either writes nothing or can always be
 1. **stage**: the whole bag is read, every bound message converted and validated against its
    approved template, image/file bytes stored in cas, and the records spooled per template in
    the job's directory, with the documents their views keep (a large bag is staged by several
-   processes, a time window each: :mod:`services.storage.staging`). Any failure here (a
-   truncated bag, an undecodable message, a value a template refuses) fails the job with
-   nothing appended; cas blobs are content-addressed and harmless.
+   processes, a time window each: :mod:`services.storage.staging`), and synced before the job
+   saves them as staged. Any failure here (a truncated bag, an undecodable message, a value a
+   template refuses) fails the job with nothing appended; cas blobs are content-addressed and
+   harmless.
 2. **commit**: each template's spool is appended through ``RecordStore.append_prepared`` in
    batches.
    Before a batch the job durably records its intent (template, spool offset, count, log size
    before); after it, the new offset. A job interrupted anywhere (kill -9 included) resumes at
    the next start: a pending intent is settled by looking in the template's log, past the
    recorded size, for entries whose ``meta`` is this job's authorship (each signed request's
-   nonce is unique), so no batch is lost or appended twice.
+   nonce is unique), so no batch is lost or appended twice. A spool found damaged all the same
+   (its records are checked against the staged count and each other) is staged again from the
+   bag, and the commit goes on past the records already committed.
 
 Topics whose type no approved template binds are reported, not ingested.
 """
@@ -37,7 +40,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from services.common.durable import atomic_write
+from services.common.durable import atomic_write, fsync_dir
 from services.storage.bags import Bag, BagConnection
 from services.storage.catalog import CatalogError
 from services.storage.matcher import Bindings, BlobSink, DraftError, draft_template
@@ -46,6 +49,7 @@ from services.storage.recordstore import Authorship, RecordStore, record_id
 from services.storage.staging import (
     IngestFailed,
     Plans,
+    SpoolDamaged,
     SpoolReader,
     StagingProcesses,
     bag_failures,
@@ -366,12 +370,7 @@ class IngestJobs:
         return reports, plans
 
     def _stage(self, job: Job) -> None:
-        directory = self.root / job.id
-        staged_dir = directory / "staged"
-        shutil.rmtree(staged_dir, ignore_errors=True)
-        staged_dir.mkdir()
-        robot = job.author["signer"]
-        blobs = self.blobs()
+        """Spool the bag's records; the job then commits them, none committed yet."""
         done = 0
 
         def progress(count: int) -> None:
@@ -380,6 +379,62 @@ class IngestJobs:
             # Not saved: staging restarts from the first message after a crash.
             self._update(job, save=False, messages_done=done)
 
+        def planned(reports: list[TopicReport], total: int) -> None:
+            self._update(
+                job, status="staging", topics=reports, messages_total=total, messages_done=0
+            )
+
+        counts, parts = self._spool(job, planned, progress)
+        self._update(
+            job,
+            status="committing",
+            messages_done=done,
+            records_staged=sum(counts.values()),
+            staged=counts,
+            spool_parts=parts,
+            committed={template_id: 0 for template_id in counts},
+        )
+
+    def _restage(self, job: Job) -> None:
+        """Spool the bag again for a job whose spool a power cut damaged, before a staging
+        that did not sync it was saved as done. It must give the records it gave the first
+        time, past which the commit goes on. The job stays committing: a crash or failure
+        here leaves it resumable, never counting its committed records as none."""
+
+        def same_plan(reports: list[TopicReport], total: int) -> None:
+            if [(r.topic, r.template) for r in reports] != [
+                (t.topic, t.template) for t in job.topics
+            ]:
+                raise IngestFailed(
+                    "ingest_inconsistent",
+                    "the bag's spool was lost and its topics are now bound otherwise",
+                    {},
+                )
+
+        counts, parts = self._spool(job, same_plan, lambda count: None)
+        if counts != job.staged:
+            raise IngestFailed(
+                "ingest_inconsistent",
+                f"the bag's spool was lost and staging it again gave {counts} records, "
+                f"not {job.staged}",
+                {},
+            )
+        self._update(job, spool_parts=parts)
+
+    def _spool(
+        self,
+        job: Job,
+        planned: Callable[[list[TopicReport], int], None],
+        progress: Callable[[int], None],
+    ) -> tuple[dict[str, int], int]:
+        """Stage the bag into a new spool, synced: its records per template, and its parts.
+        ``planned`` is told the topics and the messages to stage before any is."""
+        directory = self.root / job.id
+        staged_dir = directory / "staged"
+        shutil.rmtree(staged_dir, ignore_errors=True)
+        staged_dir.mkdir()
+        robot = job.author["signer"]
+        blobs = self.blobs()
         workers = None
         try:
             if self.staging_workers > 1:
@@ -390,9 +445,7 @@ class IngestJobs:
             with bag_failures(), Bag.open(_bag_in(directory), check=workers is None) as bag:
                 reports, plans = self._plan(bag)
                 total = sum(r.messages for r in reports if r.template is not None)
-                self._update(
-                    job, status="staging", topics=reports, messages_total=total, messages_done=0
-                )
+                planned(reports, total)
                 if workers is not None and total >= self.parallel_from_messages:
                     staged = workers.stage(plans, blobs, progress, alongside=bag.check_files)
                     check_complete(bag, plans, staged)
@@ -409,26 +462,26 @@ class IngestJobs:
         finally:
             if workers is not None:
                 workers.close()
-        counts = staged.records
-        self._update(
-            job,
-            status="committing",
-            messages_done=done,
-            records_staged=sum(counts.values()),
-            staged=counts,
-            spool_parts=parts,
-            committed={template_id: 0 for template_id in counts},
-        )
+        fsync_dir(staged_dir)
+        return staged.records, parts
 
     def _commit(self, job: Job) -> None:
         author = Authorship(**job.author)
         if job.intent is not None:
             self._settle(job, author.meta())
+        try:
+            self._commit_spools(job, author)
+        except SpoolDamaged as exc:
+            log.warning("spool damaged, staging again", extra={"job": job.id, "error": str(exc)})
+            self._restage(job)
+            self._commit_spools(job, author)
+
+    def _commit_spools(self, job: Job, author: Authorship) -> None:
         for template_id, staged in job.staged.items():
             if job.committed[template_id] >= staged:
                 continue
             template = self.store.catalog.get(template_id).template
-            spool = SpoolReader(self.root / job.id / "staged", template, job.spool_parts)
+            spool = SpoolReader(self.root / job.id / "staged", template, job.spool_parts, staged)
             try:
                 self._commit_spool(job, template_id, staged, spool, author)
             finally:
@@ -445,11 +498,7 @@ class IngestJobs:
             batch = spool.batch(wanted)
             count = len(batch.canonicals)
             if count != wanted:
-                raise IngestFailed(
-                    "ingest_inconsistent",
-                    f"{template_id}: the spool holds {start + count} of {staged} records",
-                    {"template": template_id},
-                )
+                raise SpoolDamaged(f"{template_id}: the spool holds {start + count} of {staged}")
             intent = {
                 "template": template_id,
                 "start": start,

@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import multiprocessing
 import multiprocessing.forkserver
+import os
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
@@ -70,6 +71,11 @@ class IngestFailed(Exception):
         self.details = details
 
 
+class SpoolDamaged(Exception):
+    """A spool holds other than the records its job staged: what a power cut leaves of one
+    whose tail had not reached the disk. Its records are read again from the bag."""
+
+
 @dataclass
 class Staged:
     """What staging one window (or the whole bag) spooled."""
@@ -110,6 +116,13 @@ class SpoolWriter:
             self._lines.write(b"%s\n%s\n%s\n" % (canonical, doc, orjson.dumps(text)))
         self._rows.write(row)
 
+    def sync(self) -> None:
+        """Put the part on the disk: once the job saves it as staged, a power cut must not
+        take records from it (the directory's entry is the job's to sync)."""
+        for file in (self._lines, self._rows):
+            file.flush()
+            os.fdatasync(file.fileno())
+
     def close(self) -> None:
         self._lines.close()
         self._rows.close()
@@ -117,9 +130,14 @@ class SpoolWriter:
 
 class SpoolReader:
     """A template's spool, part after part: its records in the bag's order, in batches read
-    whole (a batch's lines in one C loop, its rows in one read)."""
+    whole (a batch's lines in one C loop, its rows in one read).
 
-    def __init__(self, directory: Path, template: Template, parts: int) -> None:
+    A damaged spool raises :class:`SpoolDamaged` before a batch holding a record out of place
+    is returned: its rows must hold ``records`` in all, and each part as many lines as rows
+    (checked at the part's end), so that no part is short while a later one is read.
+    """
+
+    def __init__(self, directory: Path, template: Template, parts: int, records: int) -> None:
         self.form = DocumentForm(template)
         self._lines_per_record = 3 if self.form.text_of else 2
         self._paths = [
@@ -130,6 +148,11 @@ class SpoolReader:
             for part in range(parts)
         ]
         self._part: tuple[IO[bytes], IO[bytes]] | None = None
+        size = sum(path.stat().st_size for _, path in self._paths if path.exists())
+        if size != records * self.form.row.size:
+            raise SpoolDamaged(
+                f"{template.id}: the spool's rows are {size} bytes, not those of {records} records"
+            )
 
     def _take(self, count: int) -> tuple[list[bytes], bytes]:
         """The lines and the rows of the next ``count`` records (fewer at the spool's end)."""
@@ -142,19 +165,31 @@ class SpoolReader:
             taken = list(islice(text, count * per_record))
             records = len(taken) // per_record
             row_bytes = table.read(records * row_size)
-            if len(taken) % per_record or len(row_bytes) != records * row_size:
-                raise ValueError(f"{text.name}: its lines and rows do not hold the same records")
+            torn = bool(taken) and not taken[-1].endswith(b"\n")
+            if torn or len(taken) % per_record or len(row_bytes) != records * row_size:
+                raise SpoolDamaged(f"{text.name}: its lines and rows do not hold the same records")
             lines += taken
             rows.append(row_bytes)
             count -= records
             if count:
-                self._close_part()
+                self._end_part()
         return lines, b"".join(rows)
+
+    def _end_part(self) -> None:
+        """Close the part whose lines are all read, once its rows are too."""
+        assert self._part is not None
+        text, table = self._part
+        if table.read(1):
+            raise SpoolDamaged(f"{text.name}: it holds fewer lines than rows")
+        self._close_part()
 
     def _open_next(self) -> bool:
         while self._paths:
             lines_path, rows_path = self._paths.pop(0)
-            if lines_path.exists():
+            present = lines_path.exists(), rows_path.exists()
+            if any(present):  # a window without the template's records spools nothing
+                if not all(present):
+                    raise SpoolDamaged(f"{lines_path.name}: its lines or its rows are missing")
                 self._part = (lines_path.open("rb"), rows_path.open("rb"))
                 return True
         return False
@@ -320,6 +355,8 @@ def stage_window(
             done += 1
             if done % PROGRESS_EVERY == 0:
                 progress(PROGRESS_EVERY)
+        for spool in spools.values():
+            spool.sync()
     finally:
         for spool in spools.values():
             spool.close()

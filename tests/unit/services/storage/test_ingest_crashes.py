@@ -1,0 +1,126 @@
+"""Ingest jobs killed (kill -9) or cut by a power loss at chosen points, then resumed: every
+record committed exactly once, the node's state on the disk as a crash may leave it."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.procs import REPO
+from tests.unit.services.storage.test_ingest import START_NS, Node
+
+IMU_RECORDS = 160
+"""The IMU messages of ``bag(..., 200)``, the only topic the jobs here bind."""
+
+KILLED_COMMITTING = """
+import json, os, signal, sys
+from pathlib import Path
+from services.storage.recordstore import RecordStore
+from tests.unit.services.storage.test_ingest import Node, authorship, bag
+
+root = Path(sys.argv[1])
+node = Node(root / "node")
+node.bindings.bind(template_id=node.approve("sensor_msgs/msg/Imu"), msgtype="sensor_msgs/msg/Imu")
+synced = {}
+
+def recording(sync):
+    def call(fd):
+        sync(fd)
+        path = os.readlink(f"/proc/self/fd/{fd}")
+        synced[path] = sorted(os.listdir(path)) if os.path.isdir(path) else os.fstat(fd).st_size
+    return call
+
+os.fsync, os.fdatasync = recording(os.fsync), recording(os.fdatasync)
+append = RecordStore.append_prepared
+batches = []
+
+def dying(self, *args, **kwargs):
+    batches.append(append(self, *args, **kwargs))
+    if len(batches) == 2:
+        (root / "synced.json").write_text(json.dumps(synced))
+        os.kill(os.getpid(), signal.SIGKILL)
+    return batches[-1]
+
+RecordStore.append_prepared = dying
+job = node.jobs.submit(bag(root, "b", 200), "upload:b", authorship())
+print(job.id, flush=True)
+node.jobs.wait(job.id, 120)
+"""
+"""Ingests a bag of 160 IMU records in batches of 50, killed after its second batch, having
+noted what each fsync put on the disk: a file's size then, a directory's names."""
+
+
+def run_killed(script: str, root: Path) -> str:
+    """Run ``script`` on ``root`` until it kills itself; the job id it printed."""
+    child = subprocess.run(
+        [sys.executable, "-c", script, str(root)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={"PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
+        timeout=120,
+    )
+    assert child.returncode == -signal.SIGKILL, child.stderr
+    return child.stdout.split()[0]
+
+
+def cut_to_synced(directory: Path, synced: dict[str, int | list[str]]) -> None:
+    """Leave of ``directory``'s files what a power cut leaves: the names its last fsync saw,
+    each as long as its own last fsync made it."""
+    names = synced.get(str(directory.resolve()), [])
+    assert isinstance(names, list)
+    for file in directory.iterdir():
+        size = synced.get(str(file.resolve()), 0)
+        assert isinstance(size, int)
+        if file.name in names:
+            os.truncate(file, size)
+        else:
+            file.unlink()
+
+
+def lose_last_page(directory: Path) -> None:
+    """Cut each file's last page, as a power cut does to a file whose sync never came."""
+    for file in directory.iterdir():
+        size = file.stat().st_size
+        os.truncate(file, (size - 1) // 4096 * 4096 if size else 0)
+
+
+def assert_imu_records_once(node: Node, template_id: str) -> None:
+    """The bag's IMU records in the log, each once and in the bag's order."""
+    assert node.logs.size(template_id) == IMU_RECORDS
+    times = [json.loads(e.record)["t"] for e in node.logs.entries(template_id, 0, IMU_RECORDS)]
+    assert times == sorted(set(times))
+    assert times[0] == START_NS
+
+
+@pytest.mark.parametrize("loss", ["unsynced", "last_page"])
+def test_a_power_cut_while_committing_resumes_with_each_record_once(
+    tmp_path: Path, loss: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The spool is synced before job.json says its records are staged, so a power cut after
+    two batches leaves it whole ("unsynced": job.json once lived beside a spool that came
+    back empty, and every resume failed). And a spool damaged all the same ("last_page") is
+    staged again from the bag, the commit going on past the records already committed."""
+    job_id = run_killed(KILLED_COMMITTING, tmp_path)
+    staged = tmp_path / "node" / "jobs" / job_id / "staged"
+    state = json.loads((staged.parent / "job.json").read_text())
+    assert (state["status"], state["staged"]) == ("committing", {"imu@1": IMU_RECORDS})
+    if loss == "unsynced":
+        cut_to_synced(staged, json.loads((tmp_path / "synced.json").read_text()))
+    else:
+        lose_last_page(staged)
+    node = Node(tmp_path / "node")
+    try:
+        job = node.jobs.wait(job_id, 60)
+        assert job.status == "succeeded", job.error
+        assert job.records_committed == IMU_RECORDS
+        assert_imu_records_once(node, "imu@1")
+        assert ("staging again" in caplog.text) == (loss == "last_page")
+    finally:
+        node.close()
