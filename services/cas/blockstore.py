@@ -61,11 +61,16 @@ class Location:
 
 @dataclass(frozen=True)
 class StoredBlock:
-    """A block as garbage collection sees it: when its pack was committed."""
+    """A block as garbage collection sees it: when it was last put.
+
+    That is its pack's commit, or a later upload that found it already stored: a robot
+    pushing a block before the root linking it has the grace period to pin the root, even
+    when another robot stored the block long ago.
+    """
 
     multihash: bytes
     size: int
-    committed: float
+    put_at: float
 
 
 class Blockstore:
@@ -87,6 +92,9 @@ class Blockstore:
         self._index: dict[bytes, Location] = {}
         self._members: dict[str, dict[bytes, Location]] = {}
         self._committed: dict[str, float] = {}
+        self._put_again: dict[bytes, float] = {}
+        """When an upload last found a block already stored: in memory only, so after a
+        restart a block counts from its pack's commit again (docs/cas.md, Storage)."""
         self._load()
 
     def _load(self) -> None:
@@ -157,11 +165,15 @@ class Blockstore:
     def hold(self) -> Hold:
         return Hold(self)
 
-    def _keep(self, hold: Hold, multihash: bytes) -> bool:
+    def _keep(self, hold: Hold, multihash: bytes, *, put: bool = False) -> bool:
+        """Hold ``multihash`` if it is stored; ``put``: an upload that found it stored, which
+        starts its grace period again."""
         with self._lock:
             if multihash not in self._index:
                 return False
             self._hold_locked(hold, multihash)
+            if put:
+                self._put_again[multihash] = time.time()
             return True
 
     def _hold_locked(self, hold: Hold, multihash: bytes) -> None:
@@ -192,7 +204,11 @@ class Blockstore:
     def stored(self) -> list[StoredBlock]:
         with self._lock:
             return [
-                StoredBlock(multihash, location.length, self._committed[location.pack])
+                StoredBlock(
+                    multihash,
+                    location.length,
+                    max(self._committed[location.pack], self._put_again.get(multihash, 0.0)),
+                )
                 for multihash, location in self._index.items()
             ]
 
@@ -212,6 +228,7 @@ class Blockstore:
         touched: set[str] = set()
         for multihash in multihashes:
             location = self._index.pop(multihash, None)
+            self._put_again.pop(multihash, None)
             if location is not None:
                 self._members[location.pack].pop(multihash, None)
                 touched.add(location.pack)
@@ -369,7 +386,9 @@ class Staging:
         """
         if cid.hash_code == IDENTITY:
             return
-        if cid.multihash not in self._members and not self.hold.keep(cid):
+        if cid.multihash in self._members:
+            return
+        if not self.store._keep(self.hold, cid.multihash, put=True):
             self.write(cid.multihash, data)
 
     def write(self, multihash: bytes, data: bytes | memoryview) -> None:

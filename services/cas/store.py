@@ -452,13 +452,15 @@ class ContentStore:
         return {cid: pins[cid] for cid in wanted}
 
     def collect_garbage(self, grace_s: float, now: float | None = None) -> list[CID]:
-        """Remove every unpinned block older than ``grace_s``; never a block of a pinned DAG.
+        """Remove every unpinned block put more than ``grace_s`` ago; never a block of a
+        pinned DAG.
 
         The grace period protects blocks a robot pushed with ``block/put`` before pinning the
-        root that links them. Pins run beside a collection: the blocks a pin check read or an
-        upload relied on are held until the pin is there (``blockstore.Hold``), and the last
-        phase, under ``sweeping``, marks the pins made since the first snapshot before it
-        deletes, so a DAG pinned meanwhile loses nothing.
+        root that links them, counted from the last put, since the block may have been stored
+        long before by another robot. Pins run beside a collection: the blocks a pin check
+        read or an upload relied on are held until the pin is there (``blockstore.Hold``),
+        and the last phase, under ``sweeping``, marks the pins made since the first snapshot
+        before it deletes, so a DAG pinned meanwhile loses nothing.
 
         One collection runs at a time (``collecting``): a second waits for the running one,
         then makes its own, which sees the pins removed meanwhile; joining the running one
@@ -481,7 +483,7 @@ class ContentStore:
             dead = self.blocks.collect(
                 stored.multihash
                 for stored in self.blocks.stored()
-                if stored.multihash not in live and stored.committed < cutoff
+                if stored.multihash not in live and stored.put_at < cutoff
             )
         self.blocks.compact()
         return [cid_for_multihash(multihash) for multihash in dead]
