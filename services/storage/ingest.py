@@ -125,6 +125,10 @@ class Job:
     dataset: dict[str, Any] | None = None
     """What publishing the ingested dataset gave: the bag's CID, its description's CID and the
     advertisement's transaction, or the error that stopped it (the records stay committed)."""
+    publish_attempts: int = 0
+    """Times publishing the dataset began, each saved before it: above 1, an earlier attempt
+    was cut short (kill -9, power cut) and may have advertised the dataset, so the publisher
+    looks on chain for that advertisement before it makes one."""
     created_ns: int = field(default_factory=time.time_ns)
     updated_ns: int = field(default_factory=time.time_ns)
 
@@ -334,20 +338,25 @@ class IngestJobs:
         if job.status in ("queued", "staging"):
             self._stage(job)
         self._commit(job)
-        dataset = self._published(job) if job.records_committed else None
+        if self.publish is not None and job.records_committed and job.dataset is None:
+            self._publish(job, self.publish)
         shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         _remove(_bag_in(self.root / job.id))
-        self._update(job, status="succeeded", dataset=dataset)
+        self._update(job, status="succeeded")
 
-    def _published(self, job: Job) -> dict[str, Any] | None:
-        """Publish the job's dataset; a failure is reported with the job, which succeeded."""
-        if self.publish is None:
-            return None
+    def _publish(self, job: Job, publish: Callable[[Job, Path], dict[str, Any]]) -> None:
+        """Publish the job's dataset; a failure is reported with the job, which succeeded.
+
+        The attempt is saved before it and its outcome after, while the bag is still there: a
+        job cut short once its outcome was saved neither advertises again nor needs its bag,
+        and one cut short within tells the publisher so (``publish_attempts``)."""
+        self._update(job, publish_attempts=job.publish_attempts + 1)
         try:
-            return self.publish(job, _bag_in(self.root / job.id))
+            dataset = publish(job, _bag_in(self.root / job.id))
         except Exception as exc:
             log.warning("dataset not published", extra={"job": job.id, "error": str(exc)})
-            return {"error": str(exc)[:500]}
+            dataset = {"error": str(exc)[:500]}
+        self._update(job, dataset=dataset)
 
     def _plan(self, bag: Bag) -> tuple[list[TopicReport], Plans]:
         reports: list[TopicReport] = []

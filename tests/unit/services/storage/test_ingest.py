@@ -6,9 +6,10 @@ from __future__ import annotations
 import json
 import shutil
 import tracemalloc
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -38,8 +39,14 @@ START_NS = 1_700_000_000_000_000_000
 
 
 class Node:
-    def __init__(self, root: Path, segment_records: int = 4096) -> None:
+    def __init__(
+        self,
+        root: Path,
+        segment_records: int = 4096,
+        publish: Callable[[Job, Path], dict[str, Any]] | None = None,
+    ) -> None:
         self.root = root
+        self.publish = publish
         self.author = Identity.generate().address
         self.catalog = Catalog(root / "catalog")
         self.logs = RecordLogs(root / "logs")
@@ -59,6 +66,7 @@ class Node:
             batch_records=batch_records,
             staging_workers=staging_workers,
             parallel_from_messages=0,
+            publish=self.publish,
         )
 
     def stage_in(self, workers: int) -> None:

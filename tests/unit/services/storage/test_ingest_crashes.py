@@ -1,5 +1,6 @@
 """Ingest jobs killed (kill -9) or cut by a power loss at chosen points, then resumed: every
-record committed exactly once, the node's state on the disk as a crash may leave it."""
+record committed exactly once and the dataset advertised once, from the node's files as the
+crash left them."""
 
 from __future__ import annotations
 
@@ -8,10 +9,13 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from services.storage.ingest import Job
 from tests.procs import REPO
 from tests.unit.services.storage.test_ingest import START_NS, Node
 
@@ -56,10 +60,10 @@ node.jobs.wait(job.id, 120)
 noted what each fsync put on the disk: a file's size then, a directory's names."""
 
 
-def run_killed(script: str, root: Path) -> str:
+def run_killed(script: str, root: Path, *args: str) -> str:
     """Run ``script`` on ``root`` until it kills itself; the job id it printed."""
     child = subprocess.run(
-        [sys.executable, "-c", script, str(root)],
+        [sys.executable, "-c", script, str(root), *args],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -122,5 +126,91 @@ def test_a_power_cut_while_committing_resumes_with_each_record_once(
         assert job.records_committed == IMU_RECORDS
         assert_imu_records_once(node, "imu@1")
         assert ("staging again" in caplog.text) == (loss == "last_page")
+    finally:
+        node.close()
+
+
+class ChainPublisher:
+    """Advertises on a chain kept in a file, an advertisement a line, and, as a publisher
+    must, looks there first when an earlier attempt of the job's was cut short."""
+
+    def __init__(self, chain: Path, advertised: Callable[[], None] | None = None) -> None:
+        self.chain = chain
+        self.advertised = advertised
+        """Called once the advertisement is on the chain, before it is returned."""
+
+    def __call__(self, job: Job, bag: Path) -> dict[str, Any]:
+        made = [ad for ad in self.advertisements() if ad["cid"] == job.bag]
+        if made and job.publish_attempts > 1:
+            return made[0]
+        if not bag.exists():
+            raise FileNotFoundError(bag)
+        advertisement = {"cid": job.bag, "tx": f"0x{len(self.advertisements()) + 1:02x}"}
+        with self.chain.open("a") as chain:
+            chain.write(json.dumps(advertisement) + "\n")
+        if self.advertised is not None:
+            self.advertised()
+        return advertisement
+
+    def advertisements(self) -> list[dict[str, Any]]:
+        if not self.chain.exists():
+            return []
+        return [json.loads(line) for line in self.chain.read_text().splitlines()]
+
+
+KILLED_PUBLISHING = """
+import os, signal, sys
+from pathlib import Path
+from services.storage import ingest
+from tests.unit.services.storage.test_ingest import Node, authorship, bag
+from tests.unit.services.storage.test_ingest_crashes import ChainPublisher
+
+root, kill = Path(sys.argv[1]), sys.argv[2]
+
+def die():
+    os.kill(os.getpid(), signal.SIGKILL)
+
+publisher = ChainPublisher(root / "chain.txt", die if kill == "advertised" else None)
+node = Node(root / "node", publish=publisher)
+node.bindings.bind(template_id=node.approve("sensor_msgs/msg/Imu"), msgtype="sensor_msgs/msg/Imu")
+remove = ingest._remove
+
+def removing(path):
+    if kill == "published":
+        die()
+    remove(path)
+    die()
+
+ingest._remove = removing
+job = node.jobs.submit(bag(root, "b", 200), "upload:b", authorship())
+print(job.id, flush=True)
+node.jobs.wait(job.id, 120)
+"""
+"""Ingests a bag of 160 IMU records and publishes it, killed at ``argv[2]``: once advertised
+("advertised"), once the job saved what it published ("published"), once the bag is removed
+("bag_removed")."""
+
+
+@pytest.mark.parametrize("kill", ["advertised", "published", "bag_removed"])
+def test_a_job_killed_while_publishing_advertises_its_dataset_once(
+    tmp_path: Path, kill: str
+) -> None:
+    """A kill -9 after the advertisement: the resumed job advertised again (the job saved
+    nothing of its publishing until it succeeded), or, with its bag removed, failed to publish
+    what was advertised. Now it saves its attempt before publishing and the outcome after,
+    while the bag is there; resumed, it publishes nothing again and needs no bag."""
+    job_id = run_killed(KILLED_PUBLISHING, tmp_path, kill)
+    chain = ChainPublisher(tmp_path / "chain.txt")
+    advertised = chain.advertisements()
+    assert len(advertised) == 1
+    node = Node(tmp_path / "node", publish=chain)
+    try:
+        job = node.jobs.wait(job_id, 60)
+        assert job.status == "succeeded", job.error
+        assert chain.advertisements() == advertised
+        assert job.dataset == advertised[0]
+        assert job.publish_attempts == (2 if kill == "advertised" else 1)
+        assert_imu_records_once(node, "imu@1")
+        assert [path.name for path in (node.root / "jobs" / job_id).iterdir()] == ["job.json"]
     finally:
         node.close()
