@@ -5,19 +5,28 @@ each may remove only its own pin, so one robot can never make another's data col
 Every change is appended to a journal fsynced before the request is answered, one line a
 request whatever its number of roots: a torn last line is dropped on read, so a crash in the
 middle of a many-root ``pin/add`` or ``block/put`` leaves none of its pins rather than the
-first few, and the request costs one fsync instead of one a root. The journal is compacted
-on start.
+first few, and the request costs one fsync instead of one a root. A start compacts the
+journal only when it holds many dead lines, and starts all the same when it cannot: a
+start that needs no free space lets an operator restart a cas on a full disk to collect
+garbage.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import threading
 from collections.abc import Sequence
 from pathlib import Path
 
 from robocloud.cid import CID
-from services.common.durable import AppendLog
+from services.common.durable import AppendLog, atomic_write
+
+log = logging.getLogger("robocloud.cas.pins")
+
+MIN_DEAD_LINES = 1_000
+"""Lines of removed or repeated pins a journal holds before a start compacts it (and only
+once they are at least as many as the live lines): fewer cost little to read again."""
 
 
 class NotPinned(LookupError):
@@ -40,15 +49,43 @@ class PinSet:
         self._log = AppendLog(path)
         self._owners: dict[CID, set[str]] = {}
         self._lock = threading.Lock()
-        for line in self._log.read_lines():
+        lines = self._log.read_lines()
+        for line in lines:
             entry = json.loads(line)
             for cid in entry["cids"] if "cids" in entry else [entry["cid"]]:
                 self._apply(entry["op"], CID.decode(cid), entry["owner"])
+        live = self._live_lines()
+        dead = len(lines) - len(live)
+        if dead >= max(MIN_DEAD_LINES, len(live)):
+            self._compact(live)
+
+    def _live_lines(self) -> list[str]:
+        """The pins as a compacted journal holds them: one line per owner."""
         by_owner: dict[str, list[CID]] = {}
         for cid, owners in self._owners.items():
             for owner in owners:
                 by_owner.setdefault(owner, []).append(cid)
-        self._log.rewrite([self._line("add", cids, owner) for owner, cids in by_owner.items()])
+        return [self._line("add", cids, owner) for owner, cids in by_owner.items()]
+
+    def _compact(self, lines: list[str]) -> None:
+        """Replace the journal with ``lines``; when that fails (a full disk) log it and go on
+        appending to the journal as it is. Every start rewrote it, so a cas whose disk had
+        filled could not start again, not even to collect garbage.
+
+        The journal is opened again either way: a failure after the rename (syncing the
+        directory) leaves the compacted file in place of the one still open.
+        """
+        path = self._log.path
+        try:
+            atomic_write(path, "".join(f"{line}\n" for line in lines).encode(), mode=0o600)
+        except OSError:
+            log.warning(
+                "pin journal not compacted; appending to it as it is",
+                exc_info=True,
+                extra={"path": str(path)},
+            )
+        self._log.close()
+        self._log = AppendLog(path)
 
     @staticmethod
     def _line(op: str, cids: Sequence[CID], owner: str) -> str:
