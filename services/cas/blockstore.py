@@ -85,6 +85,8 @@ class Blockstore:
             directory.mkdir(parents=True, exist_ok=True)
         for leftover in self.spool.iterdir():
             leftover.unlink()
+        for directory in (self.packs, self.quarantine):
+            remove_temporaries(directory)
         self._lock = threading.Lock()
         self.sweeping = threading.Lock()
         """Held by garbage collection's last phase (marking new pins, then ``collect``)."""
@@ -429,6 +431,15 @@ class Staging:
             self.path.unlink(missing_ok=True)
         self._members.clear()
         self.hold.close()
+
+
+def remove_temporaries(directory: Path) -> None:
+    """Remove what ``atomic_write`` left in ``directory`` when killed before its rename
+    (``.<name>.<pid>.tmp``): called at start, when nothing writes, since nothing else
+    would ever remove them."""
+    for leftover in directory.glob(".*.tmp"):
+        log.info("dropping a leftover temporary file", extra={"file": str(leftover)})
+        leftover.unlink(missing_ok=True)
 
 
 def _length(members: dict[bytes, Location]) -> int:

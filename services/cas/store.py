@@ -39,6 +39,7 @@ from services.cas.blockstore import (
     Hold,
     Staging,
     cid_for_multihash,
+    remove_temporaries,
 )
 from services.cas.peers import OutcomeHook, PeerFetcher
 from services.cas.pins import PinSet
@@ -136,6 +137,7 @@ class ImportedRoot:
 
 class ContentStore:
     def __init__(self, root: Path, blocks: Blockstore, peers: PeerFetcher | None = None) -> None:
+        remove_temporaries(root)
         self.blocks = blocks
         self.pins = PinSet(root / "pins.log")
         self.peers = peers
