@@ -28,3 +28,18 @@ def acknowledged_before_kill(script: str, path: Path, count: int) -> list[str]:
     writer.send_signal(signal.SIGKILL)
     writer.wait()
     return lines
+
+
+def output_of_killed(script: str, path: Path, *args: str) -> str:
+    """Run ``script`` on ``path`` (and ``args``) in a new interpreter until it kills itself
+    with SIGKILL at the point it chose; what it printed before."""
+    child = subprocess.run(
+        [sys.executable, "-c", script, str(path), *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={"PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
+        timeout=120,
+    )
+    assert child.returncode == -signal.SIGKILL, child.stderr
+    return child.stdout

@@ -6,9 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -16,7 +13,7 @@ from typing import Any
 import pytest
 
 from services.storage.ingest import Job
-from tests.procs import REPO
+from tests.unit.services.ledger.crash import output_of_killed
 from tests.unit.services.storage.test_ingest import START_NS, Node
 
 IMU_RECORDS = 160
@@ -62,16 +59,7 @@ noted what each fsync put on the disk: a file's size then, a directory's names."
 
 def run_killed(script: str, root: Path, *args: str) -> str:
     """Run ``script`` on ``root`` until it kills itself; the job id it printed."""
-    child = subprocess.run(
-        [sys.executable, "-c", script, str(root), *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        env={"PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
-        timeout=120,
-    )
-    assert child.returncode == -signal.SIGKILL, child.stderr
-    return child.stdout.split()[0]
+    return output_of_killed(script, root, *args).split()[0]
 
 
 def cut_to_synced(directory: Path, synced: dict[str, int | list[str]]) -> None:

@@ -5,9 +5,6 @@ from __future__ import annotations
 import errno
 import json
 import os
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -29,7 +26,7 @@ from services.storage.segments import (
     PreparedDocuments,
     SegmentStorage,
 )
-from tests.procs import REPO
+from tests.unit.services.ledger.crash import output_of_killed
 from tests.unit.services.storage.conftest import (
     AUTHOR,
     ROBOT_A,
@@ -242,16 +239,7 @@ print("not acknowledged", flush=True)
 def test_a_batch_over_two_templates_killed_between_their_logs_is_stored_whole_or_not_at_all(
     tmp_path: Path, open_store: StoreFactory
 ) -> None:
-    writer = subprocess.run(
-        [sys.executable, "-c", CRASHING_WRITER, str(tmp_path)],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        env={"PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
-        timeout=120,
-    )
-    assert writer.returncode == -signal.SIGKILL, writer.stderr
-    assert writer.stdout.split("\n") == ["acknowledged", ""]
+    assert output_of_killed(CRASHING_WRITER, tmp_path) == "acknowledged\n"
     store = open_store()
     assert store.logs.sizes() == {"arm@1": 5, "state@1": 7}
     with pytest.raises(RecordNotFound):
