@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from robocloud.cid import CID
-from services.common.durable import AppendLog, atomic_write
+from services.common.durable import AppendLog
 
 log = logging.getLogger("robocloud.cas.pins")
 
@@ -72,20 +72,15 @@ class PinSet:
         appending to the journal as it is. Every start rewrote it, so a cas whose disk had
         filled could not start again, not even to collect garbage.
 
-        The journal is opened again either way: a failure after the rename (syncing the
-        directory) leaves the compacted file in place of the one still open.
         """
-        path = self._log.path
         try:
-            atomic_write(path, "".join(f"{line}\n" for line in lines).encode(), mode=0o600)
+            self._log.rewrite(lines)
         except OSError:
             log.warning(
                 "pin journal not compacted; appending to it as it is",
                 exc_info=True,
-                extra={"path": str(path)},
+                extra={"path": str(self._log.path)},
             )
-        self._log.close()
-        self._log = AppendLog(path)
 
     @staticmethod
     def _line(op: str, cids: Sequence[CID], owner: str) -> str:

@@ -112,12 +112,18 @@ class AppendLog:
         return self.path.read_bytes().decode().splitlines()
 
     def rewrite(self, lines: list[str]) -> None:
-        """Compact the log to ``lines`` atomically."""
-        data = "".join(f"{line}\n" for line in lines).encode()
-        atomic_write(self.path, data, mode=0o600)
-        os.close(self._fd)
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
-        self._size = len(data)
+        """Compact the log to ``lines`` atomically.
+
+        The file is opened again whether or not this raises: a failure after the rename
+        (syncing the directory) left the descriptor on the replaced file, and every later
+        line went to a file no name leads to.
+        """
+        try:
+            atomic_write(self.path, "".join(f"{line}\n" for line in lines).encode(), mode=0o600)
+        finally:
+            os.close(self._fd)
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+            self._size = os.fstat(self._fd).st_size
 
     def close(self) -> None:
         os.close(self._fd)

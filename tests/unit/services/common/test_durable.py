@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from services.common import durable
 from services.common.durable import AppendLog, generated_secret
 from tests.procs import REPO
 
@@ -92,3 +93,24 @@ def test_processes_starting_together_agree_on_one_secret(tmp_path: Path) -> None
     secrets = {start.communicate(timeout=60)[0].strip() for start in starts}
     assert secrets == {path.read_text()}
     assert oct(path.stat().st_mode & 0o777) == "0o600"
+
+
+def test_a_compaction_failing_after_its_rename_leaves_appends_going_to_the_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Syncing the directory failed after the compacted file replaced the journal: the
+    descriptor stayed on the replaced file, and every later line went where no name leads."""
+    path = tmp_path / "journal.log"
+    journal = AppendLog(path)
+    for line in ("dead", "live"):
+        journal.append(line)
+
+    def failing(directory: Path) -> None:
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(durable, "fsync_dir", failing)
+    with pytest.raises(OSError, match="Input/output error"):
+        journal.rewrite(["live"])
+    monkeypatch.undo()
+    journal.append("after")
+    assert path.read_text() == "live\nafter\n"
