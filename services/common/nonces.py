@@ -18,11 +18,14 @@ filled it and refused every other robot's writes for the rest of the window.
 from __future__ import annotations
 
 import heapq
+import logging
 import threading
 import time
 from pathlib import Path
 
 from services.common.durable import AppendLog
+
+log = logging.getLogger("robocloud.nonces")
 
 MAX_LIVE_NONCES = 200_000
 """The default bound on live nonces: about 80 MB of memory (some 400 bytes an entry) and
@@ -133,6 +136,14 @@ class NonceStore:
                 del self._by_address[address]
 
     def _compact(self) -> None:
+        """Rewrite the journal with the live nonces. A rewrite that fails (a full disk) is
+        logged and tried again after as many appends: the nonce that triggered it is already
+        durable, and raising failed that request and every signed request after it."""
         lines = [f"{a} {n} {e:.0f}" for (a, n), e in self._expiry.items()]
-        self._log.rewrite(lines)
+        try:
+            self._log.rewrite(lines)
+        except OSError as exc:
+            log.warning("nonce journal not compacted", extra={"error": str(exc)})
+            self._appended = len(self._expiry)
+            return
         self._appended = len(lines)

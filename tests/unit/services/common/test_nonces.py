@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from services.common import durable
 from services.common.nonces import NonceQuotaExceeded, NonceStore, NonceStoreFull
 
 ADDRESS = "0x2c7536E3605D9C16a7a3D7b1898e529396a65c23"
@@ -167,3 +169,26 @@ def test_an_address_past_its_share_is_refused_until_its_oldest_nonce_expires(
     with pytest.raises(NonceQuotaExceeded):
         reopened.use(ADDRESS, "e" * 16, now)
     assert len(reopened) == 3
+
+
+def test_a_compaction_the_disk_refuses_fails_no_request(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The rewrite raised out of ``use``: the request whose nonce was already durable
+    failed, and so did every signed request after it, each one trying again."""
+    path = tmp_path / "nonces.log"
+    store = NonceStore(path, window_s=1, compact_after=4)
+
+    def refused(target: Path, data: bytes, *, mode: int = 0o644) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(durable, "atomic_write", refused)
+    old = int(time.time()) - 10
+    assert [store.use(ADDRESS, f"old-nonce-{i:06d}", old) for i in range(4)] == [True] * 4
+    now = int(time.time())
+    assert [store.use(ADDRESS, f"fresh-nonce-{i:04d}", now) for i in range(3)] == [True] * 3
+    assert path.read_text().count("\n") == 7
+    monkeypatch.undo()
+    store.close()
+    reopened = NonceStore(path, window_s=1)
+    assert not reopened.use(ADDRESS, "fresh-nonce-0002", now)
