@@ -24,10 +24,6 @@ from services.common.durable import AppendLog
 
 log = logging.getLogger("robocloud.cas.pins")
 
-MIN_DEAD_LINES = 1_000
-"""Lines of removed or repeated pins a journal holds before a start compacts it (and only
-once they are at least as many as the live lines): fewer cost little to read again."""
-
 
 class NotPinned(LookupError):
     def __init__(self, cid: CID) -> None:
@@ -54,10 +50,7 @@ class PinSet:
             entry = json.loads(line)
             for cid in entry["cids"] if "cids" in entry else [entry["cid"]]:
                 self._apply(entry["op"], CID.decode(cid), entry["owner"])
-        live = self._live_lines()
-        dead = len(lines) - len(live)
-        if dead >= max(MIN_DEAD_LINES, len(live)):
-            self._compact(live)
+        self._log.compact_at_open(self._live_lines(), len(lines))
 
     def _live_lines(self) -> list[str]:
         """The pins as a compacted journal holds them: one line per owner."""
@@ -66,21 +59,6 @@ class PinSet:
             for owner in owners:
                 by_owner.setdefault(owner, []).append(cid)
         return [self._line("add", cids, owner) for owner, cids in by_owner.items()]
-
-    def _compact(self, lines: list[str]) -> None:
-        """Replace the journal with ``lines``; when that fails (a full disk) log it and go on
-        appending to the journal as it is. Every start rewrote it, so a cas whose disk had
-        filled could not start again, not even to collect garbage.
-
-        """
-        try:
-            self._log.rewrite(lines)
-        except OSError:
-            log.warning(
-                "pin journal not compacted; appending to it as it is",
-                exc_info=True,
-                extra={"path": str(self._log.path)},
-            )
 
     @staticmethod
     def _line(op: str, cids: Sequence[CID], owner: str) -> str:

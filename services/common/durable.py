@@ -8,6 +8,7 @@ State that changes record by record goes to SQLite instead, opened by ``open_sql
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import secrets
 import sqlite3
@@ -71,6 +72,13 @@ def atomic_write(path: Path, data: bytes, *, mode: int = 0o644) -> None:
     fsync_dir(path.parent)
 
 
+MIN_DEAD_LINES = 1_000
+"""Dead lines (removed or replaced entries) a journal holds before an open compacts it:
+fewer cost little to read again."""
+
+log = logging.getLogger("robocloud.durable")
+
+
 class AppendLog:
     """An append-only file of lines, fsynced per append: a journal that survives kill -9.
 
@@ -124,6 +132,23 @@ class AppendLog:
             os.close(self._fd)
             self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
             self._size = os.fstat(self._fd).st_size
+
+    def compact_at_open(self, live: list[str], read: int) -> None:
+        """Replace the journal, which held ``read`` lines at open, with the ``live`` ones, when
+        enough of it is dead to be worth a rewrite: :data:`MIN_DEAD_LINES`, and no fewer than
+        the live lines. A rewrite the disk refuses is logged and the journal kept as it is:
+        rewritten at every open, a full disk stopped the service from starting again, even
+        to free space."""
+        dead = read - len(live)
+        if dead < max(MIN_DEAD_LINES, len(live)):
+            return
+        try:
+            self.rewrite(live)
+        except OSError as exc:
+            log.warning(
+                "journal not compacted; appending to it as it is",
+                extra={"path": str(self.path), "error": str(exc)},
+            )
 
     def close(self) -> None:
         os.close(self._fd)

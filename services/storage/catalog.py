@@ -195,9 +195,10 @@ class Catalog:
         self._bytes = 0
         self._latest: dict[str, int] = {}
         self._journal = AppendLog(root / "catalog.log")
-        for line in self._journal.read_lines():
+        lines = self._journal.read_lines()
+        for line in lines:
             self._remember(TemplateVersion.from_json(json.loads(line)), len(line))
-        self._journal.rewrite([_line(v) for v in self._versions.values()])
+        self._journal.compact_at_open([_line(v) for v in self._versions.values()], len(lines))
 
     def close(self) -> None:
         self._journal.close()

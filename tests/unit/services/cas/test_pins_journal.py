@@ -55,7 +55,7 @@ def reopened(path: Path) -> dict[CID, frozenset[str]]:
 
 EXPECTED = {ONE: frozenset({ALICE}), TWO: frozenset({BOB})}
 CHURN = 1_000
-"""2,000 dead lines: past ``pins.MIN_DEAD_LINES``, so a start compacts them."""
+"""2,000 dead lines: past ``durable.MIN_DEAD_LINES``, so a start compacts them."""
 
 
 def test_a_start_leaves_a_journal_with_few_dead_lines_as_it_is(
@@ -90,9 +90,9 @@ def test_a_compaction_that_fails_is_logged_and_the_journal_kept(
     journal(path, churn=CHURN)
     before = path.read_bytes()
     full_disk()
-    with caplog.at_level(logging.WARNING, "robocloud.cas.pins"):
+    with caplog.at_level(logging.WARNING, "robocloud.durable"):
         pins = PinSet(path)
-    assert "pin journal not compacted" in caplog.text
+    assert "journal not compacted" in caplog.text
     assert pins.snapshot() == EXPECTED
     assert path.read_bytes() == before
     assert list(tmp_path.iterdir()) == [path]

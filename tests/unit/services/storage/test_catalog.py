@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from robocloud.templates import TemplateIdInvalid, TemplateInvalid
+from services.common import durable
 from services.storage.catalog import (
     Catalog,
     CatalogFull,
@@ -124,6 +126,23 @@ def test_the_catalog_survives_a_restart_and_is_bounded(tmp_path: Path) -> None:
     reopened.new_version("gps", {"fields": {"lat": "float"}}, author=AUTHOR)
     reopened.close()
     assert [v.id for v in Catalog(tmp_path).list(name="gps")] == ["gps@1", "gps@2"]
+
+
+def test_the_catalog_opens_on_a_full_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every open rewrote the journal, so a storage node whose disk had filled could not
+    start again; an open now rewrites it only when enough of it is dead."""
+    catalog = Catalog(tmp_path)
+    catalog.create(_imu(), author=AUTHOR)
+    catalog.submit("imu@1", author=AUTHOR)
+    catalog.close()
+
+    def no_space(path: Path, data: bytes, *, mode: int = 0o644) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(durable, "write_synced", no_space)
+    reopened = Catalog(tmp_path)
+    assert [(v.id, v.status) for v in reopened.list()] == [("imu@1", "submitted")]
+    reopened.close()
 
 
 def _big(name: str, fields: int = 200) -> dict[str, Any]:
