@@ -12,12 +12,22 @@ every record of a batch with the same text: its ``records`` field lists their in
 between a commit and its mark the same batch is indexed again from the same start; its key
 (template, start, digest of the text) replaces the documents of the first attempt, which the
 new batch covers, since a log only grows.
+
+Whoosh never fsyncs. A mark names records as indexed, so the files of a commit are fsynced
+before the mark moves past it: a mark ahead of a commit lost in a power cut would hide its
+records from keyword search for good. A power cut within a commit can still leave Whoosh's files
+torn (an empty TOC, a segment of zeros); the index is derived from the logs, so one that cannot
+be read at start is removed and indexed again from the first record rather than stopping the
+node.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
+import os
+import shutil
 import threading
 from collections.abc import Iterable
 from pathlib import Path
@@ -26,7 +36,9 @@ from whoosh import fields, index
 from whoosh.analysis import StandardAnalyzer
 from whoosh.query import And, Query, Term
 
-from services.common.durable import atomic_write
+from services.common.durable import atomic_write, fsync_dir
+
+log = logging.getLogger(__name__)
 
 MARKS = "marks.json"
 MAX_TERMS = 16
@@ -43,6 +55,10 @@ class TooManyKeywordHits(Exception):
     def __init__(self, limit: int) -> None:
         super().__init__(f"the keywords match more than {limit} records; narrow the query")
         self.limit = limit
+
+
+class KeywordIndexLost(Exception):
+    """The marks name documents the Whoosh index does not hold (its last commits lost)."""
 
 
 def runs(indexes: list[int]) -> str:
@@ -79,13 +95,49 @@ class KeywordIndex:
             records=fields.STORED,
             text=fields.TEXT(analyzer=self.analyzer),
         )
-        if index.exists_in(directory):
-            self.index = index.open_dir(directory)
-        else:
-            self.index = index.create_in(directory, schema)
-        marks = directory / MARKS
-        self.marks: dict[str, int] = json.loads(marks.read_bytes()) if marks.exists() else {}
+        self._synced: set[str] = set()
+        """Files of the index fsynced since it was opened: a killed process may have left
+        the others in the page cache only."""
+        try:
+            self.index, self.marks = self._open(schema)
+        except Exception:
+            log.warning(
+                "the keyword index under %s cannot be read; indexing the logs again",
+                directory,
+                exc_info=True,
+            )
+            self._remove()
+            self.index, self.marks = index.create_in(directory, schema), {}
         self._lock = threading.Lock()
+
+    def _open(self, schema: fields.Schema) -> tuple[index.Index, dict[str, int]]:
+        """The index and its marks, checked enough to trust the marks: a torn TOC or segment
+        raises almost anything (unpickling, ``struct``, ``ord()`` of an empty read), and an
+        index without the documents its marks name would hide their records for good."""
+        path = self.directory / MARKS
+        marks: dict[str, int] = json.loads(path.read_bytes()) if path.exists() else {}
+        if not index.exists_in(self.directory):
+            if marks:
+                raise KeywordIndexLost(f"{path} names records of a Whoosh index not there")
+            return index.create_in(self.directory, schema), marks
+        opened = index.open_dir(self.directory)
+        with opened.reader() as reader:
+            lost = [
+                name
+                for name, mark in marks.items()
+                if mark and not reader.doc_frequency("template", name)
+            ]
+        if lost:
+            raise KeywordIndexLost(f"{path} names records of {lost} the Whoosh index lacks")
+        return opened, marks
+
+    def _remove(self) -> None:
+        """Remove the index, its marks first and durably: marks left beside a fresh index
+        would say records are indexed that are not."""
+        (self.directory / MARKS).unlink(missing_ok=True)
+        fsync_dir(self.directory)
+        shutil.rmtree(self.directory)
+        self.directory.mkdir()
 
     def mark(self, template_id: str) -> int:
         with self._lock:
@@ -111,10 +163,29 @@ class KeywordIndex:
             writer.cancel()
             raise
         writer.commit()
+        self._sync()
         with self._lock:
             self.marks[template_id] = upto
             marks = dict(self.marks)
         atomic_write(self.directory / MARKS, json.dumps(marks).encode())
+
+    def _sync(self) -> None:
+        """Fsync what the last commit wrote and the directory naming it. Whoosh never writes a
+        file twice (segments get random names, each commit a new TOC generation), so a file
+        fsynced once is left alone: a commit costs the fsync of its own segment and TOC."""
+        names = {
+            entry.name
+            for entry in os.scandir(self.directory)
+            if entry.is_file() and entry.name != MARKS
+        }
+        for name in sorted(names - self._synced):
+            fd = os.open(self.directory / name, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        fsync_dir(self.directory)
+        self._synced = names
 
     def terms(self, text: str) -> list[str]:
         """The words of a query as the index analysed the records' text."""

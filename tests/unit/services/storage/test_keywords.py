@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable
 from itertools import pairwise
 from pathlib import Path
 
@@ -11,6 +13,7 @@ from hypothesis import strategies as st
 
 from services.storage import keywords
 from services.storage.keywords import KeywordIndex, TooManyKeywordHits, parse_runs, runs
+from tests.unit.services.storage.conftest import AUTHOR, StoreFactory, state_record
 
 
 @given(st.sets(st.integers(0, 5_000), min_size=1))
@@ -65,3 +68,96 @@ def test_a_query_matching_too_many_records_is_refused(
     with pytest.raises(TooManyKeywordHits, match="more than 10 records"):
         index.search(["idle"], None)
     index.close()
+
+
+def _fsyncs_and_replaces(monkeypatch: pytest.MonkeyPatch) -> list[tuple[str, str]]:
+    """Record ("fsync", path) and ("replace", target) in the order they happen."""
+    calls: list[tuple[str, str]] = []
+    fsync, replace = os.fsync, os.replace
+
+    def recording_fsync(fd: int) -> None:
+        calls.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        fsync(fd)
+
+    def recording_replace(source: str | Path, target: str | Path) -> None:
+        calls.append(("replace", str(target)))
+        replace(source, target)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    monkeypatch.setattr(os, "replace", recording_replace)
+    return calls
+
+
+def test_a_commit_is_fsynced_before_its_mark_names_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Whoosh never fsyncs: a mark durable before the commit's files would, after a power cut,
+    hide the commit's records from keyword search for good. Files fsynced by an earlier commit
+    are not fsynced again."""
+    index = KeywordIndex(tmp_path)
+    index.add("state@1", 0, ["idle"], 1)
+    before = set(os.listdir(tmp_path))
+    calls = _fsyncs_and_replaces(monkeypatch)
+    index.add("state@1", 1, ["docked"], 2)
+    written = {str(tmp_path / name) for name in set(os.listdir(tmp_path)) - before}
+    assert any(name.endswith(".toc") for name in written)
+    assert any(name.endswith(".seg") for name in written)
+    replaced = calls.index(("replace", str(tmp_path / keywords.MARKS)))
+    synced = {path for kind, path in calls[:replaced] if kind == "fsync"}
+    assert synced - {str(tmp_path)} == written | {
+        str(tmp_path / f".{keywords.MARKS}.{os.getpid()}.tmp")
+    }
+    last_index_sync = max(calls.index(("fsync", path)) for path in written)
+    assert calls.index(("fsync", str(tmp_path)), last_index_sync) < replaced
+    index.close()
+
+
+def _empty_toc(directory: Path) -> None:
+    os.truncate(max(directory.glob("_MAIN_*.toc")), 0)
+
+
+def _zeroed_segment(directory: Path) -> None:
+    segment = max(directory.glob("*.seg"), key=lambda path: path.stat().st_mtime_ns)
+    segment.write_bytes(bytes(segment.stat().st_size))
+
+
+def _no_toc(directory: Path) -> None:
+    for toc in directory.glob("_MAIN_*.toc"):
+        toc.unlink()
+
+
+@pytest.mark.parametrize("damage", [_empty_toc, _zeroed_segment, _no_toc])
+def test_an_index_torn_by_a_power_cut_is_started_again(
+    tmp_path: Path, damage: Callable[[Path], None], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A commit cut short can leave an empty TOC, a segment of zeros, or (its TOC's rename
+    lost, the old one's removal kept) none: the index is derived, so it starts empty with its
+    marks at 0 rather than refusing to open or trusting marks that name what it lacks."""
+    index = KeywordIndex(tmp_path)
+    index.add("state@1", 0, ["idle"], 1)
+    index.add("state@1", 1, ["docked"], 2)
+    index.close()
+    damage(tmp_path)
+    reopened = KeywordIndex(tmp_path)
+    assert "indexing the logs again" in caplog.text
+    assert reopened.mark("state@1") == 0
+    assert reopened.search(["idle"], None) == {}
+    reopened.add("state@1", 0, ["idle", "docked"], 2)
+    reopened.close()
+    again = KeywordIndex(tmp_path)
+    assert again.mark("state@1") == 2
+    assert again.search(["docked"], None) == {"state@1": {1}}
+    again.close()
+
+
+def test_a_store_over_a_torn_keyword_index_starts_and_finds_its_records_again(
+    open_store: StoreFactory,
+) -> None:
+    store = open_store()
+    store.append([state_record(t, mode="docked") for t in range(5)], author=AUTHOR)
+    store.index_keywords()
+    _empty_toc(store.keywords.directory)
+    store = open_store()
+    store.index_keywords()
+    assert store.keywords.search(["docked"], None) == {"state@1": set(range(5))}
+    assert store.keywords_pending() == 0
