@@ -1,0 +1,158 @@
+"""A storage node killed (SIGKILL) after its ``Registry.advertise`` transaction was mined but
+before the job saved what it published: the resumed job advertises nothing more.
+
+Real ledger, cas and storage processes; the storage node reaches the ledger through a
+forwarding proxy that, on the advertise transaction, forwards it, waits until the ledger has
+mined it and then kills the node before answering. What decides where the kill lands is the
+transaction itself, never a timer.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+from pathlib import Path
+
+import httpx
+import rlp
+from eth_utils.crypto import keccak
+
+from robocloud.cid import CID, parse_cid
+from robocloud.identity import Identity
+from robocloud.ingest import Ingest
+from robocloud.ledger import Ledger
+from robocloud.ledger.abi import ContractAbi, signature
+from robocloud.ledger.rpc import JsonRpcClient
+from robocloud.storage import Storage as StorageClient
+from tests.bagfactory import write_bag
+from tests.conftest import ServiceFactory
+from tests.integration.services.storage.test_ingest_http import START_NS, Storage, approve
+from tests.procs import ServiceProcess
+from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.waiting import wait_for
+
+ADVERTISE = keccak(text=signature(ContractAbi.load("Registry").functions["advertise"]))[:4]
+"""The selector of ``Registry.advertise(bytes,bytes)``, what the proxy watches calldata for."""
+
+HOP_BY_HOP = {"host", "connection", "keep-alive", "content-length", "transfer-encoding"}
+
+
+def _calldata(raw: bytes) -> bytes:
+    """The ``data`` of a signed transaction: legacy (an RLP list) or typed (EIP-2718)."""
+    if raw[0] >= 0xC0:
+        return bytes(rlp.decode(raw)[5])
+    fields = rlp.decode(raw[1:])
+    return bytes(fields[6] if raw[0] == 1 else fields[7])
+
+
+def _calls_advertise(body: bytes) -> bool:
+    """Whether a JSON-RPC request (or batch) sends a transaction calling ``advertise``."""
+    try:
+        message = json.loads(body)
+    except ValueError:
+        return False
+    for call in message if isinstance(message, list) else [message]:
+        if isinstance(call, dict) and call.get("method") == "eth_sendRawTransaction":
+            raw = bytes.fromhex(str(call["params"][0]).removeprefix("0x"))
+            if _calldata(raw)[:4] == ADVERTISE:
+                return True
+    return False
+
+
+class KillOnAdvertise:
+    """A proxy script: every request goes to the ledger; the first advertise transaction is
+    sent and mined, then the storage node is killed and gets no answer."""
+
+    def __init__(self, ledger: ServiceProcess) -> None:
+        self.ledger = ledger
+        self.upstream = httpx.Client(base_url=ledger.url, timeout=60)
+        self.storage: ServiceProcess | None = None
+        self.armed = True
+        self.advertise_tx: str | None = None
+        self.killed = threading.Event()
+        self._lock = threading.Lock()
+
+    def __call__(self, exchange: Exchange) -> Reply:
+        headers = {k: v for k, v in exchange.headers.items() if k not in HOP_BY_HOP}
+        with self._lock:
+            kill = self.armed and exchange.method == "POST" and _calls_advertise(exchange.body)
+            self.armed = self.armed and not kill
+        answer = self.upstream.request(
+            exchange.method, exchange.path, headers=headers, content=exchange.body
+        )
+        if kill:
+            return self._kill_once_mined(answer)
+        dropped = HOP_BY_HOP | {"content-encoding"}
+        kept = {k: v for k, v in answer.headers.items() if k.lower() not in dropped}
+        return answer.status_code, kept, answer.content
+
+    def _kill_once_mined(self, answer: httpx.Response) -> Reply:
+        tx_hash = str(answer.json()["result"])
+        with JsonRpcClient(f"{self.ledger.url}/rpc", service="ledger") as rpc:
+            wait_for(
+                lambda: rpc.request("eth_getTransactionReceipt", [tx_hash]),
+                "the ledger to mine the advertise transaction",
+            )
+        assert self.storage is not None
+        assert self.storage.process is not None
+        os.kill(self.storage.process.pid, signal.SIGKILL)
+        self.advertise_tx = tx_hash
+        self.killed.set()
+        return None
+
+
+def test_kill_9_after_the_advertise_is_mined_advertises_the_dataset_once(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    ledger = service_factory("ledger")
+    cas = service_factory("cas")
+    proxy = KillOnAdvertise(ledger)
+    with scripted_server(proxy, answer_audience=False) as server:
+        storage = service_factory(
+            "storage",
+            {
+                "ROBOCLOUD_LEDGER_URL": server.url,
+                "ROBOCLOUD_CAS_URL": cas.url,
+                "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+                "ROBOCLOUD_STORAGE_ANCHOR": "false",
+            },
+        )
+        proxy.storage = storage
+        bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
+        with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ing:
+            imu = approve(client, "sensor_msgs/msg/Imu")
+            ing.bind(imu, msgtype="sensor_msgs/msg/Imu")
+            job_id: str = ing.upload(bag)["id"]
+        wait_for(proxy.killed.is_set, "the storage node to send its advertise transaction")
+        assert storage.process is not None
+        storage.process.wait()
+
+        saved = json.loads((storage.data_dir / "ingest" / job_id / "job.json").read_bytes())
+        assert (saved["publish_attempts"], saved["dataset"]) == (1, None), saved
+
+        storage.start()
+        with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ing:
+            done = ing.wait(job_id, timeout_s=180)
+            assert done["status"] == "succeeded", done["error"]
+            page = records.query(template=imu, limit=1000)
+        node = str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
+    assert page.next is None
+
+    dataset = done["dataset"]
+    with Ledger.connect(ledger.url) as chain:
+        advertised = chain.advertisements(cid=parse_cid(dataset["cid"], "bag").binary)
+    assert [(event.advertiser, event.tx_hash) for event in advertised] == [
+        (node, proxy.advertise_tx)
+    ]
+    assert dataset == {
+        "cid": dataset["cid"],
+        "description": str(CID.from_bytes(advertised[0].description_cid)),
+        "tx": proxy.advertise_tx,
+    }
+
+    bound = sum(topic["messages"] for topic in done["topics"] if topic["template"] is not None)
+    times = [stored.record["t"] for stored in page.records]
+    assert done["records"]["committed"] == bound
+    assert len(times) == len(set(times)) == bound
