@@ -98,11 +98,13 @@ class EmbeddedLedger:
             },
         )
 
-    def catch_up(self) -> None:
-        """Index every block after the index's cursor (after a crash, or on first start)."""
+    def catch_up(self, through: int | None = None) -> None:
+        """Index every block after the index's cursor through ``through`` (the head when
+        None): after a crash, on first start, or after an index write failed."""
         cursor = self.index.cursor()
         start = cursor[0] + 1 if cursor else 0
-        for number in range(start, self.chain.head().block_number + 1):
+        last = self.chain.head().block_number if through is None else through
+        for number in range(start, last + 1):
             block = self.chain.block_by_number(number)
             if block is None:
                 break
@@ -110,12 +112,15 @@ class EmbeddedLedger:
             self.index.add_block(number, block.hash, encoding.block_logs(block, receipts))
 
     def _index_block(self, mined: MinedBlock) -> None:
+        """Index the block just mined, and first what an earlier failed write left out. It
+        runs before the chain's head moves to the block, so catching up to the head alone
+        stopped one block short, every time: the index stayed a block behind for good."""
         cursor = self.index.cursor()
         if cursor is not None and cursor[0] == mined.block.number - 1:
             logs = encoding.block_logs(mined.block, mined.receipts)
             self.index.add_block(mined.block.number, mined.block.hash, logs)
         else:
-            self.catch_up()
+            self.catch_up(mined.block.number)
 
     def latest_block(self) -> dict[str, Any]:
         block = self.chain.block_by_number("latest")
@@ -137,6 +142,9 @@ class EmbeddedLedger:
         except ChainError as exc:
             self.limits.release(address)
             raise FaucetFailed(str(exc)) from exc
+        except Exception:
+            self.limits.release(address)  # a disk error: the robot may ask again at once
+            raise
         located = self.chain.locate(tx_hash)
         return {
             "address": address,

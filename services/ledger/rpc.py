@@ -798,16 +798,22 @@ class EmbeddedMethods:
         if changes.criteria is None:
             hashes = self.chain.canonical_hashes(changes.first, changes.last)
             answer: list[Any] = [encoding.data(block_hash) for block_hash in hashes]
-        elif changes.first > changes.last:
-            answer = []
         else:
-            window = changes.criteria.window(changes.first, changes.last)
-            found, covered = self.index.logs_page(window) if window else ([], changes.last)
+            reported = self._indexed_through(changes.last)
+            window = changes.criteria.window(changes.first, reported)
+            found, covered = self.index.logs_page(window) if window else ([], reported)
             if window is not None and covered < window.to_block:
                 reported = covered  # the rest comes with the next poll
             answer = [entry.to_rpc() for entry in found]
         self.filters.reported(filter_id, reported)
         return answer
+
+    def _indexed_through(self, head: int) -> int:
+        """The last block up to ``head`` the event index holds. A log filter reports no
+        further: a block mined but not indexed yet (the index catches up after a failed
+        write) would otherwise be passed over, and its events never reported."""
+        cursor = self.index.cursor()
+        return -1 if cursor is None else min(head, cursor[0])
 
     def filter_logs(self, params: list[Any]) -> Any:
         criteria = self.filters.criteria(_filter_id(param(params, 0)))
