@@ -462,7 +462,7 @@ class EmbeddedChain:
                 self._pool.add(transaction)
                 return Submitted(transaction.hash, None)
             mined = self._mine(transaction, vm)
-        if self._promote(transaction.sender, time.monotonic() + PROMOTION_IN_ANSWER_S):
+        if self._promote_logged(transaction.sender, time.monotonic() + PROMOTION_IN_ANSWER_S):
             self._promote_later(transaction.sender)
         return Submitted(transaction.hash, mined)
 
@@ -494,13 +494,19 @@ class EmbeddedChain:
             if not self._closing:
                 self._promoter.submit(self._promote_logged, sender)
 
-    def _promote_logged(self, sender: bytes) -> None:
+    def _promote_logged(self, sender: bytes, deadline: float = math.inf) -> bool:
+        """``_promote``, a failure (a disk error mining a waiting transaction) logged: the
+        transaction that let them through is mined and durable by then, and raising answered
+        it as failed, so its robot signed it again and was told "nonce too low". True when
+        the promoter thread should go on: the deadline came, or a failure in the answer's
+        turn (the thread tries once more)."""
         try:
-            self._promote(sender)
+            return self._promote(sender, deadline)
         except Exception:
             log.exception(
                 "mining waiting transactions failed", extra={"sender": "0x" + sender.hex()}
             )
+            return deadline != math.inf
 
     def _promote_one(self, sender: bytes) -> bool:
         """Mine the sender's next waiting transaction; False when none is next (or it was
@@ -520,6 +526,9 @@ class EmbeddedChain:
                 extra={"tx": "0x" + waiting.hash.hex(), "reason": exc.message},
             )
             return False
+        except Exception:
+            self._pool.add(waiting)  # not mined (a disk error): it waits again, not lost
+            raise
         return True
 
     def _check(self, transaction: SignedTransactionAPI, state: StateAPI) -> bool:

@@ -120,3 +120,46 @@ def test_a_faucet_grant_a_disk_error_stopped_is_given_back(
     funded = ledger.fund(robot)
     assert funded["address"] == robot
     assert int(rpc(ledger, "eth_getBalance", robot, "latest"), 16) == 10**18
+
+
+def transfer(ledger: EmbeddedLedger, sender: Any, nonce: int) -> str:
+    transaction = {
+        "chainId": ledger.chain_id,
+        "nonce": nonce,
+        "gas": 21_000,
+        "gasPrice": 10**10,
+        "to": "0x" + "77" * 20,
+        "value": 1,
+    }
+    raw = bytes(sender.sign_transaction(transaction).raw_transaction)
+    return str(rpc(ledger, "eth_sendRawTransaction", "0x" + raw.hex()))
+
+
+def test_a_disk_error_mining_a_waiting_transaction_fails_neither_it_nor_its_opener(
+    ledger: EmbeddedLedger, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Nonce 1 waited; nonce 0 was mined and durable, then mining nonce 1 hit a disk error:
+    nonce 0 was answered -32603 (its robot signed it again: "nonce too low") and nonce 1,
+    taken from the pool, was lost."""
+    robot = Account.create()
+    ledger.fund(robot.address)
+    waiting = transfer(ledger, robot, 1)
+    chain = ledger.chain
+    mine = chain._mine
+    mined: list[bytes] = []
+
+    def second_fails(transaction: Any, vm: Any) -> Any:
+        if mined:
+            raise sqlite3.OperationalError("disk I/O error")
+        mined.append(transaction.hash)
+        return mine(transaction, vm)
+
+    monkeypatch.setattr(chain, "_mine", second_fails)
+    opener = transfer(ledger, robot, 0)
+    chain._promoter.submit(lambda: None).result()  # its one retry, failing too, is over
+    assert rpc(ledger, "eth_getTransactionReceipt", opener)["status"] == "0x1"
+    assert rpc(ledger, "eth_getTransactionReceipt", waiting) is None
+    assert chain._pool.find(bytes.fromhex(waiting[2:])) is not None
+    monkeypatch.undo()
+    chain._promote(bytes.fromhex(robot.address[2:]))
+    assert rpc(ledger, "eth_getTransactionReceipt", waiting)["status"] == "0x1"
