@@ -62,9 +62,12 @@ CREATE TABLE IF NOT EXISTS growth (
     epoch INTEGER NOT NULL,
     PRIMARY KEY (template, size)
 ) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS epochs_pending ON epochs (epoch) WHERE tx IS NULL;
 """
 """``growth`` holds one row per template per epoch it grew in: the first epoch holding a
-record is the one with the smallest size above the record's index."""
+record is the one with the smallest size above the record's index. ``epochs_pending`` holds
+the epochs not anchored yet, which the anchorer asks for before every anchor: a scan of every
+epoch ever cut took 251 ms at 500,000 (11.6 days of 2 s epochs), and grew without end."""
 
 
 class NotAnchored(Exception):
