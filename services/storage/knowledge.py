@@ -8,7 +8,8 @@ The SPARQL workers (``services.storage.sparql``) build their graphs from them, s
 a kill -9 re-reads local files and fetches nothing again.
 
 The ledger follower keeps its place in ``knowledge/follow.json`` (the last advertisement
-handled, descriptions whose fetch failed and are retried, and those refused, with why). When
+handled, descriptions whose fetch failed and are retried with a backoff, and those refused,
+with why). When
 the directory is lost, it starts again from block 0 and fetches every advertised description
 from cas again: the knowledge base rebuilds itself from cas and the chain.
 """
@@ -18,9 +19,10 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager
-from dataclasses import dataclass
+from contextlib import AbstractContextManager, ExitStack, nullcontext
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -49,6 +51,14 @@ log = logging.getLogger("robocloud.storage.knowledge")
 MAX_PENDING = 10_000
 """Advertised descriptions whose fetch failed, kept for retry; the oldest go beyond this."""
 MAX_REFUSED = 100_000
+MAX_ATTEMPTS = 16
+"""Failed fetches of an advertised description before it is refused for good: anyone may
+advertise a CID that cas never holds, and each one kept would be fetched again for ever."""
+MAX_BACKOFF_S = 3600.0
+"""The longest wait between two fetches of one pending description (the first waits one poll
+interval, each later one twice the one before): 16 attempts span several hours."""
+MAX_RETRIES_PER_ROUND = 50
+"""Pending descriptions fetched again in one poll, so that retries cannot delay new ones."""
 
 
 class KnowledgeError(Exception):
@@ -182,14 +192,27 @@ class Indexed:
         }
 
 
+@dataclass(frozen=True)
+class Retry:
+    """A pending description's failed fetches so far and when (epoch seconds) to fetch it again."""
+
+    attempts: int
+    due: float
+
+
 @dataclass
 class FollowState:
-    """Where the ledger follower is, persisted in ``follow.json``."""
+    """Where the ledger follower is, persisted in ``follow.json``.
+
+    ``retries`` holds the backoff of pending descriptions; a pending CID without one (a file
+    written before retries were saved) is due at once, with no attempt counted.
+    """
 
     block: int = 0
     log_index: int = -1
     pending: list[str] | None = None
     refused: dict[str, str] | None = None
+    retries: dict[str, Retry] = field(default_factory=dict)
 
     @classmethod
     def load(cls, path: Path) -> FollowState:
@@ -202,6 +225,10 @@ class FollowState:
                 int(document["log_index"]),
                 [str(cid) for cid in document["pending"]],
                 {str(cid): str(why) for cid, why in document["refused"].items()},
+                {
+                    str(cid): Retry(int(retry["attempts"]), float(retry["due"]))
+                    for cid, retry in document.get("retries", {}).items()
+                },
             )
         except FileNotFoundError:
             return cls(0, -1, [], {})
@@ -215,6 +242,10 @@ class FollowState:
             "log_index": self.log_index,
             "pending": self.pending or [],
             "refused": self.refused or {},
+            "retries": {
+                cid: {"attempts": retry.attempts, "due": retry.due}
+                for cid, retry in self.retries.items()
+            },
         }
         atomic_write(path, json.dumps(document, sort_keys=True).encode())
 
@@ -250,19 +281,21 @@ class KnowledgeBase:
         with self._lock:
             return cid in self._known
 
-    def add(self, cid_text: str) -> Indexed:
+    def add(self, cid_text: str, cas: CasReader | None = None) -> Indexed:
         """Fetch, read, validate and store the description at ``cid_text``; idempotent.
 
-        Raises :class:`CidNotCanonical` when the bytes there have another canonical CID.
+        ``cas`` is a client to fetch it with (the follower's, shared by one round); without
+        one, a client is opened for this description. Raises :class:`CidNotCanonical` when the
+        bytes there have another canonical CID.
         """
         cid = str(parse_cid(cid_text, "cid").to_v1())
-        description = self._fetch(cid, cid_text)
+        description = self._fetch(cid, cid_text, cas)
         new = self._store(cid, description)
         return Indexed(cid, description.subjects(), len(description), new)
 
-    def _fetch(self, cid: str, cid_text: str) -> Description:
+    def _fetch(self, cid: str, cid_text: str, client: CasReader | None) -> Description:
         try:
-            with self.connect_cas() as cas:
+            with nullcontext(client) if client is not None else self.connect_cas() as cas:
                 data = cas.get(cid, max_size=self.max_bytes)
         except ContentTooLargeError as exc:
             size = exc.declared or self.max_bytes + 1
@@ -396,6 +429,8 @@ class LedgerFollower:
         self.state = FollowState.load(self.path)
         self.error: str | None = None
         self.indexed = 0
+        self.clock: Callable[[], float] = time.time
+        """Epoch seconds, saved as each retry's due time (so that a restart keeps backoffs)."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="knowledge-follower", daemon=True)
 
@@ -430,53 +465,140 @@ class LedgerFollower:
                 self._stop.wait(self.interval_s)
 
     def poll(self) -> bool:
-        """One round: retry pending descriptions, then read new advertisements.
+        """One round: read new advertisements, then retry the pending descriptions that are due.
+
+        The position moves past an advertisement only once its description is indexed,
+        refused or pending, so that no error while indexing one loses it. New advertisements
+        come first, and at most ``MAX_RETRIES_PER_ROUND`` pending descriptions are fetched
+        again, each after its backoff, all through one cas client.
 
         True when a full batch brought something new (there may be more to read at once). A
         block with more advertisements than a batch cannot be read past with ``since``: the
         batch (1,000) is far above what one block of the development chain holds.
         """
         state = self.state
-        pending, refused = state.pending or [], state.refused or {}
-        changed = False
-        for cid in list(pending):
-            if self._index(cid, refused):
-                pending.remove(cid)
-                changed = True
+        state.pending, state.refused = state.pending or [], state.refused or {}
         with self.connect() as ledger:
             advertisements = ledger.advertisements(since=state.block, limit=self.batch)
-        progressed = False
-        for ad in advertisements:
-            if (ad.block_number, ad.log_index) <= (state.block, state.log_index):
-                continue
-            state.block, state.log_index = ad.block_number, ad.log_index
-            changed = progressed = True
-            cid = ad.description
-            if cid is None or cid in refused or cid in self.knowledge or cid in pending:
-                continue
-            if not self._index(cid, refused):
-                pending.append(cid)
-                del pending[:-MAX_PENDING]
-        if changed:
-            state.pending, state.refused = pending, refused
+        with _RoundCas(self.knowledge.connect_cas) as cas:
+            progressed = False
+            for ad in advertisements:
+                if (ad.block_number, ad.log_index) <= (state.block, state.log_index):
+                    continue
+                cid = ad.description
+                if not (
+                    cid is None
+                    or cid in state.refused
+                    or cid in self.knowledge
+                    or cid in state.retries
+                    or cid in state.pending
+                ):
+                    self._attempt(cid, cas, new=True)
+                state.block, state.log_index = ad.block_number, ad.log_index
+                progressed = True
+            retried = self._retry_due(cas)
+        if progressed or retried:
             state.save(self.path)
         return progressed and len(advertisements) >= self.batch
 
-    def _index(self, cid: str, refused: dict[str, str]) -> bool:
-        """True once the description is indexed or refused for good; False to retry later."""
+    def _retry_due(self, cas: _RoundCas) -> bool:
+        now = self.clock()
+        retries = self.state.retries
+        due = [
+            cid for cid in self.state.pending or [] if cid not in retries or retries[cid].due <= now
+        ][:MAX_RETRIES_PER_ROUND]
+        for cid in due:
+            if cas.unavailable:
+                break
+            self._attempt(cid, cas, new=False)
+        return bool(due)
+
+    def _attempt(self, cid: str, cas: _RoundCas, *, new: bool) -> None:
+        """Index ``cid``; when that fails, keep it pending with its backoff, or refuse it once
+        ``MAX_ATTEMPTS`` fetches failed. Once cas was unreachable this round, a new CID is
+        queued without a fetch."""
+        pending, refused, retries = self.state.pending, self.state.refused, self.state.retries
+        assert pending is not None
+        assert refused is not None
+        failure = "cas was unreachable" if cas.unavailable else self._index(cid, refused, cas)
+        if failure is None:
+            if not new:
+                pending.remove(cid)
+            retries.pop(cid, None)
+            return
+        previous = retries.get(cid, Retry(0, 0.0))
+        attempts = previous.attempts + (0 if cas.unavailable else 1)
+        if attempts >= MAX_ATTEMPTS:
+            log.warning("advertised description %s refused after %d attempts", cid, attempts)
+            _refuse(refused, cid, f"not fetched after {attempts} attempts: {failure}")
+            if not new:
+                pending.remove(cid)
+            retries.pop(cid, None)
+            return
+        wait = min(self.interval_s * 2 ** min(max(attempts - 1, 0), 32), MAX_BACKOFF_S)
+        retries[cid] = Retry(attempts, self.clock() + wait)
+        if new:
+            pending.append(cid)
+            for dropped in pending[:-MAX_PENDING]:
+                retries.pop(dropped, None)
+                _refuse(refused, dropped, f"dropped: more than {MAX_PENDING} descriptions pending")
+            del pending[:-MAX_PENDING]
+
+    def _index(self, cid: str, refused: dict[str, str], cas: _RoundCas) -> str | None:
+        """None once the description is indexed or refused for good; else why to retry it."""
         try:
-            indexed = self.knowledge.add(cid)
+            indexed = self.knowledge.add(cid, cas)
         except DescriptionRefused as exc:
             log.info("advertised description %s refused: %s", cid, exc.reason)
-            if len(refused) < MAX_REFUSED:
-                refused[cid] = str(exc.reason)[:500]
-            return True
-        except (DescriptionNotFound, CasUnavailable) as exc:
+            _refuse(refused, cid, str(exc.reason))
+            return None
+        except DescriptionNotFound as exc:
             log.info("advertised description %s not fetched yet: %s", cid, exc)
-            return False
+            return str(exc)
+        except CasUnavailable as exc:
+            log.info("advertised description %s not fetched yet: %s", cid, exc)
+            cas.unavailable = True
+            return str(exc)
         except ValueError as exc:  # a CID the chain holds that is not a valid CID
-            refused[cid] = str(exc)[:500]
-            return True
+            _refuse(refused, cid, str(exc))
+            return None
+        except Exception as exc:  # a full disk, a bug: keep the description, try it again later
+            log.warning(
+                "indexing advertised description %s failed, kept for a retry: %s: %s",
+                cid,
+                type(exc).__name__,
+                exc,
+            )
+            return f"{type(exc).__name__}: {exc}"
         if indexed.new:
             self.indexed += 1
-        return True
+        return None
+
+
+def _refuse(refused: dict[str, str], cid: str, why: str) -> None:
+    if len(refused) < MAX_REFUSED:
+        refused[cid] = why[:500]
+
+
+class _RoundCas:
+    """One cas client for a round of the follower, opened at its first fetch.
+
+    ``unavailable`` is set once cas could not be asked: the rest of the round fetches nothing.
+    """
+
+    def __init__(self, connect: Connect) -> None:
+        self._connect = connect
+        self._stack = ExitStack()
+        self._cas: CasReader | None = None
+        self.unavailable = False
+
+    def __enter__(self) -> _RoundCas:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self._stack.close()
+
+    def get(self, cid: CID | str, *, max_size: int | None = None) -> bytes:
+        if self._cas is None:
+            self._cas = self._stack.enter_context(self._connect())
+        return self._cas.get(cid, max_size=max_size)

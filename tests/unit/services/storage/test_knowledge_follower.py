@@ -1,0 +1,229 @@
+"""The ledger follower over real files, a stand-in ledger and a stand-in cas: an error while
+indexing one advertisement keeps it pending, and descriptions cas does not hold are retried
+with a backoff, a bounded number per round, then refused."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, cast
+
+import pytest
+
+from robocloud import semantic
+from robocloud.cid import CID
+from robocloud.errors import NotFoundError
+from robocloud.unixfs import import_bytes
+from services.storage import knowledge
+from services.storage.knowledge import (
+    MAX_ATTEMPTS,
+    FollowState,
+    KnowledgeBase,
+    LedgerFollower,
+    Retry,
+)
+from services.storage.sparql import SparqlWorkers
+
+EXAMPLES = Path(__file__).resolve().parents[4] / "ontology" / "examples"
+
+
+@dataclass
+class Ad:
+    block_number: int
+    log_index: int
+    description: str | None
+
+
+class Ledger:
+    def __init__(self) -> None:
+        self.ads: list[Ad] = []
+
+    def advertisements(self, *, since: int, limit: int) -> list[Ad]:
+        return [ad for ad in self.ads if ad.block_number >= since][:limit]
+
+
+class Cas:
+    """Holds ``blobs``; counts each client opened and each fetch."""
+
+    def __init__(self) -> None:
+        self.blobs: dict[str, bytes] = {}
+        self.clients = 0
+        self.fetched: list[str] = []
+
+    def put(self, name: str) -> str:
+        data = semantic.parse_description((EXAMPLES / f"{name}.ttl").read_bytes()).canonical()
+        cid = str(import_bytes(data)[1])
+        self.blobs[cid] = data
+        return cid
+
+    @contextmanager
+    def connect(self) -> Iterator[Cas]:
+        self.clients += 1
+        yield self
+
+    def get(self, cid: CID | str, *, max_size: int | None = None) -> bytes:
+        self.fetched.append(str(cid))
+        try:
+            return self.blobs[str(cid)]
+        except KeyError:
+            raise NotFoundError(404, "not_found", f"no block {cid}") from None
+
+    def round(self) -> tuple[int, int]:
+        """Clients opened and fetches since the last call."""
+        counts = (self.clients, len(self.fetched))
+        self.clients, self.fetched = 0, []
+        return counts
+
+
+class Workers:
+    def __init__(self) -> None:
+        self.added: list[str] = []
+
+    def add(self, cids: list[str]) -> None:
+        self.added.extend(cids)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1_800_000_000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def cas() -> Cas:
+    return Cas()
+
+
+@pytest.fixture
+def ledger() -> Ledger:
+    return Ledger()
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def make_follower(tmp_path: Path, cas: Cas, ledger: Ledger, clock: Clock) -> Any:
+    kb = KnowledgeBase(tmp_path / "knowledge", cast(SparqlWorkers, Workers()), cas.connect)
+
+    @contextmanager
+    def connect_ledger() -> Iterator[Ledger]:
+        yield ledger
+
+    def make() -> LedgerFollower:
+        follower = LedgerFollower(kb, connect_ledger, 10.0, 1000)
+        follower.clock = clock
+        return follower
+
+    return make
+
+
+def bogus_cid(n: int) -> str:
+    return str(import_bytes(f"not in cas {n}".encode())[1])
+
+
+def test_a_disk_error_storing_one_description_keeps_it_pending(
+    make_follower: Any, cas: Cas, ledger: Ledger, clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    file_cid, app_cid, task_cid = cas.put("file"), cas.put("application"), cas.put("task")
+    follower = make_follower()
+    real_write = knowledge.atomic_write
+    disk_full = True
+
+    def atomic_write(path: Path, data: bytes) -> None:
+        if disk_full and path.name == f"{app_cid}.nt":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        real_write(path, data)
+
+    monkeypatch.setattr(knowledge, "atomic_write", atomic_write)
+    ledger.ads += [Ad(1, 0, file_cid), Ad(2, 0, app_cid), Ad(3, 0, task_cid)]
+    follower.poll()
+
+    kb = follower.knowledge
+    assert (file_cid in kb, app_cid in kb, task_cid in kb) == (True, False, True)
+    assert (follower.state.block, follower.state.log_index) == (3, 0)
+    assert follower.state.pending == [app_cid]
+    assert follower.state.refused == {}
+    saved = json.loads((kb.root / "follow.json").read_text())
+    assert saved["pending"] == [app_cid]
+    assert saved["retries"][app_cid]["attempts"] == 1
+
+    disk_full = False
+    restarted = make_follower()
+    assert restarted.state.pending == [app_cid]
+    clock.now += 3600
+    restarted.poll()
+    assert app_cid in kb
+    assert (restarted.state.pending, restarted.state.retries) == ([], {})
+
+
+def test_pending_descriptions_back_off_are_bounded_per_round_and_refused_at_last(
+    make_follower: Any,
+    cas: Cas,
+    ledger: Ledger,
+    clock: Clock,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(knowledge, "MAX_RETRIES_PER_ROUND", 7)
+    bogus = [bogus_cid(n) for n in range(20)]
+    ledger.ads += [Ad(1 + n, 0, cid) for n, cid in enumerate(bogus)]
+    follower = make_follower()
+
+    follower.poll()
+    assert cas.round() == (1, 20)  # each new advertisement fetched once, through one client
+    assert follower.state.pending == bogus
+
+    follower.poll()
+    assert cas.round() == (0, 0)  # none is due yet: nothing fetched again
+
+    honest = cas.put("file")
+    ledger.ads.append(Ad(100, 0, honest))
+    follower.poll()
+    assert cas.round() == (1, 1)
+    assert honest in follower.knowledge
+
+    clock.now += 20  # two poll intervals: all are due, only 7 are fetched again this round
+    follower.poll()
+    assert cas.round() == (1, 7)
+    assert {follower.state.retries[cid].attempts for cid in bogus} == {1, 2}
+    follower.poll()
+    follower.poll()
+    assert cas.round() == (2, 13)  # the rest, then nothing left due
+    follower.poll()
+    assert cas.round() == (0, 0)
+
+    restarted = make_follower()  # the backoff survives a restart
+    assert restarted.state.retries == follower.state.retries
+    for _ in range(MAX_ATTEMPTS * 3):
+        clock.now += knowledge.MAX_BACKOFF_S
+        restarted.poll()
+    assert restarted.state.pending == []
+    assert restarted.state.retries == {}
+    assert set(restarted.state.refused or {}) == set(bogus)
+    assert (restarted.state.refused or {})[bogus[0]].startswith(
+        f"not fetched after {MAX_ATTEMPTS} attempts: cas does not have"
+    )
+    assert len(cas.fetched) == len(bogus) * (MAX_ATTEMPTS - 2)
+    cas.round()
+    clock.now += knowledge.MAX_BACKOFF_S
+    restarted.poll()
+    assert cas.round() == (0, 0)
+
+
+def test_a_place_saved_before_retries_were_kept_still_loads(tmp_path: Path) -> None:
+    path = tmp_path / "follow.json"
+    path.write_text(
+        json.dumps({"block": 7, "log_index": 2, "pending": ["bafyold"], "refused": {"x": "why"}})
+    )
+    assert FollowState.load(path) == FollowState(7, 2, ["bafyold"], {"x": "why"}, {})
+    FollowState(7, 2, ["bafyold"], {}, {"bafyold": Retry(3, 12.5)}).save(path)
+    assert FollowState.load(path).retries == {"bafyold": Retry(3, 12.5)}
