@@ -315,17 +315,27 @@ class IngestJobs:
                 job.updated_ns = time.time_ns()
 
     def _work(self) -> None:
+        """Run queued jobs one at a time, for the service's lifetime. A job whose failure
+        cannot be saved either (a full disk) is logged and left failed in memory, to be
+        resumed from its last saved state at the next start: raising out of here killed
+        the only ingest thread, and every later job stayed queued."""
         while (job_id := self._queue.get()) is not None:
             job = self._jobs.get(job_id)
             if job is None:
                 continue
             try:
-                self._run(job)
-            except IngestFailed as exc:
-                self._fail(job, exc.code, str(exc), exc.details)
-            except Exception as exc:
-                log.exception("ingest job failed", extra={"job": job.id})
-                self._fail(job, "ingest_failed", f"{type(exc).__name__}: {exc}", {})
+                self._attempt(job)
+            except Exception:
+                log.exception("ingest job's failure not saved", extra={"job": job.id})
+
+    def _attempt(self, job: Job) -> None:
+        try:
+            self._run(job)
+        except IngestFailed as exc:
+            self._fail(job, exc.code, str(exc), exc.details)
+        except Exception as exc:
+            log.exception("ingest job failed", extra={"job": job.id})
+            self._fail(job, "ingest_failed", f"{type(exc).__name__}: {exc}", {})
 
     def _fail(self, job: Job, code: str, message: str, details: dict[str, Any]) -> None:
         resumable = job.status == "committing"

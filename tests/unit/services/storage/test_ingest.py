@@ -3,6 +3,7 @@ reported, failures leaving the logs untouched, and an interrupted commit settled
 
 from __future__ import annotations
 
+import errno
 import json
 import shutil
 import tracemalloc
@@ -16,6 +17,7 @@ import pytest
 from robocloud.identity import Identity
 from robocloud.templates import parse_template
 from robocloud.unixfs import import_bytes
+from services.storage import ingest
 from services.storage.bags import Bag
 from services.storage.catalog import Catalog
 from services.storage.ingest import IngestJobs, Job, JobNotFound, TooManyJobs
@@ -523,3 +525,33 @@ def test_the_blob_memo_forgets_the_oldest_content() -> None:
     for data in (b"a", b"a", b"b", b"c", b"c", b"a"):
         blobs.put(data)
     assert added == [b"a", b"b", b"c", b"a"]
+
+
+def test_a_failure_the_disk_cannot_save_leaves_the_ingest_worker_running(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A job failed on a full disk and saving its failure failed too: the exception killed
+    the only ingest thread, and every job accepted after it stayed queued."""
+    node = Node(tmp_path / "node")
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+
+    def no_space(*args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full_disk(*args: object) -> None:
+        monkeypatch.setattr(ingest, "atomic_write", no_space)
+        no_space()
+
+    monkeypatch.setattr(node.jobs, "_plan", full_disk)
+    first = node.jobs.submit(
+        bag(tmp_path, "b1", 20), "upload:1", authorship("nonce-1111111111111111")
+    )
+    assert node.jobs.wait(first.id, 60).status == "failed"
+    monkeypatch.undo()
+    second = node.jobs.submit(
+        bag(tmp_path, "b2", 20), "upload:2", authorship("nonce-2222222222222222")
+    )
+    finished = node.jobs.wait(second.id, 120)
+    assert finished.status == "succeeded"
+    assert finished.records_committed > 0
