@@ -645,6 +645,15 @@ STOP_WAIT_S = 5.0
 before it is replaced."""
 IDLE_REFRESH_S = 30.0
 """How long a worker stays idle after a query before its executor is forked afresh."""
+SPAWN_RETRY_S = 0.5
+"""How long after a failed start of a worker (a fork refused: EAGAIN, ENOMEM) it is tried
+again; doubled after each further failure, up to ``SPAWN_RETRY_MAX_S``."""
+SPAWN_RETRY_MAX_S = 30.0
+
+
+class _StalledWrite(Exception):
+    """The worker did not take a whole message off its pipe before the deadline: it is hung
+    (stopped, or stuck in the kernel), and a message half written cannot be taken back."""
 
 
 @dataclass
@@ -693,20 +702,27 @@ class SparqlWorkers:
         self.stopped = 0
         self.refreshed = 0
         self._closing = threading.Event()
+        self._starting = 0
+        """Workers being started (between their fork and their registration)."""
+        self._short = threading.Event()
+        """Set when a worker could not be started: ``_keep_count`` starts it again."""
 
     def start(self) -> None:
         """Start every worker in the background; each becomes idle once it has loaded."""
+        threading.Thread(target=self._keep_count, daemon=True).start()
         for _ in range(self.count):
-            self._spawn()
+            self._spawn_or_retry()
         threading.Thread(target=self._refresh_idle, daemon=True).start()
 
     def loaded(self) -> bool:
-        """Whether a worker has loaded the graph, ever: the knowledge base answers queries from
-        then on. A worker replaced later (a query past its time is stopped by killing its
-        worker) does not undo it: while every worker reloads, queries get 503
-        ``knowledge_loading``; readiness flapped with each replacement a slow query caused."""
+        """Whether a worker has loaded the graph, ever, and a worker lives (or is starting):
+        the knowledge base answers queries from then on. A worker replaced later (a query past
+        its time is stopped by killing its worker) does not undo it: while every worker
+        reloads, queries get 503 ``knowledge_loading``; readiness flapped with each
+        replacement a slow query caused. A pool left with no worker at all (every fork
+        refused) is not ready until one is started again."""
         with self._lock:
-            return self._loaded
+            return self._loaded and bool(self._children or self._starting)
 
     def describe(self) -> dict[str, int]:
         with self._lock:
@@ -727,6 +743,7 @@ class SparqlWorkers:
 
     def close(self) -> None:
         self._closing.set()
+        self._short.set()
         with self._lock:
             self._closed = True
             children = list(self._children)
@@ -759,13 +776,14 @@ class SparqlWorkers:
         try:
             with self._lock:
                 pending, child.pending = child.pending, []
-            stdin = child.process.stdin
-            assert stdin is not None
             if pending:
-                _framed_write(stdin, ("load", pending))
-            _framed_write(stdin, message)
+                self._send(child, ("load", pending), deadline)
+            self._send(child, message, deadline)
             answer = self._read_answer(child, deadline)
             child.last_query = time.monotonic()
+        except _StalledWrite:
+            self._replace(child, "did not take the query off its pipe in time")
+            raise QueryTimeoutError(self.timeout_s) from None
         except QueryTimeoutError:
             if self._stop_query(child):
                 child.last_query = None  # the executor is a fresh one
@@ -788,12 +806,11 @@ class SparqlWorkers:
         """Have the worker kill the executor running the query (and fork a new one); whether
         it confirmed (or answered, the query having finished meanwhile) within
         ``STOP_WAIT_S``."""
-        stdin = child.process.stdin
-        assert stdin is not None
+        deadline = time.monotonic() + STOP_WAIT_S
         try:
-            _framed_write(stdin, ("stop",))
-            self._read_answer(child, time.monotonic() + STOP_WAIT_S)
-        except (SparqlError, OSError, EOFError, ValueError, pickle.UnpicklingError):
+            self._send(child, ("stop",), deadline)
+            self._read_answer(child, deadline)
+        except (_StalledWrite, SparqlError, OSError, EOFError, ValueError, pickle.UnpicklingError):
             return False
         with self._lock:
             self.stopped += 1
@@ -803,34 +820,59 @@ class SparqlWorkers:
         """Every so often, take each idle worker in turn and, when it has been idle for
         ``idle_refresh_s`` since a query, have it fork a fresh executor."""
         while not self._closing.wait(self.idle_refresh_s / 4):
-            for _ in range(self._idle.qsize()):
-                try:
-                    child = self._idle.get_nowait()
-                except queue.Empty:
-                    break
-                idle_since = child.last_query
-                if idle_since is None or time.monotonic() - idle_since < self.idle_refresh_s:
-                    self._idle.put(child)
-                elif self._refresh(child):
-                    child.last_query = None
-                    self._idle.put(child)
-                else:
-                    self._replace(child, "did not refresh its executor")
+            try:
+                self._refresh_idle_once()
+            except Exception:  # the thread must outlive one bad turn
+                log.exception("refreshing the idle SPARQL workers failed")
+
+    def _refresh_idle_once(self) -> None:
+        for _ in range(self._idle.qsize()):
+            try:
+                child = self._idle.get_nowait()
+            except queue.Empty:
+                break
+            idle_since = child.last_query
+            if idle_since is None or time.monotonic() - idle_since < self.idle_refresh_s:
+                self._idle.put(child)
+            elif self._refresh(child):
+                child.last_query = None
+                self._idle.put(child)
+            else:
+                self._replace(child, "did not refresh its executor")
 
     def _refresh(self, child: _Child) -> bool:
         """Have the worker fork a fresh executor; whether it said so within ``STOP_WAIT_S``."""
-        stdin = child.process.stdin
-        assert stdin is not None
+        deadline = time.monotonic() + STOP_WAIT_S
         try:
-            _framed_write(stdin, ("refresh",))
-            answer = self._read_answer(child, time.monotonic() + STOP_WAIT_S)
-        except (SparqlError, OSError, EOFError, ValueError, pickle.UnpicklingError):
+            self._send(child, ("refresh",), deadline)
+            answer = self._read_answer(child, deadline)
+        except (_StalledWrite, SparqlError, OSError, EOFError, ValueError, pickle.UnpicklingError):
             return False
         if answer != ("refreshed",):
             return False
         with self._lock:
             self.refreshed += 1
         return True
+
+    @staticmethod
+    def _send(child: _Child, message: object, deadline: float) -> None:
+        """Write one framed message to the worker by ``deadline``: its pipe holds 64 KiB, and
+        a worker that is stopped or stuck takes nothing off it, so a blocking write of a query
+        near its maximum size (or of many pending loads) would wait for good. The pipe is
+        non-blocking on this side (``_spawn``)."""
+        stdin = child.process.stdin
+        assert stdin is not None
+        fd = stdin.fileno()
+        data = memoryview(_framed(message))
+        while data:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([], [fd], [], remaining)[1]:
+                raise _StalledWrite
+            try:
+                written = os.write(fd, data)
+            except BlockingIOError:
+                continue
+            data = data[written:]
 
     def _read_answer(self, child: _Child, deadline: float) -> Any:
         stdout = child.process.stdout
@@ -856,29 +898,84 @@ class SparqlWorkers:
         return b"".join(chunks)
 
     def _spawn(self) -> None:
-        """Start one worker; registered before it lists the files, so no addition is missed."""
-        process = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "services.storage.sparql",
-                str(self.directory),
-                self.store,
-                str(self.memory_bytes),
-            ],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            cwd=Path(__file__).resolve().parents[2],
-        )
+        """Start one worker; registered before it lists the files, so no addition is missed.
+        Raises what the fork raised (EAGAIN, ENOMEM)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._starting += 1
+        try:
+            process = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "services.storage.sparql",
+                    str(self.directory),
+                    self.store,
+                    str(self.memory_bytes),
+                ],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                cwd=Path(__file__).resolve().parents[2],
+            )
+        except BaseException:
+            with self._lock:
+                self._starting -= 1
+            raise
+        assert process.stdin is not None
+        os.set_blocking(process.stdin.fileno(), False)  # written only through ``_send``
         child = _Child(process, [])
         with self._lock:
+            self._starting -= 1
             if self._closed:
                 self._stop(child)
                 return
             self._children.append(child)
-        threading.Thread(target=self._await_ready, args=(child,), daemon=True).start()
+        try:
+            threading.Thread(target=self._await_ready, args=(child,), daemon=True).start()
+        except BaseException:
+            with self._lock:
+                self._children.remove(child)
+            self._stop(child)
+            raise
+
+    def _spawn_or_retry(self) -> None:
+        """Start one worker; one that cannot be started now is left to ``_keep_count``."""
+        try:
+            self._spawn()
+        except Exception as exc:
+            log.error("a SPARQL worker could not be started (%s): trying again", exc)
+            self._short.set()
+
+    def _keep_count(self) -> None:
+        """Start again, with backoff, the workers whose start failed, until the pool has its
+        ``count``: a failed fork while replacing a dead worker left the pool short for good."""
+        delay = SPAWN_RETRY_S
+        while True:
+            self._short.wait()
+            if self._closing.wait(delay):
+                return
+            self._short.clear()  # before counting: a failure after the count sets it again
+            with self._lock:
+                missing = self.count - len(self._children) - self._starting
+            try:
+                for _ in range(missing):
+                    self._spawn()
+            except Exception as exc:
+                delay = min(delay * 2, SPAWN_RETRY_MAX_S)
+                log.error("a SPARQL worker could not be started (%s): again in %g s", exc, delay)
+                self._short.set()
+            else:
+                delay = SPAWN_RETRY_S
 
     def _await_ready(self, child: _Child) -> None:
+        try:
+            self._await_ready_once(child)
+        except Exception:  # a thread that dies here would leave its worker never ready
+            log.exception("waiting for SPARQL worker %d failed", child.process.pid)
+            self._replace(child, "could not be awaited")
+
+    def _await_ready_once(self, child: _Child) -> None:
         stdout = child.process.stdout
         assert stdout is not None
         try:
@@ -912,7 +1009,7 @@ class SparqlWorkers:
             closed = self._closed
             self.replaced += 1
         if not closed:
-            self._spawn()
+            self._spawn_or_retry()
 
     @staticmethod
     def _stop(child: _Child) -> None:

@@ -3,7 +3,10 @@ files (additions seen by the next query, a query past its deadline killed and re
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -23,6 +26,7 @@ from services.storage.sparql import (
     QueryTimeoutError,
     SparqlWorkers,
     UpdateRejectedError,
+    WorkerFailedError,
     choose_format,
     negotiate,
 )
@@ -311,3 +315,98 @@ def private_mib(pid: int) -> float:
     lines = Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:]
     fields = dict(line.split(":", 1) for line in lines)
     return sum(int(fields[name].split()[0]) for name in ("Private_Clean", "Private_Dirty")) / 1024
+
+
+def one_worker(directory: Path, timeout_s: float) -> SparqlWorkers:
+    write(directory, example("file"))
+    workers = SparqlWorkers(
+        directory,
+        workers=1,
+        timeout_s=timeout_s,
+        max_result_bytes=1 << 20,
+        memory_bytes=1 << 31,
+        store="memory",
+    )
+    workers.start()
+    return workers
+
+
+def asks_a_file(workers: SparqlWorkers) -> bool:
+    _, body = workers.query(PREFIX + "ASK { ?s a rc:File }", None)
+    answer: bool = json.loads(body)["boolean"]
+    return answer
+
+
+def test_a_query_that_fills_the_pipe_of_a_hung_worker_times_out_and_the_worker_is_replaced(
+    tmp_path: Path,
+) -> None:
+    """A stopped worker takes nothing off its pipe, which holds 64 KiB: the write of a query of
+    the accepted maximum size has the query's deadline too (it blocked for good)."""
+    workers = one_worker(tmp_path, timeout_s=2)
+    hung: subprocess.Popen[bytes] | None = None
+    try:
+        wait_for(lambda: workers.describe()["ready"] == 1, "the worker")
+        hung = workers._children[0].process
+        hung.send_signal(signal.SIGSTOP)
+        head = PREFIX + "ASK { ?s a rc:File }\n#"
+        big = head + "x" * (64 * 1024 - len(head))
+        failures: list[Exception] = []
+
+        def run() -> None:
+            try:
+                workers.query(big, None)
+            except QueryTimeoutError as exc:
+                failures.append(exc)
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        thread.join(60)
+        assert not thread.is_alive(), "the query to the hung worker never returned"
+        assert [str(exc) for exc in failures] == [
+            "the query did not finish within 2 s; it was stopped"
+        ]
+        wait_for(lambda: workers.describe()["ready"] == 1, "the replacement worker")
+        assert workers.describe()["replaced"] == 1
+        assert workers._children[0].process is not hung
+        assert asks_a_file(workers)
+    finally:
+        if hung is not None and hung.poll() is None:
+            hung.send_signal(signal.SIGCONT)
+            hung.kill()
+        workers.close()
+
+
+def test_a_worker_whose_replacement_could_not_be_forked_is_started_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fork refused (EAGAIN) while replacing a dead worker left the pool a worker short for
+    good, and ready while every query failed; it is tried again until it starts."""
+    workers = one_worker(tmp_path, timeout_s=5)
+    try:
+        wait_for(lambda: workers.describe()["ready"] == 1, "the worker")
+        real = subprocess.Popen
+        refused: list[int] = []
+        refusing = threading.Event()
+        refusing.set()
+
+        def flaky(*args: object, **kwargs: object) -> subprocess.Popen[bytes]:
+            if refusing.is_set():
+                refused.append(1)
+                raise BlockingIOError(errno.EAGAIN, os.strerror(errno.EAGAIN))
+            return real(*args, **kwargs)  # type: ignore[call-overload, no-any-return]
+
+        monkeypatch.setattr("services.storage.sparql.subprocess.Popen", flaky)
+        dead = workers._children[0].process
+        dead.kill()
+        dead.wait()
+        with pytest.raises(WorkerFailedError):
+            asks_a_file(workers)
+        assert not workers.loaded()  # no worker lives: not ready
+        wait_for(lambda: len(refused) >= 2, "the start to be tried again")
+        refusing.clear()
+        wait_for(lambda: workers.describe()["ready"] == 1, "the worker started again")
+        assert len(workers._children) == 1
+        assert workers.loaded()
+        assert asks_a_file(workers)
+    finally:
+        workers.close()
