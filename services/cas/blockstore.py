@@ -344,9 +344,10 @@ class Hold:
     def __exit__(self, *exc_info: object) -> None:
         self.close()
 
-    def keep(self, cid: CID) -> bool:
-        """Hold ``cid``'s block if it is stored; False if it is not (or no longer) there."""
-        return self.store._keep(self, cid.multihash)
+    def keep(self, cid: CID, *, put: bool = False) -> bool:
+        """Hold ``cid``'s block if it is stored; False if it is not (or no longer) there.
+        ``put``: an upload found it stored, which starts its grace period again."""
+        return self.store._keep(self, cid.multihash, put=put)
 
     def close(self) -> None:
         self.store._release(self)
@@ -390,7 +391,7 @@ class Staging:
             return
         if cid.multihash in self._members:
             return
-        if not self.store._keep(self.hold, cid.multihash, put=True):
+        if not self.hold.keep(cid, put=True):
             self.write(cid.multihash, data)
 
     def write(self, multihash: bytes, data: bytes | memoryview) -> None:
