@@ -14,6 +14,7 @@ hash it answers for a sent transaction, and the receipt it shows, must be the tr
 from __future__ import annotations
 
 import re
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -167,6 +168,26 @@ def _nonce(value: Any) -> int:
     return nonce
 
 
+_nonce_locks: dict[tuple[int, str], threading.Lock] = {}
+_nonce_locks_guard = threading.Lock()
+
+
+def nonce_lock(chain_id: int, address: str) -> threading.Lock:
+    """The lock every ``Transactor`` of this process holds for ``address`` on ``chain_id``
+    from reading its pending nonce until the node has accepted the transaction signed with it.
+
+    A storage node's anchorer and dataset publisher sign with one key, each through a
+    ``Ledger`` of its own: both read the same pending nonce, and the node refused one of the two
+    transactions ("nonce too low"), failing that anchor or publish. The nonce still comes from
+    the node each time (none is counted here, so a transaction the node dropped leaves no gap
+    behind it); the lock only orders the writers. Other processes signing with the key are not
+    covered.
+    """
+    key = (chain_id, address.lower())
+    with _nonce_locks_guard:
+        return _nonce_locks.setdefault(key, threading.Lock())
+
+
 def _receipt_of(tx_hash: str, raw: Any) -> Receipt:
     """The receipt the node sent for ``tx_hash``; a malformed one names the hash, since the
     transaction was sent and may be mined."""
@@ -229,8 +250,10 @@ class Transactor:
     def sign(self, to: str | None, data: bytes, *, gas: int, value: int = 0) -> bytes:
         """The raw signed transaction, with nonce and gas price from the node.
 
-        Raises ``FeeLimitError`` before signing when the gas or the node's gas price is over
-        ``limits``, and ``DeploymentMismatchError`` when the node's chain is not the expected.
+        The nonce is the node's pending count, so a caller sending what it signs holds
+        ``nonce_lock`` until the node has it, as ``send`` does. Raises ``FeeLimitError``
+        before signing when the gas or the node's gas price is over ``limits``, and
+        ``DeploymentMismatchError`` when the node's chain is not the expected.
         """
         address = self.identity.address
         chain_id = self.chain_id
@@ -258,7 +281,15 @@ class Transactor:
         anything is sent and costs nothing.
         """
         gas = gas if gas is not None else self.estimate_gas(to, data, value)
-        raw = self.sign(to, data, gas=gas, value=value)
+        with nonce_lock(self.chain_id, self.identity.address):
+            tx_hash = self.submit(self.sign(to, data, gas=gas, value=value))
+        receipt = self.wait_for_receipt(tx_hash)
+        if receipt.status == 0:
+            raise self._revert_of(to, data, value, receipt)
+        return receipt
+
+    def submit(self, raw: bytes) -> str:
+        """Send a signed transaction; its hash, once the node answered that same hash."""
         tx_hash = transaction_hash(raw)
         answered = self.rpc.request("eth_sendRawTransaction", ["0x" + raw.hex()])
         if not isinstance(answered, str) or answered.lower() != tx_hash:
@@ -267,10 +298,7 @@ class Transactor:
                 f"but the transaction sent is {tx_hash}",
                 tx_hash,
             )
-        receipt = self.wait_for_receipt(tx_hash)
-        if receipt.status == 0:
-            raise self._revert_of(to, data, value, receipt)
-        return receipt
+        return tx_hash
 
     def deploy(self, contract: ContractAbi, bytecode: str, *args: Any) -> Receipt:
         """Create a contract from its bytecode and constructor arguments."""
