@@ -7,13 +7,17 @@ into this store: a restart reopens the database and the canonical head is where 
 the same hash, in constant time.
 
 Each of py-evm's atomic batches (a mined block, a persisted state) is one SQLite transaction
-with ``synchronous=FULL``, so a kill -9 loses at most a batch that was never acknowledged.
+with ``synchronous=FULL``, so a kill -9 loses at most a batch that was never acknowledged; and
+a batch whose COMMIT failed is never found by a restart either (see ``SqliteKeyValue``).
 The chain itself is a py-evm ``MiningChain`` with chain id 1337 and eth-tester's funded
 genesis, like eth-tester's own tester chain but with a durable database underneath.
 """
 
 from __future__ import annotations
 
+import logging
+import sqlite3
+import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -44,21 +48,38 @@ from eth_tester.backends.pyevm.main import (
 from services.common.durable import open_sqlite
 from services.ledger.precompile_budget import BudgetedState
 
+log = logging.getLogger("robocloud.ledger.chaindb")
+
 CHAIN_ID = 1337
 GENESIS_TIMESTAMP = 0
 """As Ethereum mainnet's genesis; every later block is stamped with the time it is mined."""
 
 
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS kv (key BLOB PRIMARY KEY, value BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS failed_commit (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    at REAL NOT NULL
+);
+"""
+"""``failed_commit`` holds the time of the last COMMIT that failed; writing it is what voids
+that COMMIT's frames (``SqliteKeyValue._void_failed_commit``)."""
+
+
 class SqliteKeyValue(BaseDB):
-    """A durable byte-to-byte map; writes outside a transaction commit one by one."""
+    """A durable byte-to-byte map; writes outside a transaction commit one by one.
+
+    A transaction is acknowledged only when its COMMIT succeeds. One that fails (its fsync
+    of the write-ahead log refused by the disk) is rolled back in this process, but its
+    frames, commit marker included, may already be in the log's file past the last frame
+    SQLite counts: a restart's WAL recovery read them and brought back the block, while the
+    ledger had answered its transaction as failed. So a failed COMMIT is followed at once by
+    a small commit written over those frames.
+    """
 
     def __init__(self, path: Path, *, read_only: bool = False) -> None:
         self.depth = 0
-        self.connection = open_sqlite(
-            path,
-            "CREATE TABLE IF NOT EXISTS kv (key BLOB PRIMARY KEY, value BLOB NOT NULL)",
-            synchronous="FULL",
-        )
+        self.connection = open_sqlite(path, SCHEMA, synchronous="FULL")
         if read_only:
             self.connection.execute("PRAGMA query_only=ON")
 
@@ -103,7 +124,34 @@ class SqliteKeyValue(BaseDB):
             raise
         finally:
             self.depth = 0
-        self.connection.execute("COMMIT")
+        try:
+            self.connection.execute("COMMIT")
+        except sqlite3.Error:
+            self._void_failed_commit()
+            raise
+
+    def _void_failed_commit(self) -> None:
+        """Make sure no recovery finds what a failed COMMIT wrote to the write-ahead log.
+
+        SQLite writes the next commit from the first frame the failed one used (or into a
+        log restarted with new salts), and WAL recovery stops at the first frame whose
+        checksum chain breaks: one frame written there voids every frame after it. If this
+        commit's fsync fails as well, its frames are in the file all the same (only their
+        sync failed), and what they hold changes nothing py-evm reads.
+        """
+        try:
+            if self.connection.in_transaction:
+                self.connection.execute("ROLLBACK")
+            self.connection.execute(
+                "INSERT OR REPLACE INTO failed_commit VALUES (1, ?)", (time.time(),)
+            )
+        except sqlite3.Error as exc:
+            if exc.sqlite_errorname != "SQLITE_IOERR_FSYNC":
+                log.error(
+                    "a failed commit could not be voided: a restart before the next commit "
+                    "may find it",
+                    extra={"error": exc.sqlite_errorname},
+                )
 
     def close(self) -> None:
         self.connection.close()

@@ -1,13 +1,64 @@
-"""Crash a writer with SIGKILL after it has acknowledged some writes, for durability tests."""
+"""Crash a writer with SIGKILL after it has acknowledged some writes, for durability tests;
+make its disk fail its fsyncs."""
 
 from __future__ import annotations
 
+import shutil
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.procs import REPO
+
+FAILING_FSYNC = r"""
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <errno.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+static int failing(int fd) {
+    const char *trigger = getenv("FAIL_FSYNC_WHILE");
+    char link[64], path[4096];
+    snprintf(link, sizeof link, "/proc/self/fd/%d", fd);
+    ssize_t length = readlink(link, path, sizeof path - 1);
+    if (trigger == NULL || length < 4) return 0;
+    path[length] = 0;
+    if (strcmp(path + length - 4, "-wal") != 0 || access(trigger, F_OK) != 0) return 0;
+    if (getenv("FAIL_FSYNC_ONCE") != NULL) unlink(trigger);
+    return 1;
+}
+
+int fsync(int fd) {
+    if (failing(fd)) { errno = EIO; return -1; }
+    return ((int (*)(int))dlsym(RTLD_NEXT, "fsync"))(fd);
+}
+
+int fdatasync(int fd) {
+    if (failing(fd)) { errno = EIO; return -1; }
+    return ((int (*)(int))dlsym(RTLD_NEXT, "fdatasync"))(fd);
+}
+"""
+
+
+def failing_fsync_library(directory: Path) -> Path:
+    """Build an ``LD_PRELOAD`` library in ``directory`` whose ``fsync`` and ``fdatasync`` of a
+    write-ahead log (a file whose name ends in ``-wal``) fail with EIO while the file that
+    ``$FAIL_FSYNC_WHILE`` names exists (with ``$FAIL_FSYNC_ONCE`` set, the failure removes
+    it): a real failing disk under SQLite, not a mock."""
+    gcc = shutil.which("gcc")
+    if gcc is None:
+        pytest.skip("gcc is needed to build the library that fails fsync")
+    source = directory / "failing_fsync.c"
+    source.write_text(FAILING_FSYNC)
+    library = directory / "failing_fsync.so"
+    subprocess.run([gcc, "-shared", "-fPIC", "-o", library, source, "-ldl"], check=True)
+    return library
 
 
 def acknowledged_before_kill(script: str, path: Path, count: int) -> list[str]:

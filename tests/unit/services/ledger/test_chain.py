@@ -3,12 +3,17 @@ blocks that survive a reopen and a kill -9 with the same head hash."""
 
 from __future__ import annotations
 
+import shutil
+import signal
+import subprocess
+import sys
 import textwrap
 import time
 from pathlib import Path
 
 import pytest
 from eth_account import Account
+from eth_utils.crypto import keccak
 
 from robocloud.identity import Identity
 from robocloud.ledger.abi import ContractAbi
@@ -23,7 +28,8 @@ from services.ledger.chain import (
 )
 from services.ledger.contracts import create_address, deploy, send_as
 from services.ledger.operator import OperatorKeys
-from tests.unit.services.ledger.crash import acknowledged_before_kill
+from tests.procs import REPO
+from tests.unit.services.ledger.crash import acknowledged_before_kill, failing_fsync_library
 
 METADATA = bytes.fromhex("01551220") + bytes(32)
 LOOP_RUNTIME = "5b600056"  # JUMPDEST PUSH1 0 JUMP: forever
@@ -169,6 +175,107 @@ def test_kill_9_loses_no_acknowledged_transaction(tmp_path: Path) -> None:
     assert chain.head().block_number >= len(acknowledged)
     assert chain.header_at(len(acknowledged)).hash.hex() == acknowledged[-1][1]
     chain.close()
+
+
+FAILING_DISK = textwrap.dedent(
+    """
+    import sys
+    from pathlib import Path
+    from services.ledger.chain import CallRequest, EmbeddedChain
+    from tests.unit.services.ledger.test_chain import keys
+    operator = keys()
+    chain = EmbeddedChain(Path(sys.argv[1]), operator.genesis_state())
+    faucet = bytes.fromhex(operator.faucet.address[2:])
+    chain.call(CallRequest(sender=faucet, to=faucet), "latest")  # a reader opens the store too
+    print("ready", flush=True)
+    for line in sys.stdin:
+        try:
+            mined = chain.send_raw_transaction(bytes.fromhex(line)).mined
+        except Exception as exc:
+            print("failed", type(exc).__name__, flush=True)
+        else:
+            print("mined", mined.block.number, flush=True)
+    """
+)
+
+
+class FailingDiskChain:
+    """The chain in a child process whose fsyncs of the write-ahead log fail while
+    ``trigger`` exists (once, and the trigger is removed, unless ``persistent``); each
+    transaction written to it is answered with a line."""
+
+    def __init__(self, path: Path, library: Path, trigger: Path, persistent: bool) -> None:
+        environment = {"PYTHONPATH": f"{REPO}:{REPO / 'clients'}", "LD_PRELOAD": str(library)}
+        if not persistent:
+            environment["FAIL_FSYNC_ONCE"] = "1"
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", FAILING_DISK, str(path)],
+            cwd=REPO,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=environment | {"FAIL_FSYNC_WHILE": str(trigger)},
+        )
+        assert self.answer() == "ready"
+
+    def answer(self) -> str:
+        assert self.process.stdout is not None
+        return self.process.stdout.readline().strip()
+
+    def send(self, raw: bytes) -> str:
+        assert self.process.stdin is not None
+        self.process.stdin.write(raw.hex() + "\n")
+        self.process.stdin.flush()
+        return self.answer()
+
+    def kill(self) -> None:
+        self.process.send_signal(signal.SIGKILL)
+        self.process.wait()
+
+
+def transfer_from(operator: OperatorKeys, nonce: int) -> bytes:
+    return raw_call(operator.faucet, nonce, "0x" + "22" * 20, b"", gas=21_000)
+
+
+@pytest.mark.parametrize("persistent", [False, True], ids=["one-failure", "failing-until-answered"])
+def test_a_commit_whose_fsync_failed_is_answered_as_a_restart_finds_it(
+    tmp_path: Path, persistent: bool
+) -> None:
+    """A COMMIT whose fsync of the write-ahead log failed was answered as failed, yet its
+    frames, commit marker included, stayed in the log: a restart before the next commit
+    recovered the block, and the chain held a transaction its sender was told had failed
+    (and was refused with "nonce too low" when it sent it again). The store as a kill -9
+    right after that answer leaves it must lack the block, whether the disk failed once or
+    until then, and the same process must mine the transaction sent again."""
+    library = failing_fsync_library(tmp_path)
+    trigger, path, crashed = tmp_path / "fail", tmp_path / "chain.sqlite", tmp_path / "crashed"
+    operator = keys()
+    child = FailingDiskChain(path, library, trigger, persistent)
+    try:
+        assert child.send(transfer_from(operator, 0)) == "mined 1"
+        trigger.touch()
+        answer = child.send(transfer_from(operator, 1))
+        assert trigger.exists() == persistent  # the fault happened
+        trigger.unlink(missing_ok=True)
+        crashed.mkdir()
+        for name in ("chain.sqlite", "chain.sqlite-wal"):  # what a kill -9 now leaves
+            shutil.copyfile(tmp_path / name, crashed / name)
+        assert answer == "failed OperationalError"
+        assert child.send(transfer_from(operator, 1)) == "mined 2"  # its robot sends it again
+    finally:
+        child.kill()
+    faucet = bytes.fromhex(operator.faucet.address[2:])
+    failed = keccak(transfer_from(operator, 1))
+    after_crash = EmbeddedChain(crashed / "chain.sqlite", operator.genesis_state())
+    assert after_crash.head().block_number == 1
+    assert after_crash.locate(failed) is None
+    assert after_crash.nonce(faucet, "latest") == 1
+    after_crash.close()
+    after_kill = EmbeddedChain(path, operator.genesis_state())
+    assert after_kill.head().block_number == 2
+    assert after_kill.locate(failed) is not None
+    assert after_kill.nonce(faucet, "latest") == 2
+    after_kill.close()
 
 
 def queue_behind_a_gap(chain: EmbeddedChain, robot: Identity, waiting: int) -> bytes:
