@@ -323,14 +323,23 @@ class CarReader:
     """Iterate the verified blocks of a CARv1 or CARv2 stream; ``roots`` is read at
     construction, ``version`` says which. The stream is read once, from its start; a CARv2's
     is read no further than its payload's end, so its index (or whatever follows) is never
-    read, and is bounded only by whatever bounds the stream (an upload's own limit)."""
+    read, and is bounded only by whatever bounds the stream (an upload's own limit).
 
-    def __init__(self, stream: ByteSource, *, max_section: int = MAX_SECTION_BYTES) -> None:
+    Without ``carv2`` a CARv2 is refused at its pragma, before any padding is read: the
+    padding before a CARv2's payload is read and discarded, so a stream with no bound of its
+    own (a gateway's answer) that declares a data offset of 2^63 would be read forever with
+    nothing to show for it, whatever the caller's bound on the file."""
+
+    def __init__(
+        self, stream: ByteSource, *, max_section: int = MAX_SECTION_BYTES, carv2: bool = True
+    ) -> None:
         self.stream = _Stream(stream)
         self.max_section = max_section
         self.version = 1
         header, raw = _read_header(self.stream)
         if _version(header) == 2:
+            if not carv2:
+                raise CarError("a CARv2, where only a CARv1 is read")
             if encode_varint(len(raw)) + raw != CARV2_PRAGMA:
                 raise CarError(
                     f"a version 2 CAR header that is not the CARv2 pragma {CARV2_PRAGMA.hex()}"

@@ -370,6 +370,9 @@ class Cas(ServiceClient):
             raise ContentTooLargeError(root, limit, declared)
 
     def _download(self, root: CID, out: BinaryIO, progress: Progress) -> int:
+        """The file ``root`` from the gateway's CAR into ``out``. A CARv1 only, the one
+        version the trustless gateway spec answers: a CARv2's padding would be read without
+        bound before the first block."""
         response = self.request(
             "GET",
             f"/ipfs/{root}",
@@ -378,7 +381,7 @@ class Cas(ServiceClient):
             stream=True,
         )
         try:
-            reader = CarReader(_IteratorReader(response.iter_bytes(READ_SIZE)))
+            reader = CarReader(_IteratorReader(response.iter_bytes(READ_SIZE)), carv2=False)
             if root not in reader.roots:
                 raise CasError(f"the gateway's CAR is rooted at {reader.roots}, not {root}")
             blocks: Iterator[Block] = iter(reader)
