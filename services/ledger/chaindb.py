@@ -106,7 +106,9 @@ class SqliteKeyValue(BaseDB):
         """One SQLite transaction; nested calls join the outermost, which alone commits.
 
         Mining a block writes two py-evm batches (state, then block); running both inside
-        one outer transaction makes the block atomic and costs one fsync instead of two.
+        one outer transaction makes the block atomic and costs one fsync instead of two. An
+        I/O error or a full disk in the middle may have rolled the transaction back already
+        (SQLite does so itself); the ROLLBACK then refused would hide the error that did it.
         """
         if self.depth:
             self.depth += 1
@@ -120,7 +122,8 @@ class SqliteKeyValue(BaseDB):
         try:
             yield
         except BaseException:
-            self.connection.execute("ROLLBACK")
+            if self.connection.in_transaction:
+                self.connection.execute("ROLLBACK")
             raise
         finally:
             self.depth = 0
