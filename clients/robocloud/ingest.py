@@ -8,6 +8,7 @@ UnixFS directory, and the storage node fetches it by CID, verifying every block.
 from __future__ import annotations
 
 import hashlib
+import shutil
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -17,7 +18,7 @@ from urllib.parse import quote
 from robocloud.cas import Cas
 from robocloud.cid import CID
 from robocloud.client import ServiceClient
-from robocloud.errors import InvalidAnswerError
+from robocloud.errors import InvalidAnswerError, RobocloudError
 from robocloud.partial import written_whole
 
 UPLOAD_CHUNK = 1 << 20
@@ -25,6 +26,14 @@ FINISHED = ("succeeded", "failed")
 WAIT_TIMEOUT_S = 3600.0
 """How long ``Ingest.wait`` follows a job by default: a storage node that answers "running"
 forever must not hold the robot forever."""
+
+
+class ExportTooLargeError(RobocloudError):
+    """An export is larger than the caller allows; nothing of it is left on disk."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(f"the export holds more than the limit of {limit} bytes")
+        self.limit = limit
 
 
 def _file_chunks(path: Path) -> Iterator[bytes]:
@@ -124,11 +133,15 @@ class Ingest(ServiceClient):
         )
         return bindings
 
-    def export(self, params: dict[str, Any], out: Path) -> int:
+    def export(self, params: dict[str, Any], out: Path, *, max_size: int | None = None) -> int:
         """Write a query's export (``format`` = ``mcap`` or ``jsonl``) to ``out``; its size.
 
         ``out`` is replaced only by a whole export: one that fails midway (a refusal, a
-        broken or too slow answer) leaves it as it was."""
+        broken or too slow answer, one past ``max_size``) leaves it as it was. An export
+        declares no size and a node may stream one without end, so at most ``max_size``
+        bytes are written (``ExportTooLargeError`` past it), by default the free space in
+        ``out``'s directory when the export starts."""
+        limit = shutil.disk_usage(out.absolute().parent).free if max_size is None else max_size
         size = 0
         with (
             written_whole(out, overwrite=True) as handle,
@@ -137,8 +150,10 @@ class Ingest(ServiceClient):
             response = self.request("GET", "/v1/export", params=params, stream=True)
             try:
                 for chunk in response.iter_bytes():
-                    handle.write(chunk)
                     size += len(chunk)
+                    if size > limit:
+                        raise ExportTooLargeError(limit)
+                    handle.write(chunk)
             finally:
                 response.close()
         return size

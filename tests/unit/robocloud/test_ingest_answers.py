@@ -8,6 +8,7 @@ nesting bound would overflow the C stack and kill it rather than fail a test.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -18,8 +19,9 @@ from robocloud.bounded_json import JsonDepthError
 from robocloud.cli import app
 from robocloud.errors import InvalidAnswerError
 from robocloud.identity import Identity
-from robocloud.ingest import Ingest
+from robocloud.ingest import ExportTooLargeError, Ingest
 from tests.scripted_http import Exchange, Reply, json_reply, nested_json, scripted_server
+from tests.unit.robocloud.test_cas_answers import ENDLESS_CAP, endless_server
 
 runner = CliRunner()
 
@@ -106,3 +108,23 @@ def test_ingest_ends_in_one_line_on_a_job_without_status(bag: Path, keystore: Pa
     assert result.stdout == ""
     assert result.stderr.startswith("error: the storage service sent a malformed ingest job")
     assert result.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize("max_size", [1 << 20, None], ids=["max-size", "free-space"])
+def test_an_export_that_never_ends_is_cut_at_its_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, max_size: int | None
+) -> None:
+    """An export declares no size: a node streaming one without end filled the disk."""
+    free = shutil.disk_usage(tmp_path)._replace(free=1 << 20)
+    monkeypatch.setattr("robocloud.ingest.shutil.disk_usage", lambda _: free)
+    out = tmp_path / "imu.jsonl"
+    out.write_bytes(b"the previous export\n")
+    with (
+        endless_server(b"") as node,
+        Ingest(node.url, retries=0) as ingest,
+        pytest.raises(ExportTooLargeError, match=f"limit of {1 << 20} bytes"),
+    ):
+        ingest.export({"template": "imu@1", "format": "jsonl"}, out, max_size=max_size)
+    assert node.sent < ENDLESS_CAP // 4
+    assert sorted(tmp_path.iterdir()) == [out]
+    assert out.read_bytes() == b"the previous export\n"
