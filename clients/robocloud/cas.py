@@ -282,15 +282,16 @@ class Cas(ServiceClient):
         return answers
 
     def get(self, cid: CID | str, *, max_size: int | None = None) -> bytes:
-        """The verified content of a file (held in memory: bound it with ``max_size``)."""
+        """The verified content of a file, held in memory: at most ``max_size`` bytes, by
+        default ``max_answer_bytes`` as for any answer read whole (``ContentTooLargeError``
+        past it). A DAG expands, a few blocks linked thousands of times, so a kilobyte CAR
+        could otherwise fill the robot's memory."""
         root = _as_cid(cid)
+        limit = self.max_answer_bytes if max_size is None else max_size
         out = io.BytesIO()
         with self.translate_errors("GET", f"{self.base_url}/ipfs/{root}"):
-            if max_size is None:
-                self._download(root, out, _no_progress)
-            else:
-                self._check_declared_size(root, max_size)
-                self._download(root, _CappedWriter(out, root, max_size), _no_progress)
+            self._check_declared_size(root, limit)
+            self._download(root, _CappedWriter(out, root, limit), _no_progress)
         return out.getvalue()
 
     def get_to_file(

@@ -12,9 +12,12 @@ from pathlib import Path
 
 import pytest
 
-from robocloud.car import CARV2_PRAGMA
-from robocloud.cas import Cas, CasError
-from robocloud.cid import CID
+from robocloud.car import CARV2_PRAGMA, write_car
+from robocloud.cas import Cas, CasError, ContentTooLargeError
+from robocloud.cid import CID, DAG_PB, RAW
+from robocloud.dagpb import Link, PBNode
+from robocloud.unixfs import FILE, UnixfsData
+from tests.scripted_http import Exchange, Reply, scripted_server
 
 ENDLESS_CAP = 64 << 20
 """Where the endless server stops, so that a client that never would still ends the test."""
@@ -77,3 +80,35 @@ def test_a_carv2_whose_payload_never_comes_is_refused_at_its_pragma(tmp_path: Pa
         cas.get_to_file(root, tmp_path / "out", max_size=1 << 20)
     assert gateway.sent < ENDLESS_CAP // 4
     assert list(tmp_path.iterdir()) == []
+
+
+def expanding_file(leaf_size: int, copies: int) -> tuple[CID, bytes, bytes]:
+    """A file of ``copies`` times one zero leaf: its root, the root's block and its CAR,
+    which holds the leaf once."""
+    leaf = bytes(leaf_size)
+    leaf_cid = CID.from_block(leaf, RAW)
+    data = UnixfsData(FILE, filesize=leaf_size * copies, blocksizes=[leaf_size] * copies)
+    links = [Link(leaf_cid, "", leaf_size)] * copies
+    node = PBNode(links, data.encode()).encode()
+    root = CID.from_block(node, DAG_PB)
+    return root, node, b"".join(write_car([root], [(root, node), (leaf_cid, leaf)]))
+
+
+def test_get_holds_no_more_than_an_answer_by_default() -> None:
+    """A 64 KiB CAR of 4 MiB of content: get without max_size held whatever the DAG expanded
+    to, so a few kilobytes linked over and over filled the robot's memory."""
+    root, node, car = expanding_file(1 << 16, 64)
+
+    def script(exchange: Exchange) -> Reply:
+        if "format=raw" in exchange.path:
+            return 200, {"Content-Type": "application/vnd.ipld.raw"}, node
+        return 200, {"Content-Type": "application/vnd.ipld.car"}, car
+
+    with scripted_server(script) as gateway:
+        with (
+            Cas(gateway.url, retries=0, max_answer_bytes=1 << 20) as cas,
+            pytest.raises(ContentTooLargeError, match=f"limit of {1 << 20} bytes"),
+        ):
+            cas.get(root)
+        with Cas(gateway.url, retries=0) as cas:
+            assert cas.get(root) == bytes(4 << 20)
