@@ -24,7 +24,7 @@ import hashlib
 import json as jsonlib
 import time
 from collections.abc import Iterable, Iterator, Mapping
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self, TypedDict
 
@@ -50,6 +50,7 @@ from robocloud.errors import (
     TransportError,
     TransportTimeoutError,
     error_class_for,
+    retry_after_seconds,
 )
 from robocloud.identity import Identity
 from robocloud.signing import EMPTY_SHA256, audience_from_answer, sign_request
@@ -106,7 +107,7 @@ class RetryPolicy:
 
     def delay(self, attempt: int, retry_after: str | None = None) -> float:
         wait: float = self.backoff_s * float(2**attempt)
-        asked = _seconds(retry_after)
+        asked = retry_after_seconds(retry_after)
         if asked is not None:
             wait = max(wait, asked)
         return min(max(wait, 0.0), self.max_delay_s)
@@ -279,7 +280,7 @@ class BaseClient(Closeable):
         and 504 (a proxy) leave that open, so only an idempotent request is resent."""
         status = response.status_code
         if status == 429:
-            wait = _seconds(response.headers.get("retry-after"))
+            wait = retry_after_seconds(response.headers.get("retry-after"))
             return wait is not None and 0 <= wait <= self.retry.max_delay_s
         return status == 503 or (idempotent and status in (502, 504))
 
@@ -511,15 +512,6 @@ def _resent_after(error: TransportError, idempotent: bool) -> bool:
     if isinstance(error, AnswerDeadlineError):
         return False
     return isinstance(error, ConnectError) or idempotent
-
-
-def _seconds(retry_after: str | None) -> float | None:
-    """A ``Retry-After`` in seconds; None when there is none or it is not a number."""
-    if retry_after is None:
-        return None
-    with suppress(ValueError):
-        return float(retry_after)
-    return None
 
 
 def _reason(exc: httpx.RequestError) -> str:

@@ -179,8 +179,19 @@ class RateLimitedError(ApiError):
 
     @property
     def retry_after(self) -> float | None:
-        value = self.details.get("retry_after")
-        return float(value) if value is not None else None
+        return retry_after_seconds(self.details.get("retry_after"))
+
+
+def retry_after_seconds(value: object) -> float | None:
+    """A ``Retry-After`` (header text, or the number in a 429's details) in seconds; None when
+    there is none or it is no number: an HTTP date is valid there (RFC 9110), and the
+    details are whatever the service wrote."""
+    if isinstance(value, bool) or not isinstance(value, str | int | float):
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        return None
 
 
 class ServerError(ApiError):

@@ -257,6 +257,30 @@ def test_429_carries_retry_after() -> None:
     assert err.value.retry_after == 7.0
 
 
+@pytest.mark.parametrize(
+    ("header", "details"),
+    [
+        ("Wed, 21 Oct 2015 07:28:00 GMT", None),
+        ("soon", None),
+        (None, '{"retry_after": [1]}'),
+        (None, '{"retry_after": {"s": 1}}'),
+        (None, '{"retry_after": true}'),
+    ],
+    ids=["http-date", "text", "list", "object", "bool"],
+)
+def test_a_retry_after_that_is_no_number_is_none(header: str | None, details: str | None) -> None:
+    """An HTTP date is a valid Retry-After, and a 429's details are the service's word: the
+    property raised a bare ValueError or TypeError at whoever asked how long to wait."""
+    error = f'{{"error":{{"code":"slow_down","message":"later","details":{details or "{}"}}}}}'
+    reply = json_reply(error, 429, **({"Retry-After": header} if header else {}))
+    with (
+        scripted_client(lambda _: reply, retries=0) as (_, client),
+        pytest.raises(RateLimitedError) as err,
+    ):
+        client.get_json("/x")
+    assert err.value.retry_after is None
+
+
 @pytest.mark.parametrize("url", ["ftp://example.org", "example.org:8080", "http://", "http://[::1"])
 def test_an_unusable_url_is_a_configuration_error(url: str) -> None:
     with pytest.raises(ConfigurationError):
