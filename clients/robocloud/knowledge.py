@@ -15,7 +15,7 @@ from robocloud import bounded_json
 from robocloud.cas import Cas, CasError
 from robocloud.cid import CID
 from robocloud.client import ServiceClient
-from robocloud.errors import InvalidAnswerError
+from robocloud.errors import FormatError, InvalidAnswerError
 from robocloud.semantic import Description, validate
 
 SPARQL_JSON = "application/sparql-results+json"
@@ -56,11 +56,11 @@ class Knowledge(ServiceClient):
 
     def select(self, query: str) -> list[dict[str, str]]:
         """The rows of a SELECT query, each variable's value as text (unbound ones left out)."""
-        document = bounded_json.loads(self.sparql(query).body)
+        body = self.sparql(query).body
         try:
-            bindings = document["results"]["bindings"]
+            bindings = bounded_json.loads(body)["results"]["bindings"]
             return [{name: str(value["value"]) for name, value in row.items()} for row in bindings]
-        except (KeyError, TypeError, AttributeError) as exc:
+        except (FormatError, KeyError, TypeError, AttributeError) as exc:
             raise InvalidAnswerError(f"not SPARQL JSON results: {exc}") from None
 
     def applications(
