@@ -76,7 +76,7 @@ class DatasetPublisher:
             )
             description_cid = self.cas().add_bytes(description.canonical())
             self.knowledge.add(str(description_cid))
-            earlier = self._advertised_before(chain, job, bag_cid)
+            earlier = self._advertised_before(chain, job, bag_cid, description_cid)
             if earlier is not None:
                 return earlier
             self.node.ensure_registered(chain)
@@ -87,25 +87,40 @@ class DatasetPublisher:
         )
         return {"cid": str(bag_cid), "description": str(description_cid), "tx": event.tx_hash}
 
-    def _advertised_before(self, chain: Ledger, job: Job, bag_cid: CID) -> dict[str, Any] | None:
-        """This node's advertisement of the bag when an attempt of the job was cut short
-        between ``Registry.advertise`` and the job saving what it published: not made twice.
+    def _advertised_before(
+        self, chain: Ledger, job: Job, bag_cid: CID, description_cid: CID
+    ) -> dict[str, Any] | None:
+        """This node's advertisement of the bag with this job's description when an attempt of
+        the job was cut short between ``Registry.advertise`` and the job saving what it
+        published: not made twice.
 
         Only on a job's later attempt (``publish_attempts``), since on the first another
-        job's advertisement of the same bag is no reason not to advertise this one.
+        job's advertisement of the same bag is no reason not to advertise this one. And only
+        one of this description: the node's advertisement of another (an earlier job's of the
+        same bag, whose records are in another epoch) was reported as this job's, whose own
+        description was then never advertised.
         """
         if job.publish_attempts <= 1:
             return None
         mine = chain.advertisements(cid=bag_cid.binary, advertiser=self.node.address)
-        if not mine:
+        same = [
+            event
+            for event in mine
+            if event.cid == bag_cid.binary and event.description_cid == description_cid.binary
+        ]
+        if not same:
+            if mine:
+                log.info(
+                    "the bag was advertised with another description: advertising this one",
+                    extra={"job": job.id, "cid": str(bag_cid), "description": str(description_cid)},
+                )
             return None
-        event = mine[-1]
-        description = str(CID.from_bytes(event.description_cid))
+        event = same[-1]
         log.info(
             "dataset advertised by an earlier attempt",
             extra={"job": job.id, "cid": str(bag_cid), "tx": event.tx_hash},
         )
-        return {"cid": str(bag_cid), "description": description, "tx": event.tx_hash}
+        return {"cid": str(bag_cid), "description": str(description_cid), "tx": event.tx_hash}
 
     def _epoch(self, job: Job) -> tuple[int | None, str | None]:
         """The first epoch holding every record of the job, and its TMT root: cut within an

@@ -28,6 +28,8 @@ from robocloud.ledger.rpc import JsonRpcClient
 from robocloud.storage import Storage as StorageClient
 from tests.bagfactory import write_bag
 from tests.conftest import ServiceFactory
+from tests.integration.services.storage.counter import write_counter_records
+from tests.integration.services.storage.test_anchoring import node_state
 from tests.integration.services.storage.test_ingest_http import START_NS, Storage, approve
 from tests.procs import ServiceProcess
 from tests.scripted_http import Exchange, Reply, scripted_server
@@ -156,3 +158,86 @@ def test_kill_9_after_the_advertise_is_mined_advertises_the_dataset_once(
     times = [stored.record["t"] for stored in page.records]
     assert done["records"]["committed"] == bound
     assert len(times) == len(set(times)) == bound
+
+
+class KillBeforeSecondAdvertise:
+    """A proxy script: every request goes to the ledger but the second advertise transaction,
+    which is never sent: the storage node is killed instead and gets no answer."""
+
+    def __init__(self, ledger: ServiceProcess) -> None:
+        self.upstream = httpx.Client(base_url=ledger.url, timeout=60)
+        self.storage: ServiceProcess | None = None
+        self.advertises = 0
+        self.killed = threading.Event()
+        self._lock = threading.Lock()
+
+    def __call__(self, exchange: Exchange) -> Reply:
+        with self._lock:
+            advertise = exchange.method == "POST" and _calls_advertise(exchange.body)
+            self.advertises += advertise
+            kill = advertise and self.advertises == 2
+        if kill:
+            assert self.storage is not None
+            assert self.storage.process is not None
+            os.kill(self.storage.process.pid, signal.SIGKILL)
+            self.killed.set()
+            return None
+        headers = {k: v for k, v in exchange.headers.items() if k not in HOP_BY_HOP}
+        answer = self.upstream.request(
+            exchange.method, exchange.path, headers=headers, content=exchange.body
+        )
+        dropped = HOP_BY_HOP | {"content-encoding"}
+        kept = {k: v for k, v in answer.headers.items() if k.lower() not in dropped}
+        return answer.status_code, kept, answer.content
+
+
+def test_a_resumed_job_does_not_take_an_advertisement_of_another_description_for_its_own(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """The node ingests one bag twice; the second job, killed before its advertise was sent,
+    is resumed. Its records are in a later epoch, so its description differs from the first
+    job's: the node's earlier advertisement of the bag is not this job's, and the resumed job
+    reported it as its own, its own description never advertised. (The node is registered
+    first: its anchorer and its first publish registering at once revert one another.)"""
+    ledger = service_factory("ledger")
+    cas = service_factory("cas")
+    proxy = KillBeforeSecondAdvertise(ledger)
+    with scripted_server(proxy, answer_audience=False) as server:
+        storage = service_factory(
+            "storage",
+            {
+                "ROBOCLOUD_LEDGER_URL": server.url,
+                "ROBOCLOUD_CAS_URL": cas.url,
+                "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+                "ROBOCLOUD_STORAGE_EPOCH_S": "0.2",
+            },
+        )
+        proxy.storage = storage
+        write_counter_records(storage, Identity.generate(), 0, 5, name="counter")
+        wait_for(lambda: node_state(storage)["standing"] == "registered", "the node registered")
+        with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ing:
+            imu = approve(client, "sensor_msgs/msg/Imu")
+            ing.bind(imu, msgtype="sensor_msgs/msg/Imu")
+            bag = write_bag(tmp_path / "a.bag", "ros1", 50, start_ns=START_NS)
+            first = ing.wait(ing.upload(bag)["id"], timeout_s=120)
+            assert first["status"] == "succeeded", first["error"]
+            again = write_bag(tmp_path / "b.bag", "ros1", 50, start_ns=START_NS)
+            second_id: str = ing.upload(again)["id"]
+        wait_for(proxy.killed.is_set, "the storage node to send its second advertise")
+        assert storage.process is not None
+        storage.process.wait()
+
+        storage.start()
+        with Ingest(storage.url, identity) as ing:
+            second = ing.wait(second_id, timeout_s=180)
+        assert second["status"] == "succeeded", second["error"]
+        node = str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
+
+    assert first["dataset"]["cid"] == second["dataset"]["cid"]
+    assert first["dataset"]["description"] != second["dataset"]["description"]
+    with Ledger.connect(ledger.url) as chain:
+        advertised = chain.advertisements(cid=parse_cid(first["dataset"]["cid"], "bag").binary)
+    assert [
+        (event.advertiser, event.tx_hash, str(CID.from_bytes(event.description_cid)))
+        for event in advertised
+    ] == [(node, done["dataset"]["tx"], done["dataset"]["description"]) for done in (first, second)]
