@@ -105,6 +105,9 @@ def scripted_server(script: Script, *, answer_audience: bool = True) -> Iterator
         def do_POST(self) -> None:
             self._handle()
 
+        def do_PUT(self) -> None:
+            self._handle()
+
         def log_message(self, *args: object) -> None:
             return None
 

@@ -96,11 +96,11 @@ class Storage(ServiceClient):
     def edit_template(self, template_id: str, document: Mapping[str, Any]) -> TemplateVersion:
         parse_template_id(template_id)
         answer = self.request("PUT", f"/v1/templates/{template_id}", json=dict(document))
-        return self._version(self.json_of(answer))
+        return self._version_of(template_id, self.json_of(answer))
 
     def submit_template(self, template_id: str) -> TemplateVersion:
         parse_template_id(template_id)
-        return self._version(self.post_json(f"/v1/templates/{template_id}/submit"))
+        return self._version_of(template_id, self.post_json(f"/v1/templates/{template_id}/submit"))
 
     def review_template(
         self, template_id: str, decision: str, reason: str | None = None
@@ -109,11 +109,19 @@ class Storage(ServiceClient):
         body: dict[str, Any] = {"decision": decision}
         if reason is not None:
             body["reason"] = reason
-        return self._version(self.post_json(f"/v1/templates/{template_id}/review", body))
+        return self._version_of(
+            template_id, self.post_json(f"/v1/templates/{template_id}/review", body)
+        )
 
     def template(self, template_id: str) -> TemplateVersion:
         parse_template_id(template_id)
-        return self._version(self.get_json(f"/v1/templates/{template_id}"))
+        return self._version_of(template_id, self.get_json(f"/v1/templates/{template_id}"))
+
+    def _version_of(self, template_id: str, answer: Any) -> TemplateVersion:
+        """The version ``answer`` holds, which must be ``template_id``'s."""
+        version = self._version(answer)
+        _check_answered("template", template_id, version.id)
+        return version
 
     def templates(
         self,
@@ -195,8 +203,9 @@ class Storage(ServiceClient):
         return [str(item) for item in ids]
 
     def record(self, record_id: str) -> StoredRecord:
-        answer = self.get_json(f"/v1/records/{quote(record_id, safe='')}")
-        return _stored(answer)
+        stored = _stored(self.get_json(f"/v1/records/{quote(record_id, safe='')}"))
+        _check_answered("record", record_id, stored.id)
+        return stored
 
     def query(
         self,
@@ -280,6 +289,15 @@ class _Params(dict[str, Any]):
         super().__init__()
         for key, value in pairs:
             self.setdefault(key, []).append(value)
+
+
+def _check_answered(kind: str, asked: str, answered: str) -> None:
+    """Refuse an answer about another resource than the one asked for: the robot would
+    validate its records against, or act on, a template or record it never named."""
+    if answered != asked:
+        raise InvalidAnswerError(
+            f"asked for {kind} {asked[:100]!r}, the storage service sent {answered[:100]!r}"
+        )
 
 
 def _optional_int(value: Any) -> int | None:

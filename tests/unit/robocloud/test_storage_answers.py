@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 
 from robocloud.cli import app
 from robocloud.errors import InvalidAnswerError
+from robocloud.identity import Identity
 from robocloud.storage import Storage
 from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
 
@@ -129,3 +130,34 @@ def test_query_ends_in_one_line_on_a_malformed_page() -> None:
     assert result.exit_code == 6, result.output
     assert result.stderr.startswith("error: the storage service sent keywords_pending 'zz'")
     assert result.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda storage: storage.template("imu@2"),
+        lambda storage: storage.submit_template("imu@2"),
+        lambda storage: storage.review_template("imu@2", "approve"),
+        lambda storage: storage.edit_template("imu@2", version(2)),
+    ],
+    ids=["template", "submit", "review", "edit"],
+)
+def test_a_template_answered_for_another_id_is_refused(call: Callable[[Storage], Any]) -> None:
+    """Asked for imu@2, a node answering imu@1 had the robot validate its records against a
+    template it never named."""
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(version(1)))) as server,
+        Storage(server.url, Identity.generate(), retries=0) as storage,
+        pytest.raises(InvalidAnswerError, match="template 'imu@2', the storage service sent"),
+    ):
+        call(storage)
+
+
+def test_a_record_answered_for_another_id_is_refused() -> None:
+    other = {"id": "imu-1-7", "record": {"template": "imu@1", "data": {"x": 1}}, "signer": None}
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(other))) as server,
+        Storage(server.url, retries=0) as storage,
+        pytest.raises(InvalidAnswerError, match="record 'imu-1-5', the storage service sent"),
+    ):
+        storage.record("imu-1-5")
