@@ -67,6 +67,17 @@ def _job(answer: Any) -> dict[str, Any]:
     return job
 
 
+def _job_of(job_id: str, answer: Any) -> dict[str, Any]:
+    """The job ``answer`` holds, which must be ``job_id``: ``wait`` would otherwise report
+    another job's outcome (a success) as this one's."""
+    job = _job(answer)
+    if job["id"] != job_id:
+        raise InvalidAnswerError(
+            f"asked for ingest job {job_id[:100]!r}, the storage service sent {job['id'][:100]!r}"
+        )
+    return job
+
+
 class Ingest(ServiceClient):
     """Ingest jobs and exports of the storage service."""
 
@@ -100,7 +111,7 @@ class Ingest(ServiceClient):
         return self.upload(bag)
 
     def job(self, job_id: str) -> dict[str, Any]:
-        return _job(self.get_json(f"/v1/jobs/{quote(job_id, safe='')}"))
+        return _job_of(job_id, self.get_json(f"/v1/jobs/{quote(job_id, safe='')}"))
 
     def wait(
         self,
@@ -122,7 +133,7 @@ class Ingest(ServiceClient):
             time.sleep(min(poll_s, max(deadline - time.monotonic(), 0.0)))
 
     def resume(self, job_id: str) -> dict[str, Any]:
-        return _job(self.post_json(f"/v1/jobs/{quote(job_id, safe='')}/resume"))
+        return _job_of(job_id, self.post_json(f"/v1/jobs/{quote(job_id, safe='')}/resume"))
 
     def bind(
         self, template: str, *, topic: str | None = None, msgtype: str | None = None

@@ -89,9 +89,21 @@ def test_a_malformed_job_is_an_invalid_answer(job: Any) -> None:
         ingest.job("j1")
 
 
-def test_a_job_id_is_one_path_segment() -> None:
+def test_a_job_answered_for_another_id_is_refused() -> None:
+    """Waiting for a failing job j1, a node answering another's success had the robot report
+    j1 as succeeded."""
     with (
-        scripted_server(lambda _: json_reply(json.dumps(JOB))) as server,
+        scripted_server(lambda _: json_reply(json.dumps({**JOB, "id": "j2"}))) as server,
+        Ingest(server.url, retries=0) as ingest,
+        pytest.raises(InvalidAnswerError, match="ingest job 'j1', the storage service sent 'j2'"),
+    ):
+        ingest.wait("j1")
+
+
+def test_a_job_id_is_one_path_segment() -> None:
+    job = {**JOB, "id": "../templates?x=1"}
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(job))) as server,
         Ingest(server.url) as ingest,
     ):
         ingest.job("../templates?x=1")
