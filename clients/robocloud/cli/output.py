@@ -41,8 +41,13 @@ def show(*lines: str) -> None:
 
 
 def show_json(document: Any) -> None:
-    """Print one JSON document on stdout (``--json``)."""
-    typer.echo(json.dumps(document, ensure_ascii=False))
+    """Print one JSON document on stdout (``--json``), its strings' control and format
+    characters escaped: JSON escapes only those below U+0020, so a service's C1 CSI
+    (U+009B), bidi override or line separator reached the terminal as they were."""
+    text = json.dumps(document, ensure_ascii=False)
+    if not text.isprintable():
+        text = "".join(char if char.isprintable() else json.dumps(char)[1:-1] for char in text)
+    typer.echo(text)
 
 
 def untrusted(text: object, limit: int = 400) -> str:

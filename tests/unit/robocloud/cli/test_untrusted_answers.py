@@ -105,3 +105,37 @@ def test_a_construct_answer_is_printed_escaped_line_by_line() -> None:
     assert "\u202e" not in result.stdout
     assert "\r" not in result.stdout
     assert '<urn:a> <urn:b> "ok\\x1b[2K\n' in result.stdout
+
+
+C1_EVIL = "\x9b2J\x9b31mFORGED\u2028record   imu-1-0 verified\u202e\U000e0001"
+
+
+@pytest.mark.parametrize(
+    "command",
+    [["templates", "list"], ["templates", "show", "imu@1"], ["query"]],
+    ids=["templates-list", "templates-show", "query"],
+)
+def test_json_output_escapes_what_json_itself_leaves_raw(command: list[str]) -> None:
+    """JSON escapes only characters below U+0020: a C1 CSI (U+009B, a terminal's ESC [), a
+    line separator, a bidi override or a tag character in a service's text reached the
+    terminal raw under --json. Escaped as \\uXXXX, the document still reads the same."""
+    evil_node = _saying(C1_EVIL)
+    with scripted_server(evil_node) as server:
+        result = runner.invoke(app, [*command, "--storage", server.url, "--json"])
+    assert result.exit_code == 0, result.output
+    assert result.stdout.isascii()
+    assert C1_EVIL in json.dumps(json.loads(result.stdout), ensure_ascii=False)
+
+
+def _saying(text: str) -> Any:
+    """``storage_node`` with ``text`` wherever it says ``EVIL``."""
+
+    def script(exchange: Exchange) -> Reply:
+        status, headers, body = storage_node(exchange) or (500, {}, b"")
+        return (
+            status,
+            headers,
+            body.replace(json.dumps(EVIL)[1:-1].encode(), json.dumps(text)[1:-1].encode()),
+        )
+
+    return script
