@@ -13,6 +13,7 @@ import io
 import itertools
 import os
 import secrets
+import shutil
 import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -308,21 +309,22 @@ class Cas(ServiceClient):
         The file appears under ``path`` only once all of it was verified; whatever fails
         (a lying gateway, ``max_size``, an interrupt) removes the partial file, a new one
         beside ``path`` that this call created (never a file or link already there). With
-        ``max_size``, a root that declares more is refused before anything is written, and
-        a DAG that holds more than it declares is stopped at the limit. Without
-        ``overwrite``, an existing ``path`` is never replaced (``FileExistsError``), even by
-        a file that appeared while downloading.
+        ``max_size`` (by default the free space in ``path``'s directory, as ``robocloud get``
+        has it: a DAG expands, so a kilobyte CAR could fill the disk), a root that declares
+        more is refused before anything is written, and a DAG that holds more than it
+        declares is stopped at the limit. Without ``overwrite``, an existing ``path`` is never
+        replaced (``FileExistsError``), even by a file that appeared while downloading.
         """
         root = _as_cid(cid)
         if not overwrite and (path.exists() or path.is_symlink()):
             raise FileExistsError(f"{path} exists")
         url = f"{self.base_url}/ipfs/{root}"
-        if max_size is not None:
-            with self.translate_errors("GET", url):
-                self._check_declared_size(root, max_size)
+        if max_size is None:
+            max_size = shutil.disk_usage(path.absolute().parent).free
+        with self.translate_errors("GET", url):
+            self._check_declared_size(root, max_size)
         with written_whole(path, overwrite=overwrite) as out, self.translate_errors("GET", url):
-            target = out if max_size is None else _CappedWriter(out, root, max_size)
-            return self._download(root, target, progress)
+            return self._download(root, _CappedWriter(out, root, max_size), progress)
 
     def block(self, cid: CID | str, *, cached_only: bool = False) -> bytes:
         """One raw block from the gateway, verified against its CID.

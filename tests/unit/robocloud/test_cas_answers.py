@@ -3,6 +3,7 @@ within its bounds, and a refused one leaves nothing behind."""
 
 from __future__ import annotations
 
+import shutil
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -112,3 +113,26 @@ def test_get_holds_no_more_than_an_answer_by_default() -> None:
             cas.get(root)
         with Cas(gateway.url, retries=0) as cas:
             assert cas.get(root) == bytes(4 << 20)
+
+
+def test_get_to_file_writes_no_more_than_the_free_space_by_default(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without max_size a DAG expanding past the disk's free space was written until the
+    disk was full."""
+    root, node, car = expanding_file(1 << 16, 64)
+    free = shutil.disk_usage(tmp_path)._replace(free=1 << 20)
+    monkeypatch.setattr("robocloud.cas.shutil.disk_usage", lambda _: free)
+
+    def script(exchange: Exchange) -> Reply:
+        if "format=raw" in exchange.path:
+            return 200, {"Content-Type": "application/vnd.ipld.raw"}, node
+        return 200, {"Content-Type": "application/vnd.ipld.car"}, car
+
+    with (
+        scripted_server(script) as gateway,
+        Cas(gateway.url, retries=0) as cas,
+        pytest.raises(ContentTooLargeError, match=f"more than the limit of {1 << 20} bytes"),
+    ):
+        cas.get_to_file(root, tmp_path / "out")
+    assert list(tmp_path.iterdir()) == []
