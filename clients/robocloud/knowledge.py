@@ -72,14 +72,14 @@ class Knowledge(ServiceClient):
         if produces is not None:
             params["produces"] = produces
         answer = self.get_json("/v1/knowledge/applications", params=params)
-        if not isinstance(answer, dict) or not isinstance(answer.get("applications"), list):
-            raise InvalidAnswerError("the knowledge base's applications are not a list")
-        if len(answer["applications"]) > limit:
+        found = answer.get("applications") if isinstance(answer, dict) else None
+        if not isinstance(found, list) or not all(isinstance(item, dict) for item in found):
+            raise InvalidAnswerError("the knowledge base's applications are not a list of objects")
+        if len(found) > limit:
             raise InvalidAnswerError(
-                f"asked for {limit} applications, the knowledge base sent "
-                f"{len(answer['applications'])}"
+                f"asked for {limit} applications, the knowledge base sent {len(found)}"
             )
-        return list(answer["applications"])
+        return found
 
     def store(self, description: Description, cas: Cas) -> CID:
         """Validate ``description``, put its canonical bytes in ``cas`` and index them here.

@@ -3,11 +3,14 @@ what was asked for is an ``InvalidAnswerError`` naming it, never a bare exceptio
 
 from __future__ import annotations
 
+import json
+from typing import Any
+
 import pytest
 
 from robocloud.errors import InvalidAnswerError
 from robocloud.knowledge import SPARQL_JSON, Knowledge
-from tests.scripted_http import nested_json, scripted_server
+from tests.scripted_http import json_reply, nested_json, scripted_server
 
 QUERY = "SELECT ?s WHERE { ?s ?p ?o }"
 
@@ -33,3 +36,19 @@ def test_a_select_answer_that_is_not_sparql_json_is_an_invalid_answer(body: byte
         pytest.raises(InvalidAnswerError, match="not SPARQL JSON results"),
     ):
         knowledge.select(QUERY)
+
+
+@pytest.mark.parametrize(
+    "answer",
+    [{"applications": [1, "two"]}, {"applications": {"a": {}}}, [{"applications": []}]],
+    ids=["items-not-objects", "object", "list"],
+)
+def test_applications_that_are_not_objects_are_an_invalid_answer(answer: Any) -> None:
+    """A list of numbers was handed on as the applications, for the robot's first
+    ``application["name"]`` to fail as a bare TypeError."""
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(answer))) as node,
+        Knowledge(node.url, retries=0) as knowledge,
+        pytest.raises(InvalidAnswerError, match="not a list of objects"),
+    ):
+        knowledge.applications("image/jpeg")
