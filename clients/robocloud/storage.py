@@ -78,8 +78,8 @@ class Storage(ServiceClient):
                 template,
                 str(answer["status"]),
                 str(answer["author"]),
-                answer.get("reviewer"),
-                answer.get("reason"),
+                _optional_text(answer, "reviewer"),
+                _optional_text(answer, "reason"),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidAnswerError(
@@ -315,5 +315,19 @@ def _stored(item: Any) -> StoredRecord:
         )
     meta = item.get("meta")
     return StoredRecord(
-        item["id"], item["record"], item.get("signer"), meta if isinstance(meta, dict) else None
+        item["id"],
+        item["record"],
+        _optional_text(item, "signer"),
+        meta if isinstance(meta, dict) else None,
     )
+
+
+def _optional_text(answer: dict[str, Any], key: str) -> str | None:
+    """``answer[key]``, text or absent: a number or an object there would reach the robot
+    typed as text, to fail as a bare AttributeError at its first use."""
+    value = answer.get(key)
+    if value is not None and not isinstance(value, str):
+        raise InvalidAnswerError(
+            f"the storage service sent a {key} that is not text: {value!r:.100}"
+        )
+    return value

@@ -161,3 +161,28 @@ def test_a_record_answered_for_another_id_is_refused() -> None:
         pytest.raises(InvalidAnswerError, match="record 'imu-1-5', the storage service sent"),
     ):
         storage.record("imu-1-5")
+
+
+@pytest.mark.parametrize(
+    ("call", "answer"),
+    [
+        (lambda storage: storage.template("imu@1"), version(reviewer=7)),
+        (lambda storage: storage.template("imu@1"), version(reason={"a": 1})),
+        (
+            lambda storage: storage.record("imu-1-5"),
+            {"id": "imu-1-5", "record": {"template": "imu@1"}, "signer": ["0x"]},
+        ),
+    ],
+    ids=["reviewer", "reason", "signer"],
+)
+def test_a_text_field_that_is_not_text_is_an_invalid_answer(
+    call: Callable[[Storage], Any], answer: dict[str, Any]
+) -> None:
+    """Typed ``str | None``, a number or an object went through to fail at the robot's first
+    ``.lower()`` as a bare AttributeError."""
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(answer))) as server,
+        Storage(server.url, retries=0) as storage,
+        pytest.raises(InvalidAnswerError, match="that is not text"),
+    ):
+        call(storage)
