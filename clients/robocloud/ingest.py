@@ -139,9 +139,13 @@ class Ingest(ServiceClient):
         self, template: str, *, topic: str | None = None, msgtype: str | None = None
     ) -> dict[str, Any]:
         """Bind a topic or a message type to an approved template for later ingests."""
-        bindings: dict[str, Any] = self.post_json(
+        bindings = self.post_json(
             "/v1/bindings", {"template": template, "topic": topic, "msgtype": msgtype}
         )
+        if not isinstance(bindings, dict):
+            raise InvalidAnswerError(
+                f"the storage service's binding {str(bindings)[:100]!r} is not an object"
+            )
         return bindings
 
     def export(self, params: dict[str, Any], out: Path, *, max_size: int | None = None) -> int:

@@ -100,6 +100,17 @@ def test_a_job_answered_for_another_id_is_refused() -> None:
         ingest.wait("j1")
 
 
+@pytest.mark.parametrize("answer", [b"[1]", b'"bound"', b""], ids=["list", "text", "empty"])
+def test_a_binding_that_is_not_an_object_is_an_invalid_answer(answer: bytes) -> None:
+    """Typed a dict, a list or nothing at all went through to the robot."""
+    with (
+        scripted_server(lambda _: json_reply(answer)) as server,
+        Ingest(server.url, Identity.generate(), retries=0) as ingest,
+        pytest.raises(InvalidAnswerError, match="not an object"),
+    ):
+        ingest.bind("imu@1", topic="/imu")
+
+
 def test_a_job_id_is_one_path_segment() -> None:
     job = {**JOB, "id": "../templates?x=1"}
     with (
