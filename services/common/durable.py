@@ -2,7 +2,8 @@
 
 Every write goes to a temporary file in the same directory, is fsynced, renamed over the
 target (atomic on POSIX) and the directory is fsynced so the rename itself survives a crash.
-State that changes record by record goes to SQLite instead, opened by ``open_sqlite``.
+State that changes record by record goes to SQLite instead, opened by ``open_sqlite``; a
+write whose COMMIT failed is made unrecoverable by ``void_failed_commit``.
 """
 
 from __future__ import annotations
@@ -12,8 +13,11 @@ import logging
 import os
 import secrets
 import sqlite3
+import time
 from pathlib import Path
 from typing import Literal
+
+log = logging.getLogger("robocloud.durable")
 
 
 def open_sqlite(
@@ -30,6 +34,44 @@ def open_sqlite(
     connection.execute(f"PRAGMA synchronous={synchronous}")
     connection.executescript(schema)
     return connection
+
+
+FAILED_COMMIT_SCHEMA = """
+CREATE TABLE IF NOT EXISTS failed_commit (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    at REAL NOT NULL
+)
+"""
+"""``failed_commit`` holds the time of the last COMMIT that failed; writing it is what voids
+that COMMIT's frames (``void_failed_commit``)."""
+
+
+def void_failed_commit(connection: sqlite3.Connection) -> None:
+    """Make sure no recovery finds what a failed COMMIT on ``connection`` wrote to its
+    write-ahead log; call it at once after the COMMIT (or autocommit statement) raised.
+
+    A commit that fails (the disk refuses the fsync of the ``-wal`` file) is rolled back in
+    this process, but its frames, commit marker included, may already be in the log's file
+    past the last frame SQLite counts, and a restart's WAL recovery reads them: it brought
+    back a write the process had answered as failed. So this writes a one-row commit to the
+    ``failed_commit`` table (created if missing) right away. SQLite writes the next commit
+    from the first frame the failed one used (or into a log restarted with new salts), and
+    WAL recovery stops at the first frame whose checksum chain breaks: one frame written
+    there voids every frame after it. If this commit's fsync fails as well, its frames are in
+    the file all the same (only their sync failed), and what they hold changes nothing the
+    caller reads; only a failure to write them at all is logged.
+    """
+    try:
+        if connection.in_transaction:
+            connection.execute("ROLLBACK")
+        connection.execute(FAILED_COMMIT_SCHEMA)
+        connection.execute("INSERT OR REPLACE INTO failed_commit VALUES (1, ?)", (time.time(),))
+    except sqlite3.Error as exc:
+        if exc.sqlite_errorname != "SQLITE_IOERR_FSYNC":
+            log.error(
+                "a failed commit could not be voided: a restart before the next commit may find it",
+                extra={"error": exc.sqlite_errorname},
+            )
 
 
 def fsync_dir(directory: Path) -> None:
@@ -75,8 +117,6 @@ def atomic_write(path: Path, data: bytes, *, mode: int = 0o644) -> None:
 MIN_DEAD_LINES = 1_000
 """Dead lines (removed or replaced entries) a journal holds before an open compacts it:
 fewer cost little to read again."""
-
-log = logging.getLogger("robocloud.durable")
 
 
 class AppendLog:

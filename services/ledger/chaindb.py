@@ -15,9 +15,7 @@ genesis, like eth-tester's own tester chain but with a durable database undernea
 
 from __future__ import annotations
 
-import logging
 import sqlite3
-import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -45,25 +43,17 @@ from eth_tester.backends.pyevm.main import (
     get_default_genesis_params,
 )
 
-from services.common.durable import open_sqlite
+from services.common.durable import FAILED_COMMIT_SCHEMA, open_sqlite, void_failed_commit
 from services.ledger.precompile_budget import BudgetedState
-
-log = logging.getLogger("robocloud.ledger.chaindb")
 
 CHAIN_ID = 1337
 GENESIS_TIMESTAMP = 0
 """As Ethereum mainnet's genesis; every later block is stamped with the time it is mined."""
 
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS kv (key BLOB PRIMARY KEY, value BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS failed_commit (
-    id INTEGER PRIMARY KEY CHECK (id = 1),
-    at REAL NOT NULL
-);
-"""
-"""``failed_commit`` holds the time of the last COMMIT that failed; writing it is what voids
-that COMMIT's frames (``SqliteKeyValue._void_failed_commit``)."""
+KV_SCHEMA = "CREATE TABLE IF NOT EXISTS kv (key BLOB PRIMARY KEY, value BLOB NOT NULL)"
+SCHEMA = f"{KV_SCHEMA};{FAILED_COMMIT_SCHEMA}"
+"""The key-value table, and ``failed_commit``: writing it voids a failed COMMIT's frames."""
 
 
 class SqliteKeyValue(BaseDB):
@@ -74,7 +64,7 @@ class SqliteKeyValue(BaseDB):
     frames, commit marker included, may already be in the log's file past the last frame
     SQLite counts: a restart's WAL recovery read them and brought back the block, while the
     ledger had answered its transaction as failed. So a failed COMMIT is followed at once by
-    a small commit written over those frames.
+    a small commit written over those frames (``void_failed_commit``).
     """
 
     def __init__(self, path: Path, *, read_only: bool = False) -> None:
@@ -130,31 +120,8 @@ class SqliteKeyValue(BaseDB):
         try:
             self.connection.execute("COMMIT")
         except sqlite3.Error:
-            self._void_failed_commit()
+            void_failed_commit(self.connection)
             raise
-
-    def _void_failed_commit(self) -> None:
-        """Make sure no recovery finds what a failed COMMIT wrote to the write-ahead log.
-
-        SQLite writes the next commit from the first frame the failed one used (or into a
-        log restarted with new salts), and WAL recovery stops at the first frame whose
-        checksum chain breaks: one frame written there voids every frame after it. If this
-        commit's fsync fails as well, its frames are in the file all the same (only their
-        sync failed), and what they hold changes nothing py-evm reads.
-        """
-        try:
-            if self.connection.in_transaction:
-                self.connection.execute("ROLLBACK")
-            self.connection.execute(
-                "INSERT OR REPLACE INTO failed_commit VALUES (1, ?)", (time.time(),)
-            )
-        except sqlite3.Error as exc:
-            if exc.sqlite_errorname != "SQLITE_IOERR_FSYNC":
-                log.error(
-                    "a failed commit could not be voided: a restart before the next commit "
-                    "may find it",
-                    extra={"error": exc.sqlite_errorname},
-                )
 
     def close(self) -> None:
         self.connection.close()

@@ -61,6 +61,53 @@ def failing_fsync_library(directory: Path) -> Path:
     return library
 
 
+class FailingDiskChild:
+    """``script`` run on ``path`` in a child process whose fsyncs of a write-ahead log fail
+    while ``trigger`` exists (once, and the trigger is removed, unless ``persistent``), under
+    ``library`` (``failing_fsync_library``). The script prints one line when it is ready and
+    answers each line written to it with one line."""
+
+    def __init__(
+        self, script: str, path: Path, library: Path, trigger: Path, persistent: bool
+    ) -> None:
+        environment = {"PYTHONPATH": f"{REPO}:{REPO / 'clients'}", "LD_PRELOAD": str(library)}
+        if not persistent:
+            environment["FAIL_FSYNC_ONCE"] = "1"
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", script, str(path)],
+            cwd=REPO,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=environment | {"FAIL_FSYNC_WHILE": str(trigger)},
+        )
+        assert self.answer() == "ready"
+
+    def answer(self) -> str:
+        assert self.process.stdout is not None
+        return self.process.stdout.readline().strip()
+
+    def ask(self, line: str) -> str:
+        assert self.process.stdin is not None
+        self.process.stdin.write(line + "\n")
+        self.process.stdin.flush()
+        return self.answer()
+
+    def kill(self) -> None:
+        self.process.send_signal(signal.SIGKILL)
+        self.process.wait()
+
+
+def copy_as_killed(path: Path, directory: Path) -> Path:
+    """Copy the SQLite database ``path`` and its write-ahead log into ``directory`` as a
+    kill -9 of its writer would now leave them (the shared-memory index is rebuilt from the
+    log by the first open, as after a kill); the copy's path."""
+    directory.mkdir()
+    for name in (path.name, f"{path.name}-wal"):
+        shutil.copyfile(path.with_name(name), directory / name)
+    return directory / path.name
+
+
 def acknowledged_before_kill(script: str, path: Path, count: int) -> list[str]:
     """Run ``script`` on ``path`` in a new interpreter, read ``count`` lines, then kill -9 it.
 

@@ -3,10 +3,6 @@ blocks that survive a reopen and a kill -9 with the same head hash."""
 
 from __future__ import annotations
 
-import shutil
-import signal
-import subprocess
-import sys
 import textwrap
 import time
 from pathlib import Path
@@ -28,8 +24,12 @@ from services.ledger.chain import (
 )
 from services.ledger.contracts import create_address, deploy, send_as
 from services.ledger.operator import OperatorKeys
-from tests.procs import REPO
-from tests.unit.services.ledger.crash import acknowledged_before_kill, failing_fsync_library
+from tests.unit.services.ledger.crash import (
+    FailingDiskChild,
+    acknowledged_before_kill,
+    copy_as_killed,
+    failing_fsync_library,
+)
 
 METADATA = bytes.fromhex("01551220") + bytes(32)
 LOOP_RUNTIME = "5b600056"  # JUMPDEST PUSH1 0 JUMP: forever
@@ -199,38 +199,15 @@ FAILING_DISK = textwrap.dedent(
 )
 
 
-class FailingDiskChain:
-    """The chain in a child process whose fsyncs of the write-ahead log fail while
-    ``trigger`` exists (once, and the trigger is removed, unless ``persistent``); each
-    transaction written to it is answered with a line."""
+class FailingDiskChain(FailingDiskChild):
+    """The chain in a child process with a failing disk; each transaction written to it is
+    answered with a line."""
 
     def __init__(self, path: Path, library: Path, trigger: Path, persistent: bool) -> None:
-        environment = {"PYTHONPATH": f"{REPO}:{REPO / 'clients'}", "LD_PRELOAD": str(library)}
-        if not persistent:
-            environment["FAIL_FSYNC_ONCE"] = "1"
-        self.process = subprocess.Popen(
-            [sys.executable, "-c", FAILING_DISK, str(path)],
-            cwd=REPO,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-            env=environment | {"FAIL_FSYNC_WHILE": str(trigger)},
-        )
-        assert self.answer() == "ready"
-
-    def answer(self) -> str:
-        assert self.process.stdout is not None
-        return self.process.stdout.readline().strip()
+        super().__init__(FAILING_DISK, path, library, trigger, persistent)
 
     def send(self, raw: bytes) -> str:
-        assert self.process.stdin is not None
-        self.process.stdin.write(raw.hex() + "\n")
-        self.process.stdin.flush()
-        return self.answer()
-
-    def kill(self) -> None:
-        self.process.send_signal(signal.SIGKILL)
-        self.process.wait()
+        return self.ask(raw.hex())
 
 
 def transfer_from(operator: OperatorKeys, nonce: int) -> bytes:
@@ -248,7 +225,7 @@ def test_a_commit_whose_fsync_failed_is_answered_as_a_restart_finds_it(
     right after that answer leaves it must lack the block, whether the disk failed once or
     until then, and the same process must mine the transaction sent again."""
     library = failing_fsync_library(tmp_path)
-    trigger, path, crashed = tmp_path / "fail", tmp_path / "chain.sqlite", tmp_path / "crashed"
+    trigger, path = tmp_path / "fail", tmp_path / "chain.sqlite"
     operator = keys()
     child = FailingDiskChain(path, library, trigger, persistent)
     try:
@@ -257,16 +234,14 @@ def test_a_commit_whose_fsync_failed_is_answered_as_a_restart_finds_it(
         answer = child.send(transfer_from(operator, 1))
         assert trigger.exists() == persistent  # the fault happened
         trigger.unlink(missing_ok=True)
-        crashed.mkdir()
-        for name in ("chain.sqlite", "chain.sqlite-wal"):  # what a kill -9 now leaves
-            shutil.copyfile(tmp_path / name, crashed / name)
+        crashed = copy_as_killed(path, tmp_path / "crashed")
         assert answer == "failed OperationalError"
         assert child.send(transfer_from(operator, 1)) == "mined 2"  # its robot sends it again
     finally:
         child.kill()
     faucet = bytes.fromhex(operator.faucet.address[2:])
     failed = keccak(transfer_from(operator, 1))
-    after_crash = EmbeddedChain(crashed / "chain.sqlite", operator.genesis_state())
+    after_crash = EmbeddedChain(crashed, operator.genesis_state())
     assert after_crash.head().block_number == 1
     assert after_crash.locate(failed) is None
     assert after_crash.nonce(faucet, "latest") == 1
