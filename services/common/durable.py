@@ -2,8 +2,9 @@
 
 Every write goes to a temporary file in the same directory, is fsynced, renamed over the
 target (atomic on POSIX) and the directory is fsynced so the rename itself survives a crash.
-State that changes record by record goes to SQLite instead, opened by ``open_sqlite``; a
-write whose COMMIT failed is made unrecoverable by ``void_failed_commit``.
+State that changes record by record goes to SQLite instead, opened by ``open_sqlite`` and
+written in ``write_transaction``s; a write whose COMMIT failed is made unrecoverable by
+``void_failed_commit``.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import os
 import secrets
 import sqlite3
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Literal
 
@@ -72,6 +74,29 @@ def void_failed_commit(connection: sqlite3.Connection) -> None:
                 "a failed commit could not be voided: a restart before the next commit may find it",
                 extra={"error": exc.sqlite_errorname},
             )
+
+
+@contextlib.contextmanager
+def write_transaction(connection: sqlite3.Connection) -> Iterator[None]:
+    """One write transaction on ``connection``: committed whole or rolled back, and a COMMIT
+    that failed leaves nothing a restart could find (``void_failed_commit``).
+
+    An I/O error or a full disk inside may have rolled the transaction back already (SQLite
+    does so itself); a ROLLBACK then is refused ("no transaction is active"), and that refusal
+    was raised in place of the error that failed the write.
+    """
+    connection.execute("BEGIN IMMEDIATE")
+    try:
+        yield
+    except BaseException:
+        if connection.in_transaction:
+            connection.execute("ROLLBACK")
+        raise
+    try:
+        connection.execute("COMMIT")
+    except sqlite3.Error:
+        void_failed_commit(connection)
+        raise
 
 
 def fsync_dir(directory: Path) -> None:

@@ -15,7 +15,6 @@ genesis, like eth-tester's own tester chain but with a durable database undernea
 
 from __future__ import annotations
 
-import sqlite3
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -43,7 +42,7 @@ from eth_tester.backends.pyevm.main import (
     get_default_genesis_params,
 )
 
-from services.common.durable import FAILED_COMMIT_SCHEMA, open_sqlite, void_failed_commit
+from services.common.durable import FAILED_COMMIT_SCHEMA, open_sqlite, write_transaction
 from services.ledger.precompile_budget import BudgetedState
 
 CHAIN_ID = 1337
@@ -96,9 +95,7 @@ class SqliteKeyValue(BaseDB):
         """One SQLite transaction; nested calls join the outermost, which alone commits.
 
         Mining a block writes two py-evm batches (state, then block); running both inside
-        one outer transaction makes the block atomic and costs one fsync instead of two. An
-        I/O error or a full disk in the middle may have rolled the transaction back already
-        (SQLite does so itself); the ROLLBACK then refused would hide the error that did it.
+        one outer transaction makes the block atomic and costs one fsync instead of two.
         """
         if self.depth:
             self.depth += 1
@@ -107,21 +104,12 @@ class SqliteKeyValue(BaseDB):
             finally:
                 self.depth -= 1
             return
-        self.connection.execute("BEGIN IMMEDIATE")
         self.depth = 1
         try:
-            yield
-        except BaseException:
-            if self.connection.in_transaction:
-                self.connection.execute("ROLLBACK")
-            raise
+            with write_transaction(self.connection):
+                yield
         finally:
             self.depth = 0
-        try:
-            self.connection.execute("COMMIT")
-        except sqlite3.Error:
-            void_failed_commit(self.connection)
-            raise
 
     def close(self) -> None:
         self.connection.close()

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from robocloud.ledger.abi import ContractAbi, DecodedLog
-from services.common.durable import open_sqlite
+from services.common.durable import open_sqlite, write_transaction
 from services.ledger.encoding import MAX_SQLITE_INTEGER, LogEntry
 
 log = logging.getLogger("robocloud.ledger.index")
@@ -185,14 +185,8 @@ class EventIndex:
     @contextmanager
     def _transaction(self) -> Iterator[None]:
         """One SQLite write transaction under the lock: committed whole, or rolled back."""
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                yield
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+        with self._lock, write_transaction(self._db):
+            yield
 
     def _insert(self, entry: LogEntry) -> None:
         topics = list(entry.topics) + [None] * (4 - len(entry.topics))

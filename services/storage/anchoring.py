@@ -32,7 +32,7 @@ from typing import Any, Protocol
 from robocloud import jcs
 from robocloud.ledger import Anchor, Ledger
 from robocloud.proofs import AnchorRef, RecordId
-from services.common.durable import open_sqlite
+from services.common.durable import open_sqlite, write_transaction
 from services.storage.identity import NodeIdentity, Standing
 from services.storage.recordlog import RecordLogs
 from services.storage.tmt import EpochTree, TemplateHead, heads_from
@@ -201,8 +201,7 @@ class EpochStore:
         tree = EpochTree.build(last + 1, heads)
         described = json.dumps([head.describe() for head in tree.heads])
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
+            with write_transaction(self._db):
                 self._db.execute(
                     "INSERT INTO epochs (epoch, heads, tmt_root, record_count, cut_at) "
                     "VALUES (?, ?, ?, ?, ?)",
@@ -212,10 +211,6 @@ class EpochStore:
                     "INSERT INTO growth (template, size, epoch) VALUES (?, ?, ?)",
                     [(head.template, head.size, tree.epoch) for head in grown],
                 )
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
             self._remember(tree)
         return tree
 

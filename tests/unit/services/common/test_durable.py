@@ -114,3 +114,24 @@ def test_a_compaction_failing_after_its_rename_leaves_appends_going_to_the_file(
     monkeypatch.undo()
     journal.append("after")
     assert path.read_text() == "live\nafter\n"
+
+
+def test_an_error_after_sqlite_rolled_back_by_itself_is_the_one_raised(tmp_path: Path) -> None:
+    """SQLite rolls a transaction back itself on some I/O errors and a full disk; the ROLLBACK
+    that followed was refused ("no transaction is active"), and that refusal was raised in
+    place of the error that failed the write (the chain store, the event index and the
+    anchorer's epochs all did so)."""
+    db = durable.open_sqlite(tmp_path / "kv.sqlite", "CREATE TABLE kv (k TEXT)", synchronous="FULL")
+    db.execute("INSERT INTO kv VALUES ('kept')")
+
+    def write_rolled_back_by_sqlite() -> None:
+        with durable.write_transaction(db):
+            db.execute("INSERT INTO kv VALUES ('lost')")
+            db.execute("ROLLBACK")
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(OSError, match="No space left"):
+        write_rolled_back_by_sqlite()
+    with durable.write_transaction(db):
+        db.execute("INSERT INTO kv VALUES ('later')")
+    assert [row for (row,) in db.execute("SELECT k FROM kv")] == ["kept", "later"]

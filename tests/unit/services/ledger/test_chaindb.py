@@ -6,11 +6,10 @@ import textwrap
 import time
 from pathlib import Path
 
-import pytest
 from eth_account import Account
 from eth_tester.backends.pyevm.main import get_default_account_keys
 
-from services.ledger.chaindb import CHAIN_ID, DevChain, SqliteKeyValue, open_chain
+from services.ledger.chaindb import CHAIN_ID, DevChain, open_chain
 from tests.unit.services.ledger.crash import acknowledged_before_kill
 
 RECIPIENT = bytes.fromhex("11" * 20)
@@ -83,24 +82,3 @@ def test_kill_9_loses_no_acknowledged_block(tmp_path: Path) -> None:
     assert head.block_number >= 5
     assert chain.get_canonical_block_header_by_number(5).hash.hex() == acknowledged[-1]
     db.close()
-
-
-def test_an_error_after_sqlite_rolled_back_by_itself_is_the_one_raised(tmp_path: Path) -> None:
-    """SQLite rolls a transaction back itself on some I/O errors and a full disk; the store's
-    own ROLLBACK was then refused ("no transaction is active"), and that error was raised in
-    place of the one that failed the batch."""
-    store = SqliteKeyValue(tmp_path / "kv.sqlite")
-    store[b"kept"] = b"1"
-
-    def write_rolled_back_by_sqlite() -> None:
-        with store.transaction():
-            store[b"lost"] = b"2"
-            store.connection.execute("ROLLBACK")
-            raise OSError(28, "No space left on device")
-
-    with pytest.raises(OSError, match="No space left"):
-        write_rolled_back_by_sqlite()
-    assert (store[b"kept"], b"lost" in store) == (b"1", False)
-    with store.transaction():
-        store[b"later"] = b"3"
-    assert store[b"later"] == b"3"
