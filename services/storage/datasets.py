@@ -20,7 +20,7 @@ from typing import Any
 from robocloud import jcs
 from robocloud.cas import Cas
 from robocloud.cid import CID, parse_cid
-from robocloud.ledger import Ledger
+from robocloud.ledger import Advertised, Ledger, SignedTransaction
 from robocloud.proofs import RecordId
 from robocloud.semantic import TemplateCount, dataset_description, robot_iri
 from services.storage.anchoring import EpochStore
@@ -54,8 +54,13 @@ class DatasetPublisher:
         self.ledger = ledger
         self.node = node
 
-    def __call__(self, job: Job, bag: Path) -> dict[str, Any]:
-        """Publish ``job``'s dataset; what was published, for the job's report."""
+    def __call__(
+        self, job: Job, bag: Path, save_advertise_tx: Callable[[dict[str, Any]], None]
+    ) -> dict[str, Any]:
+        """Publish ``job``'s dataset; what was published, for the job's report.
+
+        The advertise transaction is handed to ``save_advertise_tx`` before it is sent, for a
+        later attempt of the job to find it (``_advertised_before``)."""
         bag_cid = self._bag_cid(job, bag)
         counts = [self._count(template, ids) for template, ids in job.record_ids.items()]
         start, end = self._time_range(job)
@@ -80,7 +85,11 @@ class DatasetPublisher:
             if earlier is not None:
                 return earlier
             self.node.ensure_registered(chain)
-            event = chain.advertise(bag_cid.binary, description_cid.binary)
+            event = chain.advertise(
+                bag_cid.binary,
+                description_cid.binary,
+                before_send=lambda signed: save_advertise_tx(signed.to_json()),
+            )
         log.info(
             "dataset advertised",
             extra={"job": job.id, "cid": str(bag_cid), "description": str(description_cid)},
@@ -102,7 +111,10 @@ class DatasetPublisher:
         """
         if job.publish_attempts <= 1:
             return None
+        sent = self._saved_advertise(chain, job, bag_cid)
         mine = chain.advertisements(cid=bag_cid.binary, advertiser=self.node.address)
+        if sent is not None:
+            mine.append(sent)
         same = [
             event
             for event in mine
@@ -121,6 +133,16 @@ class DatasetPublisher:
             extra={"job": job.id, "cid": str(bag_cid), "tx": event.tx_hash},
         )
         return {"cid": str(bag_cid), "description": str(description_cid), "tx": event.tx_hash}
+
+    @staticmethod
+    def _saved_advertise(chain: Ledger, job: Job, bag_cid: CID) -> Advertised | None:
+        """What the advertise transaction an earlier attempt saved advertised, once mined: it
+        is sent again and waited for, since behind an external node it may still be pending
+        (not found by ``eth_getLogs``). None when none was saved, or it reverted or its nonce
+        went to another transaction, so it never advertised anything."""
+        if job.advertise_tx is None:
+            return None
+        return chain.advertised_by(SignedTransaction.from_json(job.advertise_tx), bag_cid.binary)
 
     def _epoch(self, job: Job) -> tuple[int | None, str | None]:
         """The first epoch holding every record of the job, and its TMT root: cut within an

@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 from services.common.durable import atomic_write, fsync_dir
 from services.storage.bags import Bag, BagConnection
@@ -129,6 +129,11 @@ class Job:
     """Times publishing the dataset began, each saved before it: above 1, an earlier attempt
     was cut short (kill -9, power cut) and may have advertised the dataset, so the publisher
     looks on chain for that advertisement before it makes one."""
+    advertise_tx: dict[str, Any] | None = None
+    """The advertise transaction the publisher signed (``SignedTransaction.to_json``), saved
+    before it was sent: a later attempt sends these same bytes again and waits for them, since
+    behind an external node one still pending when the node died was not found on chain and a
+    second advertisement was signed, both then mined."""
     created_ns: int = field(default_factory=time.time_ns)
     updated_ns: int = field(default_factory=time.time_ns)
 
@@ -154,6 +159,16 @@ class Job:
     def from_json(cls, document: dict[str, Any]) -> Job:
         topics = [TopicReport(**topic) for topic in document.pop("topics")]
         return cls(topics=topics, **document)
+
+
+class Publish(Protocol):
+    """Describes and advertises a job's dataset once its records are committed; what it
+    published, for the job's report. ``save_advertise_tx`` durably saves the advertise
+    transaction (``Job.advertise_tx``) before it is sent."""
+
+    def __call__(
+        self, job: Job, bag: Path, save_advertise_tx: Callable[[dict[str, Any]], None]
+    ) -> dict[str, Any]: ...
 
 
 def _draft(connection: BagConnection) -> dict[str, Any] | None:
@@ -196,7 +211,7 @@ class IngestJobs:
         parallel_from_messages: int = 20_000,
         max_pending: int = 16,
         keep_finished: int = 1000,
-        publish: Callable[[Job, Path], dict[str, Any]] | None = None,
+        publish: Publish | None = None,
     ) -> None:
         self.root = root
         self.store = store
@@ -354,15 +369,20 @@ class IngestJobs:
         _remove(_bag_in(self.root / job.id))
         self._update(job, status="succeeded")
 
-    def _publish(self, job: Job, publish: Callable[[Job, Path], dict[str, Any]]) -> None:
+    def _publish(self, job: Job, publish: Publish) -> None:
         """Publish the job's dataset; a failure is reported with the job, which succeeded.
 
         The attempt is saved before it and its outcome after, while the bag is still there: a
         job cut short once its outcome was saved neither advertises again nor needs its bag,
-        and one cut short within tells the publisher so (``publish_attempts``)."""
+        and one cut short within tells the publisher so (``publish_attempts``), and what
+        transaction it signed (``advertise_tx``)."""
         self._update(job, publish_attempts=job.publish_attempts + 1)
+
+        def save_advertise_tx(signed: dict[str, Any]) -> None:
+            self._update(job, advertise_tx=signed)
+
         try:
-            dataset = publish(job, _bag_in(self.root / job.id))
+            dataset = publish(job, _bag_in(self.root / job.id), save_advertise_tx)
         except Exception as exc:
             log.warning("dataset not published", extra={"job": job.id, "error": str(exc)})
             dataset = {"error": str(exc)[:500]}

@@ -25,7 +25,7 @@ from robocloud.ledger.models import (
     Role,
 )
 from robocloud.ledger.rpc import JsonRpcClient
-from robocloud.ledger.transactions import Receipt, Transactor
+from robocloud.ledger.transactions import Receipt, SignedTransaction, Transactor
 
 __all__ = [
     "AddressError",
@@ -47,6 +47,7 @@ __all__ = [
     "Robot",
     "Role",
     "RpcError",
+    "SignedTransaction",
     "TransactionTimeoutError",
     "Transactor",
     "decode_revert",

@@ -9,6 +9,7 @@ only to learn where the contracts are (``GET /v1/contracts``) and for the develo
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +42,14 @@ from robocloud.ledger.models import (
     Role,
 )
 from robocloud.ledger.rpc import JsonRpcClient, as_revert
-from robocloud.ledger.transactions import FeeLimits, Receipt, Transactor, check_chain, quantity
+from robocloud.ledger.transactions import (
+    FeeLimits,
+    Receipt,
+    SignedTransaction,
+    Transactor,
+    check_chain,
+    quantity,
+)
 
 
 @dataclass(frozen=True)
@@ -390,16 +398,46 @@ class Ledger(Closeable):
     def reactivate(self) -> Receipt:
         return self._send(self.registry, self.addresses.registry, "reactivate")
 
-    def advertise(self, cid: bytes, description_cid: bytes = b"") -> Advertised:
-        """Announce that this robot holds ``cid``; ``first`` says whether nobody had before."""
+    def advertise(
+        self,
+        cid: bytes,
+        description_cid: bytes = b"",
+        *,
+        before_send: Callable[[SignedTransaction], None] | None = None,
+    ) -> Advertised:
+        """Announce that this robot holds ``cid``; ``first`` says whether nobody had before.
+
+        ``before_send`` gets the signed transaction before it is sent, for a caller to save
+        it and, after a crash, learn what it advertised with ``advertised_by``.
+        """
         receipt = self._send(
-            self.registry, self.addresses.registry, "advertise", cid, description_cid
+            self.registry,
+            self.addresses.registry,
+            "advertise",
+            cid,
+            description_cid,
+            before_send=before_send,
         )
+        return self._advertised_in(receipt, cid, {"descriptionCid": description_cid})
+
+    def advertised_by(self, signed: SignedTransaction, cid: bytes) -> Advertised | None:
+        """The advertisement of ``cid`` made by ``signed``, an advertise transaction saved
+        before a crash cut its sending or its wait short: sent again while the node lacks it
+        and waited for (``Transactor.resume``), rather than another advertisement signed.
+        None when it reverted, or its nonce went to another transaction (it never will be
+        mined)."""
+        receipt = self._signing(self.registry, "advertise").resume(signed)
+        if receipt is None or receipt.status == 0:
+            return None
+        return self._advertised_in(receipt, cid, {})
+
+    def _advertised_in(self, receipt: Receipt, cid: bytes, expected: dict[str, Any]) -> Advertised:
+        """The receipt's ``Advertised`` event: of ``cid`` by this robot, and ``expected``."""
         expected = {
             "cidHash": keccak(cid),
             "advertiser": self._signer().address,
             "cid": cid,
-            "descriptionCid": description_cid,
+            **expected,
         }
         return self._advertised(
             self._one_log(receipt, self.registry, self.addresses.registry, "Advertised", expected)
@@ -562,10 +600,22 @@ class Ledger(Closeable):
             raise MissingIdentityError("this ledger operation needs the robot's identity")
         return self.identity
 
-    def _send(self, contract: ContractAbi, address: str, function: str, *args: Any) -> Receipt:
+    def _send(
+        self,
+        contract: ContractAbi,
+        address: str,
+        function: str,
+        *args: Any,
+        before_send: Callable[[SignedTransaction], None] | None = None,
+    ) -> Receipt:
+        transactor = self._signing(contract, function)
+        data = contract.encode_call(function, *args)
+        return transactor.send(address, data, before_send=before_send)
+
+    def _signing(self, contract: ContractAbi, function: str) -> Transactor:
         if self._transactor is None:
             raise MissingIdentityError(f"{contract.name}.{function} must be signed by a robot")
-        return self._transactor.send(address, contract.encode_call(function, *args))
+        return self._transactor
 
     def _call(
         self, contract: ContractAbi, address: str, function: str, *args: Any

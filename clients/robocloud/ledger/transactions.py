@@ -16,6 +16,7 @@ from __future__ import annotations
 import re
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -199,6 +200,31 @@ def _receipt_of(tx_hash: str, raw: Any) -> Receipt:
         ) from exc
 
 
+@dataclass(frozen=True)
+class SignedTransaction:
+    """A signed transaction and its nonce: what a caller saves before sending it, so that
+    after a crash it can send the same bytes again (``Transactor.resume``) instead of signing
+    another transaction with the next nonce."""
+
+    raw: bytes
+    nonce: int
+
+    @property
+    def tx_hash(self) -> str:
+        return transaction_hash(self.raw)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"raw": "0x" + self.raw.hex(), "tx": self.tx_hash, "nonce": self.nonce}
+
+    @classmethod
+    def from_json(cls, document: dict[str, Any]) -> SignedTransaction:
+        """What ``to_json`` gave; a ``ValueError`` if its hash is not its bytes'."""
+        signed = cls(bytes.fromhex(str(document["raw"]).removeprefix("0x")), int(document["nonce"]))
+        if signed.tx_hash != document["tx"]:
+            raise ValueError(f"saved transaction {document['tx']!r:.80} is not its raw bytes'")
+        return signed
+
+
 class Transactor:
     """Sends the transactions of one identity to one node and waits for their receipts."""
 
@@ -248,7 +274,14 @@ class Transactor:
         return int(estimate * GAS_MARGIN)
 
     def sign(self, to: str | None, data: bytes, *, gas: int, value: int = 0) -> bytes:
-        """The raw signed transaction, with nonce and gas price from the node.
+        """The raw signed transaction, with nonce and gas price from the node (see
+        ``sign_transaction``)."""
+        return self.sign_transaction(to, data, gas=gas, value=value).raw
+
+    def sign_transaction(
+        self, to: str | None, data: bytes, *, gas: int, value: int = 0
+    ) -> SignedTransaction:
+        """The signed transaction, with nonce and gas price from the node.
 
         The nonce is the node's pending count, so a caller sending what it signs holds
         ``nonce_lock`` until the node has it, as ``send`` does. Raises ``FeeLimitError``
@@ -270,19 +303,30 @@ class Transactor:
         if to is not None:
             transaction["to"] = to_checksum_address(to)
         signed = self.identity.account.sign_transaction(transaction)
-        return bytes(signed.raw_transaction)
+        return SignedTransaction(bytes(signed.raw_transaction), transaction["nonce"])
 
     def send(
-        self, to: str | None, data: bytes, *, value: int = 0, gas: int | None = None
+        self,
+        to: str | None,
+        data: bytes,
+        *,
+        value: int = 0,
+        gas: int | None = None,
+        before_send: Callable[[SignedTransaction], None] | None = None,
     ) -> Receipt:
         """Sign, send and wait; raise ``RevertError`` (with the reason) if it reverts.
 
         Without ``gas`` the gas is estimated, so a call that would revert fails before
-        anything is sent and costs nothing.
+        anything is sent and costs nothing. ``before_send`` is given the signed transaction
+        before it is sent (under ``nonce_lock``), for a caller to save it durably and
+        ``resume`` it after a crash.
         """
         gas = gas if gas is not None else self.estimate_gas(to, data, value)
         with nonce_lock(self.chain_id, self.identity.address):
-            tx_hash = self.submit(self.sign(to, data, gas=gas, value=value))
+            signed = self.sign_transaction(to, data, gas=gas, value=value)
+            if before_send is not None:
+                before_send(signed)
+            tx_hash = self.submit(signed.raw)
         receipt = self.wait_for_receipt(tx_hash)
         if receipt.status == 0:
             raise self._revert_of(to, data, value, receipt)
@@ -300,6 +344,37 @@ class Transactor:
             )
         return tx_hash
 
+    def resume(self, signed: SignedTransaction) -> Receipt | None:
+        """The receipt of a transaction saved before it was sent by a process that died before
+        its receipt: sent again (the same bytes, so one transaction however often it arrives)
+        unless the node has it mined, then waited for. None once its nonce went to another
+        transaction: it can never be mined, and a new one may be signed.
+
+        Behind an external node a transaction can stay pending past a crash; signing another
+        for the same call made both be mined.
+        """
+        receipt = self.receipt(signed.tx_hash)
+        if receipt is not None:
+            return receipt
+        if self._nonce_used(signed):
+            return self.receipt(signed.tx_hash)
+        try:
+            self.submit(signed.raw)
+        except RpcError:
+            # "already known" (the node kept it), or "nonce too low" (mined or replaced since)
+            if self.rpc.request("eth_getTransactionByHash", [signed.tx_hash]) is None:
+                if self._nonce_used(signed):
+                    return self.receipt(signed.tx_hash)
+                raise
+        return self.wait_for_receipt(signed.tx_hash)
+
+    def _nonce_used(self, signed: SignedTransaction) -> bool:
+        """Whether a mined transaction of this key took ``signed``'s nonce."""
+        mined = quantity(
+            self.rpc.request("eth_getTransactionCount", [self.identity.address, "latest"])
+        )
+        return signed.nonce < mined
+
     def deploy(self, contract: ContractAbi, bytecode: str, *args: Any) -> Receipt:
         """Create a contract from its bytecode and constructor arguments."""
         data = bytes.fromhex(bytecode.removeprefix("0x")) + contract.encode_constructor(*args)
@@ -310,19 +385,27 @@ class Transactor:
         ``InvalidAnswerError``, never taken for this one's."""
         deadline = time.monotonic() + self.receipt_timeout_s
         while True:
-            raw = self.rpc.request("eth_getTransactionReceipt", [tx_hash])
-            if raw is not None:
-                receipt = _receipt_of(tx_hash, raw)
-                if receipt.tx_hash.lower() != tx_hash.lower():
-                    raise TransactionMismatchError(
-                        f"asked for the receipt of {tx_hash}, the node answered one of "
-                        f"{receipt.tx_hash[:80]!r}",
-                        tx_hash,
-                    )
+            receipt = self.receipt(tx_hash)
+            if receipt is not None:
                 return receipt
             if time.monotonic() >= deadline:
                 raise TransactionTimeoutError(tx_hash, self.receipt_timeout_s)
             time.sleep(self.poll_interval_s)
+
+    def receipt(self, tx_hash: str) -> Receipt | None:
+        """``tx_hash``'s receipt, None while the node has none; one for another transaction
+        is a ``TransactionMismatchError``."""
+        raw = self.rpc.request("eth_getTransactionReceipt", [tx_hash])
+        if raw is None:
+            return None
+        receipt = _receipt_of(tx_hash, raw)
+        if receipt.tx_hash.lower() != tx_hash.lower():
+            raise TransactionMismatchError(
+                f"asked for the receipt of {tx_hash}, the node answered one of "
+                f"{receipt.tx_hash[:80]!r}",
+                tx_hash,
+            )
+        return receipt
 
     def _revert_of(self, to: str | None, data: bytes, value: int, receipt: Receipt) -> RevertError:
         """Replay the reverted transaction as a call on the state its block started from."""

@@ -1,5 +1,6 @@
-"""Two writers of one key in one process, as a storage node's anchorer and dataset publisher
-are: each with its own ``Ledger`` (its own JSON-RPC client), sending at the same time."""
+"""Nonces: two writers of one key in one process, as a storage node's anchorer and dataset
+publisher are, each with its own ``Ledger`` (its own JSON-RPC client), sending at the same time;
+and a transaction saved before it was sent, resumed after a crash."""
 
 from __future__ import annotations
 
@@ -7,9 +8,12 @@ import contextlib
 import threading
 from typing import Any
 
+import pytest
+
 from robocloud.identity import Identity
-from robocloud.ledger import ContractAddresses, JsonRpcClient, Ledger
+from robocloud.ledger import ContractAddresses, JsonRpcClient, Ledger, SignedTransaction
 from tests.integration.robocloud.ledger.conftest import Deployment
+from tests.integration.robocloud.ledger.nodes import robot_ledger
 
 METADATA = bytes.fromhex("01701220") + bytes(range(32))
 DESCRIPTION = bytes.fromhex("01711220") + bytes(range(2, 34))
@@ -69,3 +73,53 @@ def test_two_writers_of_one_key_never_sign_the_same_nonce(deployment: Deployment
         assert errors == []
         advertised = anchorer.advertisements(advertiser=identity.address)
     assert sorted(event.cid for event in advertised) == cids
+
+
+class Crash(Exception):
+    """The process dying between saving a signed transaction and sending it."""
+
+
+def saved_unsent(ledger: Ledger, cid: bytes) -> SignedTransaction:
+    """An advertise of ``cid`` signed and handed to ``before_send``, then never sent."""
+    saved: list[SignedTransaction] = []
+
+    def save_and_die(signed: SignedTransaction) -> None:
+        saved.append(signed)
+        raise Crash
+
+    with pytest.raises(Crash):
+        ledger.advertise(cid, DESCRIPTION, before_send=save_and_die)
+    return saved[0]
+
+
+def test_a_saved_transaction_is_resumed_with_the_same_bytes(deployment: Deployment) -> None:
+    """Resumed, a saved transaction never sent is sent then (one advertisement, its hash the
+    saved one's), and one already mined is only read back, not sent again."""
+    identity = Identity.generate()
+    deployment.fund(identity)
+    with robot_ledger(deployment.url, deployment.addresses, identity) as ledger:
+        ledger.register(METADATA)
+        cid = bytes.fromhex("01551220") + bytes([3] * 32)
+        signed = saved_unsent(ledger, cid)
+        assert ledger.advertisements(cid=cid) == []
+        first = ledger.advertised_by(signed, cid)
+        again = ledger.advertised_by(signed, cid)
+        assert ledger.advertisements(cid=cid) == [first] == [again]
+    assert first is not None
+    assert (first.tx_hash, first.description_cid) == (signed.tx_hash, DESCRIPTION)
+
+
+def test_a_saved_transaction_whose_nonce_went_to_another_is_not_sent(
+    deployment: Deployment,
+) -> None:
+    """Its nonce taken by a transaction mined since, it can never be mined: None, so that the
+    caller signs a new one."""
+    identity = Identity.generate()
+    deployment.fund(identity)
+    with robot_ledger(deployment.url, deployment.addresses, identity) as ledger:
+        ledger.register(METADATA)
+        cid = bytes.fromhex("01551220") + bytes([4] * 32)
+        signed = saved_unsent(ledger, cid)
+        ledger.update_metadata(METADATA)
+        assert ledger.advertised_by(signed, cid) is None
+        assert ledger.advertisements(cid=cid) == []

@@ -7,10 +7,9 @@ import errno
 import json
 import shutil
 import tracemalloc
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -45,7 +44,7 @@ class Node:
         self,
         root: Path,
         segment_records: int = 4096,
-        publish: Callable[[Job, Path], dict[str, Any]] | None = None,
+        publish: ingest.Publish | None = None,
     ) -> None:
         self.root = root
         self.publish = publish

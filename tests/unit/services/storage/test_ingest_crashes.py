@@ -127,7 +127,9 @@ class ChainPublisher:
         self.advertised = advertised
         """Called once the advertisement is on the chain, before it is returned."""
 
-    def __call__(self, job: Job, bag: Path) -> dict[str, Any]:
+    def __call__(
+        self, job: Job, bag: Path, save_advertise_tx: Callable[[dict[str, Any]], None]
+    ) -> dict[str, Any]:
         made = [ad for ad in self.advertisements() if ad["cid"] == job.bag]
         if made and job.publish_attempts > 1:
             return made[0]

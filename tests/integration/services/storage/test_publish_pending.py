@@ -1,0 +1,127 @@
+"""A storage node behind an external node (anvil), killed (SIGKILL) while its
+``Registry.advertise`` transaction is still pending: the resumed job advertises nothing more.
+
+Real anvil, ledger (fronting anvil), cas and storage processes; the storage node reaches the
+ledger through a forwarding proxy. On the first advertise transaction the proxy stops anvil's
+mining, forwards it (anvil keeps it pending) and kills the node. On the next advertise
+transaction it forwards it, then mines: both are mined if the resumed node signed a second.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from pathlib import Path
+
+import httpx
+
+from robocloud.cid import parse_cid
+from robocloud.identity import Identity
+from robocloud.ingest import Ingest
+from robocloud.ledger import JsonRpcClient, Ledger, LedgerService
+from tests.bagfactory import write_bag
+from tests.conftest import ServiceFactory
+from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
+from tests.integration.services.ledger.conftest import LEDGER_ENV, PASSPHRASE
+from tests.integration.services.storage.test_ingest_http import START_NS, Storage, approve
+from tests.integration.services.storage.test_publish_after_kill import HOP_BY_HOP, _calls_advertise
+from tests.procs import ServiceProcess
+from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.waiting import wait_for
+
+
+class KillWhilePending:
+    """A proxy script: the first advertise transaction reaches anvil with mining stopped, and
+    the storage node is killed before any answer; the next one is forwarded, then mined."""
+
+    def __init__(self, ledger: ServiceProcess, anvil: JsonRpcClient) -> None:
+        self.upstream = httpx.Client(base_url=ledger.url, timeout=60)
+        self.anvil = anvil
+        self.storage: ServiceProcess | None = None
+        self.advertises = 0
+        self.killed = threading.Event()
+        self._lock = threading.Lock()
+
+    def __call__(self, exchange: Exchange) -> Reply:
+        with self._lock:
+            advertise = exchange.method == "POST" and _calls_advertise(exchange.body)
+            self.advertises += advertise
+            number = self.advertises if advertise else 0
+        if number == 1:
+            self.anvil.request("evm_setAutomine", [False])
+        answer = self._forward(exchange)
+        if number == 1:
+            assert self.storage is not None
+            assert self.storage.process is not None
+            os.kill(self.storage.process.pid, signal.SIGKILL)
+            self.killed.set()
+            return None
+        if number == 2:
+            self.anvil.request("evm_setAutomine", [True])
+            self.anvil.request("evm_mine", [])
+        dropped = HOP_BY_HOP | {"content-encoding"}
+        kept = {k: v for k, v in answer.headers.items() if k.lower() not in dropped}
+        return answer.status_code, kept, answer.content
+
+    def _forward(self, exchange: Exchange) -> httpx.Response:
+        headers = {k: v for k, v in exchange.headers.items() if k not in HOP_BY_HOP}
+        return self.upstream.request(
+            exchange.method, exchange.path, headers=headers, content=exchange.body
+        )
+
+
+def test_kill_9_while_the_advertise_is_pending_advertises_the_dataset_once(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """The resumed job looked for a mined ``Advertised`` event only, found none, and signed a
+    second advertise with the next nonce: both were mined, the dataset advertised twice."""
+    with ethereum_node(tmp_path / "anvil.log") as anvil_url, JsonRpcClient(anvil_url) as anvil:
+        admin = Identity.generate()
+        admin.save(tmp_path / "ledger" / "keys" / "admin.json", PASSPHRASE, scrypt_n=2**14)
+        fund(anvil, admin)
+        ledger = service_factory(
+            "ledger",
+            {
+                **LEDGER_ENV,
+                "ROBOCLOUD_LEDGER_RPC_URL": anvil_url,
+                "ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.2",
+            },
+            data_dir=tmp_path / "ledger",
+        )
+        cas = service_factory("cas")
+        proxy = KillWhilePending(ledger, anvil)
+        with scripted_server(proxy, answer_audience=False) as server:
+            storage = service_factory(
+                "storage",
+                {
+                    "ROBOCLOUD_LEDGER_URL": server.url,
+                    "ROBOCLOUD_CAS_URL": cas.url,
+                    "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+                    "ROBOCLOUD_STORAGE_ANCHOR": "false",
+                },
+            )
+            proxy.storage = storage
+            node = str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
+            anvil.request("hardhat_setBalance", [node, hex(10**18)])
+            bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
+            with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ing:
+                imu = approve(client, "sensor_msgs/msg/Imu")
+                ing.bind(imu, msgtype="sensor_msgs/msg/Imu")
+                job_id: str = ing.upload(bag)["id"]
+            wait_for(proxy.killed.is_set, "the storage node to send its advertise transaction")
+            assert storage.process is not None
+            storage.process.wait()
+
+            storage.start()
+            with Ingest(storage.url, identity) as ing:
+                done = ing.wait(job_id, timeout_s=180)
+            assert done["status"] == "succeeded", done["error"]
+
+        with LedgerService(ledger.url) as service:
+            addresses = service.contracts()
+        with Ledger(JsonRpcClient(anvil_url), addresses) as chain:
+            advertised = chain.advertisements(cid=parse_cid(done["dataset"]["cid"], "bag").binary)
+    assert [(event.advertiser, event.tx_hash) for event in advertised] == [
+        (node, done["dataset"]["tx"])
+    ]
