@@ -15,7 +15,8 @@ the default under ``make up`` and compose) or an operator with ``robocloud admin
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
 
@@ -62,6 +63,12 @@ class Standing(Enum):
 @dataclass(frozen=True)
 class NodeIdentity:
     identity: Identity
+    _registering: threading.Lock = field(
+        default_factory=threading.Lock, init=False, repr=False, compare=False
+    )
+    """Held by ``ensure_registered``: the anchorer and the dataset publisher both register the
+    node before their first transaction, and both read it unregistered and registered it (one
+    reverting, "already registered", the first dataset left unpublished)."""
 
     @property
     def address(self) -> str:
@@ -87,11 +94,12 @@ class NodeIdentity:
         The role itself is the admin's to grant; this only gets the node to where a grant
         can find it. Raises what the ledger raises, for the caller to retry later.
         """
-        standing = self.standing(ledger)
-        if standing is not Standing.UNREGISTERED:
-            return standing
-        if ledger.balance() == 0 and ledger.service is not None:
-            ledger.faucet()
-        receipt = ledger.register(self.metadata_cid(ledger.chain_id))
-        log.info("registered", extra={"address": self.address, "tx": receipt.tx_hash})
-        return self.standing(ledger)
+        with self._registering:
+            standing = self.standing(ledger)
+            if standing is not Standing.UNREGISTERED:
+                return standing
+            if ledger.balance() == 0 and ledger.service is not None:
+                ledger.faucet()
+            receipt = ledger.register(self.metadata_cid(ledger.chain_id))
+            log.info("registered", extra={"address": self.address, "tx": receipt.tx_hash})
+            return self.standing(ledger)
