@@ -9,80 +9,56 @@ find the node unregistered.
 
 from __future__ import annotations
 
-import json
 import threading
 from pathlib import Path
-from typing import Any
-
-import httpx
-from eth_utils.crypto import keccak
 
 from robocloud.identity import Identity
 from robocloud.ingest import Ingest
-from robocloud.ledger.abi import ContractAbi, signature
-from tests.bagfactory import write_bag
 from tests.conftest import ServiceFactory
-from tests.integration.services.storage.test_ingest_http import START_NS, Storage, approve
-from tests.integration.services.storage.test_publish_after_kill import HOP_BY_HOP, _calldata
+from tests.integration.services.storage.ledger_proxy import (
+    LedgerProxy,
+    rpc_calls,
+    selector,
+    sends,
+    storage_behind,
+    upload_imu_bag,
+)
 from tests.procs import ServiceProcess
 from tests.scripted_http import Exchange, Reply, scripted_server
 
-REGISTRY = ContractAbi.load("Registry").functions
-REGISTER = keccak(text=signature(REGISTRY["register"]))[:4]
-STANDING = keccak(text=signature(REGISTRY["isActiveWithRole"]))[:4]
+REGISTER = selector("Registry", "register")
+STANDING = selector("Registry", "isActiveWithRole")
 """The selector of the first view call reading a node's standing."""
-
-
-def _calls(body: bytes) -> list[Any]:
-    try:
-        message = json.loads(body)
-    except ValueError:
-        return []
-    return [call for call in (message if isinstance(message, list) else [message])]
-
-
-def _sends_register(body: bytes) -> bool:
-    return any(
-        call.get("method") == "eth_sendRawTransaction"
-        and _calldata(bytes.fromhex(str(call["params"][0]).removeprefix("0x")))[:4] == REGISTER
-        for call in _calls(body)
-    )
 
 
 def _reads_standing(body: bytes) -> bool:
     return any(
-        call.get("method") == "eth_call"
+        isinstance(call, dict)
+        and call.get("method") == "eth_call"
         and str(call["params"][0]["data"]).startswith("0x" + STANDING.hex())
-        for call in _calls(body)
+        for call in rpc_calls(body)
     )
 
 
-class HoldFirstRegister:
+class HoldFirstRegister(LedgerProxy):
     """A proxy script: every request goes to the ledger, the first register transaction once
     the node read its standing again, or 10 s passed."""
 
     def __init__(self, ledger: ServiceProcess) -> None:
-        self.upstream = httpx.Client(base_url=ledger.url, timeout=60)
+        super().__init__(ledger)
         self.holding = threading.Event()
         self.read_again = threading.Event()
-        self._lock = threading.Lock()
 
     def __call__(self, exchange: Exchange) -> Reply:
-        with self._lock:
-            hold = not self.holding.is_set() and _sends_register(exchange.body)
+        with self.lock:
+            hold = not self.holding.is_set() and sends(exchange.body, REGISTER)
             if hold:
                 self.holding.set()
             elif self.holding.is_set() and _reads_standing(exchange.body):
                 self.read_again.set()
         if hold:
             self.read_again.wait(10)
-        headers = {k: v for k, v in exchange.headers.items() if k not in HOP_BY_HOP}
-        answer = self.upstream.request(
-            exchange.method, exchange.path, headers=headers, content=exchange.body
-        )
-        dropped = HOP_BY_HOP | {"content-encoding"}
-        kept = {k: v for k, v in answer.headers.items() if k.lower() not in dropped}
-        return answer.status_code, kept, answer.content
+        return self.answer(self.forward(exchange))
 
 
 def test_the_anchorer_and_the_first_publish_register_the_node_once(
@@ -94,20 +70,11 @@ def test_the_anchorer_and_the_first_publish_register_the_node_once(
     cas = service_factory("cas")
     proxy = HoldFirstRegister(ledger)
     with scripted_server(proxy, answer_audience=False) as server:
-        storage = service_factory(
-            "storage",
-            {
-                "ROBOCLOUD_LEDGER_URL": server.url,
-                "ROBOCLOUD_CAS_URL": cas.url,
-                "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
-                "ROBOCLOUD_STORAGE_EPOCH_S": "0.2",
-            },
-        )
-        bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
-        with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ing:
-            imu = approve(client, "sensor_msgs/msg/Imu")
-            ing.bind(imu, msgtype="sensor_msgs/msg/Imu")
-            done = ing.wait(ing.upload(bag)["id"], timeout_s=120)
+        env = {"ROBOCLOUD_STORAGE_EPOCH_S": "0.2"}
+        storage = storage_behind(proxy, server.url, service_factory, cas, env)
+        _, job_id = upload_imu_bag(storage, identity, tmp_path / "run.bag")
+        with Ingest(storage.url, identity) as ingest:
+            done = ingest.wait(job_id, timeout_s=120)
     assert done["status"] == "succeeded", done["error"]
     assert "error" not in done["dataset"], done["dataset"]
     assert proxy.holding.is_set()

@@ -10,99 +10,57 @@ transaction itself, never a timer.
 from __future__ import annotations
 
 import json
-import os
-import signal
-import threading
 from pathlib import Path
 
 import httpx
-import rlp
-from eth_utils.crypto import keccak
 
 from robocloud.cid import CID, parse_cid
 from robocloud.identity import Identity
 from robocloud.ingest import Ingest
 from robocloud.ledger import Ledger
-from robocloud.ledger.abi import ContractAbi, signature
 from robocloud.ledger.rpc import JsonRpcClient
 from robocloud.storage import Storage as StorageClient
 from tests.bagfactory import write_bag
 from tests.conftest import ServiceFactory
 from tests.integration.services.storage.counter import write_counter_records
+from tests.integration.services.storage.ledger_proxy import (
+    ADVERTISE,
+    LedgerProxy,
+    sends,
+    storage_behind,
+    upload_imu_bag,
+)
 from tests.integration.services.storage.test_anchoring import node_state
 from tests.integration.services.storage.test_ingest_http import START_NS, Storage, approve
 from tests.procs import ServiceProcess
 from tests.scripted_http import Exchange, Reply, scripted_server
 from tests.waiting import wait_for
 
-ADVERTISE = keccak(text=signature(ContractAbi.load("Registry").functions["advertise"]))[:4]
-"""The selector of ``Registry.advertise(bytes,bytes)``, what the proxy watches calldata for."""
 
-HOP_BY_HOP = {"host", "connection", "keep-alive", "content-length", "transfer-encoding"}
-
-
-def _calldata(raw: bytes) -> bytes:
-    """The ``data`` of a signed transaction: legacy (an RLP list) or typed (EIP-2718)."""
-    if raw[0] >= 0xC0:
-        return bytes(rlp.decode(raw)[5])
-    fields = rlp.decode(raw[1:])
-    return bytes(fields[6] if raw[0] == 1 else fields[7])
-
-
-def _calls_advertise(body: bytes) -> bool:
-    """Whether a JSON-RPC request (or batch) sends a transaction calling ``advertise``."""
-    try:
-        message = json.loads(body)
-    except ValueError:
-        return False
-    for call in message if isinstance(message, list) else [message]:
-        if isinstance(call, dict) and call.get("method") == "eth_sendRawTransaction":
-            raw = bytes.fromhex(str(call["params"][0]).removeprefix("0x"))
-            if _calldata(raw)[:4] == ADVERTISE:
-                return True
-    return False
-
-
-class KillOnAdvertise:
+class KillOnAdvertise(LedgerProxy):
     """A proxy script: every request goes to the ledger; the first advertise transaction is
     sent and mined, then the storage node is killed and gets no answer."""
 
     def __init__(self, ledger: ServiceProcess) -> None:
-        self.ledger = ledger
-        self.upstream = httpx.Client(base_url=ledger.url, timeout=60)
-        self.storage: ServiceProcess | None = None
+        super().__init__(ledger)
         self.armed = True
         self.advertise_tx: str | None = None
-        self.killed = threading.Event()
-        self._lock = threading.Lock()
 
     def __call__(self, exchange: Exchange) -> Reply:
-        headers = {k: v for k, v in exchange.headers.items() if k not in HOP_BY_HOP}
-        with self._lock:
-            kill = self.armed and exchange.method == "POST" and _calls_advertise(exchange.body)
+        with self.lock:
+            kill = self.armed and exchange.method == "POST" and sends(exchange.body, ADVERTISE)
             self.armed = self.armed and not kill
-        answer = self.upstream.request(
-            exchange.method, exchange.path, headers=headers, content=exchange.body
-        )
-        if kill:
-            return self._kill_once_mined(answer)
-        dropped = HOP_BY_HOP | {"content-encoding"}
-        kept = {k: v for k, v in answer.headers.items() if k.lower() not in dropped}
-        return answer.status_code, kept, answer.content
-
-    def _kill_once_mined(self, answer: httpx.Response) -> Reply:
+        answer = self.forward(exchange)
+        if not kill:
+            return self.answer(answer)
         tx_hash = str(answer.json()["result"])
         with JsonRpcClient(f"{self.ledger.url}/rpc", service="ledger") as rpc:
             wait_for(
                 lambda: rpc.request("eth_getTransactionReceipt", [tx_hash]),
                 "the ledger to mine the advertise transaction",
             )
-        assert self.storage is not None
-        assert self.storage.process is not None
-        os.kill(self.storage.process.pid, signal.SIGKILL)
         self.advertise_tx = tx_hash
-        self.killed.set()
-        return None
+        return self.kill_storage()
 
 
 def test_kill_9_after_the_advertise_is_mined_advertises_the_dataset_once(
@@ -112,24 +70,10 @@ def test_kill_9_after_the_advertise_is_mined_advertises_the_dataset_once(
     cas = service_factory("cas")
     proxy = KillOnAdvertise(ledger)
     with scripted_server(proxy, answer_audience=False) as server:
-        storage = service_factory(
-            "storage",
-            {
-                "ROBOCLOUD_LEDGER_URL": server.url,
-                "ROBOCLOUD_CAS_URL": cas.url,
-                "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
-                "ROBOCLOUD_STORAGE_ANCHOR": "false",
-            },
-        )
-        proxy.storage = storage
-        bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
-        with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ing:
-            imu = approve(client, "sensor_msgs/msg/Imu")
-            ing.bind(imu, msgtype="sensor_msgs/msg/Imu")
-            job_id: str = ing.upload(bag)["id"]
-        wait_for(proxy.killed.is_set, "the storage node to send its advertise transaction")
-        assert storage.process is not None
-        storage.process.wait()
+        env = {"ROBOCLOUD_STORAGE_ANCHOR": "false"}
+        storage = storage_behind(proxy, server.url, service_factory, cas, env)
+        imu, job_id = upload_imu_bag(storage, identity, tmp_path / "run.bag")
+        proxy.wait_killed("the storage node to send its advertise transaction")
 
         saved = json.loads((storage.data_dir / "ingest" / job_id / "job.json").read_bytes())
         assert (saved["publish_attempts"], saved["dataset"]) == (1, None), saved
@@ -160,35 +104,20 @@ def test_kill_9_after_the_advertise_is_mined_advertises_the_dataset_once(
     assert len(times) == len(set(times)) == bound
 
 
-class KillBeforeSecondAdvertise:
+class KillBeforeSecondAdvertise(LedgerProxy):
     """A proxy script: every request goes to the ledger but the second advertise transaction,
     which is never sent: the storage node is killed instead and gets no answer."""
 
     def __init__(self, ledger: ServiceProcess) -> None:
-        self.upstream = httpx.Client(base_url=ledger.url, timeout=60)
-        self.storage: ServiceProcess | None = None
+        super().__init__(ledger)
         self.advertises = 0
-        self.killed = threading.Event()
-        self._lock = threading.Lock()
 
     def __call__(self, exchange: Exchange) -> Reply:
-        with self._lock:
-            advertise = exchange.method == "POST" and _calls_advertise(exchange.body)
+        with self.lock:
+            advertise = exchange.method == "POST" and sends(exchange.body, ADVERTISE)
             self.advertises += advertise
             kill = advertise and self.advertises == 2
-        if kill:
-            assert self.storage is not None
-            assert self.storage.process is not None
-            os.kill(self.storage.process.pid, signal.SIGKILL)
-            self.killed.set()
-            return None
-        headers = {k: v for k, v in exchange.headers.items() if k not in HOP_BY_HOP}
-        answer = self.upstream.request(
-            exchange.method, exchange.path, headers=headers, content=exchange.body
-        )
-        dropped = HOP_BY_HOP | {"content-encoding"}
-        kept = {k: v for k, v in answer.headers.items() if k.lower() not in dropped}
-        return answer.status_code, kept, answer.content
+        return self.kill_storage() if kill else self.answer(self.forward(exchange))
 
 
 def test_a_resumed_job_does_not_take_an_advertisement_of_another_description_for_its_own(
@@ -203,16 +132,8 @@ def test_a_resumed_job_does_not_take_an_advertisement_of_another_description_for
     cas = service_factory("cas")
     proxy = KillBeforeSecondAdvertise(ledger)
     with scripted_server(proxy, answer_audience=False) as server:
-        storage = service_factory(
-            "storage",
-            {
-                "ROBOCLOUD_LEDGER_URL": server.url,
-                "ROBOCLOUD_CAS_URL": cas.url,
-                "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
-                "ROBOCLOUD_STORAGE_EPOCH_S": "0.2",
-            },
-        )
-        proxy.storage = storage
+        env = {"ROBOCLOUD_STORAGE_EPOCH_S": "0.2"}
+        storage = storage_behind(proxy, server.url, service_factory, cas, env)
         write_counter_records(storage, Identity.generate(), 0, 5, name="counter")
         wait_for(lambda: node_state(storage)["standing"] == "registered", "the node registered")
         with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ing:
@@ -223,9 +144,7 @@ def test_a_resumed_job_does_not_take_an_advertisement_of_another_description_for
             assert first["status"] == "succeeded", first["error"]
             again = write_bag(tmp_path / "b.bag", "ros1", 50, start_ns=START_NS)
             second_id: str = ing.upload(again)["id"]
-        wait_for(proxy.killed.is_set, "the storage node to send its second advertise")
-        assert storage.process is not None
-        storage.process.wait()
+        proxy.wait_killed("the storage node to send its second advertise")
 
         storage.start()
         with Ingest(storage.url, identity) as ing:

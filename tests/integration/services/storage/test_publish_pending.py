@@ -9,9 +9,6 @@ transaction it forwards it, then mines: both are mined if the resumed node signe
 
 from __future__ import annotations
 
-import os
-import signal
-import threading
 from pathlib import Path
 
 import httpx
@@ -20,55 +17,43 @@ from robocloud.cid import parse_cid
 from robocloud.identity import Identity
 from robocloud.ingest import Ingest
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService
-from tests.bagfactory import write_bag
 from tests.conftest import ServiceFactory
 from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
 from tests.integration.services.ledger.conftest import LEDGER_ENV, PASSPHRASE
-from tests.integration.services.storage.test_ingest_http import START_NS, Storage, approve
-from tests.integration.services.storage.test_publish_after_kill import HOP_BY_HOP, _calls_advertise
+from tests.integration.services.storage.ledger_proxy import (
+    ADVERTISE,
+    LedgerProxy,
+    sends,
+    storage_behind,
+    upload_imu_bag,
+)
 from tests.procs import ServiceProcess
 from tests.scripted_http import Exchange, Reply, scripted_server
-from tests.waiting import wait_for
 
 
-class KillWhilePending:
+class KillWhilePending(LedgerProxy):
     """A proxy script: the first advertise transaction reaches anvil with mining stopped, and
     the storage node is killed before any answer; the next one is forwarded, then mined."""
 
     def __init__(self, ledger: ServiceProcess, anvil: JsonRpcClient) -> None:
-        self.upstream = httpx.Client(base_url=ledger.url, timeout=60)
+        super().__init__(ledger)
         self.anvil = anvil
-        self.storage: ServiceProcess | None = None
         self.advertises = 0
-        self.killed = threading.Event()
-        self._lock = threading.Lock()
 
     def __call__(self, exchange: Exchange) -> Reply:
-        with self._lock:
-            advertise = exchange.method == "POST" and _calls_advertise(exchange.body)
+        with self.lock:
+            advertise = exchange.method == "POST" and sends(exchange.body, ADVERTISE)
             self.advertises += advertise
             number = self.advertises if advertise else 0
         if number == 1:
             self.anvil.request("evm_setAutomine", [False])
-        answer = self._forward(exchange)
+        answer = self.forward(exchange)
         if number == 1:
-            assert self.storage is not None
-            assert self.storage.process is not None
-            os.kill(self.storage.process.pid, signal.SIGKILL)
-            self.killed.set()
-            return None
+            return self.kill_storage()
         if number == 2:
             self.anvil.request("evm_setAutomine", [True])
             self.anvil.request("evm_mine", [])
-        dropped = HOP_BY_HOP | {"content-encoding"}
-        kept = {k: v for k, v in answer.headers.items() if k.lower() not in dropped}
-        return answer.status_code, kept, answer.content
-
-    def _forward(self, exchange: Exchange) -> httpx.Response:
-        headers = {k: v for k, v in exchange.headers.items() if k not in HOP_BY_HOP}
-        return self.upstream.request(
-            exchange.method, exchange.path, headers=headers, content=exchange.body
-        )
+        return self.answer(answer)
 
 
 def test_kill_9_while_the_advertise_is_pending_advertises_the_dataset_once(
@@ -92,26 +77,12 @@ def test_kill_9_while_the_advertise_is_pending_advertises_the_dataset_once(
         cas = service_factory("cas")
         proxy = KillWhilePending(ledger, anvil)
         with scripted_server(proxy, answer_audience=False) as server:
-            storage = service_factory(
-                "storage",
-                {
-                    "ROBOCLOUD_LEDGER_URL": server.url,
-                    "ROBOCLOUD_CAS_URL": cas.url,
-                    "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
-                    "ROBOCLOUD_STORAGE_ANCHOR": "false",
-                },
-            )
-            proxy.storage = storage
+            env = {"ROBOCLOUD_STORAGE_ANCHOR": "false"}
+            storage = storage_behind(proxy, server.url, service_factory, cas, env)
             node = str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
             anvil.request("hardhat_setBalance", [node, hex(10**18)])
-            bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
-            with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ing:
-                imu = approve(client, "sensor_msgs/msg/Imu")
-                ing.bind(imu, msgtype="sensor_msgs/msg/Imu")
-                job_id: str = ing.upload(bag)["id"]
-            wait_for(proxy.killed.is_set, "the storage node to send its advertise transaction")
-            assert storage.process is not None
-            storage.process.wait()
+            _, job_id = upload_imu_bag(storage, identity, tmp_path / "run.bag")
+            proxy.wait_killed("the storage node to send its advertise transaction")
 
             storage.start()
             with Ingest(storage.url, identity) as ing:
