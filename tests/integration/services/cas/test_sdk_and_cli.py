@@ -7,9 +7,8 @@ import os
 import pty
 import subprocess
 import sys
-import threading
 from collections.abc import Callable, Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 
 import pytest
@@ -24,7 +23,7 @@ from robocloud.dagpb import Link, PBNode
 from robocloud.identity import Identity
 from robocloud.unixfs import FILE, ImportParams, UnixfsData, import_bytes
 from tests.procs import ServiceProcess, free_port
-from tests.scripted_http import nested_json
+from tests.scripted_http import nested_json, serving
 
 runner = CliRunner()
 
@@ -89,18 +88,14 @@ def gateway_answering(answer: Callable[[str], tuple[int, str, bytes]]) -> Iterat
         def log_message(self, *args: object) -> None:
             return None
 
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Gateway)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}"
-    finally:
-        server.shutdown()
-        server.server_close()
+    with serving(Gateway) as url:
+        yield url
 
 
 DATA = bytes(range(251)) * 3000
 BLOCKS, ROOT = import_bytes(DATA)
 CAR = "application/vnd.ipld.car"
+RAW = "application/vnd.ipld.raw"
 
 
 def car_of(blocks: list[Block], root: CID = ROOT) -> bytes:
@@ -120,7 +115,13 @@ def car_of(blocks: list[Block], root: CID = ROOT) -> bytes:
     ids=["order", "swapped", "short", "extra", "other-root", "forged"],
 )
 def test_get_refuses_what_a_lying_gateway_sends(car: bytes, message: str, tmp_path: Path) -> None:
-    for url in gateway_answering(lambda _: (200, CAR, car)):
+    """The root block comes honest (its declared size is read first), the file's CAR not."""
+    (root_block,) = [block.data for block in BLOCKS if block.cid == ROOT]
+
+    def lying(path: str) -> tuple[int, str, bytes]:
+        return (200, RAW, root_block) if "format=raw" in path else (200, CAR, car)
+
+    for url in gateway_answering(lying):
         with Cas(url, retries=0) as client, pytest.raises(CasError, match=message):
             client.get_to_file(ROOT, tmp_path / "out.bin")
     assert list(tmp_path.iterdir()) == []
