@@ -8,12 +8,11 @@ otherwise hold a client for as long as it likes (64 MiB at a byte per 29 s is 60
 from __future__ import annotations
 
 import json
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 
 import httpx
@@ -26,7 +25,7 @@ from robocloud.client import AnswerDeadlineError, ServiceClient
 from robocloud.deadline import LowSpeed, LowSpeedGuard
 from robocloud.errors import TransportTimeoutError
 from robocloud.ingest import Ingest
-from tests.scripted_http import Exchange, Reply, json_reply, scripted_server
+from tests.scripted_http import Exchange, Reply, json_reply, scripted_server, serving
 from tests.unit.robocloud.test_ingest_answers import JOB
 
 BODY = b'{"Keys": {}, "padding": "' + b"x" * 40 + b'"}'
@@ -76,15 +75,8 @@ def dripping_server(pause_s: float, *, headers_too: bool = False) -> Iterator[Dr
         def log_message(self, *args: object) -> None:
             return None
 
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Drip)
-    server.daemon_threads = True
-    threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
-    state.url = f"http://127.0.0.1:{server.server_address[1]}"
-    try:
+    with serving(Drip) as state.url:
         yield state
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 def test_a_dripped_answer_ends_at_the_deadline_and_is_not_retried() -> None:

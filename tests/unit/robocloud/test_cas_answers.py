@@ -4,11 +4,10 @@ within its bounds, and a refused one leaves nothing behind."""
 from __future__ import annotations
 
 import shutil
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 
 import pytest
@@ -18,7 +17,7 @@ from robocloud.cas import Cas, CasError, ContentTooLargeError
 from robocloud.cid import CID, DAG_PB, RAW
 from robocloud.dagpb import Link, PBNode
 from robocloud.unixfs import FILE, UnixfsData
-from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.scripted_http import Exchange, Reply, scripted_server, serving
 
 ENDLESS_CAP = 64 << 20
 """Where the endless server stops, so that a client that never would still ends the test."""
@@ -56,15 +55,8 @@ def endless_server(head: bytes) -> Iterator[Endless]:
         def log_message(self, *args: object) -> None:
             return None
 
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Flood)
-    server.daemon_threads = True
-    threading.Thread(target=server.serve_forever, args=(0.05,), daemon=True).start()
-    state.url = f"http://127.0.0.1:{server.server_address[1]}"
-    try:
+    with serving(Flood) as state.url:
         yield state
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 def test_a_carv2_whose_payload_never_comes_is_refused_at_its_pragma(tmp_path: Path) -> None:

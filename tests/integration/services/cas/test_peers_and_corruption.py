@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 
 import httpx
 import pytest
@@ -16,6 +15,7 @@ from robocloud.unixfs import import_bytes
 from tests.conftest import ServiceFactory
 from tests.integration.services.cas.conftest import QUIET_GC, corrupt_block
 from tests.procs import ServiceProcess
+from tests.scripted_http import serving
 
 DATA = bytes(range(251)) * 3133  # three distinct leaves under a root
 
@@ -37,12 +37,8 @@ class LyingGateway(BaseHTTPRequestHandler):
 
 @pytest.fixture
 def liar() -> Iterator[str]:
-    server = ThreadingHTTPServer(("127.0.0.1", 0), LyingGateway)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{server.server_address[1]}"
-    server.shutdown()
-    server.server_close()
+    with serving(LyingGateway) as url:
+        yield url
 
 
 def metric(service: ServiceProcess, name: str, **labels: str) -> float:
