@@ -243,6 +243,15 @@ def anchored_root(rpc: EthCall, contract: str, node: str, epoch: int) -> bytes:
     return bytes.fromhex(result[2:])
 
 
+def rpc_chain_id(rpc: EthCall) -> int:
+    """The chain ``rpc`` reads (``eth_chainId``): the anchor it confirms is on that chain,
+    whatever chain id the proof claims."""
+    result = rpc("eth_chainId", [])
+    if not isinstance(result, str) or not re.fullmatch(r"0x[0-9a-fA-F]{1,64}", result):
+        raise InvalidAnswerError(f"eth_chainId answered {result!r:.100}, not a quantity")
+    return int(result, 16)
+
+
 def verify_record_proof(
     body: Any,
     rpc: EthCall,

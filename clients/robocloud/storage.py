@@ -17,6 +17,7 @@ from urllib.parse import quote
 from robocloud import jcs
 from robocloud.client import ServiceClient
 from robocloud.errors import InvalidAnswerError
+from robocloud.proofs import EthCall, RecordId, RecordProof, rpc_chain_id, verify_record_proof
 from robocloud.templates import Template, parse_template, parse_template_id, validate_record
 
 NDJSON = "application/x-ndjson"
@@ -203,9 +204,41 @@ class Storage(ServiceClient):
         return [str(item) for item in ids]
 
     def record(self, record_id: str) -> StoredRecord:
+        """The record as this node answers it, unchecked: a node can send any record under
+        the id. :meth:`verified_record` is the one the chain vouches for."""
         stored = _stored(self.get_json(f"/v1/records/{quote(record_id, safe='')}"))
         _check_answered("record", record_id, stored.id)
         return stored
+
+    def verified_record(
+        self,
+        record_id: str,
+        rpc: EthCall,
+        *,
+        anchor_log: str,
+        chain_id: int | None = None,
+        node: str | None = None,
+    ) -> RecordProof:
+        """``record_id``'s record (``.record``), proved by this node and checked against the
+        chain, so a robot trusts only ``rpc`` and ``anchor_log``, never the node.
+
+        ``rpc`` is a JSON-RPC request function the robot trusts (``JsonRpcClient.request``);
+        the anchor must be on ``chain_id``, by default the chain ``rpc`` reads, and by
+        ``node`` when given. Raises ``RecordIdError`` for an id that is not one (nothing
+        sent), ``ProofFormatError`` for a malformed proof, ``ProofVerificationError`` for one
+        that does not hold, ``NotFoundError``/``ConflictError`` (409 ``not_anchored``) when the
+        node has none yet.
+        """
+        wanted = str(RecordId.parse(record_id))
+        body = self.get_json(f"/v1/records/{wanted}/proof")
+        return verify_record_proof(
+            body,
+            rpc,
+            anchor_log=anchor_log,
+            record_id=wanted,
+            chain_id=rpc_chain_id(rpc) if chain_id is None else chain_id,
+            node=node,
+        )
 
     def query(
         self,
@@ -220,7 +253,8 @@ class Storage(ServiceClient):
         limit: int = 100,
         cursor: str | None = None,
     ) -> RecordPage:
-        """One page of records matching every filter; ``next`` continues it."""
+        """One page of records matching every filter; ``next`` continues it. The records
+        are the node's word, unchecked, as :meth:`record`'s."""
         params: dict[str, Any] = {
             "template": template,
             "topic": topic,

@@ -2,7 +2,9 @@
 
 The proof comes from the storage node, the AnchorLog address from the ledger's
 ``/v1/contracts`` (or ``--anchor-log``), and the anchored root from one ``eth_call`` to the
-chain's JSON-RPC (the ledger's ``/rpc``, or ``--rpc`` for any node the robot trusts).
+chain's JSON-RPC (the ledger's ``/rpc``, or ``--rpc`` for any node the robot trusts). The
+check is ``Storage.verified_record``'s, the one a robot runs; this command only finds its
+inputs and prints its answer.
 """
 
 from __future__ import annotations
@@ -13,11 +15,10 @@ from robocloud.cli.context import JsonOption, StorageOption, fail
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.ledger import LedgerOption
 from robocloud.cli.output import rows, show, show_json, untrusted
-from robocloud.client import ServiceClient
 from robocloud.ledger import JsonRpcClient, LedgerService
 from robocloud.ledger.client import checksum
-from robocloud.ledger.transactions import quantity
-from robocloud.proofs import RecordId, RecordIdError, verify_record_proof
+from robocloud.proofs import RecordId, RecordIdError
+from robocloud.storage import Storage
 
 
 def verify(
@@ -50,16 +51,11 @@ def verify(
         with LedgerService(ledger_url) as service:
             anchor_log = anchor_log or service.contracts().anchor_log
             rpc_url = rpc_url or f"{service.base_url}/rpc"
-    with ServiceClient(storage, service="storage") as client:
-        body = client.get_json(f"/v1/records/{parsed}/proof")
-    with JsonRpcClient(rpc_url) as rpc:
-        chain_id = quantity(rpc.request("eth_chainId", []))
-        proof = verify_record_proof(
-            body,
+    with Storage(storage) as client, JsonRpcClient(rpc_url) as rpc:
+        proof = client.verified_record(
+            str(parsed),
             rpc.request,
             anchor_log=checksum(anchor_log),
-            record_id=str(parsed),
-            chain_id=chain_id,
             node=checksum(node) if node else None,
         )
     if as_json:
@@ -74,7 +70,10 @@ def verify(
                     f"{untrusted(proof.template)}: leaf {proof.leaf_index} of {proof.tree_size}",
                 ),
                 ("epoch", f"{proof.epoch}: TMT root {proof.tmt_root.hex()}"),
-                ("anchor", f"{proof.anchor.node} on chain {chain_id}, tx {proof.anchor.tx}"),
+                (
+                    "anchor",
+                    f"{proof.anchor.node} on chain {proof.anchor.chain_id}, tx {proof.anchor.tx}",
+                ),
             ]
         )
     )

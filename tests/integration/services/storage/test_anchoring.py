@@ -9,12 +9,15 @@ from typing import Any
 
 import httpx
 import pytest
+from typer.testing import CliRunner
 
 from robocloud import merkle
 from robocloud.cas import Cas
+from robocloud.cli import app
 from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService, Role
 from robocloud.proofs import ProofVerificationError, verify_record_proof
+from robocloud.storage import Storage
 from robocloud.templates import canonical_record
 from tests.conftest import ServiceFactory
 from tests.integration.services.ledger.conftest import LEDGER_ENV, admin_of
@@ -105,6 +108,32 @@ def test_epochs_are_anchored_and_proofs_verify_on_chain(
         pytest.raises(ProofVerificationError, match="trusted one"),
     ):
         verify_record_proof(body, rpc.request, anchor_log="0x" + "11" * 20)
+
+
+def test_a_robot_gets_a_verified_record_from_the_sdk_and_robocloud_verify(
+    deployment: Deployment, identity: Identity
+) -> None:
+    """What ``robocloud verify`` checks, a robot has from ``Storage.verified_record``: the
+    record, proved by the node and confirmed by the chain through the ledger's ``/rpc``."""
+    write_counter_records(deployment.storage, identity, 0, 10)
+    state = wait_for(
+        lambda: (s := node_state(deployment.storage))["last_anchored_epoch"] >= 1 and s,
+        "epoch 1 anchored",
+    )
+    with (
+        Storage(deployment.storage.url) as storage,
+        JsonRpcClient(f"{deployment.ledger.url}/rpc") as rpc,
+    ):
+        proof = storage.verified_record(
+            "imu-1-7", rpc.request, anchor_log=deployment.anchor_log, node=state["address"]
+        )
+    assert proof.record == counter_record(identity.address, 7)
+    assert (proof.anchor.chain_id, proof.anchor.node, proof.epoch) == (1337, state["address"], 1)
+
+    urls = ["--storage", deployment.storage.url, "--ledger", deployment.ledger.url]
+    result = CliRunner().invoke(app, ["verify", "imu-1-7", *urls, "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout) == {"id": "imu-1-7", "verified": True, **proof.to_json()}
 
 
 def test_epochs_cut_while_the_ledger_is_down_are_anchored_in_order_when_it_returns(

@@ -1,0 +1,163 @@
+"""``Storage.verified_record`` and ``robocloud verify`` against a hostile storage node on a real
+socket: a proof of another record, of a root the chain does not hold, or a malformed one is
+the SDK's documented error naming what is wrong, never a record handed on."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from typer.testing import CliRunner
+
+from robocloud.cli import app
+from robocloud.errors import InvalidAnswerError
+from robocloud.proofs import (
+    EthCall,
+    ProofFormatError,
+    ProofVerificationError,
+    RecordIdError,
+    root_at_call,
+)
+from robocloud.storage import Storage
+from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
+from tests.unit.robocloud.test_proofs import CONTRACT, NODE, proof_document
+
+runner = CliRunner()
+SOUND = proof_document()
+"""Leaf 3 of imu@1 (``imu-1-3``), in epoch 4 of ``NODE`` on chain 1337."""
+
+
+def chain(root: str, chain_id: int = 1337) -> tuple[EthCall, list[tuple[str, list[Any]]]]:
+    """A JSON-RPC function whose AnchorLog holds ``root`` for every node and epoch, and the
+    calls it got."""
+    calls: list[tuple[str, list[Any]]] = []
+
+    def request(method: str, params: list[Any]) -> Any:
+        calls.append((method, params))
+        return hex(chain_id) if method == "eth_chainId" else "0x" + root
+
+    return request, calls
+
+
+def node_answering(body: bytes | str) -> Iterator[ScriptedServer]:
+    return scripted_server(lambda _: json_reply(body))
+
+
+def test_a_sound_proof_gives_the_record_the_chain_vouches_for() -> None:
+    rpc, calls = chain(SOUND["tmt_root"])
+    with node_answering(json.dumps(SOUND)) as node, Storage(node.url) as storage:
+        proof = storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, node=NODE)
+    assert proof.record == SOUND["record"]
+    assert [e.path for e in node.exchanges] == ["/v1/records/imu-1-3/proof"]
+    assert calls == [
+        ("eth_chainId", []),
+        ("eth_call", [root_at_call(CONTRACT, NODE, 4), "latest"]),
+    ]
+
+
+@pytest.mark.parametrize(
+    ("body", "root", "error", "match"),
+    [
+        (
+            proof_document(index=2),
+            None,
+            ProofVerificationError,
+            "asked for imu-1-3, the proof is of leaf 2 of imu@1",
+        ),
+        (SOUND, "00" * 32, ProofVerificationError, f"AnchorLog holds {'00' * 32} for epoch 4"),
+        (
+            {**SOUND, "record": {**SOUND["record"], "t": 4}},
+            None,
+            ProofVerificationError,
+            "not in its template log",
+        ),
+        (
+            {k: v for k, v in SOUND.items() if k != "tmt_root"},
+            None,
+            ProofFormatError,
+            "proof field tmt_root: missing",
+        ),
+        ({**SOUND, "inclusion": "ab" * 32}, None, ProofFormatError, "proof field inclusion"),
+        ([SOUND], None, ProofFormatError, r"proof field \(document\): not a JSON object"),
+    ],
+    ids=["another-record", "root-not-anchored", "changed-record", "missing", "not-list", "list"],
+)
+def test_a_proof_that_does_not_hold_is_refused_naming_why(
+    body: Any, root: str | None, error: type[Exception], match: str
+) -> None:
+    rpc, _ = chain(root or SOUND["tmt_root"])
+    with (
+        node_answering(json.dumps(body)) as node,
+        Storage(node.url, retries=0) as storage,
+        pytest.raises(error, match=match),
+    ):
+        storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT)
+
+
+def test_an_answer_that_is_not_json_is_an_invalid_answer() -> None:
+    rpc, calls = chain(SOUND["tmt_root"])
+    with (
+        node_answering("<html>proxy login</html>") as node,
+        Storage(node.url, retries=0) as storage,
+        pytest.raises(InvalidAnswerError),
+    ):
+        storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT)
+    assert calls == []
+
+
+def test_the_anchor_must_be_on_the_chain_the_robot_reads() -> None:
+    """The node's word for the chain id was handed on as verified; the chain is the rpc's."""
+    rpc, _ = chain(SOUND["tmt_root"], chain_id=1)
+    with (
+        node_answering(json.dumps(SOUND)) as node,
+        Storage(node.url) as storage,
+        pytest.raises(ProofVerificationError, match="chain 1337, not 1"),
+    ):
+        storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT)
+    rpc, calls = chain(SOUND["tmt_root"], chain_id=1)
+    with node_answering(json.dumps(SOUND)) as node, Storage(node.url) as storage:
+        proof = storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, chain_id=1337)
+    assert proof.anchor.chain_id == 1337
+    assert [method for method, _ in calls] == ["eth_call"]
+
+
+def test_an_id_that_is_not_a_record_id_is_refused_before_anything_is_sent() -> None:
+    rpc, calls = chain(SOUND["tmt_root"])
+    with (
+        node_answering(json.dumps(SOUND)) as node,
+        Storage(node.url) as storage,
+        pytest.raises(RecordIdError),
+    ):
+        storage.verified_record("imu-1-3/../../x", rpc, anchor_log=CONTRACT)
+    assert node.exchanges == []
+    assert calls == []
+
+
+def json_rpc(root: str) -> Any:
+    """A JSON-RPC server's script: chain 1337 whose AnchorLog holds ``root``."""
+
+    def script(exchange: Exchange) -> Reply:
+        call = json.loads(exchange.body)
+        result = "0x539" if call["method"] == "eth_chainId" else "0x" + root
+        return json_reply(json.dumps({"jsonrpc": "2.0", "id": call["id"], "result": result}))
+
+    return script
+
+
+@pytest.mark.parametrize(
+    ("root", "code", "said"),
+    [(SOUND["tmt_root"], 0, "record   imu-1-3 verified"), ("00" * 32, 6, "AnchorLog holds")],
+    ids=["anchored", "not-anchored"],
+)
+def test_robocloud_verify_says_what_the_sdk_found(root: str, code: int, said: str) -> None:
+    with (
+        node_answering(json.dumps(SOUND)) as node,
+        scripted_server(json_rpc(root)) as rpc,
+    ):
+        urls = ["--storage", node.url, "--rpc", rpc.url]
+        trusted = ["--anchor-log", CONTRACT, "--node", NODE]
+        result = runner.invoke(app, ["verify", "imu-1-3", *urls, *trusted])
+    assert result.exit_code == code, result.output
+    assert said in result.output
