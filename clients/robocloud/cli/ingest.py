@@ -14,6 +14,7 @@ from robocloud.cli.context import JsonOption, KeystoreOption, StorageOption, fai
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.output import console, show, show_json, untrusted
 from robocloud.ingest import FINISHED, WAIT_TIMEOUT_S, Ingest
+from robocloud.partial import written_whole
 from robocloud.templates import NAME as TEMPLATE_NAME
 
 
@@ -28,6 +29,9 @@ def ingest(
         "--drafts",
         file_okay=False,
         help="Write the draft template proposed for each unbound topic into this directory.",
+    ),
+    overwrite: bool = typer.Option(
+        False, "--overwrite", help="Replace draft files that exist in the --drafts directory."
     ),
     wait_timeout: float = typer.Option(
         WAIT_TIMEOUT_S, "--timeout", min=0, help="Seconds to wait for the job to finish."
@@ -69,12 +73,19 @@ def ingest(
         show_json(job)
     else:
         show(_job_line(job), *(_topic_line(topic) for topic in job["topics"]))
+    kept: list[Path] = []
     if drafts is not None:
-        _write_drafts(job, drafts)
+        kept = _write_drafts(job, drafts, overwrite=overwrite)
         if not as_json:
             show(f"draft templates of unbound topics written to {drafts}")
     if job["status"] != "succeeded":
         fail(f"ingest failed: {job['error']['message']}")
+    if kept:
+        fail(
+            f"the ingest succeeded, but these files exist and were kept: "
+            f"{', '.join(map(str, kept))}",
+            hint="pass --overwrite to replace them with the drafts",
+        )
 
 
 def _job_line(job: dict[str, Any]) -> str:
@@ -92,15 +103,26 @@ def _topic_line(topic: dict[str, Any]) -> str:
     )
 
 
-def _write_drafts(job: dict[str, Any], directory: Path) -> None:
-    """One ``<name>.json`` per proposed draft, named by the service: never a path it chose."""
+def _write_drafts(job: dict[str, Any], directory: Path, *, overwrite: bool) -> list[Path]:
+    """One ``<name>.json`` per proposed draft, named by the service: never a path it chose.
+
+    Each file appears whole or not at all (an interrupted write leaves no half a draft for
+    ``templates create`` to read). Without ``overwrite`` a file that exists, perhaps the
+    operator's edit of an earlier draft, is kept: the paths kept are returned.
+    """
     directory.mkdir(parents=True, exist_ok=True)
+    kept: list[Path] = []
     for topic in job["topics"]:
         draft = topic.get("draft")
         if not isinstance(draft, dict) or not TEMPLATE_NAME.fullmatch(str(draft.get("name"))):
             continue
         target = directory / f"{draft['name']}.json"
-        target.write_text(json.dumps(draft, indent=2, sort_keys=True) + "\n")
+        try:
+            with written_whole(target, overwrite=overwrite) as handle:
+                handle.write(json.dumps(draft, indent=2, sort_keys=True).encode() + b"\n")
+        except FileExistsError:
+            kept.append(target)
+    return kept
 
 
 def bind(

@@ -1,0 +1,140 @@
+"""``robocloud ingest --drafts DIR`` against a scripted storage node: each draft appears whole
+under the name the node chose, and a file that exists (an operator's edited draft) is kept
+unless ``--overwrite``."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from typer.testing import CliRunner
+
+import robocloud as robocloud_package
+from robocloud.cli import app
+from tests.scripted_http import Script, json_reply, scripted_server
+
+runner = CliRunner()
+
+
+def draft(name: str) -> dict[str, Any]:
+    return {"name": name, "version": 1, "fields": {"x": "float"}, "description": f"{name} draft"}
+
+
+def storage_node(**fields: Any) -> Script:
+    """A node whose ingest job succeeded, proposing a draft (with ``fields``) for two unbound
+    topics."""
+    topics = [
+        {"topic": f"/{name}", "msgtype": "m", "template": None, "skipped": "unbound"}
+        | {"draft": draft(name) | fields}
+        for name in ("imu", "gps")
+    ]
+    job = {
+        "id": "j1",
+        "status": "succeeded",
+        "messages": {"done": 1, "total": 1},
+        "records": {"staged": 0, "committed": 0},
+        "topics": topics,
+        "error": None,
+    }
+    return lambda _: json_reply(json.dumps(job))
+
+
+def ingest(keystore: Path, tmp_path: Path, *options: str) -> Any:
+    bag = tmp_path / "x.mcap"
+    bag.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
+    with scripted_server(storage_node()) as node:
+        return runner.invoke(
+            app,
+            ["ingest", str(bag), "--storage", node.url, "--keystore", str(keystore), *options],
+        )
+
+
+def test_drafts_are_written_whole_under_their_names(keystore: Path, tmp_path: Path) -> None:
+    drafts = tmp_path / "drafts"
+    result = ingest(keystore, tmp_path, "--drafts", str(drafts))
+    assert result.exit_code == 0, result.output
+    assert sorted(path.name for path in drafts.iterdir()) == ["gps.json", "imu.json"]
+    assert json.loads((drafts / "imu.json").read_text()) == draft("imu")
+
+
+def test_a_draft_file_that_exists_is_kept_and_named(keystore: Path, tmp_path: Path) -> None:
+    """It was replaced, an operator's edit of an earlier draft lost to the next ingest."""
+    drafts = tmp_path / "drafts"
+    drafts.mkdir()
+    (drafts / "imu.json").write_text("my edit\n")
+    result = ingest(keystore, tmp_path, "--drafts", str(drafts))
+    assert result.exit_code == 1, result.output
+    assert "the ingest succeeded" in result.stderr
+    assert str(drafts / "imu.json") in result.stderr
+    assert "--overwrite" in result.stderr
+    assert (drafts / "imu.json").read_text() == "my edit\n"
+    assert json.loads((drafts / "gps.json").read_text()) == draft("gps")
+    assert sorted(path.name for path in drafts.iterdir()) == ["gps.json", "imu.json"]
+
+
+def test_a_link_planted_under_a_drafts_name_is_never_followed(
+    keystore: Path, tmp_path: Path
+) -> None:
+    drafts = tmp_path / "drafts"
+    drafts.mkdir()
+    elsewhere = tmp_path / "elsewhere"
+    (drafts / "imu.json").symlink_to(elsewhere)
+    result = ingest(keystore, tmp_path, "--drafts", str(drafts))
+    assert result.exit_code == 1, result.output
+    assert not elsewhere.exists()
+
+
+def test_overwrite_replaces_a_draft_file_that_exists(keystore: Path, tmp_path: Path) -> None:
+    drafts = tmp_path / "drafts"
+    drafts.mkdir()
+    (drafts / "imu.json").write_text("my edit\n")
+    result = ingest(keystore, tmp_path, "--drafts", str(drafts), "--overwrite")
+    assert result.exit_code == 0, result.output
+    assert json.loads((drafts / "imu.json").read_text()) == draft("imu")
+    assert sorted(path.name for path in drafts.iterdir()) == ["gps.json", "imu.json"]
+
+
+FILE_SIZE_LIMIT = 64 * 1024
+CUT_SHORT = f"""
+import os, resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, ({FILE_SIZE_LIMIT}, {FILE_SIZE_LIMIT}))
+os.execv(sys.argv[1], sys.argv[1:])
+"""
+"""Runs a command whose writes past ``FILE_SIZE_LIMIT`` fail (EFBIG), as on a full disk."""
+
+
+@pytest.mark.parametrize(
+    ("existing", "options"), [({}, []), ({"imu.json": "my edit\n"}, ["--overwrite"])]
+)
+def test_a_write_cut_short_leaves_no_half_draft(
+    keystore: Path, tmp_path: Path, existing: dict[str, str], options: list[str]
+) -> None:
+    """Each draft was written straight under its name: a write cut short (a full disk, an
+    interrupt) left half a draft there, for ``templates create`` to read next, and with
+    ``--overwrite`` the file it replaced already gone."""
+    drafts = tmp_path / "drafts"
+    drafts.mkdir()
+    for name, text in existing.items():
+        (drafts / name).write_text(text)
+    bag = tmp_path / "x.mcap"
+    bag.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
+    robocloud = Path(sys.executable).with_name("robocloud")
+    with scripted_server(storage_node(description="d" * 2 * FILE_SIZE_LIMIT)) as node:
+        command = [str(robocloud), "ingest", str(bag), "--storage", node.url]
+        signed = ["--keystore", str(keystore), "--drafts", str(drafts), *options]
+        done = subprocess.run(
+            [sys.executable, "-c", CUT_SHORT, *command, *signed],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env={**os.environ, "PYTHONPATH": str(Path(robocloud_package.__file__).parents[1])},
+        )
+    assert done.returncode == 1, done.stderr
+    assert "File too large" in done.stderr
+    assert {path.name: path.read_text() for path in drafts.iterdir()} == existing
