@@ -59,7 +59,7 @@ class Knowledge(ServiceClient):
         body = self.sparql(query).body
         try:
             bindings = bounded_json.loads(body)["results"]["bindings"]
-            return [{name: str(value["value"]) for name, value in row.items()} for row in bindings]
+            return [_row(row) for row in bindings]
         except (FormatError, KeyError, TypeError, AttributeError) as exc:
             raise InvalidAnswerError(f"not SPARQL JSON results: {exc}") from None
 
@@ -93,6 +93,21 @@ class Knowledge(ServiceClient):
             raise CasError(f"cas stored the description as {stored}, its CID is {expected}")
         self.add(expected)
         return expected
+
+
+def _row(row: dict[str, Any]) -> dict[str, str]:
+    """One row's values, each a string as SPARQL 1.1 JSON results bind it: a number or an
+    object there, ``str()``'d, reached the robot as text no triple held (``"5"``,
+    ``"{'a': 1}"``, ``"None"``)."""
+    values: dict[str, str] = {}
+    for name, binding in row.items():
+        value = binding["value"]
+        if not isinstance(value, str):
+            raise InvalidAnswerError(
+                f"the knowledge base bound variable {name[:100]!r} to {value!r:.100}, not a string"
+            )
+        values[name] = value
+    return values
 
 
 def _form(fields: dict[str, str]) -> bytes:

@@ -39,6 +39,34 @@ def test_a_select_answer_that_is_not_sparql_json_is_an_invalid_answer(body: byte
 
 
 @pytest.mark.parametrize(
+    "value",
+    [5, 1.5, True, None, {"a": 1}, ["a"]],
+    ids=["int", "float", "bool", "null", "object", "list"],
+)
+def test_a_select_value_that_is_not_a_string_is_an_invalid_answer_naming_it(value: Any) -> None:
+    """SPARQL 1.1 JSON results bind every value as a string; a number or an object went
+    through ``str()`` and reached the robot as text the query never matched (``"5"``,
+    ``"{'a': 1}"``, ``"None"``)."""
+    row = {"s": {"type": "literal", "value": "a"}, "o": {"type": "literal", "value": value}}
+    body = json.dumps({"head": {"vars": ["s", "o"]}, "results": {"bindings": [row]}})
+    answer = (200, {"Content-Type": SPARQL_JSON}, body.encode())
+    with (
+        scripted_server(lambda _: answer) as node,
+        Knowledge(node.url, retries=0) as knowledge,
+        pytest.raises(InvalidAnswerError, match=r"bound variable 'o' to .*, not a string"),
+    ):
+        knowledge.select(QUERY)
+
+
+def test_a_select_answer_gives_each_rows_strings() -> None:
+    rows = [{"s": {"type": "uri", "value": "urn:a"}}, {}]
+    body = json.dumps({"head": {"vars": ["s"]}, "results": {"bindings": rows}})
+    answer = (200, {"Content-Type": SPARQL_JSON}, body.encode())
+    with scripted_server(lambda _: answer) as node, Knowledge(node.url, retries=0) as knowledge:
+        assert knowledge.select(QUERY) == [{"s": "urn:a"}, {}]
+
+
+@pytest.mark.parametrize(
     "answer",
     [{"applications": [1, "two"]}, {"applications": {"a": {}}}, [{"applications": []}]],
     ids=["items-not-objects", "object", "list"],
