@@ -20,7 +20,7 @@
    (``external`` runs this step alone).
 
 ``calls`` answers the eth_call latency that storage's proof verification pays: the p50 of one
-``AnchorLog.rootAt`` view call at ``latest`` through ``/rpc`` (the SDK's JSON-RPC client, as
+``AnchorLog.anchorAt`` view call at ``latest`` through ``/rpc`` (the SDK's JSON-RPC client, as
 ``robocloud verify`` sends it), beside ``eth_chainId`` through the same client (the HTTP
 floor: an answer with no chain work) and the same call on the embedded chain in this process.
 
@@ -595,7 +595,7 @@ def external_node_part(args: argparse.Namespace) -> None:
 def calls_part(args: argparse.Namespace) -> None:
     from robocloud.ledger import LedgerService
     from robocloud.ledger.rpc import JsonRpcClient
-    from robocloud.proofs import root_at_call
+    from robocloud.proofs import anchor_at_call
 
     with tempfile.TemporaryDirectory() as tmp:
         env = {"ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": "bench", "ROBOCLOUD_LEDGER_GRANT_ROLES": ""}
@@ -603,7 +603,7 @@ def calls_part(args: argparse.Namespace) -> None:
         try:
             with LedgerService(process.url) as service:
                 anchor_log = service.contracts().anchor_log
-            call = root_at_call(anchor_log, "0x" + "33" * 20, 1)
+            call = anchor_at_call(anchor_log, "0x" + "33" * 20, 1)
             with JsonRpcClient(f"{process.url}/rpc") as rpc:
                 for _ in range(50):  # warm up: connections, caches, worker threads
                     rpc.request("eth_call", [call, "latest"])
@@ -621,7 +621,7 @@ def calls_part(args: argparse.Namespace) -> None:
             in_process = p50_ms(lambda: chain.call(request, "latest"), args.calls)
         finally:
             chain.close()
-    print(f"AnchorLog.rootAt eth_call at latest, p50 of {args.calls} (ms)")
+    print(f"AnchorLog.anchorAt eth_call at latest, p50 of {args.calls} (ms)")
     print(f"  through /rpc (SDK client)        {over_rpc:6.3f}   (target well under 1.5 ms)")
     print(f"  eth_chainId through /rpc         {floor:6.3f}   (HTTP and JSON, no chain work)")
     print(f"  EmbeddedChain.call in process    {in_process:6.3f}")

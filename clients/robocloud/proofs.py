@@ -1,17 +1,22 @@
-"""Record ids and record proofs: what a robot checks with hashlib and one ``eth_call``.
+"""Record ids and record proofs: what a robot checks with hashlib and two JSON-RPC calls.
 
-A proof (``GET /v1/records/{id}/proof`` of a storage node) chains three facts, each checked
+A proof (``GET /v1/records/{id}/proof`` of a storage node) chains four facts, each checked
 here without trusting the node:
 
 1. the record's canonical (JCS) bytes are leaf ``leaf_index`` of its template's RFC 6962 log
    of ``tree_size`` leaves with root ``template_root`` (an inclusion proof);
 2. that head, the JCS bytes of ``{"template", "size", "root"}``, is leaf ``tmt_leaf_index`` of
    the epoch's Template Merkle Tree with root ``tmt_root`` (a second inclusion proof);
-3. ``AnchorLog.rootAt(node, epoch)`` on the chain answers ``tmt_root`` (one ``eth_call``).
+3. ``AnchorLog.anchorAt(node, epoch)`` on the chain answers ``tmt_root`` anchored in block
+   ``anchor.block`` (one ``eth_call``);
+4. ``anchor.tx`` is the transaction that anchored it: its receipt (``eth_getTransactionReceipt``)
+   succeeded in that block and holds AnchorLog's ``Anchored(node, epoch, tmt_root, ...)`` log.
 
-The call is encoded by hand (selector and two words) so that verification needs no ABI
-library, only SHA-256 and JSON-RPC. The AnchorLog address must come from somewhere the robot
-trusts (its configuration, or the ledger's ``/v1/contracts``), never from the proof itself.
+The call is encoded and the answers decoded by hand (selectors, topics and 32-byte words) so
+that verification needs no ABI library, only SHA-256 and JSON-RPC: this module imports nothing
+of ``robocloud.ledger``, which brings eth-abi, eth-account and httpx with it. The AnchorLog
+address must come from somewhere the robot trusts (its configuration, or the ledger's
+``/v1/contracts``), never from the proof itself.
 """
 
 from __future__ import annotations
@@ -25,8 +30,11 @@ from robocloud import jcs, merkle
 from robocloud.errors import FormatError, InvalidAnswerError
 from robocloud.templates import canonical_record
 
-ROOT_AT_SELECTOR = bytes.fromhex("899314ce")
-"""keccak-256("rootAt(address,uint64)")[:4], checked against AnchorLog's ABI in the tests."""
+ANCHOR_AT_SELECTOR = bytes.fromhex("d658cc42")
+"""keccak-256("anchorAt(address,uint64)")[:4], checked against AnchorLog's ABI in the tests."""
+ANCHORED_TOPIC = bytes.fromhex("a6a1e5d9c6386797ea92527642b4573f6b32e51a5e5407b15f976bc5657adad1")
+"""keccak-256("Anchored(address,uint64,bytes32,uint64,uint64)"), the event's first topic,
+checked against AnchorLog's ABI in the tests."""
 
 RECORD_ID = re.compile(r"([a-z][a-z0-9_]{0,62})-([1-9][0-9]{0,8})-(0|[1-9][0-9]{0,17})")
 MAX_PROOF_NODES = 64
@@ -34,7 +42,12 @@ MAX_PROOF_NODES = 64
 
 _HASH_HEX = re.compile(r"[0-9a-f]{64}")
 _ADDRESS = re.compile(r"0x[0-9a-fA-F]{40}")
-_TX = re.compile(r"0x[0-9a-fA-F]{64}")
+_BYTES32 = re.compile(r"0x[0-9a-fA-F]{64}")
+_QUANTITY = re.compile(r"0x(?:0|[1-9a-fA-F][0-9a-fA-F]{0,15})")
+"""A JSON-RPC quantity below 2**64, with no leading zeros (as the spec writes one)."""
+_DATA = re.compile(r"0x(?:[0-9a-fA-F]{2})*")
+_ANCHOR_AT_ANSWER = re.compile(r"0x[0-9a-fA-F]{256}")
+MAX_TOPICS = 4
 
 EthCall = Callable[[str, list[Any]], Any]
 """A JSON-RPC request function: ``(method, params) -> result`` (``JsonRpcClient.request``)."""
@@ -143,14 +156,15 @@ class RecordProof:
                 contract=_text(anchor, "contract", _ADDRESS, "anchor."),
                 node=_text(anchor, "node", _ADDRESS, "anchor."),
                 epoch=_count(anchor, "epoch", "anchor."),
-                tx=_text(anchor, "tx", _TX, "anchor."),
+                tx=_text(anchor, "tx", _BYTES32, "anchor."),
                 block=_count(anchor, "block", "anchor."),
             ),
         )
 
     def to_json(self) -> dict[str, Any]:
         """The proof document again, made only of the fields parsed: once verified, a
-        consumer can trust every key, where the node's whole answer may carry others."""
+        consumer can trust every key (the anchor's tx and block too, both checked against
+        the chain), where the node's whole answer may carry others."""
         return {
             "record": self.record,
             "leaf_index": self.leaf_index,
@@ -229,18 +243,173 @@ def _hashes(body: Mapping[str, Any], name: str) -> list[bytes]:
     return hashes
 
 
-def root_at_call(contract: str, node: str, epoch: int) -> dict[str, str]:
-    """The ``eth_call`` object of ``AnchorLog.rootAt(node, epoch)``."""
-    data = ROOT_AT_SELECTOR + bytes.fromhex(node[2:]).rjust(32, b"\0") + epoch.to_bytes(32, "big")
+def anchor_at_call(contract: str, node: str, epoch: int) -> dict[str, str]:
+    """The ``eth_call`` object of ``AnchorLog.anchorAt(node, epoch)``."""
+    data = ANCHOR_AT_SELECTOR + _address_word(node) + epoch.to_bytes(32, "big")
     return {"to": contract, "data": "0x" + data.hex()}
 
 
-def anchored_root(rpc: EthCall, contract: str, node: str, epoch: int) -> bytes:
-    """What the chain says ``node`` anchored for ``epoch`` (32 zero bytes: nothing)."""
-    result = rpc("eth_call", [root_at_call(contract, node, epoch), "latest"])
-    if not isinstance(result, str) or not re.fullmatch(r"0x[0-9a-fA-F]{64}", result):
-        raise ProofVerificationError(f"AnchorLog.rootAt answered {result!r:.100}, not a bytes32")
-    return bytes.fromhex(result[2:])
+@dataclass(frozen=True)
+class ChainAnchor:
+    """What ``AnchorLog.anchorAt`` answers: all zero when the node anchored nothing."""
+
+    root: bytes
+    record_count: int
+    timestamp: int
+    block: int
+
+
+def anchor_at(rpc: EthCall, contract: str, node: str, epoch: int) -> ChainAnchor:
+    """What the chain says ``node`` anchored for ``epoch``, decoded strictly: exactly four
+    words, the last three uint64 (a longer or dirtier answer is not the contract's)."""
+    result = rpc("eth_call", [anchor_at_call(contract, node, epoch), "latest"])
+    if not isinstance(result, str) or not _ANCHOR_AT_ANSWER.fullmatch(result):
+        raise ProofVerificationError(
+            f"AnchorLog.anchorAt answered {result!r:.100}, not four 32-byte words"
+        )
+    words = [bytes.fromhex(result[2 + 64 * i : 66 + 64 * i]) for i in range(4)]
+    if any(word[:24] != bytes(24) for word in words[1:]):
+        raise ProofVerificationError(
+            f"AnchorLog.anchorAt answered {result!r:.100}, a count, time or block past uint64"
+        )
+    count, timestamp, block = (int.from_bytes(word, "big") for word in words[1:])
+    return ChainAnchor(words[0], count, timestamp, block)
+
+
+def check_anchor_at(rpc: EthCall, proof: RecordProof, anchor_log: str) -> None:
+    """Step 3: AnchorLog holds the proof's TMT root for its node and epoch, anchored in the
+    proof's block (else ``anchor.block`` would be only the node's word)."""
+    node, epoch = proof.anchor.node, proof.epoch
+    on_chain = anchor_at(rpc, anchor_log, node, epoch)
+    if on_chain.root != proof.tmt_root:
+        raise ProofVerificationError(
+            f"AnchorLog holds {on_chain.root.hex()} for epoch {epoch} of {node}, "
+            f"the proof's TMT root is {proof.tmt_root.hex()}"
+        )
+    if on_chain.block != proof.anchor.block:
+        raise ProofVerificationError(
+            f"AnchorLog anchored epoch {epoch} of {node} in block {on_chain.block}, "
+            f"the proof says block {proof.anchor.block}"
+        )
+
+
+@dataclass(frozen=True)
+class Log:
+    """A receipt's log, as the checks below read it."""
+
+    address: str
+    topics: list[bytes]
+    data: bytes
+
+
+@dataclass(frozen=True)
+class TxReceipt:
+    """The parts of a transaction receipt that vouch for an anchor.
+
+    ``robocloud.ledger.transactions.Receipt`` parses receipts for the robot's own
+    transactions, but importing it would load the ledger package (eth-abi, eth-account,
+    httpx) into a verifier that needs only JSON-RPC; this one is stricter on quantities too.
+    """
+
+    tx: str
+    block: int
+    status: int
+    logs: list[Log]
+
+    @classmethod
+    def from_rpc(cls, raw: Any, tx: str) -> TxReceipt:
+        """The chain's receipt for ``tx``; a malformed one is a ``ProofVerificationError``
+        naming the field."""
+        where = f"the receipt of {tx}"
+        if not isinstance(raw, Mapping):
+            raise ProofVerificationError(f"{where} is not a JSON object: {raw!r:.100}")
+        logs = raw.get("logs")
+        if not isinstance(logs, list):
+            raise ProofVerificationError(f"{where}: logs is not a list: {logs!r:.100}")
+        return cls(
+            tx=_rpc_text(raw.get("transactionHash"), _BYTES32, f"{where}: transactionHash"),
+            block=int(_rpc_text(raw.get("blockNumber"), _QUANTITY, f"{where}: blockNumber"), 16),
+            status=int(_rpc_text(raw.get("status"), _QUANTITY, f"{where}: status"), 16),
+            logs=[_log(item, f"{where}: logs[{i}]") for i, item in enumerate(logs)],
+        )
+
+
+def _rpc_text(value: Any, pattern: re.Pattern[str], what: str) -> str:
+    if not isinstance(value, str) or not pattern.fullmatch(value):
+        raise ProofVerificationError(f"{what} is malformed: {value!r:.100}")
+    return value
+
+
+def _log(raw: Any, where: str) -> Log:
+    if not isinstance(raw, Mapping):
+        raise ProofVerificationError(f"{where} is not a JSON object: {raw!r:.100}")
+    topics = raw.get("topics")
+    if not isinstance(topics, list) or len(topics) > MAX_TOPICS:
+        raise ProofVerificationError(f"{where}: topics is not a list of at most {MAX_TOPICS}")
+    return Log(
+        address=_rpc_text(raw.get("address"), _ADDRESS, f"{where}: address"),
+        topics=[
+            bytes.fromhex(_rpc_text(topic, _BYTES32, f"{where}: topics[{i}]")[2:])
+            for i, topic in enumerate(topics)
+        ],
+        data=bytes.fromhex(_rpc_text(raw.get("data"), _DATA, f"{where}: data")[2:]),
+    )
+
+
+def check_anchor_tx(rpc: EthCall, proof: RecordProof, anchor_log: str) -> None:
+    """Step 4: ``anchor.tx`` is the transaction that anchored the proof's root (one
+    ``eth_getTransactionReceipt``), so a consumer of a verified proof can follow it."""
+    tx = proof.anchor.tx
+    raw = rpc("eth_getTransactionReceipt", [tx])
+    if raw is None:
+        raise ProofVerificationError(f"the chain has no receipt for the anchor's tx {tx}")
+    receipt = TxReceipt.from_rpc(raw, tx)
+    if receipt.tx.lower() != tx.lower():
+        raise ProofVerificationError(f"asked for the receipt of {tx}, got that of {receipt.tx}")
+    if receipt.status != 1:
+        raise ProofVerificationError(f"the anchor's tx {tx} failed (status {receipt.status})")
+    if receipt.block != proof.anchor.block:
+        raise ProofVerificationError(
+            f"the anchor's tx {tx} is in block {receipt.block}, "
+            f"the proof says block {proof.anchor.block}"
+        )
+    _check_anchored_log(receipt.logs, proof, anchor_log)
+
+
+def _check_anchored_log(logs: list[Log], proof: RecordProof, anchor_log: str) -> None:
+    """One of ``logs`` is AnchorLog's ``Anchored`` event of the proof's node, epoch and root."""
+    tx = proof.anchor.tx
+    events = [
+        log
+        for log in logs
+        if log.address.lower() == anchor_log.lower() and log.topics[:1] == [ANCHORED_TOPIC]
+    ]
+    if not events:
+        raise ProofVerificationError(f"the anchor's tx {tx} has no Anchored log of {anchor_log}")
+    wanted = [ANCHORED_TOPIC, _address_word(proof.anchor.node), proof.epoch.to_bytes(32, "big")]
+    ours = [log for log in events if log.topics == wanted]
+    if not ours:
+        raise ProofVerificationError(
+            f"the anchor's tx {tx} anchored {_anchored_what(events[0])}, "
+            f"not epoch {proof.epoch} of {proof.anchor.node}"
+        )
+    if not any(log.data[:32] == proof.tmt_root for log in ours):
+        raise ProofVerificationError(
+            f"the anchor's tx {tx} anchored root {ours[0].data[:32].hex()}, "
+            f"the proof's TMT root is {proof.tmt_root.hex()}"
+        )
+
+
+def _anchored_what(log: Log) -> str:
+    """An ``Anchored`` log's node and epoch, for a message (its topics, when not three)."""
+    if len(log.topics) != 3:
+        return f"topics {[topic.hex() for topic in log.topics]}"
+    return f"epoch {int.from_bytes(log.topics[2], 'big')} of 0x{log.topics[1][12:].hex()}"
+
+
+def _address_word(address: str) -> bytes:
+    """A ``0x`` address as an ABI word (and an indexed topic): 12 zero bytes, then it."""
+    return bytes.fromhex(address[2:]).rjust(32, b"\0")
 
 
 def rpc_chain_id(rpc: EthCall) -> int:
@@ -265,8 +434,10 @@ def verify_record_proof(
 
     ``anchor_log`` is the AnchorLog address the robot trusts; ``record_id`` the id it asked
     for (the proof must be of that record); ``chain_id`` and ``node``, when given, must be the
-    anchor's. Raises :class:`ProofFormatError` for a malformed document and
-    :class:`ProofVerificationError` for one that does not hold.
+    anchor's. Two JSON-RPC calls reach ``rpc``: ``eth_call`` of ``AnchorLog.anchorAt`` and
+    ``eth_getTransactionReceipt`` of ``anchor.tx``. Raises :class:`ProofFormatError` for a
+    malformed document and :class:`ProofVerificationError` for one that does not hold (or a
+    chain answer that is malformed).
     """
     proof = RecordProof.from_json(body)
     if record_id is not None:
@@ -290,10 +461,6 @@ def verify_record_proof(
     if node is not None and proof.anchor.node.lower() != node.lower():
         raise ProofVerificationError(f"the proof is anchored by {proof.anchor.node}, not {node}")
     proof.check_hashes()
-    on_chain = anchored_root(rpc, anchor_log, proof.anchor.node, proof.epoch)
-    if on_chain != proof.tmt_root:
-        raise ProofVerificationError(
-            f"AnchorLog holds {on_chain.hex()} for epoch {proof.epoch} of {proof.anchor.node}, "
-            f"the proof's TMT root is {proof.tmt_root.hex()}"
-        )
+    check_anchor_at(rpc, proof, anchor_log)
+    check_anchor_tx(rpc, proof, anchor_log)
     return proof

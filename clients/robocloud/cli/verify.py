@@ -1,7 +1,7 @@
 """``robocloud verify RECORD_ID``: check a record's proof against the chain, trusting no service.
 
 The proof comes from the storage node, the AnchorLog address from the ledger's
-``/v1/contracts`` (or ``--anchor-log``), and the anchored root from one ``eth_call`` to the
+``/v1/contracts`` (or ``--anchor-log``), and the anchored root, block and transaction from the
 chain's JSON-RPC (the ledger's ``/rpc``, or ``--rpc`` for any node the robot trusts). The
 check is ``Storage.verified_record``'s, the one a robot runs; this command only finds its
 inputs and prints its answer.
@@ -42,7 +42,7 @@ def verify(
     ),
     as_json: bool = JsonOption,
 ) -> None:
-    """Verify a record: its inclusion proofs with SHA-256, its anchor with one eth_call."""
+    """Verify a record: its inclusion proofs with SHA-256, its anchor and tx on the chain."""
     try:
         parsed = RecordId.parse(record_id)
     except RecordIdError as exc:

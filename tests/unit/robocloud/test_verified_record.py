@@ -13,32 +13,23 @@ from typer.testing import CliRunner
 
 from robocloud.cli import app
 from robocloud.errors import InvalidAnswerError
-from robocloud.proofs import (
-    EthCall,
-    ProofFormatError,
-    ProofVerificationError,
-    RecordIdError,
-    root_at_call,
-)
+from robocloud.proofs import ProofFormatError, ProofVerificationError, RecordIdError
 from robocloud.storage import Storage
 from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
-from tests.unit.robocloud.test_proofs import CONTRACT, NODE, proof_document
+from tests.unit.robocloud.test_proofs import (
+    CONTRACT,
+    NODE,
+    SOUND_CALLS,
+    TX,
+    anchor_at_answer,
+    anchor_receipt,
+    proof_document,
+    scripted_chain,
+)
 
 runner = CliRunner()
 SOUND = proof_document()
 """Leaf 3 of imu@1 (``imu-1-3``), in epoch 4 of ``NODE`` on chain 1337."""
-
-
-def chain(root: str, chain_id: int = 1337) -> tuple[EthCall, list[tuple[str, list[Any]]]]:
-    """A JSON-RPC function whose AnchorLog holds ``root`` for every node and epoch, and the
-    calls it got."""
-    calls: list[tuple[str, list[Any]]] = []
-
-    def request(method: str, params: list[Any]) -> Any:
-        calls.append((method, params))
-        return hex(chain_id) if method == "eth_chainId" else "0x" + root
-
-    return request, calls
 
 
 def node_answering(body: bytes | str) -> Iterator[ScriptedServer]:
@@ -46,48 +37,71 @@ def node_answering(body: bytes | str) -> Iterator[ScriptedServer]:
 
 
 def test_a_sound_proof_gives_the_record_the_chain_vouches_for() -> None:
-    rpc, calls = chain(SOUND["tmt_root"])
+    rpc, calls = scripted_chain(SOUND)
     with node_answering(json.dumps(SOUND)) as node, Storage(node.url) as storage:
         proof = storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, node=NODE)
     assert proof.record == SOUND["record"]
     assert [e.path for e in node.exchanges] == ["/v1/records/imu-1-3/proof"]
-    assert calls == [
-        ("eth_chainId", []),
-        ("eth_call", [root_at_call(CONTRACT, NODE, 4), "latest"]),
-    ]
+    assert calls == [("eth_chainId", []), *SOUND_CALLS]
 
 
 @pytest.mark.parametrize(
-    ("body", "root", "error", "match"),
+    ("body", "answers", "error", "match"),
     [
         (
             proof_document(index=2),
-            None,
+            {},
             ProofVerificationError,
             "asked for imu-1-3, the proof is of leaf 2 of imu@1",
         ),
-        (SOUND, "00" * 32, ProofVerificationError, f"AnchorLog holds {'00' * 32} for epoch 4"),
+        (
+            SOUND,
+            {"eth_call": anchor_at_answer("00" * 32, block=0)},
+            ProofVerificationError,
+            f"AnchorLog holds {'00' * 32} for epoch 4",
+        ),
+        (
+            {**SOUND, "anchor": {**SOUND["anchor"], "block": 8}},
+            {},
+            ProofVerificationError,
+            "in block 9, the proof says block 8",
+        ),
+        (
+            SOUND,
+            {"eth_getTransactionReceipt": None},
+            ProofVerificationError,
+            f"no receipt for the anchor's tx {TX}",
+        ),
         (
             {**SOUND, "record": {**SOUND["record"], "t": 4}},
-            None,
+            {},
             ProofVerificationError,
             "not in its template log",
         ),
         (
             {k: v for k, v in SOUND.items() if k != "tmt_root"},
-            None,
+            {},
             ProofFormatError,
             "proof field tmt_root: missing",
         ),
-        ({**SOUND, "inclusion": "ab" * 32}, None, ProofFormatError, "proof field inclusion"),
-        ([SOUND], None, ProofFormatError, r"proof field \(document\): not a JSON object"),
+        ({**SOUND, "inclusion": "ab" * 32}, {}, ProofFormatError, "proof field inclusion"),
+        ([SOUND], {}, ProofFormatError, r"proof field \(document\): not a JSON object"),
     ],
-    ids=["another-record", "root-not-anchored", "changed-record", "missing", "not-list", "list"],
+    ids=[
+        "another-record",
+        "root-not-anchored",
+        "block-not-the-anchors",
+        "tx-not-mined",
+        "changed-record",
+        "missing",
+        "not-list",
+        "list",
+    ],
 )
 def test_a_proof_that_does_not_hold_is_refused_naming_why(
-    body: Any, root: str | None, error: type[Exception], match: str
+    body: Any, answers: dict[str, Any], error: type[Exception], match: str
 ) -> None:
-    rpc, _ = chain(root or SOUND["tmt_root"])
+    rpc, _ = scripted_chain(SOUND, **answers)
     with (
         node_answering(json.dumps(body)) as node,
         Storage(node.url, retries=0) as storage,
@@ -97,7 +111,7 @@ def test_a_proof_that_does_not_hold_is_refused_naming_why(
 
 
 def test_an_answer_that_is_not_json_is_an_invalid_answer() -> None:
-    rpc, calls = chain(SOUND["tmt_root"])
+    rpc, calls = scripted_chain(SOUND)
     with (
         node_answering("<html>proxy login</html>") as node,
         Storage(node.url, retries=0) as storage,
@@ -109,22 +123,22 @@ def test_an_answer_that_is_not_json_is_an_invalid_answer() -> None:
 
 def test_the_anchor_must_be_on_the_chain_the_robot_reads() -> None:
     """The node's word for the chain id was handed on as verified; the chain is the rpc's."""
-    rpc, _ = chain(SOUND["tmt_root"], chain_id=1)
+    rpc, _ = scripted_chain(SOUND, chain_id=1)
     with (
         node_answering(json.dumps(SOUND)) as node,
         Storage(node.url) as storage,
         pytest.raises(ProofVerificationError, match="chain 1337, not 1"),
     ):
         storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT)
-    rpc, calls = chain(SOUND["tmt_root"], chain_id=1)
+    rpc, calls = scripted_chain(SOUND, chain_id=1)
     with node_answering(json.dumps(SOUND)) as node, Storage(node.url) as storage:
         proof = storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, chain_id=1337)
     assert proof.anchor.chain_id == 1337
-    assert [method for method, _ in calls] == ["eth_call"]
+    assert calls == SOUND_CALLS
 
 
 def test_an_id_that_is_not_a_record_id_is_refused_before_anything_is_sent() -> None:
-    rpc, calls = chain(SOUND["tmt_root"])
+    rpc, calls = scripted_chain(SOUND)
     with (
         node_answering(json.dumps(SOUND)) as node,
         Storage(node.url) as storage,
@@ -135,26 +149,37 @@ def test_an_id_that_is_not_a_record_id_is_refused_before_anything_is_sent() -> N
     assert calls == []
 
 
-def json_rpc(root: str) -> Any:
-    """A JSON-RPC server's script: chain 1337 whose AnchorLog holds ``root``."""
+def json_rpc(answers: dict[str, Any]) -> Any:
+    """A JSON-RPC server's script: the chain of ``scripted_chain(SOUND, **answers)``."""
+    request, _ = scripted_chain(SOUND, **answers)
 
     def script(exchange: Exchange) -> Reply:
         call = json.loads(exchange.body)
-        result = "0x539" if call["method"] == "eth_chainId" else "0x" + root
+        result = request(call["method"], call["params"])
         return json_reply(json.dumps({"jsonrpc": "2.0", "id": call["id"], "result": result}))
 
     return script
 
 
 @pytest.mark.parametrize(
-    ("root", "code", "said"),
-    [(SOUND["tmt_root"], 0, "record   imu-1-3 verified"), ("00" * 32, 6, "AnchorLog holds")],
-    ids=["anchored", "not-anchored"],
+    ("answers", "code", "said"),
+    [
+        ({}, 0, "record   imu-1-3 verified"),
+        ({"eth_call": anchor_at_answer("00" * 32, block=0)}, 6, "AnchorLog holds"),
+        (
+            {"eth_getTransactionReceipt": {**anchor_receipt(SOUND["tmt_root"]), "logs": []}},
+            6,
+            "has no Anchored log",
+        ),
+    ],
+    ids=["anchored", "not-anchored", "tx-not-the-anchors"],
 )
-def test_robocloud_verify_says_what_the_sdk_found(root: str, code: int, said: str) -> None:
+def test_robocloud_verify_says_what_the_sdk_found(
+    answers: dict[str, Any], code: int, said: str
+) -> None:
     with (
         node_answering(json.dumps(SOUND)) as node,
-        scripted_server(json_rpc(root)) as rpc,
+        scripted_server(json_rpc(answers)) as rpc,
     ):
         urls = ["--storage", node.url, "--rpc", rpc.url]
         trusted = ["--anchor-log", CONTRACT, "--node", NODE]
