@@ -417,7 +417,9 @@ def rpc_chain_id(rpc: EthCall) -> int:
     whatever chain id the proof claims."""
     result = rpc("eth_chainId", [])
     if not isinstance(result, str) or not re.fullmatch(r"0x[0-9a-fA-F]{1,64}", result):
-        raise InvalidAnswerError(f"eth_chainId answered {result!r:.100}, not a quantity")
+        raise InvalidAnswerError(
+            f"the node sent {result!r:.80} where eth_chainId's quantity belongs"
+        )
     return int(result, 16)
 
 
