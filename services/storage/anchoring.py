@@ -14,7 +14,14 @@ and the backlog is anchored one by one when the chain returns.
 Never twice: before sending, the anchorer asks the chain for the node's root at that epoch.
 A crash after the transaction was mined but before it was recorded finds the root there and
 records it instead of sending again; a different root there is a conflict that stops
-anchoring (``AnchorConflict``) rather than papering over it.
+anchoring (``AnchorConflict``) rather than papering over it. Behind an external node the
+transaction can still be pending when the node dies, where ``anchorAt`` does not see it: so
+the signed transaction is saved with the epoch (``anchor_tx``) before it is sent, and the
+restarted anchorer sends those same bytes again and waits for their receipt
+(``Ledger.anchored_by``), signing a new anchor only once that nonce went to another mined
+transaction. Signing a new one at once made the node's next nonce carry a second anchor of the
+epoch, which reverted ("AnchorLog: epoch not increasing") once the first was mined, or, where
+the node estimates gas on its pending block (anvil), refused every attempt until it was.
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from robocloud import jcs
-from robocloud.ledger import Anchor, Ledger
+from robocloud.ledger import Anchor, Ledger, SignedTransaction
 from robocloud.proofs import AnchorRef, RecordId
 from services.common.durable import open_sqlite, write_transaction
 from services.storage.identity import NodeIdentity, Standing
@@ -54,7 +61,8 @@ CREATE TABLE IF NOT EXISTS epochs (
     chain_id INTEGER,
     contract TEXT,
     tx TEXT,
-    block INTEGER
+    block INTEGER,
+    anchor_tx TEXT
 );
 CREATE TABLE IF NOT EXISTS growth (
     template TEXT NOT NULL,
@@ -67,7 +75,10 @@ CREATE INDEX IF NOT EXISTS epochs_pending ON epochs (epoch) WHERE tx IS NULL;
 """``growth`` holds one row per template per epoch it grew in: the first epoch holding a
 record is the one with the smallest size above the record's index. ``epochs_pending`` holds
 the epochs not anchored yet, which the anchorer asks for before every anchor: a scan of every
-epoch ever cut took 251 ms at 500,000 (11.6 days of 2 s epochs), and grew without end."""
+epoch ever cut took 251 ms at 500,000 (11.6 days of 2 s epochs), and grew without end.
+``anchor_tx`` is the signed anchor transaction of a pending epoch
+(``SignedTransaction.to_json``), saved before it is sent and cleared once the epoch is
+recorded anchored; a database from before it gets the column when opened."""
 
 
 class NotAnchored(Exception):
@@ -132,6 +143,9 @@ class EpochStore:
 
     def __init__(self, path: Path, node: str) -> None:
         self._db = open_sqlite(path, SCHEMA, synchronous="FULL")
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(epochs)")}
+        if "anchor_tx" not in columns:
+            self._db.execute("ALTER TABLE epochs ADD COLUMN anchor_tx TEXT")
         self._node = node
         self._lock = threading.Lock()
         self._trees: OrderedDict[int, EpochTree] = OrderedDict()
@@ -237,8 +251,27 @@ class EpochStore:
     def set_anchored(self, epoch: int, chain_id: int, contract: str, tx: str, block: int) -> None:
         with self._lock:
             self._db.execute(
-                "UPDATE epochs SET chain_id = ?, contract = ?, tx = ?, block = ? WHERE epoch = ?",
+                "UPDATE epochs SET chain_id = ?, contract = ?, tx = ?, block = ?, "
+                "anchor_tx = NULL WHERE epoch = ?",
                 (chain_id, contract, tx, block, epoch),
+            )
+
+    def anchor_tx(self, epoch: int) -> SignedTransaction | None:
+        """The anchor transaction signed for ``epoch`` and saved before it was sent."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT anchor_tx FROM epochs WHERE epoch = ?", (epoch,)
+            ).fetchone()
+        if row is None or row[0] is None:
+            return None
+        return SignedTransaction.from_json(json.loads(row[0]))
+
+    def set_anchor_tx(self, epoch: int, signed: SignedTransaction) -> None:
+        """Save (fsynced) the anchor transaction of ``epoch`` before it is sent."""
+        with self._lock:
+            self._db.execute(
+                "UPDATE epochs SET anchor_tx = ? WHERE epoch = ?",
+                (json.dumps(signed.to_json()), epoch),
             )
 
 
@@ -414,13 +447,28 @@ class Anchorer:
             tx = self._recorded_tx(ledger, existing)
             anchored = existing.block_number
         else:
-            result = ledger.anchor(epoch, tree.root, tree.record_count)
+            result = self._sent_before(ledger, epoch, tree) or ledger.anchor(
+                epoch,
+                tree.root,
+                tree.record_count,
+                before_send=lambda signed: self.epochs.set_anchor_tx(epoch, signed),
+            )
             assert result.tx_hash is not None
             tx, anchored = result.tx_hash, result.block_number
         self.epochs.set_anchored(epoch, ledger.chain_id, ledger.addresses.anchor_log, tx, anchored)
         self.last_error = None
         log.info("anchored", extra={"epoch": epoch, "tx": tx, "records": tree.record_count})
         return True
+
+    def _sent_before(self, ledger: Ledger, epoch: int, tree: EpochTree) -> Anchor | None:
+        """The anchor made by the transaction saved for ``epoch`` before an earlier attempt
+        sent it, once mined: sent again and waited for, since behind an external node it may
+        still be pending (``anchorAt`` does not see it). None when none was saved, or it
+        reverted or its nonce went to another transaction, so it anchored nothing."""
+        signed = self.epochs.anchor_tx(epoch)
+        if signed is None:
+            return None
+        return ledger.anchored_by(signed, epoch, tree.root, tree.record_count)
 
     def _recorded_tx(self, ledger: Ledger, existing: Anchor) -> str:
         """The transaction of the ``Anchored`` event that is ``existing``, this node's anchor

@@ -536,11 +536,44 @@ class Ledger(Closeable):
 
     # ----- AnchorLog -----
 
-    def anchor(self, epoch: int, root: bytes, record_count: int) -> Anchor:
-        """Publish this storage node's TMT root for ``epoch`` (storage-node role needed)."""
+    def anchor(
+        self,
+        epoch: int,
+        root: bytes,
+        record_count: int,
+        *,
+        before_send: Callable[[SignedTransaction], None] | None = None,
+    ) -> Anchor:
+        """Publish this storage node's TMT root for ``epoch`` (storage-node role needed).
+
+        ``before_send`` gets the signed transaction before it is sent, for a caller to save
+        it and, after a crash, learn what it anchored with ``anchored_by``.
+        """
         receipt = self._send(
-            self.anchor_log, self.addresses.anchor_log, "anchor", epoch, root, record_count
+            self.anchor_log,
+            self.addresses.anchor_log,
+            "anchor",
+            epoch,
+            root,
+            record_count,
+            before_send=before_send,
         )
+        return self._anchored_in(receipt, epoch, root, record_count)
+
+    def anchored_by(
+        self, signed: SignedTransaction, epoch: int, root: bytes, record_count: int
+    ) -> Anchor | None:
+        """The anchor of ``epoch`` made by ``signed``, an anchor transaction saved before a
+        crash cut its sending or its wait short: sent again while the node lacks it and waited
+        for (``Transactor.resume``), rather than another anchor signed. None when it reverted,
+        or its nonce went to another transaction (it never will be mined)."""
+        receipt = self._signing(self.anchor_log, "anchor").resume(signed)
+        if receipt is None or receipt.status == 0:
+            return None
+        return self._anchored_in(receipt, epoch, root, record_count)
+
+    def _anchored_in(self, receipt: Receipt, epoch: int, root: bytes, record_count: int) -> Anchor:
+        """The receipt's ``Anchored`` event: this node's, of ``epoch``, ``root`` and count."""
         expected = {
             "node": self._signer().address,
             "epoch": epoch,

@@ -114,15 +114,17 @@ def storage_behind(
     service_factory: ServiceFactory,
     cas: ServiceProcess,
     env: dict[str, str],
+    *,
+    port: int | None = None,
 ) -> ServiceProcess:
     """A storage node reaching its ledger through ``proxy`` (at ``proxy_url``), the
-    knowledge follower off, with ``env`` on top."""
+    knowledge follower off, with ``env`` on top, on ``port`` (a free one by default)."""
     base = {
         "ROBOCLOUD_LEDGER_URL": proxy_url,
         "ROBOCLOUD_CAS_URL": cas.url,
         "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
     }
-    proxy.storage = service_factory("storage", {**base, **env})
+    proxy.storage = service_factory("storage", {**base, **env}, port=port)
     return proxy.storage
 
 

@@ -8,6 +8,7 @@ chain or a made-up block leaves every proof of it failing for good.
 from __future__ import annotations
 
 import json
+import sqlite3
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -20,11 +21,17 @@ from eth_utils.crypto import keccak
 
 from robocloud.errors import InvalidAnswerError
 from robocloud.identity import Identity
-from robocloud.ledger import Anchor, Ledger
+from robocloud.ledger import Anchor, Ledger, SignedTransaction
 from robocloud.ledger.client import ContractAddresses
 from robocloud.ledger.rpc import JsonRpcClient
 from robocloud.proofs import AnchorRef
-from services.storage.anchoring import AnchorConflict, Anchorer, EpochStore, LedgerAndCas
+from services.storage.anchoring import (
+    SCHEMA,
+    AnchorConflict,
+    Anchorer,
+    EpochStore,
+    LedgerAndCas,
+)
 from services.storage.identity import NodeIdentity, Standing
 from services.storage.recordlog import RecordLogs
 from services.storage.tmt import EpochTree, TemplateHead
@@ -288,3 +295,68 @@ def test_the_epochs_waiting_for_their_anchor_are_found_through_an_index(tmp_path
     assert "epochs_pending" in " ".join(str(step[-1]) for step in plan)
     assert reopened.pending() == [1]
     reopened.close()
+
+
+def test_a_saved_anchor_transaction_survives_a_reopen_of_an_old_database(
+    tmp_path: Path,
+) -> None:
+    """An ``epochs.sqlite`` from before ``anchor_tx`` gets the column when opened; the saved
+    transaction is read back as signed, and cleared once the epoch is recorded anchored."""
+    path = tmp_path / "epochs.sqlite"
+    old = sqlite3.connect(path)
+    old.executescript(SCHEMA.replace(",\n    anchor_tx TEXT", ""))
+    old.close()
+    node = Identity.generate().address
+    epochs = EpochStore(path, node)
+    assert epochs.cut(list(TREE.heads)) == TREE
+    signed = SignedTransaction(b"\x02\xf8\x01\x02", 7)
+    epochs.set_anchor_tx(1, signed)
+    epochs.close()
+    reopened = EpochStore(path, node)
+    assert reopened.anchor_tx(1) == signed
+    reopened.set_anchored(1, 1337, ANCHOR_LOG, TX, BLOCK)
+    assert reopened.anchor_tx(1) is None
+    assert reopened.pending() == []
+    reopened.close()
+
+
+class Crash(Exception):
+    """The node dying while it waits for the receipt."""
+
+
+def test_an_anchor_saved_before_a_crash_is_resumed_not_signed_anew(
+    anchorer: Callable[..., Anchorer],
+) -> None:
+    """Behind an external node the anchor can still be pending when the node dies, where
+    ``anchorAt`` does not see it: the restarted anchorer signed another (the next nonce,
+    reverted once the first was mined). The transaction is saved before it is sent, and the
+    next attempt takes its receipt, nothing estimated or signed again."""
+    answers = anchoring([1337])
+    mined = answers["eth_getTransactionReceipt"]
+    sent: list[str] = []
+
+    def send(params: list[Any]) -> str:
+        sent.append(params[0])
+        return "0x" + keccak(hexstr=params[0]).hex()
+
+    def crash(_: list[Any]) -> Any:
+        raise Crash
+
+    answers.update(eth_sendRawTransaction=send, eth_getTransactionReceipt=crash)
+    node = anchorer(answers, identity=ANCHORING_NODE)
+    with pytest.raises(Crash):
+        node.anchor_next()
+    saved = node.epochs.anchor_tx(1)
+    assert saved is not None
+    assert sent == ["0x" + saved.raw.hex()]
+
+    def estimate(_: list[Any]) -> Any:
+        pytest.fail("another anchor was signed")
+
+    answers.update(eth_estimateGas=estimate, eth_getTransactionReceipt=mined)
+    assert node.anchor_next()
+    anchor = recorded(node)
+    assert anchor is not None
+    assert anchor.tx == saved.tx_hash
+    assert node.epochs.anchor_tx(1) is None
+    assert len(sent) == 1
