@@ -25,6 +25,31 @@ LEDGER_ENV = {
     "ROBOCLOUD_LEDGER_ADMIN_PASSPHRASE": PASSPHRASE,
     "ROBOCLOUD_LEDGER_FAUCET_PER_MINUTE": "1000",
 }
+
+
+def ledger_fronting(
+    service_factory: Callable[..., ServiceProcess],
+    anvil_url: str,
+    anvil: JsonRpcClient,
+    data_dir: Path,
+    storage_url: str | None = None,
+) -> ServiceProcess:
+    """A ledger service in external-node mode in front of the anvil at ``anvil_url``, its
+    admin key funded there, polling the node every 0.2 s (``storage_url``: the storage node
+    it grants the storage role to)."""
+    admin = Identity.generate()
+    admin.save(data_dir / "keys" / "admin.json", PASSPHRASE, scrypt_n=2**14)
+    fund(anvil, admin)
+    env = {
+        **LEDGER_ENV,
+        "ROBOCLOUD_LEDGER_RPC_URL": anvil_url,
+        "ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.2",
+    }
+    if storage_url is not None:
+        env["ROBOCLOUD_STORAGE_URL"] = storage_url
+    return service_factory("ledger", env, data_dir=data_dir)
+
+
 METADATA = bytes.fromhex("01551220") + bytes(range(32))
 
 

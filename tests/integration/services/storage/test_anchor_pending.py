@@ -23,8 +23,8 @@ import pytest
 from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService
 from tests.conftest import ServiceFactory
-from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
-from tests.integration.services.ledger.conftest import LEDGER_ENV, PASSPHRASE
+from tests.integration.robocloud.ledger.nodes import ethereum_node
+from tests.integration.services.ledger.conftest import ledger_fronting
 from tests.integration.services.storage.counter import write_counter_records
 from tests.integration.services.storage.ledger_proxy import (
     LedgerProxy,
@@ -121,19 +121,10 @@ def test_kill_9_while_the_anchor_is_pending_anchors_the_epoch_once(
     pending one was mined, or, estimated on the latest (geth), signed with the next nonce and
     reverted ("AnchorLog: epoch not increasing") once the first was mined."""
     with ethereum_node(tmp_path / "anvil.log") as anvil_url, JsonRpcClient(anvil_url) as anvil:
-        admin = Identity.generate()
-        admin.save(tmp_path / "ledger" / "keys" / "admin.json", PASSPHRASE, scrypt_n=2**14)
-        fund(anvil, admin)
         storage_port = free_port()
-        ledger = service_factory(
-            "ledger",
-            {
-                **LEDGER_ENV,
-                "ROBOCLOUD_LEDGER_RPC_URL": anvil_url,
-                "ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.2",
-                "ROBOCLOUD_STORAGE_URL": f"http://127.0.0.1:{storage_port}",
-            },
-            data_dir=tmp_path / "ledger",
+        storage_url = f"http://127.0.0.1:{storage_port}"
+        ledger = ledger_fronting(
+            service_factory, anvil_url, anvil, tmp_path / "ledger", storage_url
         )
         cas = service_factory("cas")
         proxy = KillWhileAnchorPending(ledger, anvil, estimate_on)

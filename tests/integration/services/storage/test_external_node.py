@@ -15,8 +15,8 @@ from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, LedgerService
 from robocloud.proofs import verify_record_proof
 from tests.conftest import ServiceFactory
-from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
-from tests.integration.services.ledger.conftest import LEDGER_ENV, PASSPHRASE
+from tests.integration.robocloud.ledger.nodes import ethereum_node
+from tests.integration.services.ledger.conftest import ledger_fronting
 from tests.integration.services.storage.counter import write_counter_records
 from tests.integration.services.storage.test_anchoring import node_state
 from tests.procs import free_port
@@ -25,20 +25,9 @@ from tests.waiting import wait_for
 
 def test_proofs_verify_against_anvil(service_factory: ServiceFactory, tmp_path: Path) -> None:
     with ethereum_node(tmp_path / "anvil.log") as anvil, JsonRpcClient(anvil) as chain:
-        admin = Identity.generate()
-        admin.save(tmp_path / "ledger" / "keys" / "admin.json", PASSPHRASE, scrypt_n=2**14)
-        fund(chain, admin)
         storage_port = free_port()
-        ledger = service_factory(
-            "ledger",
-            {
-                **LEDGER_ENV,
-                "ROBOCLOUD_LEDGER_RPC_URL": anvil,
-                "ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.2",
-                "ROBOCLOUD_STORAGE_URL": f"http://127.0.0.1:{storage_port}",
-            },
-            data_dir=tmp_path / "ledger",
-        )
+        storage_url = f"http://127.0.0.1:{storage_port}"
+        ledger = ledger_fronting(service_factory, anvil, chain, tmp_path / "ledger", storage_url)
         cas = service_factory("cas")
         storage = service_factory(
             "storage",

@@ -18,8 +18,8 @@ from robocloud.identity import Identity
 from robocloud.ingest import Ingest
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService
 from tests.conftest import ServiceFactory
-from tests.integration.robocloud.ledger.nodes import ethereum_node, fund
-from tests.integration.services.ledger.conftest import LEDGER_ENV, PASSPHRASE
+from tests.integration.robocloud.ledger.nodes import ethereum_node
+from tests.integration.services.ledger.conftest import ledger_fronting
 from tests.integration.services.storage.ledger_proxy import (
     ADVERTISE,
     LedgerProxy,
@@ -62,18 +62,7 @@ def test_kill_9_while_the_advertise_is_pending_advertises_the_dataset_once(
     """The resumed job looked for a mined ``Advertised`` event only, found none, and signed a
     second advertise with the next nonce: both were mined, the dataset advertised twice."""
     with ethereum_node(tmp_path / "anvil.log") as anvil_url, JsonRpcClient(anvil_url) as anvil:
-        admin = Identity.generate()
-        admin.save(tmp_path / "ledger" / "keys" / "admin.json", PASSPHRASE, scrypt_n=2**14)
-        fund(anvil, admin)
-        ledger = service_factory(
-            "ledger",
-            {
-                **LEDGER_ENV,
-                "ROBOCLOUD_LEDGER_RPC_URL": anvil_url,
-                "ROBOCLOUD_LEDGER_POLL_INTERVAL_S": "0.2",
-            },
-            data_dir=tmp_path / "ledger",
-        )
+        ledger = ledger_fronting(service_factory, anvil_url, anvil, tmp_path / "ledger")
         cas = service_factory("cas")
         proxy = KillWhilePending(ledger, anvil)
         with scripted_server(proxy, answer_audience=False) as server:
