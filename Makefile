@@ -4,6 +4,8 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# pytest-xdist workers for `make test`: one a core (`make test TEST_WORKERS=0` runs in process).
+TEST_WORKERS ?= auto
 NODE_STAMP := contracts/node_modules/.package-lock.json
 REFERENCE_STAMP := tests/reference/node_modules/.package-lock.json
 
@@ -33,7 +35,7 @@ lint: $(STAMP)
 	$(VENV)/bin/mypy
 
 test: lint $(NODE_STAMP) $(REFERENCE_STAMP)
-	$(VENV)/bin/pytest
+	$(VENV)/bin/pytest -n $(TEST_WORKERS) --dist loadfile
 
 # Docker Compose on any machine, offline too: the engine, Compose, the wheelhouse and the base
 # image when missing, then `docker compose up -d --wait --build` (scripts/docker/compose-up.sh).

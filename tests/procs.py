@@ -62,14 +62,14 @@ class ServiceProcess:
     def start(self, timeout_s: float = 30.0, *, ready: bool = True) -> ServiceProcess:
         """Start and wait until ``/readyz`` answers 200 (``/healthz`` when not ``ready``)."""
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        log = self.log_path.open("ab")
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", f"services.{self.name}"],
-            env=self.env,
-            cwd=REPO,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
+        with self.log_path.open("ab") as log:  # the child keeps its own descriptor
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", f"services.{self.name}"],
+                env=self.env,
+                cwd=REPO,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
         return self.wait("/readyz" if ready else "/healthz", timeout_s)
 
     def wait(self, probe: str = "/readyz", timeout_s: float = 30.0) -> ServiceProcess:
