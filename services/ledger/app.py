@@ -106,9 +106,17 @@ def _router() -> APIRouter:
         advertiser: str | None = None,
         since: int = Query(default=0, ge=0, le=UINT64_MAX, description="first block number"),
         limit: int = 100,
+        after_log_index: int | None = Query(
+            default=None,
+            ge=0,
+            le=UINT64_MAX,
+            description="block `since`'s events only past this log index (a saved position)",
+        ),
     ) -> dict[str, Any]:
         """Advertised events, oldest first, by CID and/or advertiser."""
-        return await _read(views.advertisements, _ledger(request), cid, advertiser, since, limit)
+        return await _read(
+            views.advertisements, _ledger(request), cid, advertiser, since, limit, after_log_index
+        )
 
     @router.get("/v1/anchors")
     async def anchors(

@@ -317,11 +317,23 @@ class EventIndex:
         ]
 
     def advertisements(
-        self, cid: bytes | None, advertiser: str | None, since: int, limit: int
+        self,
+        cid: bytes | None,
+        advertiser: str | None,
+        since: int,
+        limit: int,
+        after_log_index: int | None = None,
     ) -> list[dict[str, Any]]:
-        """Advertised events from block ``since`` on, oldest first. ``since`` may be any
-        uint64: past SQLite's integers it is clamped, to the same answer (no such block)."""
-        clauses, params = ["block_number >= ?"], [min(since, MAX_SQLITE_INTEGER)]
+        """Advertised events from block ``since`` on, oldest first; with ``after_log_index``,
+        those of block ``since`` only past that log index: the position a reader saved, so
+        that it reads on past a block holding more events than ``limit``. Both may be any
+        uint64: past SQLite's integers they are clamped, to the same answer."""
+        since = min(since, MAX_SQLITE_INTEGER)
+        if after_log_index is None:
+            clauses, params = ["block_number >= ?"], [since]
+        else:
+            clauses = ["(block_number, log_index) > (?, ?)"]
+            params = [since, min(after_log_index, MAX_SQLITE_INTEGER)]
         if cid is not None:
             clauses.append("cid = ?")
             params.append(cid)  # type: ignore[arg-type]

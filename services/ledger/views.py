@@ -106,13 +106,19 @@ def _pending_view(ledger: Ledger, row: dict[str, Any]) -> dict[str, Any]:
 
 
 def advertisements(
-    ledger: Ledger, cid: str | None, advertiser: str | None, since: int, limit: int
+    ledger: Ledger,
+    cid: str | None,
+    advertiser: str | None,
+    since: int,
+    limit: int,
+    after_log_index: int | None = None,
 ) -> dict[str, Any]:
     rows = ledger.index.advertisements(
         parse_cid(cid, "cid").binary if cid else None,
         address_param(advertiser, "advertiser") if advertiser else None,
         since,
         limit_param(limit),
+        after_log_index,
     )
     return {
         "advertisements": [

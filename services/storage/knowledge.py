@@ -167,7 +167,9 @@ class Advertisement(Protocol):
 
 
 class LedgerReader(Protocol):
-    def advertisements(self, *, since: int, limit: int) -> list[Any]: ...
+    def advertisements(
+        self, *, since: int, after_log_index: int | None, limit: int
+    ) -> list[Any]: ...
 
 
 Connect = Callable[[], AbstractContextManager[CasReader]]
@@ -472,14 +474,18 @@ class LedgerFollower:
         come first, and at most ``MAX_RETRIES_PER_ROUND`` pending descriptions are fetched
         again, each after its backoff, all through one cas client.
 
-        True when a full batch brought something new (there may be more to read at once). A
-        block with more advertisements than a batch cannot be read past with ``since``: the
-        batch (1,000) is far above what one block of the development chain holds.
+        True when a full batch brought something new (there may be more to read at once).
+        Each read starts past the saved position (block and log index), so a block with more
+        advertisements than a batch is read in several.
         """
         state = self.state
         state.pending, state.refused = state.pending or [], state.refused or {}
         with self.connect() as ledger:
-            advertisements = ledger.advertisements(since=state.block, limit=self.batch)
+            advertisements = ledger.advertisements(
+                since=state.block,
+                after_log_index=state.log_index if state.log_index >= 0 else None,
+                limit=self.batch,
+            )
         with _RoundCas(self.knowledge.connect_cas) as cas:
             progressed = False
             for ad in advertisements:

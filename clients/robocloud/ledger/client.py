@@ -157,14 +157,19 @@ class LedgerService(ServiceClient):
         limit: int = 100,
         cid: str | None = None,
         advertiser: str | None = None,
+        after_log_index: int | None = None,
     ) -> list[IndexedAdvertisement]:
-        """``GET /v1/advertisements``: Advertised events from block ``since`` on, oldest first.
+        """``GET /v1/advertisements``: Advertised events from block ``since`` on, oldest first;
+        with ``after_log_index``, block ``since``'s only past that log index (the position of
+        the last event read, so that a reader gets past a block with more than ``limit``).
 
-        An answer with more than ``limit`` events, events out of order or before ``since``,
-        or a malformed event is an ``InvalidAnswerError``: a follower that trusted it could
-        skip advertisements for good.
+        An answer with more than ``limit`` events, events out of order or not past the
+        position asked for, or a malformed event is an ``InvalidAnswerError``: a follower
+        that trusted it could skip advertisements for good.
         """
         params: dict[str, str | int] = {"since": since, "limit": limit}
+        if after_log_index is not None:
+            params["after_log_index"] = after_log_index
         if cid is not None:
             params["cid"] = cid
         if advertiser is not None:
@@ -179,7 +184,8 @@ class LedgerService(ServiceClient):
             )
         events = [_advertisement(item) for item in items]
         order = [(event.block_number, event.log_index) for event in events]
-        if order != sorted(order) or any(event.block_number < since for event in events):
+        position = (since, -1 if after_log_index is None else after_log_index)
+        if order != sorted(order) or any(place <= position for place in order):
             raise InvalidAnswerError("the ledger's advertisements are out of order")
         return events
 

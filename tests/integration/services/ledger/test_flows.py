@@ -6,7 +6,7 @@ import httpx
 import pytest
 
 from robocloud.cid import CID
-from robocloud.ledger import RevertError, Role
+from robocloud.ledger import LedgerService, RevertError, Role
 from tests.integration.services.ledger.conftest import METADATA, RobotFactory, Service, head
 
 CID_TEXT = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
@@ -36,6 +36,13 @@ def test_register_advertise_and_read_back(service: Service, robot: RobotFactory)
     ).json()["advertisements"]
     assert [r["tx"] for r in by_second] == [two.tx_hash]
     assert first.advertisements(cid=cid) == [one, two]
+    with LedgerService(service.url) as reader:
+        from_one = reader.advertisements(since=one.block_number, cid=CID_TEXT)
+        assert [ad.tx_hash for ad in from_one] == [one.tx_hash, two.tx_hash]
+        past_one = reader.advertisements(
+            since=one.block_number, after_log_index=from_one[0].log_index, cid=CID_TEXT
+        )
+    assert past_one == from_one[1:]
 
 
 def test_storage_node_anchors(service: Service, robot: RobotFactory) -> None:

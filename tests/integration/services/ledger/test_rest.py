@@ -110,7 +110,12 @@ def test_faucet_needs_a_signature(service: Service) -> None:
 
 
 @pytest.mark.parametrize(
-    ("path", "name"), [("/v1/advertisements", "since"), ("/v1/anchors", "epoch")]
+    ("path", "name"),
+    [
+        ("/v1/advertisements", "since"),
+        ("/v1/advertisements", "after_log_index"),
+        ("/v1/anchors", "epoch"),
+    ],
 )
 def test_block_numbers_and_epochs_take_any_uint64(service: Service, path: str, name: str) -> None:
     """Past 2^63 these were 500 (SQLite's integers are signed); any uint64 is a query with
@@ -122,3 +127,14 @@ def test_block_numbers_and_epochs_take_any_uint64(service: Service, path: str, n
     refused = httpx.get(f"{service.url}{path}", params={name: 2**64})
     assert refused.status_code == 422
     assert refused.json()["error"]["details"]["errors"][0]["field"] == f"query.{name}"
+
+
+@pytest.mark.parametrize("value", ["-1", "first", ""])
+def test_a_position_that_is_not_a_log_index_is_refused_naming_it(
+    service: Service, value: str
+) -> None:
+    response = httpx.get(
+        f"{service.url}/v1/advertisements", params={"since": 1, "after_log_index": value}
+    )
+    assert response.status_code == 422, response.text
+    assert response.json()["error"]["details"]["errors"][0]["field"] == "query.after_log_index"

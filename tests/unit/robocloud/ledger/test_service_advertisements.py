@@ -78,6 +78,21 @@ def test_a_lying_or_broken_listing_is_refused(events: list[Any], message: str) -
         ledger.advertisements(since=4, limit=2)
 
 
+def test_a_position_is_sent_and_an_event_at_or_before_it_is_refused() -> None:
+    """A follower saves the last event it read; an event at or before it, sent again, would
+    be read twice, or, from a lying ledger, make the follower believe it is past others."""
+    seen: list[str] = []
+    with (
+        scripted_server(listing([event(5, 3), event(6, 0)], seen)) as server,
+        LedgerService(server.url) as ledger,
+    ):
+        found = ledger.advertisements(since=5, after_log_index=2, limit=2)
+        assert [(ad.block_number, ad.log_index) for ad in found] == [(5, 3), (6, 0)]
+        with pytest.raises(InvalidAnswerError, match="out of order"):
+            ledger.advertisements(since=5, after_log_index=3, limit=2)
+    assert seen[0] == "/v1/advertisements?since=5&limit=2&after_log_index=2"
+
+
 @pytest.mark.parametrize("body", [[], {"advertisements": "x"}, {"other": []}])
 def test_an_answer_that_is_not_a_listing_is_refused(body: Any) -> None:
     with (

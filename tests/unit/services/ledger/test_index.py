@@ -305,3 +305,37 @@ def test_anchors_are_read_in_chain_order_by_an_index_not_a_sort(
     )
     assert "TEMP B-TREE" not in plan
     assert "anchors_block" in plan or "anchors_node_block" in plan
+
+
+def advertised(block: int, position: int) -> LogEntry:
+    cid = bytes.fromhex("01551220") + block.to_bytes(16, "big") + position.to_bytes(16, "big")
+    return log(
+        "Advertised",
+        block,
+        position=position,
+        cidHash=cid[4:],
+        advertiser=ROBOT,
+        cid=cid,
+        descriptionCid=METADATA,
+        first=True,
+        timestamp=block,
+    )
+
+
+def test_advertisements_are_read_on_from_a_position_past_a_block_fuller_than_a_page(
+    index: EventIndex,
+) -> None:
+    """Read from a block number alone, a block of more advertisements than a page gave its
+    first page again and again: a reader could never get past it."""
+    index.add_block(3, bytes(32), [advertised(3, position) for position in range(5)])
+    index.add_block(4, bytes(32), [advertised(4, 0)])
+    read, since, after = [], 0, None
+    for _ in range(4):
+        page = index.advertisements(None, None, since, 2, after)
+        read += [(row["block_number"], row["log_index"]) for row in page]
+        if page:
+            since, after = page[-1]["block_number"], page[-1]["log_index"]
+    assert read == [(3, 0), (3, 1), (3, 2), (3, 3), (3, 4), (4, 0)]
+    assert [row["log_index"] for row in index.advertisements(None, None, 3, 10, 3)] == [4, 0]
+    assert index.advertisements(None, None, 4, 10, UINT64_MAX) == []
+    assert index.advertisements(None, None, UINT64_MAX, 10, UINT64_MAX) == []

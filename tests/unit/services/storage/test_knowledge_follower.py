@@ -43,8 +43,12 @@ class Ledger:
     def __init__(self) -> None:
         self.ads: list[Ad] = []
 
-    def advertisements(self, *, since: int, limit: int) -> list[Ad]:
-        return [ad for ad in self.ads if ad.block_number >= since][:limit]
+    def advertisements(
+        self, *, since: int, limit: int, after_log_index: int | None = None
+    ) -> list[Ad]:
+        """As the ledger's ``GET /v1/advertisements`` answers (the index's query)."""
+        position = (since, -1 if after_log_index is None else after_log_index)
+        return [ad for ad in self.ads if (ad.block_number, ad.log_index) > position][:limit]
 
 
 class Cas:
@@ -119,8 +123,8 @@ def make_follower(tmp_path: Path, cas: Cas, ledger: Ledger, clock: Clock) -> Any
     def connect_ledger() -> Iterator[Ledger]:
         yield ledger
 
-    def make() -> LedgerFollower:
-        follower = LedgerFollower(kb, connect_ledger, 10.0, 1000)
+    def make(batch: int = 1000) -> LedgerFollower:
+        follower = LedgerFollower(kb, connect_ledger, 10.0, batch)
         follower.clock = clock
         return follower
 
@@ -164,6 +168,27 @@ def test_a_disk_error_storing_one_description_keeps_it_pending(
     restarted.poll()
     assert app_cid in kb
     assert (restarted.state.pending, restarted.state.retries) == ([], {})
+
+
+def test_a_block_with_more_advertisements_than_a_batch_is_read_past(
+    make_follower: Any, cas: Cas, ledger: Ledger
+) -> None:
+    """A stranger's block of more advertisements than one read returns stopped the follower
+    for good: each read started at the block again and brought back the same batch."""
+    described = [cas.put(name) for name in ("file", "application", "task", "dataset")]
+    ledger.ads += [Ad(7, index, cid) for index, cid in enumerate(described[:3])]
+    ledger.ads.append(Ad(9, 0, described[3]))
+    follower = make_follower(batch=2)
+
+    assert follower.poll() is True  # a full batch: there may be more at once
+    assert (follower.state.block, follower.state.log_index) == (7, 1)
+    assert follower.poll() is True
+    assert (follower.state.block, follower.state.log_index) == (9, 0)
+    assert follower.poll() is False
+    assert all(cid in follower.knowledge for cid in described)
+    assert (follower.state.block, follower.state.log_index) == (9, 0)
+    saved = json.loads((follower.knowledge.root / "follow.json").read_text())
+    assert (saved["block"], saved["log_index"]) == (9, 0)
 
 
 def test_pending_descriptions_back_off_are_bounded_per_round_and_refused_at_last(
