@@ -255,11 +255,12 @@ def _framed_read(stream: IO[bytes]) -> Any:
 class _Worker:
     """Inside the child: the graph, the prepared queries, and the message loop."""
 
-    def __init__(self, directory: Path, store: str) -> None:
+    def __init__(self, directory: Path, store: str, max_result_bytes: int) -> None:
         from rdflib import Graph
         from rdflib.plugins.sparql import prepareQuery
 
         self.directory = directory
+        self.max_result_bytes = max_result_bytes
         # Oxigraph parses and evaluates a query itself, from its text.
         self.native = store == "oxigraph"
         self.graph = Graph(store="Oxigraph") if self.native else Graph()
@@ -484,13 +485,13 @@ def _forbid_network() -> bool:
 
 
 def worker_main(argv: Sequence[str]) -> None:
-    """``python -m services.storage.sparql DIRECTORY STORE MEMORY_BYTES``."""
+    """``python -m services.storage.sparql DIRECTORY STORE MEMORY_BYTES MAX_RESULT_BYTES``."""
     _die_with_parent()
     if not _forbid_network():
         print(
             "sparql worker: no seccomp here: queries are not kept off the network", file=sys.stderr
         )
-    directory, store, memory = Path(argv[0]), argv[1], int(argv[2])
+    directory, store, memory, max_result = Path(argv[0]), argv[1], int(argv[2]), int(argv[3])
     _limit_memory(memory)
     sys.setrecursionlimit(10_000)
     inbox, outbox = sys.stdin.buffer, sys.stdout.buffer
@@ -498,7 +499,7 @@ def worker_main(argv: Sequence[str]) -> None:
     import rdflib.plugins.sparql
 
     rdflib.plugins.sparql.SPARQL_LOAD_GRAPHS = False  # never fetch a graph a query names
-    worker = _Worker(directory, store)
+    worker = _Worker(directory, store, max_result)
     _framed_write(outbox, ("ready", len(worker.loaded)))
     _relay(worker, inbox, outbox)
 
@@ -596,7 +597,11 @@ class _Executor:
 
 
 def _serve(worker: _Worker, inbox: IO[bytes], outbox: IO[bytes]) -> None:
-    """The executor's loop: apply each load, answer each query, until the pipe closes."""
+    """The executor's loop: apply each load, answer each query, until the pipe closes.
+
+    An answer over the result limit is refused here, not sent: the service reads no more
+    than the limit off the pipe, so it could only replace a worker that sent one (a reload of
+    the whole graph, seconds of a core, for a query anyone can write)."""
     while True:
         try:
             message = _framed_read(inbox)
@@ -604,8 +609,12 @@ def _serve(worker: _Worker, inbox: IO[bytes], outbox: IO[bytes]) -> None:
             return
         if message[0] == "load":
             worker.load(message[1])
-        else:
-            _framed_write(outbox, _answer(worker, message))
+            continue
+        answer = _framed(_answer(worker, message))
+        if len(answer) - 4 > worker.max_result_bytes + ANSWER_OVERHEAD_BYTES:
+            answer = _framed(("error", "ResultTooLargeError", str(worker.max_result_bytes)))
+        outbox.write(answer)
+        outbox.flush()
 
 
 def _answer(worker: _Worker, message: tuple[Any, ...]) -> Any:
@@ -637,9 +646,12 @@ _ERRORS: dict[str, Callable[[str], SparqlError]] = {
     "QueryFailedError": QueryFailedError,
     "QueryRefusedError": QueryRefusedError,
     "WorkerFailedError": WorkerFailedError,
+    "ResultTooLargeError": lambda limit: ResultTooLargeError(int(limit)),
 }
 
 
+ANSWER_OVERHEAD_BYTES = 4096
+"""What an answer may hold beyond the result's own bytes (its framing and media type)."""
 STOP_WAIT_S = 5.0
 """How long a worker may take to stop a query's process (or fork a fresh one) and say so
 before it is replaced."""
@@ -794,7 +806,7 @@ class SparqlWorkers:
         except (OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:
             self._replace(child, f"failed: {exc}")
             raise WorkerFailedError(f"the query worker failed ({exc}); it was replaced") from None
-        except ResultTooLargeError:
+        except ResultTooLargeError:  # the worker should have refused it itself
             self._replace(child, "answered too much")
             raise
         self._idle.put(child)
@@ -880,7 +892,7 @@ class SparqlWorkers:
         fd = stdout.fileno()
         head = self._read_exact(fd, 4, deadline)
         (size,) = struct.unpack(">I", head)
-        if size > self.max_result_bytes + 4096:
+        if size > self.max_result_bytes + ANSWER_OVERHEAD_BYTES:
             raise ResultTooLargeError(self.max_result_bytes)
         return pickle.loads(self._read_exact(fd, size, deadline))
 
@@ -913,6 +925,7 @@ class SparqlWorkers:
                     str(self.directory),
                     self.store,
                     str(self.memory_bytes),
+                    str(self.max_result_bytes),
                 ],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,

@@ -39,6 +39,7 @@ ROBOT_ADDRESS = "0x1a642f0E3c3aF545E7AcBD38b07251B3990914F1"
 APP = "ipfs://bafkreia357kjlhicbaks5xy6g5ridjm6wevmf6ccufgzsdrlpfyi6ydb34"
 PREFIX = f"PREFIX rc: <{RC}>\n"
 TIMEOUT_S = 4
+MAX_RESULT_BYTES = 64 * 1024
 
 
 class Services:
@@ -84,6 +85,7 @@ def services(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Services]:
                 "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
                 "ROBOCLOUD_KNOWLEDGE_QUERY_TIMEOUT_S": str(TIMEOUT_S),
                 "ROBOCLOUD_KNOWLEDGE_MAX_QUERY_BYTES": "4096",
+                "ROBOCLOUD_KNOWLEDGE_MAX_RESULT_BYTES": str(MAX_RESULT_BYTES),
             },
         ) as storage,
     ):
@@ -360,6 +362,24 @@ def test_sparql_updates_are_rejected_however_they_are_sent(services: Services) -
     rows = httpx.get(services.sparql, params={"query": FILES_QUERY}).json()["results"]["bindings"]
     assert [row["width"]["value"] for row in rows] == ["640"]
     unchanged(services, before)
+
+
+def test_a_result_over_the_limit_is_refused_and_no_worker_is_replaced(
+    services: Services,
+) -> None:
+    """Each such query made the service replace the worker that answered it: a reload of the
+    whole graph, during which its queries were ``knowledge_loading``."""
+    crossed = "SELECT * WHERE { ?s ?p ?o . ?a ?b ?c } LIMIT 2000"
+    workers = services.state()["workers"]
+    for _ in range(3):
+        response = httpx.get(services.sparql, params={"query": crossed})
+        assert error(response, 400, "result_too_large") == {"limit": MAX_RESULT_BYTES}
+        assert response.json()["error"]["message"] == (
+            f"the result is larger than {MAX_RESULT_BYTES} bytes: add a LIMIT"
+        )
+    assert services.state()["workers"] == workers
+    rows = httpx.get(services.sparql, params={"query": crossed.replace("2000", "20")}).json()
+    assert len(rows["results"]["bindings"]) == 20
 
 
 @pytest.mark.parametrize(

@@ -24,6 +24,7 @@ from services.storage.sparql import (
     QueryRefusedError,
     QuerySyntaxError,
     QueryTimeoutError,
+    ResultTooLargeError,
     SparqlWorkers,
     UpdateRejectedError,
     WorkerFailedError,
@@ -255,6 +256,32 @@ def test_a_query_past_its_deadline_is_killed_and_its_worker_free_at_once(
     for _ in range(2):  # both workers, the one that ran the slow query included
         _, body = pool.query(PREFIX + "ASK { ?s a rc:File }", None)
         assert json.loads(body)["boolean"] is True
+
+
+def test_a_result_over_the_limit_is_refused_by_the_worker_which_is_kept(
+    tmp_path: Path,
+) -> None:
+    """The worker sent the whole answer and the service, reading no more than the limit,
+    replaced it: a reload of every description (seconds of a core, 10.7 s at 10,000 files)
+    for a query anyone can write, while its queries got ``knowledge_loading``."""
+    write(tmp_path, example("file"))
+    workers = SparqlWorkers(
+        tmp_path, workers=1, timeout_s=10, max_result_bytes=10_000, memory_bytes=1 << 31
+    )
+    workers.start()
+    try:
+        wait_for(lambda: workers.describe()["ready"] == 1, "the worker")
+        everything_twice = "SELECT * WHERE { ?s1 ?p1 ?o1 . ?s2 ?p2 ?o2 }"
+        for _ in range(3):
+            with pytest.raises(ResultTooLargeError) as refused:
+                workers.query(everything_twice, None)
+            assert str(refused.value) == "the result is larger than 10000 bytes: add a LIMIT"
+            assert workers.describe()["ready"] == 1
+        assert workers.describe()["replaced"] == 0
+        _, body = workers.query(everything_twice + " LIMIT 2", None)
+        assert len(json.loads(body)["results"]["bindings"]) == 2
+    finally:
+        workers.close()
 
 
 def test_an_idle_worker_forks_a_fresh_executor_that_shares_its_pages_again(
