@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import socket
@@ -24,10 +25,39 @@ def audience_of(url: str) -> str:
     return str(httpx.get(f"{url}/v1/audience", timeout=10).json()["audience"])
 
 
+PORTS = range(10_000, 32_768)
+"""Where test services listen: below Linux's ephemeral range (32768-60999), out of which the
+kernel picks the port of every outgoing connection and of every ``bind`` to port 0."""
+
+
+def _worker_ports() -> range:
+    """This pytest-xdist worker's share of ``PORTS`` (all of them outside xdist): a port
+    the kernel handed out by ``bind`` to port 0 and released again could be handed to
+    another worker before the service meant for it bound it, or while it restarted, and
+    the test then talked to the other worker's service."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+    share = len(PORTS) // max(workers, 1)
+    first = PORTS.start + (worker % max(workers, 1)) * share
+    return range(first, first + share)
+
+
+_SHARE = _worker_ports()
+_IN_TURN = itertools.cycle(_SHARE)
+
+
 def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    """A loopback port nobody listens on, from this worker's share, each in turn: a port is
+    handed out again only after every other one of the share, long after its test ended."""
+    for _ in range(len(_SHARE)):
+        port = next(_IN_TURN)
+        with socket.socket() as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free port in {_SHARE}")
 
 
 class ServiceProcess:
@@ -81,12 +111,24 @@ class ServiceProcess:
                 raise RuntimeError(f"{self.name} exited at start:\n{self.log()}")
             try:
                 if httpx.get(f"{self.url}{probe}", timeout=1).status_code == 200:
-                    return self
+                    return self._checked_to_be_ours()
             except httpx.HTTPError:
                 pass
             time.sleep(0.1)
         self.stop()
         raise RuntimeError(f"{self.name} not ready after {timeout_s} s:\n{self.log()}")
+
+    def _checked_to_be_ours(self) -> ServiceProcess:
+        """Ready, and the service on the port is this process's: another one that took the
+        port first answered the probe while this one failed to bind."""
+        answering = httpx.get(f"{self.url}/healthz", timeout=5).json().get("service")
+        assert self.process is not None
+        if self.process.poll() is not None or answering != self.name:
+            self.stop()
+            raise RuntimeError(
+                f"{self.name} on port {self.port}: {answering} answered there:\n{self.log()}"
+            )
+        return self
 
     def stop(self, *, kill: bool = False) -> None:
         if self.process is None or self.process.poll() is not None:
