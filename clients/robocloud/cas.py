@@ -16,6 +16,7 @@ import secrets
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -27,7 +28,7 @@ from robocloud.cid import CID, DAG_PB, RAW, Block, CIDError, parse_cid
 from robocloud.client import ServiceClient
 from robocloud.dagpb import Link
 from robocloud.directory import BuiltDirectory, DirectoryBuilder
-from robocloud.errors import FormatError, InvalidAnswerError, RobocloudError
+from robocloud.errors import BadRequestError, FormatError, InvalidAnswerError, RobocloudError
 from robocloud.partial import written_whole
 from robocloud.unixfs import (
     DEFAULT_MAX_LINKS,
@@ -35,6 +36,7 @@ from robocloud.unixfs import (
     HAMT_SHARD,
     METADATA,
     PROFILES,
+    READ_ALLOWANCE,
     SYMLINK,
     Importer,
     ImportParams,
@@ -42,6 +44,7 @@ from robocloud.unixfs import (
     assemble_file,
     decode_node,
     file_node,
+    read_car_range,
 )
 
 READ_SIZE = 1 << 20
@@ -373,13 +376,26 @@ class Cas(ServiceClient):
             raise ContentTooLargeError(root, limit, declared)
 
     def _download(self, root: CID, out: BinaryIO, progress: Progress) -> int:
-        """The file ``root`` from the gateway's CAR into ``out``. A CARv1 only, the one
-        version the trustless gateway spec answers: a CARv2's padding would be read without
-        bound before the first block."""
+        """The file ``root`` from the gateway's CAR into ``out``."""
+        with self._car_blocks(root, str(root)) as blocks:
+            first = next(blocks, None)
+            if first is not None:
+                if first.cid == root:
+                    _refuse_what_is_not_a_file(first)
+                blocks = itertools.chain([first], blocks)
+            return assemble_file(root, blocks, out, progress)
+
+    @contextmanager
+    def _car_blocks(self, root: CID, what: str, **params: str) -> Iterator[Iterator[Block]]:
+        """The blocks of the gateway's CAR of ``root`` (``dag-scope=entity`` and ``params``),
+        each hashed against its CID as it is read; a CAR or file the reader refuses is a
+        ``CasError`` naming ``what`` was asked for. A CARv1 only, the one version the
+        trustless gateway spec answers: a CARv2's padding would be read without bound before
+        the first block."""
         response = self.request(
             "GET",
             f"/ipfs/{root}",
-            params={"format": "car", "dag-scope": "entity"},
+            params={"format": "car", "dag-scope": "entity", **params},
             headers={"Accept": CAR_MEDIA_TYPE},
             stream=True,
         )
@@ -387,28 +403,50 @@ class Cas(ServiceClient):
             reader = CarReader(_IteratorReader(response.iter_bytes(READ_SIZE)), carv2=False)
             if root not in reader.roots:
                 raise CasError(f"the gateway's CAR is rooted at {reader.roots}, not {root}")
-            blocks: Iterator[Block] = iter(reader)
-            first = next(blocks, None)
-            if first is not None:
-                if first.cid == root:
-                    _refuse_what_is_not_a_file(first)
-                blocks = itertools.chain([first], blocks)
-            return assemble_file(root, blocks, out, progress)
+            yield iter(reader)
         except (CarError, UnixfsError) as exc:
-            raise CasError(f"refused the gateway's CAR for {root}: {exc}") from exc
+            raise CasError(f"refused the gateway's CAR for {what}: {exc}") from exc
         finally:
             response.close()
 
     def cat(self, cid: CID | str, offset: int = 0, length: int | None = None) -> bytes:
-        """Bytes through the kubo RPC, unverified: for ranges of files known to be trusted.
+        """``length`` bytes of a file from ``offset`` (to its end when None), verified.
 
-        The answer is held in memory, so it is bounded by ``max_answer_bytes``.
+        kubo's ``cat`` answers whatever the node says; this asks the gateway for a CAR of just
+        the range (``entity-bytes``), so every block is checked against its CID and the bytes
+        are those ``cid`` commits to, as with :meth:`get`. The range is held in memory, at
+        most ``max_answer_bytes`` of it (``ContentTooLargeError``). As with kubo, a range
+        that is empty or starts past the end is no bytes; the file's size then comes from its
+        verified root block.
         """
-        params: dict[str, Any] = {"arg": str(cid), "offset": offset}
-        if length is not None:
-            params["length"] = length
-        response = self.request("POST", "/api/v0/cat", params=params, signed=False, idempotent=True)
-        return response.content
+        root = _as_cid(cid)
+        if offset < 0 or (length is not None and length < 0):
+            raise ValueError(f"no bytes at offset {offset}, length {length}")
+        limit = self.max_answer_bytes
+        if length is not None and length > limit:
+            raise ContentTooLargeError(root, limit)
+        if length == 0:
+            self.declared_size(root)
+            return b""
+        with self.translate_errors("GET", f"{self.base_url}/ipfs/{root}"):
+            try:
+                return self._range(root, offset, length, limit)
+            except BadRequestError as exc:
+                if exc.code != "invalid_entity_bytes" or offset < self.declared_size(root):
+                    raise
+                return b""
+
+    def _range(self, root: CID, offset: int, length: int | None, limit: int) -> bytes:
+        """The bytes of ``root`` from ``offset`` out of the gateway's CAR of that range."""
+        span = f"{offset}:{'*' if length is None else offset + length - 1}"
+        with self._car_blocks(root, f"{root} bytes {span}", **{"entity-bytes": span}) as blocks:
+            out = bytearray()
+            budget = limit + READ_ALLOWANCE
+            for piece in read_car_range(root, blocks, offset, length, max_block_bytes=budget):
+                out += piece
+                if len(out) > limit:
+                    raise ContentTooLargeError(root, limit)
+            return bytes(out)
 
     def pin(self, cid: CID | str) -> None:
         self.request("POST", "/api/v0/pin/add", params={"arg": str(cid)}, idempotent=True)

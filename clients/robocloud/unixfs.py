@@ -8,8 +8,9 @@ pending link list per tree level.
 There is one reader, :func:`read_nodes`, over a source of nodes: :func:`read_file` gives it a
 block store (random access: a byte range touches only the blocks it needs, UnixFS
 ``blocksizes`` saying where each child starts), :func:`file_range_blocks` the same store
-while keeping the blocks it visits (a CAR of a byte range), and :func:`assemble_file` a CAR's
-stream of blocks (the SDK's verified download). All therefore keep the same rules: file
+while keeping the blocks it visits (a CAR of a byte range), :func:`assemble_file` a CAR's
+stream of blocks (the SDK's verified download) and :func:`read_car_range` a CAR of a range
+(the SDK's verified ``cat``). All therefore keep the same rules: file
 nodes only, every child the size its parent declares, no path deeper than
 :data:`MAX_DAG_DEPTH`, no more blocks visited than :func:`visit_budget` allows and no
 more bytes of blocks read than :func:`read_budget` allows.
@@ -595,6 +596,50 @@ def assemble_file(
     if next(blocks, None) is not None:
         raise UnixfsError(f"there are blocks beyond the file {root}")
     return source.written
+
+
+def read_car_range(
+    root: CID,
+    blocks: Iterator[Block],
+    offset: int,
+    length: int | None,
+    *,
+    max_block_bytes: int,
+) -> Iterator[bytes]:
+    """``length`` bytes of the file ``root`` from ``offset``, from a CAR of that range.
+
+    The CAR a trustless gateway answers to ``entity-bytes`` holds the blocks :func:`read_nodes`
+    visits for the range, in that order, a repeated one once; so each unseen block asked for
+    must be the next one, and a repeat comes from what was kept. A range's edge leaves are
+    only partly in the answer, which is why blocks are kept whole here rather than replayed
+    from the output as :func:`assemble_file` does; their bytes together may not pass
+    ``max_block_bytes``. Each block was hashed against its own CID by whoever produced
+    ``blocks``; the reader's rules make them this file's, and no block may follow the range.
+    """
+    kept: dict[CID, bytes] = {}
+    kept_bytes = 0
+
+    def node_of(cid: CID) -> FileNode:
+        nonlocal kept_bytes
+        data = kept.get(cid)
+        if data is None:
+            block = next(blocks, None)
+            if block is None:
+                raise UnixfsError(f"the blocks end before block {cid} of {root}")
+            if block.cid != cid:
+                raise UnixfsError(f"block {block.cid} came where {cid} of {root} is due")
+            data = bytes(block.data)
+            kept_bytes += len(data)
+            if kept_bytes > max_block_bytes:
+                raise UnixfsError(
+                    f"the range of {root} takes more than {max_block_bytes} bytes of blocks"
+                )
+            kept[cid] = data
+        return file_node(cid, data)
+
+    yield from read_nodes(root, node_of, offset, length)
+    if next(blocks, None) is not None:
+        raise UnixfsError(f"there are blocks beyond the range of {root}")
 
 
 class _Replay(NamedTuple):

@@ -18,8 +18,10 @@ import robocloud
 from robocloud.car import write_car
 from robocloud.cas import Cas, CasError, ContentTooLargeError
 from robocloud.cid import CID, DAG_PB, Block
+from robocloud.cid import RAW as RAW_CODEC
 from robocloud.cli import app
 from robocloud.dagpb import Link, PBNode
+from robocloud.errors import BadRequestError
 from robocloud.identity import Identity
 from robocloud.unixfs import FILE, ImportParams, UnixfsData, import_bytes
 from tests.procs import ServiceProcess, free_port
@@ -41,7 +43,7 @@ def test_large_file_round_trip_with_repeated_chunks(cas: Cas, tmp_path: Path) ->
     assert list(tmp_path.glob(".out.bin*")) == []
 
 
-@pytest.mark.parametrize(
+LAYOUTS = pytest.mark.parametrize(
     "params",
     [
         ImportParams(cid_version=0, raw_leaves=False),
@@ -50,11 +52,59 @@ def test_large_file_round_trip_with_repeated_chunks(cas: Cas, tmp_path: Path) ->
     ],
     ids=["v0-dag-pb-leaves", "deep-tree", "v1-2025"],
 )
+LAYOUT_DATA = bytes(range(251)) * 9000 + bytes(40_000)
+
+
+@LAYOUTS
 def test_every_layout_reads_back(cas: Cas, params: ImportParams) -> None:
-    data = bytes(range(251)) * 9000 + bytes(40_000)
-    cid = cas.add_bytes(data, params=params)
-    assert cid == import_bytes(data, params)[1]
-    assert cas.get(cid) == data
+    cid = cas.add_bytes(LAYOUT_DATA, params=params)
+    assert cid == import_bytes(LAYOUT_DATA, params)[1]
+    assert cas.get(cid) == LAYOUT_DATA
+
+
+@LAYOUTS
+def test_cat_reads_any_range_of_every_layout(cas: Cas, params: ImportParams) -> None:
+    """Ranges on chunk edges (1,000, 262,144, 1 MiB), across them, to the end and past it."""
+    size = len(LAYOUT_DATA)
+    cid = cas.add_bytes(LAYOUT_DATA, params=params)
+    ranges = [
+        (0, 1),
+        (999, 2),
+        (262_143, 2),
+        (1_048_575, 3),
+        (300_000, 1_000_000),
+        (0, None),
+        (size - 1, None),
+        (size - 1, 10),
+        (5, 0),
+        (size, None),
+        (size + 10, 5),
+    ]
+    for offset, length in ranges:
+        end = None if length is None else offset + length
+        assert cas.cat(cid, offset, length) == LAYOUT_DATA[offset:end], (offset, length)
+
+
+def test_cat_of_a_raw_block_and_an_empty_file(cas: Cas) -> None:
+    small = cas.add_bytes(b"a small file", params=ImportParams(cid_version=1))
+    assert small.codec == RAW_CODEC
+    assert cas.cat(small, 2, 5) == b"small"
+    assert cas.cat(small, 12) == b""
+    empty = cas.add_bytes(b"")
+    assert cas.cat(empty) == b""
+    assert cas.cat(empty, 3, 2) == b""
+
+
+def test_cat_refuses_a_range_over_the_answer_limit(cas: Cas, cas_service: ServiceProcess) -> None:
+    cid = cas.add_bytes(LAYOUT_DATA)
+    with Cas(cas_service.url, retries=0, max_answer_bytes=100_000) as limited:
+        assert limited.cat(cid, 10, 100_000) == LAYOUT_DATA[10:100_010]
+        with pytest.raises(ContentTooLargeError, match="more than the limit of 100000 bytes"):
+            limited.cat(cid, 10, 100_001)
+        with pytest.raises(ContentTooLargeError, match="more than the limit of 100000 bytes"):
+            limited.cat(cid, 10)
+    with pytest.raises(ValueError, match="offset -1"):
+        cas.cat(cid, -1)
 
 
 def test_pin_unpin_and_pins(cas: Cas, identity: Identity) -> None:
@@ -125,6 +175,53 @@ def test_get_refuses_what_a_lying_gateway_sends(car: bytes, message: str, tmp_pa
         with Cas(url, retries=0) as client, pytest.raises(CasError, match=message):
             client.get_to_file(ROOT, tmp_path / "out.bin")
     assert list(tmp_path.iterdir()) == []
+
+
+RANGE_CAR = [BLOCKS[-1], BLOCKS[0], BLOCKS[1]]
+"""The blocks of bytes 262,140 to 262,149 of ``DATA``: the root and the two leaves they span."""
+
+
+@pytest.mark.parametrize(
+    ("car", "message"),
+    [
+        (car_of([BLOCKS[-1], Block(BLOCKS[0].cid, b"forged"), BLOCKS[1]]), "does not match"),
+        (car_of([BLOCKS[-1], BLOCKS[1]]), "is due"),
+        (car_of(RANGE_CAR[:2]), "end before block"),
+        (car_of([*RANGE_CAR, BLOCKS[2]]), "beyond the range"),
+        (car_of(RANGE_CAR, BLOCKS[0].cid), "rooted at"),
+    ],
+    ids=["forged", "skipped", "short", "extra", "other-root"],
+)
+def test_cat_refuses_what_a_lying_gateway_sends(car: bytes, message: str) -> None:
+    paths: list[str] = []
+
+    def lying(path: str) -> tuple[int, str, bytes]:
+        paths.append(path)
+        return 200, CAR, car
+
+    for url in gateway_answering(lying):
+        with Cas(url, retries=0) as client, pytest.raises(CasError, match=message):
+            client.cat(ROOT, 262_140, 10)
+    assert "entity-bytes=262140%3A262149" in paths[0]
+
+
+def test_cat_believes_no_claim_that_a_range_is_past_the_end() -> None:
+    """A gateway may say the range lies outside the file; the verified root says otherwise."""
+    (root_block,) = [block.data for block in BLOCKS if block.cid == ROOT]
+    refusal = json.dumps(
+        {"error": {"code": "invalid_entity_bytes", "message": "outside the file of 3 bytes"}}
+    ).encode()
+
+    def lying(path: str) -> tuple[int, str, bytes]:
+        if "format=raw" in path:
+            return 200, RAW, root_block
+        return 400, "application/json", refusal
+
+    for url in gateway_answering(lying):
+        with Cas(url, retries=0) as client:
+            with pytest.raises(BadRequestError, match="invalid_entity_bytes"):
+                client.cat(ROOT, 10, 5)
+            assert client.cat(ROOT, len(DATA)) == b""
 
 
 def test_add_refuses_a_wrong_answer(tmp_path: Path) -> None:
