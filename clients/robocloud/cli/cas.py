@@ -1,8 +1,9 @@
-"""``robocloud put``, ``get``, ``pin``, ``unpin``, ``pins``: files in the content store."""
+"""``robocloud put``, ``get``, ``cat``, ``pin``, ``unpin``, ``pins``: files in the content store."""
 
 from __future__ import annotations
 
 import shutil
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -144,6 +145,29 @@ def get(
         show(f"{root} -> {output} ({size} bytes, verified)")
 
 
+def cat(
+    cid: str = typer.Argument(..., help="CID of the file.", metavar="CID", show_default=False),
+    offset: int = typer.Option(0, "--offset", min=0, help="The first byte to print."),
+    length: int | None = typer.Option(
+        None, "--length", min=0, help="How many bytes to print.", show_default="to the end"
+    ),
+    cas: str | None = CasOption,
+) -> None:
+    """Print a file, or the byte range --offset/--length of it, verified against its CID.
+
+    Only the blocks the range needs are fetched. The bytes are checked before any is printed,
+    so at most 64 MiB; get writes a larger file.
+    """
+    root = cid_argument(cid)
+    with Cas(cas) as client:
+        try:
+            data = client.cat(root, offset, length)
+        except ContentTooLargeError as exc:
+            fail(str(exc), ExitCode.ERROR, "print a smaller --length, or use get -o FILE")
+    sys.stdout.buffer.write(data)
+    sys.stdout.buffer.flush()
+
+
 def pin(
     cid: str = typer.Argument(..., help="CID to pin.", metavar="CID", show_default=False),
     cas: str | None = CasOption,
@@ -195,5 +219,5 @@ def pins(cas: str | None = CasOption, as_json: bool = JsonOption) -> None:
 
 
 def register(app: typer.Typer) -> None:
-    for command in (put, get, pin, unpin, pins):
+    for command in (put, get, cat, pin, unpin, pins):
         app.command(command.__name__)(command)

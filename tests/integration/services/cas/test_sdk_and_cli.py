@@ -292,6 +292,29 @@ def test_cli_put_get_pin_pins(
     assert not (tmp_path / "x").exists()
 
 
+def test_cli_cat_prints_a_verified_range(cas: Cas, cas_service: ServiceProcess) -> None:
+    cid = cas.add_bytes(LAYOUT_DATA)
+
+    def cat(*args: str) -> subprocess.CompletedProcess[bytes]:
+        command = [str(Path(sys.executable).with_name("robocloud")), "cat", str(cid), *args]
+        return subprocess.run(
+            [*command, "--cas", cas_service.url], capture_output=True, timeout=120, check=False
+        )
+
+    ranged = cat("--offset", "262000", "--length", "5000")
+    assert (ranged.returncode, ranged.stdout) == (0, LAYOUT_DATA[262_000:267_000]), ranged.stderr
+    assert cat().stdout == LAYOUT_DATA
+    past = cat("--offset", str(len(LAYOUT_DATA) + 1))
+    assert (past.returncode, past.stdout, past.stderr) == (0, b"", b"")
+    too_long = cat("--length", str((64 << 20) + 1))
+    assert (too_long.returncode, too_long.stdout) == (1, b"")
+    assert too_long.stderr.startswith(f"error: {cid} holds more than the limit of".encode())
+    assert b"print a smaller --length, or use get -o FILE" in too_long.stderr
+    negative = cat("--offset", "-1")
+    assert (negative.returncode, negative.stdout) == (2, b"")
+    assert b"--offset" in negative.stderr
+
+
 def test_cli_prints_json_on_request(
     cas_service: ServiceProcess, identity: Identity, keystore: Path, tmp_path: Path
 ) -> None:
