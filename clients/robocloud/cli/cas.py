@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import shutil
 import sys
 from collections.abc import Callable, Iterator
@@ -152,11 +153,13 @@ def cat(
         None, "--length", min=0, help="How many bytes to print.", show_default="to the end"
     ),
     cas: str | None = CasOption,
+    as_json: bool = JsonOption,
 ) -> None:
     """Print a file, or the byte range --offset/--length of it, verified against its CID.
 
     Only the blocks the range needs are fetched. The bytes are checked before any is printed,
-    so at most 64 MiB; get writes a larger file.
+    so at most 64 MiB; get writes a larger file. With --json the bytes are base64 in
+    "content_base64".
     """
     root = cid_argument(cid)
     with Cas(cas) as client:
@@ -164,6 +167,17 @@ def cat(
             data = client.cat(root, offset, length)
         except ContentTooLargeError as exc:
             fail(str(exc), ExitCode.ERROR, "print a smaller --length, or use get -o FILE")
+    if as_json:
+        show_json(
+            {
+                "cid": str(root),
+                "offset": offset,
+                "size": len(data),
+                "verified": True,
+                "content_base64": base64.b64encode(data).decode(),
+            }
+        )
+        return
     sys.stdout.buffer.write(data)
     sys.stdout.buffer.flush()
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import pty
@@ -304,6 +305,15 @@ def test_cli_cat_prints_a_verified_range(cas: Cas, cas_service: ServiceProcess) 
     ranged = cat("--offset", "262000", "--length", "5000")
     assert (ranged.returncode, ranged.stdout) == (0, LAYOUT_DATA[262_000:267_000]), ranged.stderr
     assert cat().stdout == LAYOUT_DATA
+    described = json.loads(cat("--offset", "3", "--length", "4", "--json").stdout)
+    content = base64.b64encode(LAYOUT_DATA[3:7]).decode()
+    assert described == {
+        "cid": str(cid),
+        "offset": 3,
+        "size": 4,
+        "verified": True,
+        "content_base64": content,
+    }
     past = cat("--offset", str(len(LAYOUT_DATA) + 1))
     assert (past.returncode, past.stdout, past.stderr) == (0, b"", b"")
     too_long = cat("--length", str((64 << 20) + 1))
