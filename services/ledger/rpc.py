@@ -396,6 +396,29 @@ def as_quantity(value: Any, what: str, bits: int = 256) -> int:
     return number
 
 
+def as_flag(value: Any, what: str) -> bool:
+    """A boolean parameter (``eth_getBlockByNumber``'s full-transactions flag) as geth reads
+    it: ``true`` or ``false``, null taken as false. ``bool(value)`` read the string
+    ``"false"``, ``0`` or ``"0x0"`` as true and answered full transactions, where geth and
+    anvil refuse them (-32602)."""
+    if value is None:
+        return False
+    if not isinstance(value, bool):
+        raise InvalidParams(f"invalid {what}: expected a boolean, got {value!r}")
+    return value
+
+
+def call_data(call: dict[str, Any]) -> Any:
+    """A call object's data as geth and anvil read it: ``input``, or ``data`` where
+    ``input`` is absent or null (``"0x"`` where neither is given). Reading ``input`` whenever
+    the key was present ran ``{"input": null, "data": "0x.."}`` with no data at all: another
+    call than the one asked, its result and gas both wrong."""
+    chosen = call.get("input")
+    if chosen is None:
+        chosen = call.get("data")
+    return chosen or "0x"
+
+
 def as_slot(value: Any) -> int:
     """A storage slot as geth reads one: ``0x`` and at most 64 hex digits (32 bytes)."""
     if not isinstance(value, str) or not SLOT.fullmatch(value):
@@ -568,12 +591,12 @@ class EmbeddedMethods:
 
     def block_by_number(self, params: list[Any]) -> Any:
         block = self.chain.block_by_number(self.number_tag(param(params, 0)))
-        full = bool(param(params, 1, False))
+        full = as_flag(param(params, 1, False), "full transactions flag")
         return encoding.block(block, full) if block is not None else None
 
     def block_by_hash(self, params: list[Any]) -> Any:
         block = self.chain.block_by_hash(as_bytes(param(params, 0), "block hash", 32))
-        full = bool(param(params, 1, False))
+        full = as_flag(param(params, 1, False), "full transactions flag")
         return encoding.block(block, full) if block is not None else None
 
     def transaction_by_hash(self, params: list[Any]) -> Any:
@@ -681,7 +704,7 @@ class EmbeddedMethods:
     def call_request(self, value: Any) -> CallRequest:
         if not isinstance(value, dict):
             raise InvalidParams("invalid call object: expected an object")
-        data = value.get("input", value.get("data")) or "0x"
+        data = call_data(value)
         if value.get("gasPrice") is not None and (
             value.get("maxFeePerGas") is not None or value.get("maxPriorityFeePerGas") is not None
         ):

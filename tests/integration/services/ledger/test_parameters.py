@@ -68,6 +68,10 @@ INVALID_ON_BOTH = {
         "eth_call",
         [{"to": ADDRESS, "maxFeePerGas": "0x1", "maxPriorityFeePerGas": "0x2"}, "latest"],
     ),
+    "full-flag-string": ("eth_getBlockByNumber", ["latest", "false"]),
+    "full-flag-number": ("eth_getBlockByNumber", ["0x0", 0]),
+    "full-flag-hex": ("eth_getBlockByNumber", ["latest", "0x1"]),
+    "full-flag-by-hash": ("eth_getBlockByHash", [ONE, "true"]),
 }
 
 
@@ -75,7 +79,8 @@ INVALID_ON_BOTH = {
 def test_malformed_parameters_are_invalid_params_on_both(pair: Pair, case: str) -> None:
     """Slots past 2^256 were -32603 (an internal error); ``int(x, 16)`` took ``0x1_0``,
     whitespace and non-ASCII digits; a call's gas past 2^64 and a tip above its fee cap
-    ran."""
+    ran; a full-transactions flag that is not a boolean was read by its truth (``"false"``
+    answered the block with its full transactions)."""
     method, params = INVALID_ON_BOTH[case]
     errors = [call(url, method, params).get("error") for url in pair.urls]
     assert errors[0] is not None, errors
@@ -113,3 +118,23 @@ def test_an_estimate_with_a_tip_above_its_fee_cap_is_refused_as_geth_does(pair: 
         "code": -32602,
         "message": "Invalid input: `max_priority_fee_per_gas` greater than `max_fee_per_gas`",
     }
+
+
+IDENTITY = "0x" + "00" * 19 + "04"
+"""The identity precompile: a call to it answers its own call data."""
+
+
+def test_a_null_input_leaves_a_call_its_data_as_on_anvil(pair: Pair) -> None:
+    """geth and anvil read a call's ``input``, or its ``data`` where ``input`` is absent or
+    null; the ledger read ``input`` whenever the key was there, so ``{"input": null, "data":
+    ...}`` ran with no data: ``eth_call`` answered ``0x`` and the estimate and access list
+    were those of another call."""
+    data = "0x" + "ab" * 40
+    both = {"to": IDENTITY, "input": None, "data": data}
+    for url in pair.urls:
+        assert result(url, "eth_call", [both, "latest"]) == data
+        assert result(url, "eth_call", [both, "0x0"]) == data
+    plain = {"to": IDENTITY, "data": data}
+    for method in ("eth_estimateGas", "eth_createAccessList"):
+        assert result(pair.ledger, method, [both]) == result(pair.ledger, method, [plain])
+    assert int(result(pair.ledger, "eth_estimateGas", [both]), 16) > 21_000 + 16 * 40
