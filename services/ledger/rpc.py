@@ -419,6 +419,13 @@ def call_data(call: dict[str, Any]) -> Any:
     return chosen or "0x"
 
 
+def _latest_when_unset(value: Any) -> Any:
+    """A log query's bound, ``latest`` when absent or null as geth has it. ``value or
+    "latest"`` also read ``fromBlock: 0`` as the head, answering only its logs, and ``""``,
+    which geth and anvil refuse, as the head too."""
+    return "latest" if value is None else value
+
+
 def as_slot(value: Any) -> int:
     """A storage slot as geth reads one: ``0x`` and at most 64 hex digits (32 bytes)."""
     if not isinstance(value, str) or not SLOT.fullmatch(value):
@@ -712,8 +719,8 @@ class EmbeddedMethods:
                 "both gasPrice and (maxFeePerGas or maxPriorityFeePerGas) specified"
             )
         request = CallRequest(
-            sender=as_address(value["from"]) if value.get("from") else b"\x00" * 20,
-            to=as_address(value["to"]) if value.get("to") else b"",
+            sender=as_address(value["from"]) if value.get("from") is not None else b"\x00" * 20,
+            to=as_address(value["to"]) if value.get("to") is not None else b"",
             data=as_bytes(data, "call data"),
             value=as_quantity(value.get("value") or "0x0", "value"),
             gas=as_quantity(value["gas"], "gas", 64) if value.get("gas") else None,
@@ -783,8 +790,8 @@ class EmbeddedMethods:
         if len(addresses) > MAX_OPTIONS:
             raise InvalidParams(f"too many addresses: at most {MAX_OPTIONS}")
         criteria = LogCriteria(
-            from_block=self.number_tag(query.get("fromBlock") or "latest"),
-            to_block=self.number_tag(query.get("toBlock") or "latest"),
+            from_block=self.number_tag(_latest_when_unset(query.get("fromBlock"))),
+            to_block=self.number_tag(_latest_when_unset(query.get("toBlock"))),
             addresses=tuple(as_address(a) for a in addresses),
             topics=tuple(t if t else None for t in topics),
         )

@@ -96,6 +96,27 @@ def test_from_block_beyond_the_head_is_invalid_params_on_both(pair: Pair) -> Non
         )
 
 
+def test_an_empty_block_bound_is_invalid_params_on_both(pair: Pair) -> None:
+    """``""`` was read as ``latest``; geth and anvil refuse it."""
+    for key in ("fromBlock", "toBlock"):
+        mine, node = errors_of(pair, {key: ""})
+        assert mine["code"] == node["code"] == -32602, (mine, node)
+
+
+def test_from_block_zero_as_a_number_is_block_zero(
+    pair: Pair, emitter: tuple[Identity, tuple[str, str]]
+) -> None:
+    """A JSON number, which the ledger takes where geth and anvil want ``0x``-hex, was read by
+    its truth: ``fromBlock: 0`` answered only the head's logs."""
+    sender, (address, _) = emitter
+    hashes = [emit(pair.ledger, sender, address, word) for word in (3, 4)]
+    query = {"address": address, "toBlock": "latest"}
+    by_number = result(pair.ledger, "eth_getLogs", [{**query, "fromBlock": 0}])
+    assert by_number == result(pair.ledger, "eth_getLogs", [{**query, "fromBlock": "0x0"}])
+    assert [log["transactionHash"] for log in by_number][-2:] == hashes
+    assert len(result(pair.ledger, "eth_getLogs", [{**query, "fromBlock": None}])) == 1
+
+
 def test_an_unknown_block_hash_is_unknown_block_on_both(pair: Pair) -> None:
     mine, node = errors_of(pair, {"blockHash": "0x" + "00" * 32})
     assert mine == node == {"code": -32000, "message": "unknown block"}
