@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import sqlite3
 import threading
+import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -37,6 +38,12 @@ log = logging.getLogger("robocloud.ledger.index")
 
 MAX_LOG_RESULTS = 10_000
 """``eth_getLogs`` answers at most this many logs; a wider query is refused (as Infura does)."""
+LOG_QUERY_BUDGET_S = 5.0
+"""How long one log query may run in SQLite before it is stopped and refused. Every topic
+position and the address have an index, so a query reads about what it answers; what is left
+is a query the planner misjudges (two common topics, say) over a long chain."""
+QUERY_PROGRESS_STEPS = 10_000
+"""SQLite instructions between two looks at a query's clock (tens of microseconds)."""
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS cursor (
@@ -52,6 +59,7 @@ CREATE INDEX IF NOT EXISTS logs_address ON logs (address, topic0, block_number);
 CREATE INDEX IF NOT EXISTS logs_topic0 ON logs (topic0, block_number);
 CREATE INDEX IF NOT EXISTS logs_topic1 ON logs (topic1, block_number);
 CREATE INDEX IF NOT EXISTS logs_topic2 ON logs (topic2, block_number);
+CREATE INDEX IF NOT EXISTS logs_topic3 ON logs (topic3, block_number);
 CREATE TABLE IF NOT EXISTS robots (
     address TEXT PRIMARY KEY, metadata_cid BLOB NOT NULL, registered_at INTEGER NOT NULL,
     registered_block INTEGER NOT NULL, active INTEGER NOT NULL, suspended INTEGER NOT NULL
@@ -117,7 +125,7 @@ class LogFilter:
 
 
 class IndexLimitError(Exception):
-    """A query matched more logs than one answer may hold."""
+    """A query matched more logs than one answer may hold, or ran past its time."""
 
 
 class EventIndex:
@@ -127,6 +135,12 @@ class EventIndex:
         self._lock = threading.Lock()
         self._db = open_sqlite(path, SCHEMA, synchronous="NORMAL")
         self._migrate()
+        self._reader_lock = threading.Lock()
+        self._reader = sqlite3.connect(
+            f"{path.absolute().as_uri()}?mode=ro", uri=True, check_same_thread=False
+        )
+        """Log queries read here, a snapshot of their own (WAL): on the writer's connection
+        they held its lock, so the block being mined waited behind any query a stranger sent."""
         self.registry = ContractAbi.load("Registry")
         self.anchor_log = ContractAbi.load("AnchorLog")
         self._contracts = {
@@ -135,6 +149,8 @@ class EventIndex:
         }
 
     def close(self) -> None:
+        with self._reader_lock:
+            self._reader.close()
         with self._lock:
             self._db.close()
 
@@ -277,9 +293,27 @@ class EventIndex:
         sql = f"SELECT * FROM logs WHERE {' AND '.join(clauses)} ORDER BY block_number, log_index"
         if limit is not None:
             sql += f" LIMIT {limit}"
-        with self._lock:
-            rows = self._db.execute(sql, params).fetchall()
-        return [_entry(row) for row in rows]
+        return [_entry(row) for row in self._read_within_budget(sql, params)]
+
+    def _read_within_budget(self, sql: str, params: list[Any]) -> list[Any]:
+        """The rows of one log query, stopped after ``LOG_QUERY_BUDGET_S`` (``IndexLimitError``):
+        queries take turns on the reader, so one without an end would hold every other."""
+        deadline = time.monotonic() + LOG_QUERY_BUDGET_S
+        with self._reader_lock:
+            self._reader.set_progress_handler(
+                lambda: time.monotonic() > deadline, QUERY_PROGRESS_STEPS
+            )
+            try:
+                return self._reader.execute(sql, params).fetchall()
+            except sqlite3.OperationalError as exc:
+                if "interrupted" not in str(exc):
+                    raise
+                raise IndexLimitError(
+                    f"query timeout exceeded ({LOG_QUERY_BUDGET_S:g} s); narrow the block "
+                    "range or the filter"
+                ) from exc
+            finally:
+                self._reader.set_progress_handler(None, 0)
 
     def robot(self, address: str) -> dict[str, Any] | None:
         with self._lock:

@@ -103,12 +103,11 @@ def test_an_empty_block_bound_is_invalid_params_on_both(pair: Pair) -> None:
         assert mine["code"] == node["code"] == -32602, (mine, node)
 
 
-def test_from_block_zero_as_a_number_is_block_zero(
-    pair: Pair, emitter: tuple[Identity, tuple[str, str]]
-) -> None:
+def test_from_block_zero_as_a_number_is_block_zero(pair: Pair) -> None:
     """A JSON number, which the ledger takes where geth and anvil want ``0x``-hex, was read by
     its truth: ``fromBlock: 0`` answered only the head's logs."""
-    sender, (address, _) = emitter
+    sender = pair.funded()
+    address, _ = pair.deploy(sender, deploying(EMITTER))
     hashes = [emit(pair.ledger, sender, address, word) for word in (3, 4)]
     query = {"address": address, "toBlock": "latest"}
     by_number = result(pair.ledger, "eth_getLogs", [{**query, "fromBlock": 0}])

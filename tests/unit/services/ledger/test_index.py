@@ -142,6 +142,33 @@ def test_a_query_matching_too_many_logs_is_refused(index: EventIndex) -> None:
         index.logs(LogFilter(0, 1))
 
 
+def many_logs(block: int, count: int, fourth_topic: bytes) -> list[LogEntry]:
+    """``count`` logs of one block, each with four topics, the last ``fourth_topic``."""
+    topics = (bytes(32), bytes(32), bytes(32), fourth_topic)
+    return [
+        LogEntry(block, bytes(32), bytes(32), 0, i, bytes(20), topics, b"") for i in range(count)
+    ]
+
+
+def test_a_query_past_its_time_is_refused_and_one_on_any_topic_reads_only_its_answer(
+    index: EventIndex, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With no time at all, a query that reads 20,000 logs is stopped, while one on the fourth
+    topic alone is answered from its index: that position had none, and such a query read every
+    log in its range (0.3 s over 500,000) while the block being mined waited for its lock."""
+    rare = b"\x01" * 32
+    index.add_block(1, bytes(32), many_logs(1, 20_000, bytes(32)))
+    index.add_block(2, bytes(32), [many_logs(2, 1, rare)[0]])
+    monkeypatch.setattr(index_module, "LOG_QUERY_BUDGET_S", 0.0)
+    with pytest.raises(IndexLimitError, match="query timeout exceeded"):
+        index.logs(LogFilter(1, 1))
+    found = index.logs(LogFilter(0, 2, (), (None, None, None, (rare,))))
+    assert [(entry.block_number, entry.topics[3]) for entry in found] == [(2, rare)]
+    monkeypatch.setattr(index_module, "LOG_QUERY_BUDGET_S", 60.0)
+    assert len(index.logs(LogFilter(1, 1))) == 20_000
+    assert index.cursor() == (2, bytes(32))
+
+
 def anchored(block: int, epoch: int, record_count: int, position: int = 0) -> LogEntry:
     return log(
         "Anchored",
