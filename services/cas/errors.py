@@ -34,6 +34,13 @@ def _cid(
     return {"cid": str(exc.cid)}
 
 
+def _budget(exc: ReadBudgetExceeded) -> dict[str, str | int]:
+    """The block the reads stopped at and the limit, with the parameter that asked for
+    them when there is one (``arg``; a gateway path is no parameter)."""
+    details: dict[str, str | int] = {} if exc.field is None else {"field": exc.field}
+    return details | {"cid": str(exc.cid), "limit_bytes": exc.limit}
+
+
 ERRORS = ErrorMap(
     {
         BlockUnavailable: ErrorRule(404, "block_not_found", _cid),
@@ -45,11 +52,7 @@ ERRORS = ErrorMap(
         NotAFile: ErrorRule(400, "not_a_file", _cid),
         InvalidDag: ErrorRule(400, "invalid_dag", _cid),
         CarRejected: ErrorRule(400, "invalid_car"),
-        ReadBudgetExceeded: ErrorRule(
-            400,
-            "too_much_to_read",
-            lambda exc: {"field": "arg", "cid": str(exc.cid), "limit_bytes": exc.limit},
-        ),
+        ReadBudgetExceeded: ErrorRule(400, "too_much_to_read", _budget),
         TooManyEntries: ErrorRule(
             400,
             "too_many_entries",

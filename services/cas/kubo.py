@@ -185,7 +185,9 @@ async def cat(
 
 
 def _file_and_size(store: ContentStore, arg: str) -> tuple[CID, int]:
-    target = _content_path(store.resolve, arg).cid
+    """The file ``arg`` names, its path read within ``WALK_READ_BYTES`` (as the gateway's)."""
+    reads = BudgetedReads.walk(store, field="arg")
+    target = _content_path(reads.resolve, arg).cid
     return target, store.file_size(target)
 
 
@@ -220,7 +222,7 @@ async def ls(
     store = _store(request)
 
     def answer() -> Response:
-        reads = BudgetedReads(store, LS_READ_BYTES)
+        reads = BudgetedReads(store, LS_READ_BYTES, field="arg")
         objects = [_listing(reads, path, resolve_type, size) for path in arg]
         return JSONResponse({"Objects": objects})
 

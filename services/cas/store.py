@@ -47,6 +47,18 @@ from services.cas.pins import PinSet
 log = logging.getLogger("robocloud.cas.store")
 
 DAG_SCOPES = ("block", "entity", "all")
+WALK_READ_BYTES = 256 * 1024 * 1024
+"""Bytes of blocks one path resolution, or one directory listing, reads at most when its
+caller brings no budget of its own (``BudgetedReads``): the directories and HAMT shards on
+the way to a path's target, or the nodes and shards of a directory the gateway lists.
+
+Neither is answered in proportion to what it reads: a path of 256 segments through
+directories padded to 8 MiB (a CAR section's most) read and hashed 2 GiB, and the gateway's
+page of a HAMT whose few shards carry megabytes each read them all, for an answer of a few
+hundred bytes, again at every request. The file reader's budget covers only the file.
+kubo's directories and shards are at most a few hundred KiB: 256 MiB (about half a second
+of hashing) passes a path of 256 of the largest, or any directory of ``MAX_LISTED_ENTRIES``.
+"""
 MAX_LISTED_ENTRIES = 100_000
 """Entries one directory listing (``ls``, the gateway's page, ``format=dag-json`` of a
 shard) answers with: about 30 MB of HTML or 15 MB of JSON."""
@@ -99,14 +111,16 @@ class UnknownScope(ValueError):
 
 
 class ReadBudgetExceeded(ValueError):
-    """One request would read more bytes of blocks than ``BudgetedReads`` allows it."""
+    """One request would read more bytes of blocks than ``BudgetedReads`` allows it;
+    ``field`` names the parameter that asked for the reads, when one did (``ls``'s ``arg``)."""
 
-    def __init__(self, cid: CID, limit: int) -> None:
+    def __init__(self, cid: CID, limit: int, field: str | None = None) -> None:
         super().__init__(
             f"reading block {cid} would take this request past {limit} bytes of blocks read"
         )
         self.cid = cid
         self.limit = limit
+        self.field = field
 
 
 class TooManyEntries(ValueError):
@@ -239,8 +253,9 @@ class ContentStore:
     # ---- directories and paths ----
 
     def _getter(self, use_peers: bool, get: GetBlock | None) -> GetBlock:
-        """``get`` when the caller reads through its own (``BudgetedReads``), else the store."""
-        return get or partial(self.get_block, use_peers=use_peers)
+        """``get`` when the caller reads through its own budget (``ls``'s ``BudgetedReads``),
+        else the store's blocks within a budget of ``WALK_READ_BYTES`` for this one call."""
+        return get or BudgetedReads.walk(self, use_peers=use_peers).get
 
     def resolve(
         self,
@@ -547,20 +562,36 @@ class BudgetedReads:
     budget is refused (``ReadBudgetExceeded``) rather than done.
     """
 
-    def __init__(self, store: ContentStore, limit: int) -> None:
+    def __init__(
+        self,
+        store: ContentStore,
+        limit: int,
+        *,
+        use_peers: bool = True,
+        field: str | None = None,
+    ) -> None:
         self._store = store
         self._limit = limit
+        self._use_peers = use_peers
+        self._field = field
         self._kinds: dict[CID, UnixfsKind] = {}
         self.spent = 0
         self.listed = 0
 
+    @classmethod
+    def walk(
+        cls, store: ContentStore, *, use_peers: bool = True, field: str | None = None
+    ) -> BudgetedReads:
+        """The reads of one path resolution or one listing: ``WALK_READ_BYTES``."""
+        return cls(store, WALK_READ_BYTES, use_peers=use_peers, field=field)
+
     def get(self, cid: CID) -> bytes:
         """A verified block, charged to the budget by the size the index gives."""
-        size = self._store.block_size(cid)
+        size = self._store.block_size(cid, use_peers=self._use_peers)
         if self.spent + size > self._limit:
-            raise ReadBudgetExceeded(cid, self._limit)
+            raise ReadBudgetExceeded(cid, self._limit, self._field)
         self.spent += size
-        return self._store.get_block(cid)
+        return self._store.get_block(cid, use_peers=self._use_peers)
 
     def resolve(self, root: CID, segments: list[str]) -> Resolved:
         return self._store.resolve(root, segments, get=self.get)
