@@ -58,6 +58,15 @@ writers stay far below: rosbag2's MCAP plugin closes a chunk at 1 MiB (the large
 recordings under shared/data is 1.02 MiB), rosbag and rosbags' ROS 1 writers at 768 KiB."""
 
 
+MAX_UNROLLED = 1024
+"""Elements of fixed-size arrays of strings or of messages that one bag's definitions may
+hold in all. rosbags generates each type's (de)serializers with a line of Python per such
+element (a fixed array of numbers is one line whatever its length), at open: ``string[100000]
+s``, 17 bytes of a definition, took 129 s and 3.9 GiB to compile, so a bag of no message
+held the ingest thread and took the service's memory. No type in rosbags' typestores has
+one; a real definition's few (``Point[4] corners``) cost about a millisecond each."""
+
+
 class BagFormat(Enum):
     ROS1 = "ros1"
     ROS2_DIRECTORY = "ros2"
@@ -356,9 +365,10 @@ class Bag:
         else:
             self._open_ros2()
         fallback = self._fallback_store()
+        unrolled = UnrollBudget()
         for connection in self.connections:
             digest = self._digests[(connection.topic, connection.msgtype)]
-            _prepare(connection, digest, ros1=self._is_ros1, fallback=fallback)
+            _prepare(connection, digest, ros1=self._is_ros1, fallback=fallback, unrolled=unrolled)
 
     def _fallback_store(self) -> tuple[str, Typestore]:
         store = Stores.ROS1_NOETIC if self._is_ros1 else Stores.ROS2_HUMBLE
@@ -626,20 +636,73 @@ def parse_definition(msgtype: str, definition: str, fmt: str) -> dict[str, Any]:
     return types
 
 
-_STORES: dict[tuple[str, str, str], Typestore | str] = {}
+def unrolled_elements(types: Mapping[str, Any]) -> int:
+    """The elements rosbags' code generation unrolls for ``types`` (rosbags' field
+    definitions): the lengths of their fixed-size arrays of strings or of messages."""
+    total = 0
+    for _, fields in types.values():
+        for _, (nodetype, detail) in fields:
+            if nodetype != Nodetype.ARRAY:
+                continue
+            (element_type, element_detail), length = detail
+            if element_type == Nodetype.NAME or element_detail[0] in ("string", "wstring"):
+                total += length
+    return total
 
 
-def _typestore_from_bag(connection: BagConnection, digest: str, *, ros1: bool) -> Typestore | str:
-    """A typestore holding only this definition (cached per text); an error text if it fails."""
+DefinitionKey = tuple[str, str, str]
+"""A connection's message type, definition format and definition text."""
+
+
+class UnrollBudget:
+    """What is left of one bag's :data:`MAX_UNROLLED`: each distinct definition is charged
+    once, in the order of its connections, before rosbags generates code for it, so a bag
+    gives the same connections the same problems whatever a cache of another bag holds."""
+
+    def __init__(self, limit: int = MAX_UNROLLED) -> None:
+        self.limit = limit
+        self.left = limit
+        self._charged: set[DefinitionKey] = set()
+
+    def refusal(self, key: DefinitionKey, elements: int) -> str | None:
+        """Charge a definition's unrolled ``elements`` unless it was; the problem if they
+        do not fit."""
+        if key in self._charged:
+            return None
+        if elements > self.left:
+            return (
+                f"the bag's definition holds {elements} elements of fixed-size arrays of "
+                f"strings or messages, more than the {self.left} left of the {self.limit} a "
+                "bag's definitions may hold (rosbags generates code for each)"
+            )
+        self.left -= elements
+        self._charged.add(key)
+        return None
+
+
+_STORES: dict[DefinitionKey, tuple[Typestore | str, int]] = {}
+"""Typestores (or why none) per definition text, with the elements each unrolled."""
+
+
+def _typestore_from_bag(
+    connection: BagConnection, digest: str, *, ros1: bool, unrolled: UnrollBudget
+) -> Typestore | str:
+    """A typestore holding only this definition (cached per text); an error text if it fails
+    or would unroll more than ``unrolled`` has left."""
     key = (connection.msgtype, connection.definition_format, connection.definition)
     cached = _STORES.get(key)
     if cached is not None:
-        return cached
+        return unrolled.refusal(key, cached[1]) or cached[0]
     result: Typestore | str
+    elements = 0
     try:
         types = parse_definition(
             connection.msgtype, connection.definition, connection.definition_format
         )
+        elements = unrolled_elements(types)
+        refused = unrolled.refusal(key, elements)
+        if refused is not None:
+            return refused
         store = bundled_typestore(Stores.EMPTY)
         store.register(types)
         store.get_msgdef(connection.msgtype)
@@ -651,15 +714,20 @@ def _typestore_from_bag(connection: BagConnection, digest: str, *, ros1: bool) -
         result = f"the bag's definition does not parse: {_reason(exc)}"
     if len(_STORES) > 256:
         _STORES.clear()
-    _STORES[key] = result
+    _STORES[key] = (result, elements)
     return result
 
 
 def _prepare(
-    connection: BagConnection, digest: str, *, ros1: bool, fallback: tuple[str, Typestore]
+    connection: BagConnection,
+    digest: str,
+    *,
+    ros1: bool,
+    fallback: tuple[str, Typestore],
+    unrolled: UnrollBudget,
 ) -> None:
     if connection.definition_format != "none" and connection.definition.strip():
-        found = _typestore_from_bag(connection, digest, ros1=ros1)
+        found = _typestore_from_bag(connection, digest, ros1=ros1, unrolled=unrolled)
         if isinstance(found, str):
             connection.problem = found
             return

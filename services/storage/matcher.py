@@ -35,6 +35,7 @@ from rosbags.typesys.store import Typestore
 
 from robocloud.jcs import MAX_SAFE_INTEGER
 from robocloud.templates import (
+    MAX_FIELDS,
     MAX_NESTING,
     TOPIC,
     ArrayOf,
@@ -63,7 +64,8 @@ MAX_BINDINGS = 10_000
 
 
 class DraftError(Exception):
-    """A message type that no template can describe (nesting beyond the template limit)."""
+    """A message type that no template can describe (nesting or fields beyond the template
+    limits)."""
 
     def __init__(self, msgtype: str, path: str, reason: str) -> None:
         super().__init__(f"{msgtype}: {path}: {reason}")
@@ -118,14 +120,37 @@ def has_header(store: Typestore, msgtype: str) -> bool:
     return any(name == "header" and desc == (Nodetype.NAME, HEADER) for name, desc in fields)
 
 
+class _FieldBudget:
+    """The fields a draft may walk: a template holds at most ``MAX_FIELDS``, through every
+    container. A definition names each nested type once however often it is used, so the
+    fields a draft expands grow as the product of the fields per level: eight lines of 16
+    fields (an MCAP of 8 KB) drafted 16**8 leaves, and the ingest thread never finished."""
+
+    def __init__(self, msgtype: str) -> None:
+        self.msgtype = msgtype
+        self.walked = 0
+
+    def take(self, path: str) -> None:
+        """Count the field at ``path``; :class:`DraftError` past ``MAX_FIELDS``."""
+        self.walked += 1
+        if self.walked > MAX_FIELDS:
+            raise DraftError(self.msgtype, path, f"holds more than {MAX_FIELDS} fields")
+
+
 def draft_template(store: Typestore, msgtype: str, *, name: str | None = None) -> dict[str, Any]:
-    """A draft template document (the wire format) for ``msgtype``, version 1."""
+    """A draft template document (the wire format) for ``msgtype``, version 1.
+
+    :class:`DraftError` when no template can describe it: nested deeper than
+    ``MAX_NESTING``, or more than ``MAX_FIELDS`` fields walked (those of empty messages,
+    which the draft drops, included), found before any more is walked."""
     fields: dict[str, Any] = {}
+    budget = _FieldBudget(msgtype)
     for ros_name, desc in store.fielddefs[msgtype][1]:
+        budget.take(ros_name)
         if ros_name == "header" and desc == (Nodetype.NAME, HEADER):
             fields[FRAME_ID if FRAME_ID not in fields else "header_frame_id"] = "string"
             continue
-        kind = _draft_type(store, msgtype, desc, ros_name, depth=1)
+        kind = _draft_type(store, msgtype, desc, ros_name, depth=1, budget=budget)
         if kind is not None:
             fields[field_name(ros_name)] = kind
     if not fields:
@@ -139,7 +164,14 @@ def draft_template(store: Typestore, msgtype: str, *, name: str | None = None) -
 
 
 def _draft_type(
-    store: Typestore, msgtype: str, desc: Any, path: str, depth: int, *, owner: str = ""
+    store: Typestore,
+    msgtype: str,
+    desc: Any,
+    path: str,
+    depth: int,
+    *,
+    budget: _FieldBudget,
+    owner: str = "",
 ) -> Any:
     nodetype, detail = desc
     if depth > MAX_NESTING:
@@ -151,8 +183,15 @@ def _draft_type(
             return "int"
         inner: dict[str, Any] = {}
         for ros_name, inner_desc in store.fielddefs[detail][1]:
+            budget.take(f"{path}.{ros_name}")
             kind = _draft_type(
-                store, msgtype, inner_desc, f"{path}.{ros_name}", depth + 1, owner=detail
+                store,
+                msgtype,
+                inner_desc,
+                f"{path}.{ros_name}",
+                depth + 1,
+                budget=budget,
+                owner=detail,
             )
             if kind is not None:
                 inner[field_name(ros_name)] = kind
@@ -163,7 +202,9 @@ def _draft_type(
             image = (owner or msgtype) in IMAGE_TYPES and path.rsplit(".", 1)[-1] == "data"
             return "image" if image else "file"
         return {"array": "int"}
-    item = _draft_type(store, msgtype, (element_type, element_detail), f"{path}[]", depth + 1)
+    item = _draft_type(
+        store, msgtype, (element_type, element_detail), f"{path}[]", depth + 1, budget=budget
+    )
     return {"array": item} if item is not None else None
 
 

@@ -14,6 +14,9 @@ from typing import Any
 import httpx
 import pytest
 from mcap.reader import make_reader
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Rosbag2Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from robocloud.client import ServiceClient
 from robocloud.errors import ApiError
@@ -212,6 +215,85 @@ def test_a_real_recording_is_ingested_through_the_draft_its_job_proposes(
     assert 150 < len(times) < 250  # the IMU runs near 200 Hz
     assert all(start <= t < start + 10**9 for t in times)
     assert page.records[0].record["data"]["frame_id"]
+
+
+def write_fanout_mcap(directory: Path, width: int, levels: int = 7) -> Path:
+    """A bare MCAP file (about 8 KB for 16 fields a level) with ``/fan``, a connection of
+    ``fan_msgs/msg/Level0`` and no message, whose definition nests ``levels`` types of
+    ``width`` message fields each (``width ** (levels + 1)`` leaves drafted whole), and
+    ``/chatter``, one ``std_msgs/msg/String``."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    for level in range(levels):
+        fields = "\n".join(f"fan_msgs/Level{level + 1} f{n}" for n in range(width))
+        store.register(get_types_from_msg(fields, f"fan_msgs/msg/Level{level}"))
+    floats = "\n".join(f"float64 x{n}" for n in range(width))
+    store.register(get_types_from_msg(floats, f"fan_msgs/msg/Level{levels}"))
+    string = "std_msgs/msg/String"
+    with Rosbag2Writer(directory, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        writer.add_connection("/fan", "fan_msgs/msg/Level0", typestore=store)
+        chatter = writer.add_connection("/chatter", string, typestore=store)
+        message = store.types[string](data="hello")
+        writer.write(chatter, START_NS, store.serialize_cdr(message, string))
+    return next(directory.glob("*.mcap"))
+
+
+def test_a_schema_whose_draft_fans_out_leaves_the_ingest_worker_free(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    """A topic bound to no template gets a draft of its definition, which expanded every
+    nested type wherever it is used: eight lines of 16 fields (16**8 leaves) in an 8 KB
+    upload held the only ingest thread for good, the job queued and the service's memory
+    growing. The draft stops past the fields a template may hold; the job goes on."""
+    bag = write_fanout_mcap(tmp_path / "fan", 16)
+    assert bag.stat().st_size < 16 * 1024
+    with Ingest(storage.url, identity) as ingest:
+        done = ingest.wait(ingest.upload(bag)["id"], timeout_s=30)
+        assert done["status"] == "succeeded", done
+        topics = {topic["topic"]: topic for topic in done["topics"]}
+        assert topics["/fan"]["msgtype"] == "fan_msgs/msg/Level0"
+        assert topics["/fan"]["draft"] is None
+        assert topics["/chatter"]["draft"]["fields"] == {"data": "string"}
+        assert sorted(done["unbound_topics"]) == ["/chatter", "/fan"]
+        assert done["records"] == {"staged": 0, "committed": 0}
+        again = ingest.wait(ingest.upload(bag)["id"], timeout_s=30)
+        assert again["status"] == "succeeded", again
+
+
+def test_a_fixed_array_rosbags_would_unroll_without_end_disables_only_its_topic(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    """``string[100000000] names`` in a 2 KB MCAP of no such message: opening the bag had
+    rosbags generate a line of code per element (129 s and 3.9 GiB for 100,000), so the job
+    stayed queued, the only ingest thread held and the service's memory growing. Its topic
+    now has the problem, bound it fails its job as undefined, and the bag's others stage."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(get_types_from_msg("string[100000000] names", "wide_msgs/msg/Names"))
+    string = "std_msgs/msg/String"
+    with Rosbag2Writer(tmp_path / "wide", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        writer.add_connection("/names", "wide_msgs/msg/Names", typestore=store)
+        chatter = writer.add_connection("/chatter", string, typestore=store)
+        message = store.types[string](data="hello")
+        writer.write(chatter, START_NS, store.serialize_cdr(message, string))
+    bag = next((tmp_path / "wide").glob("*.mcap"))
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        text = approve(client, string)
+        ingest.bind(text, topic="/chatter")
+        done = ingest.wait(ingest.upload(bag)["id"], timeout_s=30)
+        assert done["status"] == "succeeded", done
+        assert done["unbound_topics"] == ["/names"]
+        assert next(t for t in done["topics"] if t["topic"] == "/names")["draft"] is None
+        assert done["records"] == {"staged": 1, "committed": 1}
+        ingest.bind(text, topic="/names")
+        failed = ingest.wait(ingest.upload(bag)["id"], timeout_s=30)
+    error = failed["error"]
+    assert (failed["status"], error["code"], error["details"]) == (
+        "failed",
+        "message_type_undefined",
+        {"topic": "/names", "msgtype": "wide_msgs/msg/Names"},
+    )
+    reason = "holds 100000000 elements of fixed-size arrays of strings or messages"
+    assert reason in error["message"]
+    assert failed["records"] == {"staged": 0, "committed": 0}
 
 
 def storage_address(storage: ServiceProcess) -> str:

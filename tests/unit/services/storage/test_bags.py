@@ -12,11 +12,13 @@ from typing import Any
 
 import pytest
 from rosbags.highlevel import AnyReader
+from rosbags.rosbag1 import Writer as Rosbag1Writer
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from services.storage.bags import (
     MAX_CHUNK_BYTES,
+    MAX_UNROLLED,
     Bag,
     BagCorrupt,
     BagFormat,
@@ -209,6 +211,49 @@ def test_message_type_without_definition(tmp_path: Path) -> None:
         with pytest.raises(MissingDefinition) as caught:
             list(bag.messages())
     assert (caught.value.topic, caught.value.msgtype) == ("/counter", "my_msgs/msg/Counter")
+
+
+def test_fixed_arrays_rosbags_unrolls_are_bounded_per_bag(tmp_path: Path) -> None:
+    """rosbags generates a line of Python per element of a fixed-size array of strings or
+    messages when it builds a type's (de)serializers, which opening a bag does: 17 bytes of
+    definition, ``string[100000] names``, took 129 s and 3.9 GiB. A bag's definitions hold
+    at most ``MAX_UNROLLED`` such elements together, each distinct definition counted once;
+    the definition past them disables its topics alone (bound, they fail as undefined)."""
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg("geometry_msgs/Point[4] corners", "wide_msgs/msg/Corners"))
+    store.register(get_types_from_msg("string[600] names", "wide_msgs/msg/Names"))
+    store.register(get_types_from_msg("string[600] more", "wide_msgs/msg/More"))
+    corners = store.types["wide_msgs/msg/Corners"]
+    point = store.types["geometry_msgs/msg/Point"]
+    path = tmp_path / "wide.bag"
+    with Rosbag1Writer(path) as writer:
+        listed = {
+            topic: writer.add_connection(topic, f"wide_msgs/msg/{name}", typestore=store)
+            for topic, name in [
+                ("/corners", "Corners"),
+                ("/names", "Names"),
+                ("/names_again", "Names"),
+                ("/more", "More"),
+            ]
+        }
+        message = corners(corners=[point(x=float(n), y=0.0, z=0.0) for n in range(4)])
+        raw = store.serialize_ros1(message, "wide_msgs/msg/Corners")
+        writer.write(listed["/corners"], START_NS, raw)
+    with Bag.open(path) as bag:
+        problems = {connection.topic: connection.problem for connection in bag.connections}
+        decoded = list(bag.messages())
+    left = MAX_UNROLLED - 4 - 600
+    assert problems == {
+        "/corners": None,
+        "/names": None,
+        "/names_again": None,
+        "/more": (
+            "the bag's definition holds 600 elements of fixed-size arrays of strings or "
+            f"messages, more than the {left} left of the {MAX_UNROLLED} a bag's definitions "
+            "may hold (rosbags generates code for each)"
+        ),
+    }
+    assert [(m.topic, m.data["corners"][3]["x"]) for m in decoded] == [("/corners", 3.0)]
 
 
 def test_empty_bag_has_connections_and_no_messages() -> None:

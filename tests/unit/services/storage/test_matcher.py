@@ -13,7 +13,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from robocloud.templates import Template, parse_template, validate_data
+from robocloud.templates import MAX_FIELDS, Template, parse_template, validate_data
 from robocloud.unixfs import import_bytes
 from services.storage.bags import Bag
 from services.storage.matcher import (
@@ -22,6 +22,7 @@ from services.storage.matcher import (
     Bindings,
     ConversionError,
     Converter,
+    DraftError,
     compile_converter,
     draft_name,
     draft_template,
@@ -107,6 +108,45 @@ def test_nested_headers_times_and_durations() -> None:
         "uuid": {"array": "int"},
         "flags": {"array": "bool"},
     }
+
+
+def fanout_store(width: int, levels: int) -> Any:
+    """``fan_msgs/msg/Level0``: ``width`` fields of ``Level1``, each ``width`` of ``Level2``
+    and so on, ``Level{levels}`` holding ``width`` floats: ``levels + 1`` short definitions
+    whose draft would hold ``width ** (levels + 1)`` leaves."""
+    store = get_typestore(Stores.EMPTY)
+    for level in range(levels):
+        fields = "\n".join(f"fan_msgs/Level{level + 1} f{n}" for n in range(width))
+        store.register(get_types_from_msg(fields, f"fan_msgs/msg/Level{level}"))
+    floats = "\n".join(f"float64 x{n}" for n in range(width))
+    store.register(get_types_from_msg(floats, f"fan_msgs/msg/Level{levels}"))
+    return store
+
+
+def flat_store(fields: int) -> Any:
+    store = get_typestore(Stores.EMPTY)
+    text = "\n".join(f"float64 x{n}" for n in range(fields))
+    store.register(get_types_from_msg(text, "fan_msgs/msg/Flat"))
+    return store
+
+
+def test_a_draft_walks_no_more_fields_than_a_template_holds() -> None:
+    """Eight definitions of five fields each drafted 5**8 = 390,625 leaves (1.5 s, 100 MiB),
+    sixteen fields each 16**8, which never finished: each nested type is written once in a
+    definition however often it is used, so a few lines of a bag's schema (which anyone can
+    upload) held the ingest thread and took the service's memory. No template can hold
+    more than ``MAX_FIELDS`` fields, so the draft stops as soon as it walked more."""
+    with pytest.raises(DraftError) as fanned:
+        draft_template(fanout_store(5, 7), "fan_msgs/msg/Level0")
+    assert fanned.value.reason == f"holds more than {MAX_FIELDS} fields"
+    assert fanned.value.path == "f0.f0.f0.f1.f1.f2.f3.x0"  # the 1,025th field, depth first
+    with pytest.raises(DraftError) as flat:
+        draft_template(flat_store(MAX_FIELDS + 1), "fan_msgs/msg/Flat")
+    assert flat.value.path == f"x{MAX_FIELDS}"
+    widest = draft_template(flat_store(MAX_FIELDS), "fan_msgs/msg/Flat")
+    assert len(parse_template(widest).fields) == MAX_FIELDS
+    nested = draft_template(fanout_store(4, 3), "fan_msgs/msg/Level0")  # 4+16+64+256 fields
+    assert parse_template(nested).leaf("f3.f3.f3.x3") is not None
 
 
 def test_every_type_in_the_real_recordings_drafts_a_valid_template() -> None:
