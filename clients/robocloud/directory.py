@@ -2,11 +2,15 @@
 
 A directory is a dag-pb node of UnixFS type Directory whose links, sorted by name bytes, are
 its entries. When the entries would make the node too large, kubo (boxo) shards it into a HAMT
-instead: nodes of type HAMTShard with a fanout of 256, where an entry's bucket at each level is
-the next byte of the 64-bit murmur3 (x64, 128-bit variant, first half) hash of its name. A
-bucket holding one entry links to it under ``<2 hex digits><name>``; a bucket holding several
-links to a child shard under ``<2 hex digits>`` alone. The layout depends on the set of names
-only, so building it from the final entries gives kubo's CIDs.
+instead: nodes of type HAMTShard with a fanout of 256 by default (any power of two from 8 to
+1,024 with ``Import.UnixFSHAMTDirectoryMaxFanout``), where an entry's bucket at each level is
+the next log2(fanout) bits, most significant first, of the 64-bit murmur3 (x64, 128-bit
+variant, first half) hash of its name: a whole byte at fanout 256, half a byte at 16. A bucket
+holding one entry links to it under ``<hex bucket><name>``; a bucket holding several links to
+a child shard under ``<hex bucket>`` alone, the bucket padded to the hex width of
+``fanout - 1``. boxo never rehashes: a level past the hash's 64 bits is an error there, and
+here. The layout depends on the set of names only, so building it from the final entries
+gives kubo's CIDs.
 
 The decision follows boxo: shard when the directory's estimated size exceeds 256 KiB (a
 directory exactly at the threshold stays basic), estimated by default as kubo always has, the
@@ -31,11 +35,15 @@ from robocloud.unixfs import (
     UnixfsData,
     UnixfsError,
     decode_node,
+    hamt_fanout_ok,
     hamt_prefix_width,
 )
 
 SHARDING_THRESHOLD = 256 * 1024
 HAMT_FANOUT = 256
+HASH_BITS = 64
+"""The bits of a name's hash a HAMT may use: boxo's ``hashBits.Next`` refuses to read past them
+(no rehash, unlike js-ipfs-unixfs), so neither building nor resolving goes deeper."""
 MAX_NAME_BYTES = 255
 """What POSIX file systems allow for one path segment; longer names are refused."""
 
@@ -106,39 +114,81 @@ def name_hash(name: str) -> bytes:
     return int(first).to_bytes(8, "big")
 
 
-def _prefix(index: int) -> str:
-    return f"{index:02X}"
+def hash_slice(digest: int, consumed: int, bits: int) -> int:
+    """The bucket of a name whose 64-bit hash is ``digest`` at a level that starts ``consumed``
+    bits in: the next ``bits`` bits, most significant first, as boxo's ``hashBits.Next`` reads
+    them (a slice may straddle two bytes, at fanout 8, 32 or 1,024)."""
+    if consumed + bits > HASH_BITS:
+        raise UnixfsError(
+            f"a HAMT level of fanout {1 << bits} at bit {consumed} needs bits up to "
+            f"{consumed + bits} of a name's {HASH_BITS}-bit hash; boxo reads no further "
+            "(sharded directory too deep)"
+        )
+    return (digest >> (HASH_BITS - consumed - bits)) & ((1 << bits) - 1)
 
 
-def sharded_directory(entries: list[Link], cid_version: int = 1) -> tuple[list[Block], Link]:
-    """A HAMT over ``entries`` whatever their size (kubo with sharding forced), deepest first."""
-    hashed = [(name_hash(entry.name), entry) for entry in entries]
+def _hash_of(name: str) -> int:
+    return int.from_bytes(name_hash(name), "big")
+
+
+def sharded_directory(
+    entries: list[Link], cid_version: int = 1, *, fanout: int = HAMT_FANOUT
+) -> tuple[list[Block], Link]:
+    """A HAMT over ``entries`` whatever their size (kubo with sharding forced), deepest first.
+
+    ``fanout`` is kubo's ``Import.UnixFSHAMTDirectoryMaxFanout`` (256 unless set), one the
+    readers accept too; every shard of the HAMT has it, as boxo builds them.
+    """
+    if not hamt_fanout_ok(fanout):
+        raise UnixfsError(f"a HAMT fanout {fanout} is not a power of two from 8 to 1,024")
+    hashed = [(_hash_of(entry.name), entry) for entry in entries]
     blocks: list[Block] = []
-    return blocks, _buildsharded_directory(hashed, 0, cid_version, blocks)
+    shape = _Shape(fanout, cid_version)
+    return blocks, _build_shard(hashed, 0, shape, blocks)
 
 
-def _buildsharded_directory(
-    hashed: list[tuple[bytes, Link]], depth: int, cid_version: int, blocks: list[Block]
+@dataclass(frozen=True)
+class _Shape:
+    """What every shard of one HAMT shares."""
+
+    fanout: int
+    cid_version: int
+
+    @property
+    def bits(self) -> int:
+        return self.fanout.bit_length() - 1
+
+    def prefix(self, index: int) -> str:
+        return f"{index:0{len(f'{self.fanout - 1:X}')}X}"
+
+
+def _build_shard(
+    hashed: list[tuple[int, Link]], consumed: int, shape: _Shape, blocks: list[Block]
 ) -> Link:
-    if depth >= 8:
-        raise UnixfsError("two entry names share a 64-bit HAMT hash; kubo cannot shard them")
-    buckets: dict[int, list[tuple[bytes, Link]]] = {}
+    """One shard (its children into ``blocks`` first) at ``consumed`` bits into the hashes."""
+    if consumed + shape.bits > HASH_BITS:
+        names = ", ".join(repr(entry.name) for _, entry in hashed)
+        raise UnixfsError(
+            f"the names {names} share the first {consumed} bits of their {HASH_BITS}-bit HAMT "
+            f"hash; at fanout {shape.fanout} boxo cannot shard them"
+        )
+    buckets: dict[int, list[tuple[int, Link]]] = {}
     for item in hashed:
-        buckets.setdefault(item[0][depth], []).append(item)
+        buckets.setdefault(hash_slice(item[0], consumed, shape.bits), []).append(item)
     links: list[Link] = []
     for index in sorted(buckets):
         members = buckets[index]
         if len(members) == 1:
             entry = members[0][1]
-            links.append(Link(entry.cid, _prefix(index) + entry.name, entry.tsize))
+            links.append(Link(entry.cid, shape.prefix(index) + entry.name, entry.tsize))
         else:
-            child = _buildsharded_directory(members, depth + 1, cid_version, blocks)
-            links.append(Link(child.cid, _prefix(index), child.tsize))
+            child = _build_shard(members, consumed + shape.bits, shape, blocks)
+            links.append(Link(child.cid, shape.prefix(index), child.tsize))
     occupied = sum(1 << index for index in buckets)
     # Big-endian without leading zero bytes, as go-bitfield writes it (boxo's encoding).
     bitfield = occupied.to_bytes((occupied.bit_length() + 7) // 8, "big")
-    data = UnixfsData(HAMT_SHARD, bitfield, hash_type=MURMUR3_X64_64, fanout=HAMT_FANOUT)
-    node_blocks, link = _node(links, data, cid_version)
+    data = UnixfsData(HAMT_SHARD, bitfield, hash_type=MURMUR3_X64_64, fanout=shape.fanout)
+    node_blocks, link = _node(links, data, shape.cid_version)
     blocks.extend(node_blocks)
     return link
 
@@ -249,23 +299,38 @@ def _find(directory: CID, name: str, get_block: GetBlock) -> tuple[CID, list[CID
 def _find_insharded_directory(
     root: CID, node: PBNode, unixfs: UnixfsData, name: str, get_block: GetBlock
 ) -> tuple[CID, list[CID]]:
-    digest = name_hash(name)
-    width = hamt_prefix_width(root, unixfs)
+    """Descend from ``root`` as boxo's ``getValue`` does: each shard takes log2 of its own
+    fanout in bits of the name's hash, and running out of the 64 bits is an error, not a miss.
+    """
+    digest = _hash_of(name)
     shards: list[CID] = []
-    for depth in range(8):
-        prefix = f"{digest[depth]:0{width}X}"
-        link = next((link for link in node.links if link.name[:width] == prefix), None)
-        if link is None:
-            break
-        if link.name[width:] == name:
-            return link.cid, shards
+    shard, consumed = root, 0
+    while True:
+        link, consumed = _bucket_link(shard, node, unixfs, digest, consumed)
+        width = hamt_prefix_width(shard, unixfs)
+        if link is None or (len(link.name) != width and link.name[width:] != name):
+            raise PathNotFound(f"{root} has no entry {name!r}", segment=name, at=root)
         if len(link.name) != width:
-            break
-        shards.append(link.cid)
-        node, unixfs = decode_node(link.cid, get_block(link.cid))
+            return link.cid, shards
+        shard = link.cid
+        shards.append(shard)
+        node, unixfs = decode_node(shard, get_block(shard))
         if unixfs.type != HAMT_SHARD:
-            raise UnixfsError(f"{link.cid} is linked as a HAMT shard but is not one")
-    raise PathNotFound(f"{root} has no entry {name!r}", segment=name, at=root)
+            raise UnixfsError(f"{shard} is linked as a HAMT shard but is not one")
+
+
+def _bucket_link(
+    shard: CID, node: PBNode, unixfs: UnixfsData, digest: int, consumed: int
+) -> tuple[Link | None, int]:
+    """The link of ``shard``'s bucket for ``digest`` (None if empty), and the bits consumed."""
+    width = hamt_prefix_width(shard, unixfs)
+    bits = (unixfs.fanout or 0).bit_length() - 1
+    try:
+        prefix = f"{hash_slice(digest, consumed, bits):0{width}X}"
+    except UnixfsError as exc:
+        raise UnixfsError(f"the HAMT shard {shard}: {exc}") from None
+    link = next((link for link in node.links if link.name[:width] == prefix), None)
+    return link, consumed + bits
 
 
 def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
@@ -281,12 +346,15 @@ def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
         return
     if unixfs.type != HAMT_SHARD:
         raise NotADirectory(f"{directory} is not a directory", segment="", at=directory)
-    width = hamt_prefix_width(directory, unixfs)
     _check_fanout(directory, node, unixfs)
     shards = {directory}
-    stack: list[Iterator[Link]] = [iter(node.links)]
+    # Each shard's links with its own bucket width: boxo reads every shard's fanout anew.
+    stack: list[tuple[Iterator[Link], int]] = [
+        (iter(node.links), hamt_prefix_width(directory, unixfs))
+    ]
     while stack:
-        link = next(stack[-1], None)
+        link = next(stack[-1][0], None)
+        width = stack[-1][1]
         if link is None:
             stack.pop()
         elif len(link.name) != width:
@@ -301,10 +369,12 @@ def list_entries(directory: CID, get_block: GetBlock) -> Iterator[Link]:
             if data.type != HAMT_SHARD:
                 raise UnixfsError(f"{link.cid} is linked as a HAMT shard but is not one")
             _check_fanout(link.cid, child, data)
-            stack.append(iter(child.links))
+            stack.append((iter(child.links), hamt_prefix_width(link.cid, data)))
 
 
 def _check_fanout(shard: CID, node: PBNode, unixfs: UnixfsData) -> None:
+    """A shard boxo reads (``hamt_prefix_width``) with no more links than buckets."""
+    hamt_prefix_width(shard, unixfs)
     if len(node.links) > (unixfs.fanout or 0):
         raise UnixfsError(
             f"the HAMT shard {shard} has {len(node.links)} links, more than its fanout "

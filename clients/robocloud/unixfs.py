@@ -59,6 +59,9 @@ PROFILES: dict[str, tuple[int, int, bool, int, bool]] = {
 RAW_TYPE, DIRECTORY, FILE, METADATA, SYMLINK, HAMT_SHARD = range(6)
 MURMUR3_X64_64 = 0x22
 """The multihash code of the hash HAMT shards bucket names by (their ``hashType``)."""
+MIN_HAMT_FANOUT, MAX_HAMT_FANOUT = 8, 1024
+"""The fanouts boxo loads: its bitfield is whole bytes (go-bitfield refuses a size that is not
+a multiple of 8) and its ``maximumHamtWidth`` is 1,024; between them, any power of two."""
 
 
 class UnixfsError(FormatError):
@@ -205,16 +208,23 @@ def hamt_prefix_width(cid: CID, unixfs: UnixfsData) -> int:
     """How many hex digits name a bucket of the HAMT shard ``cid``: a link to a sub-shard is
     named exactly that, a link to an entry that plus the entry's name.
 
-    Only shards boxo reads are accepted (murmur3 x64 64 names, a fanout that is a power of
-    two), so walking and resolving refuse the same shards kubo would.
+    Only shards boxo reads are accepted (murmur3 x64 64 names, a fanout ``hamt_fanout_ok``
+    allows), so walking and resolving refuse the same shards kubo would.
     """
     fanout = unixfs.fanout or 0
-    if unixfs.hash_type != MURMUR3_X64_64 or fanout < 2 or fanout & (fanout - 1):
+    if unixfs.hash_type != MURMUR3_X64_64 or not hamt_fanout_ok(fanout):
         raise UnixfsError(
             f"{cid} is a HAMT shard of an unsupported kind (hashType {unixfs.hash_type}, "
             f"fanout {unixfs.fanout})"
         )
     return len(f"{fanout - 1:X}")
+
+
+def hamt_fanout_ok(fanout: int) -> bool:
+    """Whether boxo can load (and so kubo can write) a HAMT shard of ``fanout`` buckets: a
+    power of two from ``MIN_HAMT_FANOUT`` to ``MAX_HAMT_FANOUT``; each level of the HAMT
+    takes log2(fanout) bits of a name's hash."""
+    return MIN_HAMT_FANOUT <= fanout <= MAX_HAMT_FANOUT and fanout & (fanout - 1) == 0
 
 
 # ---- importer ----
