@@ -63,6 +63,53 @@ BLOCK_HASH_LENGTH = 66
 
 Method = Callable[[list[Any]], Any]
 
+MAX_PARAMS: dict[str, int] = {
+    # geth's signatures (its context.Context is no parameter); every method takes at most
+    # what geth's takes, so a request geth answers is answered here too
+    "web3_clientVersion": 0,
+    "web3_sha3": 1,
+    "net_version": 0,
+    "net_listening": 0,
+    "eth_chainId": 0,
+    "eth_protocolVersion": 0,  # removed from geth (1.10), zero parameters while it was there
+    "eth_syncing": 0,
+    "eth_mining": 0,  # removed from geth 1.14 (and anvil), zero parameters before
+    "eth_coinbase": 0,  # removed from geth 1.14, zero parameters before
+    "eth_accounts": 0,
+    "eth_blockNumber": 0,
+    "eth_gasPrice": 0,
+    "eth_maxPriorityFeePerGas": 0,
+    "eth_feeHistory": 3,  # block count, newest block, reward percentiles
+    "eth_getBlockByNumber": 2,  # number, full transactions flag
+    "eth_getBlockByHash": 2,  # hash, full transactions flag
+    "eth_getBlockTransactionCountByNumber": 1,
+    "eth_getBlockTransactionCountByHash": 1,
+    "eth_getBlockReceipts": 1,
+    "eth_getTransactionByHash": 1,
+    "eth_getTransactionReceipt": 1,
+    "eth_getTransactionByBlockNumberAndIndex": 2,
+    "eth_getTransactionByBlockHashAndIndex": 2,
+    "eth_getBalance": 2,  # address, block
+    "eth_getTransactionCount": 2,  # address, block
+    "eth_getCode": 2,  # address, block
+    "eth_getStorageAt": 3,  # address, slot, block
+    "eth_call": 4,  # call, block, state override, block overrides (refused unless empty)
+    "eth_estimateGas": 4,  # call, block, state override, block overrides (refused unless empty)
+    "eth_createAccessList": 3,  # call, block, state override (refused unless empty)
+    "eth_sendRawTransaction": 1,
+    "eth_getLogs": 1,
+    "eth_newFilter": 1,
+    "eth_newBlockFilter": 0,
+    "eth_getFilterChanges": 1,
+    "eth_getFilterLogs": 1,
+    "eth_uninstallFilter": 1,
+}
+"""How many positional parameters each method takes at most, as geth's signature of it has
+(``internal/ethapi/api.go``, ``eth/filters/api.go``, ``node/api.go``): one more is -32602.
+The overrides geth takes after a call's block are counted (web3.py sends a state override
+third when given one); the embedded chain cannot apply them, so one that asks for something is
+refused (``without_overrides``)."""
+
 
 class RpcFailure(Exception):
     """A JSON-RPC error object to answer with."""
@@ -78,6 +125,53 @@ class RpcFailure(Exception):
         if self.data is not None:
             error["data"] = self.data
         return error
+
+
+def at_most(limit: int, method: Method) -> Method:
+    """``method`` refusing more than ``limit`` positional parameters before it reads any, as
+    geth refuses them (-32602 ``too many arguments, want at most N``, a null counted as any
+    other value; anvil refuses them too). Each method read the parameters it knew and dropped
+    the rest, so ``eth_chainId`` with ``[1, 2, 3]`` answered the chain id, and
+    ``eth_getBalance`` with ``[address, "latest", "x"]`` a balance, as if ``"x"`` was never
+    sent: a caller's mistake passed for an answer."""
+
+    def checked(params: list[Any]) -> Any:
+        if len(params) > limit:
+            raise RpcFailure(INVALID_PARAMS, f"too many arguments, want at most {limit}")
+        return method(params)
+
+    return checked
+
+
+OVERRIDABLE = frozenset({"eth_call", "eth_estimateGas", "eth_createAccessList"})
+"""Methods that take geth's state override (and block overrides) after their block."""
+
+
+def without_overrides(method: Method) -> Method:
+    """``method`` refusing a state or block override that asks for something (-32602): the
+    embedded chain cannot apply one, and an answer computed without the override a caller
+    sent is another call's answer passed for its own. A null or empty one asks nothing."""
+
+    def checked(params: list[Any]) -> Any:
+        if any(value is not None and value != {} for value in params[2:]):
+            raise RpcFailure(
+                INVALID_PARAMS, "state and block overrides are not supported by this node"
+            )
+        return method(params)
+
+    return checked
+
+
+def bounded(methods: Mapping[str, Method]) -> dict[str, Method]:
+    """``methods``, each refusing more parameters than ``MAX_PARAMS`` gives it (and the
+    overridable ones an override): a method with no entry there is a ``KeyError`` when the
+    table is built, never a method that takes any number of parameters."""
+    return {
+        name: at_most(
+            MAX_PARAMS[name], without_overrides(method) if name in OVERRIDABLE else method
+        )
+        for name, method in methods.items()
+    }
 
 
 class UnknownBlock(ChainError):
@@ -478,6 +572,10 @@ class EmbeddedMethods:
         self.filters = filters
 
     def table(self) -> dict[str, Method]:
+        """The methods, each refusing more parameters than it takes (``MAX_PARAMS``)."""
+        return bounded(self._methods())
+
+    def _methods(self) -> dict[str, Method]:
         return {
             "web3_clientVersion": lambda _: f"robocloud-ledger/{robocloud.__version__}",
             "eth_chainId": lambda _: encoding.quantity(self.chain.chain_id),
@@ -522,7 +620,7 @@ class EmbeddedMethods:
         """What a client asks between transactions, answered without a worker thread: none
         of these takes the chain's lock or reads the disk (a receipt only when its block is
         among the last mined; otherwise ``NotInline``)."""
-        table = self.table()
+        table = self._methods()
         constant = (
             "web3_clientVersion",
             "eth_chainId",
@@ -535,11 +633,14 @@ class EmbeddedMethods:
             "eth_maxPriorityFeePerGas",
             "eth_blockNumber",
         )
-        return {name: table[name] for name in constant} | {
-            "eth_getTransactionReceipt": self.recent_receipt,
-            "eth_getTransactionByHash": self.recent_transaction,
-            "eth_call": self.head_call,
-        }
+        return bounded(
+            {name: table[name] for name in constant}
+            | {
+                "eth_getTransactionReceipt": self.recent_receipt,
+                "eth_getTransactionByHash": self.recent_transaction,
+                "eth_call": self.head_call,
+            }
+        )
 
     def head_call(self, params: list[Any]) -> Any:
         """``eth_call`` at the head (a proof's ``rootAt``, a contract's view), tried on the

@@ -4,10 +4,11 @@ and hex digits within their type's bits, and a call's fields are checked before 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import pytest
 
+from services.ledger.rpc import EmbeddedMethods
 from tests.integration.services.ledger.conftest import Pair, call, mined, result
 from tests.rawtx import RawTx
 
@@ -141,3 +142,162 @@ def test_a_null_input_leaves_a_call_its_data_as_on_anvil(pair: Pair) -> None:
     for method in ("eth_estimateGas", "eth_createAccessList"):
         assert result(pair.ledger, method, [both]) == result(pair.ledger, method, [plain])
     assert int(result(pair.ledger, "eth_estimateGas", [both]), 16) > 21_000 + 16 * 40
+
+
+HASH = "0x" + "22" * 32
+"""A block or transaction hash neither chain holds (answered null where one is looked up)."""
+TAKEN: dict[str, tuple[str, list[Any]]] = {
+    "web3_clientVersion": ("web3_clientVersion", []),
+    "web3_sha3": ("web3_sha3", ["0x"]),
+    "net_version": ("net_version", []),
+    "net_listening": ("net_listening", []),
+    "eth_chainId": ("eth_chainId", []),
+    "eth_protocolVersion": ("eth_protocolVersion", []),
+    "eth_syncing": ("eth_syncing", []),
+    "eth_mining": ("eth_mining", []),
+    "eth_accounts": ("eth_accounts", []),
+    "eth_coinbase": ("eth_coinbase", []),
+    "eth_blockNumber": ("eth_blockNumber", []),
+    "eth_gasPrice": ("eth_gasPrice", []),
+    "eth_maxPriorityFeePerGas": ("eth_maxPriorityFeePerGas", []),
+    "eth_feeHistory": ("eth_feeHistory", ["0x1", "latest", [50]]),
+    "eth_getBlockByNumber": ("eth_getBlockByNumber", ["latest", False]),
+    "eth_getBlockByHash": ("eth_getBlockByHash", [HASH, False]),
+    "eth_getBlockTransactionCountByNumber": ("eth_getBlockTransactionCountByNumber", ["0x0"]),
+    "eth_getBlockTransactionCountByHash": ("eth_getBlockTransactionCountByHash", [HASH]),
+    "eth_getBlockReceipts": ("eth_getBlockReceipts", ["latest"]),
+    "eth_getTransactionByHash": ("eth_getTransactionByHash", [HASH]),
+    "eth_getTransactionReceipt": ("eth_getTransactionReceipt", [HASH]),
+    "eth_getTransactionByBlockNumberAndIndex": (
+        "eth_getTransactionByBlockNumberAndIndex",
+        ["0x0", "0x0"],
+    ),
+    "eth_getTransactionByBlockHashAndIndex": (
+        "eth_getTransactionByBlockHashAndIndex",
+        [HASH, "0x0"],
+    ),
+    "eth_getBalance": ("eth_getBalance", [ADDRESS, "latest"]),
+    "eth_getTransactionCount": ("eth_getTransactionCount", [ADDRESS, "latest"]),
+    "eth_getCode": ("eth_getCode", [ADDRESS, "latest"]),
+    "eth_getStorageAt": ("eth_getStorageAt", [ADDRESS, "0x0", "latest"]),
+    "eth_call": ("eth_call", [{"to": ADDRESS}, "latest", None, None]),
+    "eth_call-at-a-number": ("eth_call", [{"to": ADDRESS}, "0x0", None, None]),
+    "eth_estimateGas": ("eth_estimateGas", [{"to": ADDRESS}, "latest", None, None]),
+    "eth_createAccessList": ("eth_createAccessList", [{"to": ADDRESS}, "latest", None]),
+    "eth_getLogs": ("eth_getLogs", [{"fromBlock": "0x0", "toBlock": "0x0"}]),
+    "eth_newFilter": ("eth_newFilter", [{"fromBlock": "latest"}]),
+    "eth_newBlockFilter": ("eth_newBlockFilter", []),
+    "eth_getFilterChanges": ("eth_getFilterChanges", ["<block filter>"]),
+    "eth_getFilterLogs": ("eth_getFilterLogs", ["<log filter>"]),
+    "eth_uninstallFilter": ("eth_uninstallFilter", ["<log filter>"]),
+}
+"""A request per method of the ledger's table with every positional parameter geth's
+signature has (``internal/ethapi/api.go``, ``eth/filters/api.go``, ``node/api.go``), each
+valid: eth_call and eth_estimateGas take a state override and block overrides after the
+block, eth_createAccessList a state override. ``eth_call`` at the head is answered on the
+event loop, at a number on a worker thread: both are checked. eth_sendRawTransaction is
+checked apart (its one parameter spends ether)."""
+NOT_ON_ANVIL = {"eth_mining"}
+"""Gone from geth and from anvil 1.7.1 (-32601); the ledger still answers it."""
+ANVIL_TAKES_FEWER = {"eth_createAccessList"}
+"""anvil 1.7.1 takes no state override here (-32602 `invalid length 3`); geth does."""
+
+
+def taken(url: str, case: str) -> tuple[str, list[Any]]:
+    """``TAKEN[case]`` for the node at ``url``, a filter parameter replaced by a filter of
+    that node's, installed now."""
+    method, params = TAKEN[case]
+    kinds = {"<block filter>": ("eth_newBlockFilter", []), "<log filter>": ("eth_newFilter", [{}])}
+    installed = [result(url, *kinds[p]) if isinstance(p, str) and p in kinds else p for p in params]
+    return method, installed
+
+
+@pytest.mark.parametrize("case", sorted(TAKEN))
+def test_every_parameter_geth_takes_is_still_taken(pair: Pair, case: str) -> None:
+    """A method's whole signature is answered, its optional trailing parameters included
+    (null where geth takes a pointer: web3.py sends a state override there)."""
+    for url in pair.urls:
+        if url == pair.anvil and case in NOT_ON_ANVIL | ANVIL_TAKES_FEWER:
+            continue
+        answer = call(url, *taken(url, case))
+        assert "result" in answer, (url, answer)
+
+
+def refusals(pair: Pair, case: str, extra: list[Any]) -> list[Any]:
+    """The errors the ledger and anvil (where it has the method) answer ``TAKEN[case]``
+    with ``extra`` parameters after it; None where one answered a result."""
+    errors = []
+    for url in pair.urls:
+        if url == pair.anvil and case in NOT_ON_ANVIL:
+            continue
+        method, params = taken(url, case)
+        errors.append(call(url, method, [*params, *extra]).get("error"))
+    return errors
+
+
+def assert_too_many(errors: list[Any], most: int) -> None:
+    """The ledger's error is geth's for more than ``most`` parameters; anvil's, in its own
+    words, has the same code."""
+    assert errors[0] == {"code": -32602, "message": f"too many arguments, want at most {most}"}
+    codes = [error.get("code") if isinstance(error, dict) else error for error in errors]
+    assert codes == [-32602] * len(errors), errors
+
+
+@pytest.mark.parametrize("extra", [["x"], [None]], ids=["string", "null"])
+@pytest.mark.parametrize("case", sorted(TAKEN))
+def test_a_parameter_more_than_a_method_takes_is_invalid_params(
+    pair: Pair, case: str, extra: list[Any]
+) -> None:
+    """The ledger ran the method and dropped what it did not read (``eth_chainId`` with
+    ``[1, 2, 3]`` answered the chain id); geth refuses it with -32602 ``too many arguments,
+    want at most N``, a null counted as any other value, and anvil with -32602 in its words."""
+    assert_too_many(refusals(pair, case, extra), most=len(TAKEN[case][1]))
+
+
+def test_the_reviewers_cases_are_refused_as_on_anvil(pair: Pair) -> None:
+    """The two requests the review found answered."""
+    cases = {
+        ("eth_chainId", 0): [1, 2, 3],
+        ("eth_getBalance", 2): [ADDRESS, "latest", "x"],
+    }
+    for (method, most), params in cases.items():
+        assert_too_many([call(url, method, params).get("error") for url in pair.urls], most)
+
+
+def test_a_raw_transaction_with_a_parameter_more_is_refused_not_sent(pair: Pair) -> None:
+    """The transaction is refused whole, as geth and anvil refuse it, before it is read: the
+    ledger used to send it (here: one its sender cannot pay for, -32000 before)."""
+    raw = RawTx(to=bytes.fromhex(ADDRESS[2:]), value=1, max_fee=10**11).sign(bytes(range(1, 33)))
+    answers = [call(url, "eth_sendRawTransaction", [raw, "x"]) for url in pair.urls]
+    assert_too_many([answer.get("error") for answer in answers], most=1)
+
+
+def test_every_method_the_ledger_serves_is_checked_here() -> None:
+    """A method added to the ledger's table without a case above would go unchecked."""
+    served = EmbeddedMethods(cast(Any, None), cast(Any, None), cast(Any, None)).table()
+    checked = {method for method, _ in TAKEN.values()} | {"eth_sendRawTransaction"}
+    assert checked == set(served)
+
+
+@pytest.mark.parametrize(
+    ("method", "params"),
+    [
+        ("eth_call", [{"to": IDENTITY, "data": "0x01"}, "latest", {ADDRESS: {"balance": "0x1"}}]),
+        ("eth_call", [{"to": IDENTITY, "data": "0x01"}, "0x0", None, {"number": "0x10"}]),
+        ("eth_estimateGas", [{"to": IDENTITY}, "latest", {ADDRESS: {"code": "0x00"}}]),
+        ("eth_createAccessList", [{"to": IDENTITY}, "latest", {ADDRESS: {"nonce": "0x1"}}]),
+    ],
+    ids=["call-state", "call-block", "estimate-state", "access-list-state"],
+)
+def test_an_override_that_asks_for_something_is_refused_not_ignored(
+    pair: Pair, method: str, params: list[Any]
+) -> None:
+    """The embedded chain cannot apply geth's state or block overrides; one taken and left
+    unapplied answered another call than the one asked. Empty ones ask for nothing."""
+    error = call(pair.ledger, method, params)["error"]
+    assert error == {
+        "code": -32602,
+        "message": "state and block overrides are not supported by this node",
+    }
+    empty = [params[0], params[1], *({} for _ in params[2:])]
+    assert "result" in call(pair.ledger, method, empty)

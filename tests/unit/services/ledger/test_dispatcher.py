@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Any
+from typing import Any, cast
 
 import pytest
 
@@ -12,6 +12,7 @@ from services.ledger.chain import ChainError, Reverted
 from services.ledger.index import IndexLimitError
 from services.ledger.rpc import (
     INTERNAL_ERROR,
+    INVALID_PARAMS,
     INVALID_REQUEST,
     MAX_BATCH,
     METHOD_NOT_FOUND,
@@ -20,9 +21,11 @@ from services.ledger.rpc import (
     REQUEST_TIMED_OUT,
     RESPONSE_TOO_LARGE,
     Dispatcher,
+    EmbeddedMethods,
     EncodedBatch,
     NotInline,
     RpcFailure,
+    at_most,
 )
 
 
@@ -253,3 +256,38 @@ def test_a_refusal_answers_a_whole_request_as_its_framing_allows() -> None:
         "id": None,
         "error": error,
     }
+
+
+def test_a_method_refuses_more_parameters_than_it_takes_before_it_runs() -> None:
+    """geth's words and code for one parameter too many; as many or fewer still run (the
+    method decides which of its trailing ones are optional)."""
+    ran: list[list[Any]] = []
+
+    def record(params: list[Any]) -> int:
+        ran.append(params)
+        return len(params)
+
+    dispatcher = Dispatcher({"two": at_most(2, record), "none": at_most(0, record)})
+    assert DISPATCHER.answer(call("echo", [1, 2, 3]))["result"] == [1, 2, 3]  # unbounded
+    assert [dispatcher.answer(call("two", p))["result"] for p in ([], [1], [1, None])] == [0, 1, 2]
+    for method, params, most in [("two", [1, 2, None], 2), ("none", [1, 2, 3], 0)]:
+        assert dispatcher.answer(call(method, params))["error"] == {
+            "code": INVALID_PARAMS,
+            "message": f"too many arguments, want at most {most}",
+        }
+    assert ran == [[], [1], [1, None]]
+
+
+def test_every_embedded_method_refuses_too_many_parameters_before_reading_the_chain() -> None:
+    """Both tables, the threaded one and the one answered on the event loop, are bounded: a
+    method's handler that read a parameter or the chain here would fail on the missing chain
+    (-32603), not refuse (-32602)."""
+    methods = EmbeddedMethods(cast(Any, None), cast(Any, None), cast(Any, None))
+    tables = {"threaded": methods.table(), "inline": methods.inline_table()}
+    for name, table in tables.items():
+        dispatcher = Dispatcher(table)
+        for method in table:
+            error = dispatcher.answer(call(method, [None] * 8))["error"]
+            assert error["code"] == INVALID_PARAMS, (name, method, error)
+            assert error["message"].startswith("too many arguments, want at most "), error
+    assert {"eth_call", "eth_getTransactionReceipt", "eth_chainId"} <= set(tables["inline"])
