@@ -650,8 +650,121 @@ def unrolled_elements(types: Mapping[str, Any]) -> int:
     return total
 
 
-DefinitionKey = tuple[str, str, str]
-"""A connection's message type, definition format and definition text."""
+def hollow_array(types: Mapping[str, Any], msgtype: str, *, ros1: bool) -> str | None:
+    """The first field reachable from ``msgtype`` (``type.field``) that holds elements of a
+    message serialising to no bytes (:func:`hollow_types`) as a decode cannot bound them:
+    any fixed-size array of them, and in ROS 1 any sequence. Such elements cost the decode
+    an object each and the message nothing, so a few bytes of message decode to as many as
+    their counts say: a sequence's 4-byte length (``std_msgs/Empty[]`` of 0xFFFFFFFF made
+    rosbags create 4.3 billion objects; 1,000,000 took 1.35 s), or nested fixed-size
+    arrays, whose lengths multiply (a few lines of unrolled code each, see
+    :data:`MAX_UNROLLED`). rosbags' CDR decoder checks a sequence's length against the
+    bytes left (at least one per element), so in ROS 2 only fixed-size arrays are refused.
+    None when there is no such field."""
+    hollow = hollow_types(types, ros1=ros1)
+    if not hollow:
+        return None
+    for name in _reachable(types, msgtype):
+        for field_name, (nodetype, detail) in types[name][1]:
+            if _unbounded_element(nodetype, detail, ros1=ros1) in hollow:
+                return f"{name}.{field_name}"
+    return None
+
+
+def _unbounded_element(nodetype: Nodetype, detail: Any, *, ros1: bool) -> str | None:
+    """The message type of a field's elements where their count is not bounded by the
+    message's bytes should they take none: a fixed-size array's (its length is the
+    definition's word), and in ROS 1 a sequence's too. None for any other field."""
+    counted_by_definition = nodetype == Nodetype.ARRAY and detail[1] > 0
+    counted_by_prefix = nodetype == Nodetype.SEQUENCE and ros1
+    if not (counted_by_definition or counted_by_prefix):
+        return None
+    element_type, element = detail[0]
+    return str(element) if element_type == Nodetype.NAME else None
+
+
+PLACEHOLDER_FIELD = "structure_needs_at_least_one_member"
+"""The ``uint8`` rosbags gives a message without fields: one byte in CDR (ROS 2's IDL does the
+same), none in ROS 1, whose serializer skips it."""
+
+
+def hollow_types(types: Mapping[str, Any], *, ros1: bool) -> set[str]:
+    """The message types of ``types`` whose every message serialises to no bytes: in ROS 1
+    one without fields, and in either generation one whose every field is such a message or
+    a fixed-size array of length 0 or of such messages. Found from the leaves up (each type
+    waits for the types its fields need), so a chain of types costs its length, never
+    recursion."""
+    waiting: dict[str, int] = {}
+    users: dict[str, list[str]] = {}
+    ready: list[str] = []
+    for name, (_, fields) in types.items():
+        needs = _hollow_if(fields, ros1=ros1)
+        if needs is None:
+            continue
+        waiting[name] = len(needs)
+        for each in needs:
+            users.setdefault(each, []).append(name)
+        if not needs:
+            ready.append(name)
+    hollow: set[str] = set()
+    while ready:
+        name = ready.pop()
+        hollow.add(name)
+        for user in users.get(name, ()):
+            waiting[user] -= 1
+            if not waiting[user]:
+                ready.append(user)
+    return hollow
+
+
+def _hollow_if(fields: list[Any], *, ros1: bool) -> list[str] | None:
+    """The message types that must all serialise to no bytes for a message of ``fields`` to
+    (one entry per field that needs one); None when a field always takes bytes: a number, a
+    string or a sequence (its length), or in CDR the placeholder of a message without
+    fields."""
+    if not fields:
+        return [] if ros1 else None
+    needs: list[str] = []
+    for field_name, (nodetype, detail) in fields:
+        if field_name == PLACEHOLDER_FIELD and ros1:
+            continue
+        if nodetype == Nodetype.NAME:
+            needs.append(detail)
+        elif nodetype == Nodetype.ARRAY:
+            (element_type, element), length = detail
+            if not length:
+                continue
+            if element_type != Nodetype.NAME:
+                return None
+            needs.append(element)
+        else:
+            return None
+    return needs
+
+
+def _reachable(types: Mapping[str, Any], msgtype: str) -> list[str]:
+    """``msgtype`` and the types of ``types`` its fields lead to: a definition may carry
+    others, which nothing decodes."""
+    found = [msgtype] if msgtype in types else []
+    seen = set(found)
+    for name in found:
+        for _, (nodetype, detail) in types[name][1]:
+            if nodetype == Nodetype.NAME:
+                element = detail
+            elif nodetype in (Nodetype.ARRAY, Nodetype.SEQUENCE) and detail[0][0] == Nodetype.NAME:
+                element = detail[0][1]
+            else:
+                continue
+            if element in types and element not in seen:
+                seen.add(element)
+                found.append(element)
+    return found
+
+
+DefinitionKey = tuple[str, str, str, str | None]
+"""A connection's message type, definition format and definition text, and its md5sum in a
+ROS 1 bag (None in ROS 2): what a definition gives depends on both (the md5sum's check,
+:func:`hollow_array`'s rules)."""
 
 
 class UnrollBudget:
@@ -687,9 +800,15 @@ _STORES: dict[DefinitionKey, tuple[Typestore | str, int]] = {}
 def _typestore_from_bag(
     connection: BagConnection, digest: str, *, ros1: bool, unrolled: UnrollBudget
 ) -> Typestore | str:
-    """A typestore holding only this definition (cached per text); an error text if it fails
-    or would unroll more than ``unrolled`` has left."""
-    key = (connection.msgtype, connection.definition_format, connection.definition)
+    """A typestore holding only this definition (cached per text); an error text if it fails,
+    holds an array a decode cannot bound (:func:`hollow_array`) or would unroll more than
+    ``unrolled`` has left."""
+    key = (
+        connection.msgtype,
+        connection.definition_format,
+        connection.definition,
+        digest if ros1 else None,
+    )
     cached = _STORES.get(key)
     if cached is not None:
         return unrolled.refusal(key, cached[1]) or cached[0]
@@ -699,23 +818,41 @@ def _typestore_from_bag(
         types = parse_definition(
             connection.msgtype, connection.definition, connection.definition_format
         )
-        elements = unrolled_elements(types)
-        refused = unrolled.refusal(key, elements)
-        if refused is not None:
-            return refused
-        store = bundled_typestore(Stores.EMPTY)
-        store.register(types)
-        store.get_msgdef(connection.msgtype)
-        if ros1 and digest and store.generate_msgdef(connection.msgtype)[1] != digest:
-            result = f"the definition does not match its md5sum {digest}"
+        hollow = hollow_array(types, connection.msgtype, ros1=ros1)
+        if hollow is not None:
+            result = _hollow_problem(hollow, ros1=ros1)
         else:
-            result = store
+            elements = unrolled_elements(types)
+            refused = unrolled.refusal(key, elements)
+            if refused is not None:
+                return refused
+            result = _registered(types, connection.msgtype, digest if ros1 else "")
     except (TypesysError, KeyError, ValueError, IndexError) as exc:
         result = f"the bag's definition does not parse: {_reason(exc)}"
     if len(_STORES) > 256:
         _STORES.clear()
     _STORES[key] = (result, elements)
     return result
+
+
+def _hollow_problem(field: str, *, ros1: bool) -> str:
+    """The problem of a definition :func:`hollow_array` refuses, naming its ``field``."""
+    return (
+        f"the bag's definition holds {field}, an array of a message that serialises to no "
+        f"bytes{' in ROS 1' if ros1 else ''}: a message of a few bytes could decode to "
+        "billions of them"
+    )
+
+
+def _registered(types: Mapping[str, Any], msgtype: str, digest: str) -> Typestore | str:
+    """A typestore of ``types`` with ``msgtype``'s (de)serializers built; the problem if a
+    ROS 1 ``digest`` (empty: none to check) is not the definition's md5sum."""
+    store = bundled_typestore(Stores.EMPTY)
+    store.register(dict(types))
+    store.get_msgdef(msgtype)
+    if digest and store.generate_msgdef(msgtype)[1] != digest:
+        return f"the definition does not match its md5sum {digest}"
+    return store
 
 
 def _prepare(

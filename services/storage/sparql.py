@@ -56,6 +56,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from services.storage.lifetime import die_with_parent
+
 log = logging.getLogger("robocloud.storage.sparql")
 
 RESULT_SET_TYPES = {
@@ -420,13 +422,6 @@ def _limit_memory(limit: int) -> None:
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
 
-def _die_with_parent() -> None:
-    """Linux's PR_SET_PDEATHSIG: the kernel kills the worker when the service dies (kill -9)."""
-    with contextlib.suppress(OSError, AttributeError):
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL)
-
-
 _SECCOMP_ABI = {"x86_64": (0xC000003E, 41), "aarch64": (0xC00000B7, 198)}
 """Per machine: Linux's AUDIT_ARCH value for its native ABI, and the number of socket(2)."""
 
@@ -486,7 +481,7 @@ def _forbid_network() -> bool:
 
 def worker_main(argv: Sequence[str]) -> None:
     """``python -m services.storage.sparql DIRECTORY STORE MEMORY_BYTES MAX_RESULT_BYTES``."""
-    _die_with_parent()
+    die_with_parent()
     if not _forbid_network():
         print(
             "sparql worker: no seccomp here: queries are not kept off the network", file=sys.stderr
@@ -562,7 +557,7 @@ class _Executor:
         if pid == 0:
             for fd in (requests, answers, inbox.fileno(), outbox.fileno()):
                 os.close(fd)
-            _die_with_parent()
+            die_with_parent()
             with os.fdopen(to_child, "rb") as child_in, os.fdopen(from_child, "wb") as child_out:
                 _serve(worker, child_in, child_out)
             os._exit(0)

@@ -17,6 +17,7 @@ refuses the job if cas names them differently.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import multiprocessing
 import multiprocessing.forkserver
@@ -44,6 +45,7 @@ from services.storage.bags import (
     MissingDefinition,
     Window,
 )
+from services.storage.lifetime import die_with_parent
 from services.storage.matcher import (
     BindingInvalid,
     BlobSink,
@@ -415,8 +417,32 @@ def _forwarded(parent: Connection) -> Callable[[bytes], str]:
     return add
 
 
+def _release_forkserver() -> None:
+    """Close this process's copy of the service's end of the forkserver's pipe, whose end
+    the forkserver waits for to exit with the service. multiprocessing hands a copy to every
+    process the forkserver forks (for processes of their own, which staging never starts),
+    so a staging process kept the forkserver, its parent, alive after the service died, and
+    its parent-death signal never came (tested: it ran on). Called after
+    :func:`die_with_parent`: the forkserver cannot end before the signal is armed."""
+    server = multiprocessing.forkserver._forkserver
+    alive = getattr(server, "_forkserver_alive_fd", None)
+    if alive is not None:
+        with contextlib.suppress(OSError):
+            os.close(alive)
+        server._forkserver_alive_fd = None  # type: ignore[attr-defined]
+
+
 def _stage_task(task: WindowTask, parent: Connection) -> None:
-    """A worker process's body: every outcome is one message to the parent."""
+    """A worker process's body: every outcome is one message to the parent.
+
+    It dies with the service: a worker decoding a bag's messages writes to the service only
+    every :data:`PROGRESS_EVERY` messages, so one stuck in a slow window ran on after a
+    ``kill -9`` of the service. Its parent is the forkserver, which ends when the service
+    does once no worker holds the pipe it waits on (:func:`_release_forkserver`), and the
+    kernel then kills the worker (:func:`die_with_parent`).
+    """
+    die_with_parent()
+    _release_forkserver()
     try:
         # The job's own open checks the bag; it sends no plan unless the bag passed.
         with bag_failures(), Bag.open(task.bag, check=False) as bag:

@@ -3,10 +3,12 @@ back with the mcap library; bad bags, unsigned writes and unknown jobs."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
 import signal
+import struct
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -14,6 +16,7 @@ from typing import Any
 import httpx
 import pytest
 from mcap.reader import make_reader
+from rosbags.rosbag1 import Writer as Rosbag1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -41,7 +44,11 @@ class Storage(ServiceClient):
 
 
 def approve(client: Storage, msgtype: str) -> str:
-    document = draft_template(typestore_for("ros1"), msgtype)
+    return approved(client, draft_template(typestore_for("ros1"), msgtype))
+
+
+def approved(client: Storage, document: dict[str, Any]) -> str:
+    """Create, submit and approve the template ``document``: its id."""
     created = client.post_json("/v1/templates", document)
     template_id = f"{created['name']}@{created['version']}"
     client.post_json(f"/v1/templates/{template_id}/submit")
@@ -296,6 +303,52 @@ def test_a_fixed_array_rosbags_would_unroll_without_end_disables_only_its_topic(
     assert failed["records"] == {"staged": 0, "committed": 0}
 
 
+ITEMS = "hollow_msgs/msg/Items"
+
+
+def test_a_sequence_of_empty_messages_disables_only_its_topic(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    """In ROS 1 ``std_msgs/Empty`` serialises to no bytes, so one 8-byte message of ``int32
+    seq`` and ``std_msgs/Empty[] items`` whose length says 0xFFFFFFFF had staging create 4.3
+    billion objects (the service's memory), its topic bound to a template of ``seq`` alone.
+    The definition has its problem from the bag's open: bound, the job fails as undefined
+    and stores nothing; the bag's other topic stages."""
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg("int32 seq\nstd_msgs/Empty[] items", ITEMS))
+    string = "std_msgs/msg/String"
+    bag = tmp_path / "hollow.bag"
+    with Rosbag1Writer(bag) as writer:
+        items = writer.add_connection("/items", ITEMS, typestore=store)
+        chatter = writer.add_connection("/chatter", string, typestore=store)
+        writer.write(items, START_NS, struct.pack("<iI", 7, 0xFFFFFFFF))
+        hello = store.serialize_ros1(store.types[string](data="hello"), string)
+        writer.write(chatter, START_NS + 1, hello)
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        ingest.bind(approve(client, string), topic="/chatter")
+        done = ingest.wait(ingest.upload(bag)["id"], timeout_s=30)
+        assert done["status"] == "succeeded", done
+        assert done["unbound_topics"] == ["/items"]
+        assert done["records"] == {"staged": 1, "committed": 1}
+        seq = approved(client, {"name": "item_seq", "version": 1, "fields": {"seq": "int"}})
+        ingest.bind(seq, topic="/items")
+        failed = ingest.wait(ingest.upload(bag)["id"], timeout_s=30)
+    error = failed["error"]
+    assert (failed["status"], error["code"], error["details"]) == (
+        "failed",
+        "message_type_undefined",
+        {"topic": "/items", "msgtype": ITEMS},
+    )
+    reason = (
+        "the bag's definition holds hollow_msgs/msg/Items.items, an array of a message that "
+        "serialises to no bytes in ROS 1"
+    )
+    assert reason in error["message"]
+    assert failed["records"] == {"staged": 0, "committed": 0}
+    with StorageClient(storage.url, identity) as records:
+        assert records.query(template=seq, limit=10, cursor=None).records == []
+
+
 def storage_address(storage: ServiceProcess) -> str:
     return str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
 
@@ -492,3 +545,91 @@ def test_kill_9_while_worker_processes_stage_a_bag(
         assert page.records[0].record["t"] == START_NS
     assert done["records"]["committed"] == done["messages"]["total"] == 48_000
     assert done["record_ids"] == {imu: ["imu-1-0", "imu-1-47999"]}
+
+
+CLOUD = "sensor_msgs/msg/PointCloud"
+
+
+def write_point_clouds(path: Path, count: int, points: int) -> Path:
+    """A ROS 1 bag (lz4) of ``count`` ``sensor_msgs/PointCloud`` of ``points`` points at 0,
+    100 ms apart: a few KiB a message on disk, where 200,000 points decode in about a third
+    of a second, into as many objects."""
+    store = get_typestore(Stores.ROS1_NOETIC)
+    types = store.types
+    stamp = types["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+    header = types["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="lidar")
+    point = types["geometry_msgs/msg/Point32"](x=0.0, y=0.0, z=0.0)
+    cloud = types[CLOUD](header=header, points=[point] * points, channels=[])
+    raw = store.serialize_ros1(cloud, CLOUD)
+    writer = Rosbag1Writer(path)
+    writer.set_compression(Rosbag1Writer.CompressionFormat.LZ4)
+    with writer:
+        connection = writer.add_connection("/cloud", CLOUD, typestore=store)
+        for index in range(count):
+            writer.write(connection, START_NS + index * 100_000_000, raw)
+    return path
+
+
+def _children(pid: int) -> list[int]:
+    return [
+        int(child)
+        for task in Path(f"/proc/{pid}/task").iterdir()
+        for child in (task / "children").read_text().split()
+    ]
+
+
+def _staging_processes(service: int) -> list[int]:
+    """The forkserver the service started and the processes it forked: the staging ones."""
+    for pid in _children(service):
+        with contextlib.suppress(FileNotFoundError):
+            if b"forkserver" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return [pid, *_children(pid)]
+    return []
+
+
+def _cpu_s(pid: int) -> float:
+    """Seconds of CPU ``pid`` has used (user and system)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def test_kill_9_ends_staging_processes_in_the_midst_of_decoding(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """A staging process writes to the service only every 1,000 messages, so one decoding
+    slow messages (point clouds of 200,000 points, bound to a template of their frame) did
+    not learn that the service was killed: such processes ran on, at GBs of memory where a
+    bag's decode was costly. They now end with it, in the midst of their work."""
+    storage = service_factory("storage", {**PARALLEL, **QUIET_NODE})
+    bag = write_point_clouds(tmp_path / "clouds.bag", 120, 200_000)
+    assert bag.stat().st_size < 4 * 1024**2
+    assert storage.process is not None
+    service = storage.process.pid
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        frame = approved(client, {"name": "cloud", "version": 1, "fields": {"frame_id": "string"}})
+        ingest.bind(frame, topic="/cloud")
+        job_id = ingest.upload(bag)["id"]
+        helpers = wait_for(
+            lambda: len(found := _staging_processes(service)) == 3 and found,
+            "a forkserver and two staging processes",
+        )
+        before = {pid: _cpu_s(pid) for pid in helpers[1:]}
+        wait_for(
+            lambda: all(_cpu_s(pid) > used + 1.0 for pid, used in before.items()),
+            "both staging processes to decode for a second",
+        )
+        job = ingest.job(job_id)
+    assert (job["status"], job["messages"]["done"]) == ("staging", 0)
+    os.kill(service, signal.SIGKILL)
+    storage.process.wait()
+    try:
+        wait_for(
+            lambda: not any(_alive(pid) for pid in helpers),
+            "the staging processes to end with the service",
+            timeout_s=5,
+        )
+    except AssertionError:
+        for pid in helpers[1:]:  # left to decode, they would take the machine for a minute
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        raise

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import resource
 import shutil
+import struct
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ from typing import Any
 import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Rosbag1Writer
+from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -26,6 +28,7 @@ from services.storage.bags import (
     ChunkTooLarge,
     MessageUndecodable,
     MissingDefinition,
+    hollow_array,
     inflate_declared,
 )
 from tests.bagfactory import (
@@ -254,6 +257,124 @@ def test_fixed_arrays_rosbags_unrolls_are_bounded_per_bag(tmp_path: Path) -> Non
         ),
     }
     assert [(m.topic, m.data["corners"][3]["x"]) for m in decoded] == [("/corners", 3.0)]
+
+
+NO_BYTES = "an array of a message that serialises to no bytes"
+CDR_EMPTY = b"\x00\x01\x00\x00"
+"""A CDR message's encapsulation header (little endian) and nothing after it."""
+
+
+def nested(store: Any, package: str, leaf: str, levels: int = 6, length: int = 40) -> str:
+    """Register ``levels`` message types each holding a fixed-size array of ``length`` of the
+    next, down to one defined by ``leaf``: 40**6 (4 billion) leaves for 240 lines of
+    rosbags' code. The outermost type's name."""
+    store.register(get_types_from_msg(leaf, f"{package}/msg/Level{levels}"))
+    for level in reversed(range(levels)):
+        inner = f"{package}/Level{level + 1}[{length}] next"
+        store.register(get_types_from_msg(inner, f"{package}/msg/Level{level}"))
+    return f"{package}/msg/Level0"
+
+
+def no_bytes(field: str, generation: str = " in ROS 1") -> str:
+    return (
+        f"the bag's definition holds {field}, {NO_BYTES}{generation}: a message of a few "
+        "bytes could decode to billions of them"
+    )
+
+
+def as_written(store: Any, msgtype: str, ros_version: int) -> str:
+    """``msgtype``'s definition as a bag would carry it, with its arrays of length 0, which
+    rosbags' writer writes as sequences (``[]``) where a definition's own text keeps them."""
+    text = store.generate_msgdef(msgtype, ros_version=ros_version)[0]
+    return text.replace("[] none", "[0] none").replace("[] padding", "[0] padding")
+
+
+def test_arrays_of_messages_of_no_bytes_are_refused_at_open_in_ros1(tmp_path: Path) -> None:
+    """In ROS 1 a message without fields serialises to no bytes, so ``std_msgs/Empty[]`` in a
+    message of 8 bytes whose length said 0xFFFFFFFF had rosbags create 4.3 billion objects
+    (1,000,000 took 1.35 s), and nested fixed-size arrays of them multiply from a message of
+    none. Such a definition disables its topics at open, before any message is decoded; a
+    sequence of real messages and an array of length 0 stay, and the bag's others decode."""
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg("int32 seq\nstd_msgs/Empty[] items", "hollow_msgs/msg/Items"))
+    cube = nested(store, "cube_msgs", "std_msgs/Empty nothing")
+    points = "hollow_msgs/msg/Points"
+    store.register(
+        get_types_from_msg("geometry_msgs/Point[] points\nstd_msgs/Empty[0] none", points)
+    )
+    point = store.types["geometry_msgs/msg/Point"]
+    message = store.types[points](points=[point(x=1.0, y=2.0, z=3.0)], none=[])
+    md5 = store.generate_msgdef(points)[1]
+    path = tmp_path / "hollow.bag"
+    with Rosbag1Writer(path) as writer:
+        for topic, msgtype, raw in [
+            ("/items", "hollow_msgs/msg/Items", struct.pack("<iI", 7, 0xFFFFFFFF)),
+            ("/cube", cube, b""),
+        ]:
+            writer.write(writer.add_connection(topic, msgtype, typestore=store), START_NS, raw)
+        listed = writer.add_connection(
+            "/points", points, msgdef=as_written(store, points, 1), md5sum=md5
+        )
+        writer.write(listed, START_NS, store.serialize_ros1(message, points))
+    with Bag.open(path) as bag:
+        problems = {connection.topic: connection.problem for connection in bag.connections}
+        assert problems == {
+            "/items": no_bytes("hollow_msgs/msg/Items.items"),
+            "/cube": no_bytes("cube_msgs/msg/Level0.next"),
+            "/points": None,
+        }
+        decoded = [m.data for m in bag.messages(topics=["/points"])]
+        with pytest.raises(MissingDefinition) as caught:
+            list(bag.messages(topics=["/items"]))
+    assert decoded == [{"points": [{"x": 1.0, "y": 2.0, "z": 3.0}], "none": []}]
+    assert caught.value.reason == problems["/items"]
+
+
+def test_cdr_refuses_only_the_arrays_of_no_bytes_it_cannot_bound(tmp_path: Path) -> None:
+    """CDR gives a message without fields a byte (ROS 2's IDL), and rosbags checks a
+    sequence's length against the bytes left, so ``std_msgs/Empty[]`` of 0xFFFFFFFF and
+    nested arrays of ``std_msgs/Empty`` in a message too short for them are undecodable at
+    once, and stay. A message whose fields are all arrays of length 0 takes no bytes in CDR
+    too: nested fixed-size arrays of it are refused."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(get_types_from_msg("int32 seq\nstd_msgs/Empty[] items", "hollow_msgs/msg/Items"))
+    crates = nested(store, "crate_msgs", "std_msgs/Empty nothing")
+    cube = nested(store, "cube_msgs", "uint8[0] padding")
+    items = CDR_EMPTY + struct.pack("<iI", 7, 0xFFFFFFFF)
+    topics = [("/items", "hollow_msgs/msg/Items", items), ("/crates", crates, CDR_EMPTY)]
+    with Rosbag2Writer(tmp_path / "hollow", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for topic, msgtype, raw in topics:
+            writer.write(writer.add_connection(topic, msgtype, typestore=store), START_NS, raw)
+        definition = as_written(store, cube, 2)
+        listed = writer.add_connection(
+            "/cube", cube, msgdef=definition, rihs01="RIHS01_" + "0" * 64
+        )
+        writer.write(listed, START_NS, CDR_EMPTY)
+    with Bag.open(tmp_path / "hollow") as bag:
+        problems = {connection.topic: connection.problem for connection in bag.connections}
+        assert problems == {
+            "/items": None,
+            "/crates": None,
+            "/cube": no_bytes("cube_msgs/msg/Level0.next", ""),
+        }
+        for topic, _, _ in topics:
+            with pytest.raises(MessageUndecodable, match=r"Invalid sequence length|unpack"):
+                list(bag.messages(topics=[topic]))
+
+
+def test_no_real_recording_or_bundled_type_holds_an_array_of_no_bytes() -> None:
+    """The refusal above takes nothing real: no connection of the recordings under
+    shared/data, no type of rosbags' bundled typestores, in either generation's rules."""
+    refused = []
+    for entry in MANIFEST:
+        with Bag.open(DATA / entry["path"]) as bag:
+            refused += [c.topic for c in bag.connections if NO_BYTES in (c.problem or "")]
+    assert refused == []
+    for name in Stores:
+        types = get_typestore(name).fielddefs
+        for msgtype in types:
+            for ros1 in (True, False):
+                assert hollow_array(types, msgtype, ros1=ros1) is None, (name, msgtype, ros1)
 
 
 def test_empty_bag_has_connections_and_no_messages() -> None:
