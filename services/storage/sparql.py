@@ -716,9 +716,8 @@ class SparqlWorkers:
 
     def start(self) -> None:
         """Start every worker in the background; each becomes idle once it has loaded."""
+        self._short.set()
         threading.Thread(target=self._keep_count, daemon=True).start()
-        for _ in range(self.count):
-            self._spawn_or_retry()
         threading.Thread(target=self._refresh_idle, daemon=True).start()
 
     def loaded(self) -> bool:
@@ -947,21 +946,19 @@ class SparqlWorkers:
             self._stop(child)
             raise
 
-    def _spawn_or_retry(self) -> None:
-        """Start one worker; one that cannot be started now is left to ``_keep_count``."""
-        try:
-            self._spawn()
-        except Exception as exc:
-            log.error("a SPARQL worker could not be started (%s): trying again", exc)
-            self._short.set()
-
     def _keep_count(self) -> None:
-        """Start again, with backoff, the workers whose start failed, until the pool has its
-        ``count``: a failed fork while replacing a dead worker left the pool short for good."""
+        """The one thread that starts workers: at start, and whenever the pool is short of its
+        ``count`` (a worker replaced, a fork refused), again with backoff while forks fail.
+
+        A worker dies with the thread that forked it (``die_with_parent``: Linux's parent
+        death signal follows the forking *thread*), so no other thread may fork one. A
+        replacement forked on a request's thread was killed when that thread ended (anyio
+        ends an idle one after 10 s), and the next query to it failed and replaced it again,
+        reloading every description; one forked by ``_await_ready`` died with it."""
         delay = SPAWN_RETRY_S
         while True:
             self._short.wait()
-            if self._closing.wait(delay):
+            if self._closing.is_set():
                 return
             self._short.clear()  # before counting: a failure after the count sets it again
             with self._lock:
@@ -970,8 +967,10 @@ class SparqlWorkers:
                 for _ in range(missing):
                     self._spawn()
             except Exception as exc:
-                delay = min(delay * 2, SPAWN_RETRY_MAX_S)
                 log.error("a SPARQL worker could not be started (%s): again in %g s", exc, delay)
+                if self._closing.wait(delay):
+                    return
+                delay = min(delay * 2, SPAWN_RETRY_MAX_S)
                 self._short.set()
             else:
                 delay = SPAWN_RETRY_S
@@ -1017,7 +1016,7 @@ class SparqlWorkers:
             closed = self._closed
             self.replaced += 1
         if not closed:
-            self._spawn_or_retry()
+            self._short.set()
 
     @staticmethod
     def _stop(child: _Child) -> None:

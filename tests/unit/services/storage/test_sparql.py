@@ -3,6 +3,7 @@ files (additions seen by the next query, a query past its deadline killed and re
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -396,6 +397,41 @@ def test_a_query_that_fills_the_pipe_of_a_hung_worker_times_out_and_the_worker_i
         assert workers.describe()["replaced"] == 1
         assert workers._children[0].process is not hung
         assert asks_a_file(workers)
+    finally:
+        if hung is not None and hung.poll() is None:
+            hung.send_signal(signal.SIGCONT)
+            hung.kill()
+        workers.close()
+
+
+def test_a_replacement_lives_on_when_the_thread_whose_query_replaced_it_ends(
+    tmp_path: Path,
+) -> None:
+    """Linux's parent-death signal follows the thread that forked a worker: a replacement was
+    forked on the thread of the query that timed out, and killed when that thread ended (anyio
+    ends an idle one after 10 s), so the next query failed and reloaded every description."""
+    workers = one_worker(tmp_path, timeout_s=2)
+    hung: subprocess.Popen[bytes] | None = None
+    try:
+        wait_for(lambda: workers.describe()["ready"] == 1, "the worker")
+        hung = workers._children[0].process
+        hung.send_signal(signal.SIGSTOP)
+
+        def query_then_wait_for_the_replacement() -> None:
+            with contextlib.suppress(QueryTimeoutError):
+                workers.query(PREFIX + "ASK { ?s a rc:File }", None)
+            wait_for(lambda: workers.describe()["ready"] == 1, "the replacement worker")
+
+        thread = threading.Thread(target=query_then_wait_for_the_replacement, daemon=True)
+        thread.start()
+        thread.join(60)
+        assert not thread.is_alive()
+        replacement = workers._children[0].process
+        assert replacement is not hung
+        time.sleep(1.0)
+        assert replacement.poll() is None, "the replacement died with the thread"
+        assert asks_a_file(workers)
+        assert workers.describe()["replaced"] == 1
     finally:
         if hung is not None and hung.poll() is None:
             hung.send_signal(signal.SIGCONT)
