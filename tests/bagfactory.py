@@ -14,7 +14,7 @@ import numpy as np
 from rosbags.rosbag1 import Writer as Rosbag1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from ruamel.yaml import YAML
 
 BagKind = Literal["ros1", "sqlite3", "mcap"]
@@ -277,3 +277,16 @@ def write_ros1_big_chunk(path: Path, size: int) -> Path:
         text = store.types["std_msgs/msg/String"](data="\0" * size)
         writer.write(connection, START_NS, store.serialize_ros1(text, "std_msgs/msg/String"))
     return path
+
+
+def fanout_store(width: int, levels: int, base: Stores = Stores.EMPTY) -> Any:
+    """``base``'s types and ``fan_msgs/msg/Level0``: ``width`` fields of ``Level1``, each
+    ``width`` of ``Level2`` and so on, ``Level{levels}`` holding ``width`` floats: ``levels +
+    1`` short definitions whose draft would hold ``width ** (levels + 1)`` leaves."""
+    store = get_typestore(base)
+    for level in range(levels):
+        fields = "\n".join(f"fan_msgs/Level{level + 1} f{n}" for n in range(width))
+        store.register(get_types_from_msg(fields, f"fan_msgs/msg/Level{level}"))
+    floats = "\n".join(f"float64 x{n}" for n in range(width))
+    store.register(get_types_from_msg(floats, f"fan_msgs/msg/Level{levels}"))
+    return store

@@ -18,12 +18,14 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from types import FrameType
 
 import httpx
 
 from robocloud.config import SERVICES
+from services.common.lifetime import die_with_parent
 
 COLOURS = ("36", "33", "32", "35", "34")
 STARTUP_ORDER = ("ledger", "cas", "storage", "broker", "fl")
@@ -38,15 +40,6 @@ class Child:
     @property
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
-
-
-def _die_with_parent() -> None:
-    """Run in each child before exec: if the supervisor is killed, its services go too."""
-    if sys.platform == "linux":
-        import ctypes
-
-        pr_set_pdeathsig = 1
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
 
 
 def free_port() -> int:
@@ -96,7 +89,7 @@ class Supervisor:
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
-                preexec_fn=_die_with_parent,
+                preexec_fn=partial(die_with_parent, signal.SIGTERM),
             )
             child = Child(name, self.ports[name], process)
             self.children.append(child)

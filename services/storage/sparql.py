@@ -56,7 +56,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from services.storage.lifetime import die_with_parent
+from services.common.lifetime import die_with_parent
 
 log = logging.getLogger("robocloud.storage.sparql")
 

@@ -36,6 +36,7 @@ import orjson
 
 from robocloud.templates import MAX_T, RecordInvalid, Template, check_envelope, parse_template
 from robocloud.unixfs import import_bytes
+from services.common.lifetime import die_with_parent
 from services.storage.bags import (
     Bag,
     BagConnection,
@@ -45,7 +46,6 @@ from services.storage.bags import (
     MissingDefinition,
     Window,
 )
-from services.storage.lifetime import die_with_parent
 from services.storage.matcher import (
     BindingInvalid,
     BlobSink,

@@ -12,15 +12,20 @@ import pytest
 REFERENCE = Path(__file__).parent
 
 
-def reference_cid(directory: Path, *args: str) -> str:
-    """The root CID the reference gives ``directory``; ``args`` as import-dir.mjs takes them."""
-    node = shutil.which("node")
-    if node is None or not (REFERENCE / "node_modules").is_dir():
+def node() -> str:
+    """Node, with the reference installed beside it; a test without them skips (fails in CI)."""
+    found = shutil.which("node")
+    if found is None or not (REFERENCE / "node_modules").is_dir():
         if os.environ.get("CI"):
             pytest.fail("js reference missing: run `npm ci --prefix tests/reference`")
         pytest.skip("js reference missing (npm ci --prefix tests/reference)")
+    return found
+
+
+def reference_cid(directory: Path, *args: str) -> str:
+    """The root CID the reference gives ``directory``; ``args`` as import-dir.mjs takes them."""
     done = subprocess.run(
-        [node, str(REFERENCE / "import-dir.mjs"), str(directory), *args],
+        [node(), str(REFERENCE / "import-dir.mjs"), str(directory), *args],
         capture_output=True,
         text=True,
         timeout=300,

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import base64
 import json
-import os
-import shutil
 import subprocess
 
 import pytest
@@ -25,7 +23,7 @@ from robocloud.directory import (
     sharded_directory,
 )
 from robocloud.unixfs import HAMT_SHARD, MURMUR3_X64_64, UnixfsData, UnixfsError
-from tests.reference import REFERENCE
+from tests.reference import REFERENCE, node
 
 ENTRIES = {3: 1_500, 4: 1_500, 5: 1_500, 8: 600, 9: 400, 10: 300}
 """Files besides ``hello.txt`` by fanout bits: enough for sub-shards at every fanout (seven
@@ -62,13 +60,8 @@ console.log(JSON.stringify({ root: root.toString(), blocks }))
 
 def reference_shard(fanout_bits: int, count: int) -> tuple[CID, dict[CID, bytes]]:
     """The reference importer's HAMT (sharding forced) and every block it wrote."""
-    node = shutil.which("node")
-    if node is None or not (REFERENCE / "node_modules").is_dir():
-        if os.environ.get("CI"):
-            pytest.fail("js reference missing: run `npm ci --prefix tests/reference`")
-        pytest.skip("js reference missing (npm ci --prefix tests/reference)")
     done = subprocess.run(
-        [node, "--input-type=module", "-e", IMPORT_SHARDED, str(count), str(fanout_bits)],
+        [node(), "--input-type=module", "-e", IMPORT_SHARDED, str(count), str(fanout_bits)],
         cwd=REFERENCE,  # where the inline module finds node_modules
         capture_output=True,
         text=True,

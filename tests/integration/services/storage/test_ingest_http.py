@@ -30,7 +30,13 @@ from robocloud.storage import Storage as StorageClient
 from robocloud.unixfs import import_bytes
 from services.storage.bags import MAX_CHUNK_BYTES
 from services.storage.matcher import draft_template
-from tests.bagfactory import typestore_for, write_bag, write_mcap_bomb, write_ros1_big_chunk
+from tests.bagfactory import (
+    fanout_store,
+    typestore_for,
+    write_bag,
+    write_mcap_bomb,
+    write_ros1_big_chunk,
+)
 from tests.conftest import ServiceFactory
 from tests.procs import SHARED_DATA, ServiceProcess
 from tests.waiting import wait_for
@@ -229,12 +235,7 @@ def write_fanout_mcap(directory: Path, width: int, levels: int = 7) -> Path:
     ``fan_msgs/msg/Level0`` and no message, whose definition nests ``levels`` types of
     ``width`` message fields each (``width ** (levels + 1)`` leaves drafted whole), and
     ``/chatter``, one ``std_msgs/msg/String``."""
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    for level in range(levels):
-        fields = "\n".join(f"fan_msgs/Level{level + 1} f{n}" for n in range(width))
-        store.register(get_types_from_msg(fields, f"fan_msgs/msg/Level{level}"))
-    floats = "\n".join(f"float64 x{n}" for n in range(width))
-    store.register(get_types_from_msg(floats, f"fan_msgs/msg/Level{levels}"))
+    store = fanout_store(width, levels, Stores.ROS2_HUMBLE)
     string = "std_msgs/msg/String"
     with Rosbag2Writer(directory, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         writer.add_connection("/fan", "fan_msgs/msg/Level0", typestore=store)

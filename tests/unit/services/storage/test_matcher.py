@@ -27,7 +27,7 @@ from services.storage.matcher import (
     draft_name,
     draft_template,
 )
-from tests.bagfactory import BagKind, write_bag
+from tests.bagfactory import BagKind, fanout_store, write_bag
 from tests.blobs import MemoryBlobs
 
 DATA = Path(__file__).resolve().parents[5] / "shared" / "data"
@@ -108,19 +108,6 @@ def test_nested_headers_times_and_durations() -> None:
         "uuid": {"array": "int"},
         "flags": {"array": "bool"},
     }
-
-
-def fanout_store(width: int, levels: int) -> Any:
-    """``fan_msgs/msg/Level0``: ``width`` fields of ``Level1``, each ``width`` of ``Level2``
-    and so on, ``Level{levels}`` holding ``width`` floats: ``levels + 1`` short definitions
-    whose draft would hold ``width ** (levels + 1)`` leaves."""
-    store = get_typestore(Stores.EMPTY)
-    for level in range(levels):
-        fields = "\n".join(f"fan_msgs/Level{level + 1} f{n}" for n in range(width))
-        store.register(get_types_from_msg(fields, f"fan_msgs/msg/Level{level}"))
-    floats = "\n".join(f"float64 x{n}" for n in range(width))
-    store.register(get_types_from_msg(floats, f"fan_msgs/msg/Level{levels}"))
-    return store
 
 
 def flat_store(fields: int) -> Any:

@@ -365,17 +365,30 @@ def asks_a_file(workers: SparqlWorkers) -> bool:
     return answer
 
 
-def test_a_query_that_fills_the_pipe_of_a_hung_worker_times_out_and_the_worker_is_replaced(
-    tmp_path: Path,
-) -> None:
-    """A stopped worker takes nothing off its pipe, which holds 64 KiB: the write of a query of
-    the accepted maximum size has the query's deadline too (it blocked for good)."""
-    workers = one_worker(tmp_path, timeout_s=2)
+@contextlib.contextmanager
+def one_hung_worker(directory: Path) -> Iterator[tuple[SparqlWorkers, subprocess.Popen[bytes]]]:
+    """A pool of one worker with a 2 s deadline, its worker stopped (SIGSTOP) once ready; the
+    stopped process is killed and the pool closed afterwards."""
+    workers = one_worker(directory, timeout_s=2)
     hung: subprocess.Popen[bytes] | None = None
     try:
         wait_for(lambda: workers.describe()["ready"] == 1, "the worker")
         hung = workers._children[0].process
         hung.send_signal(signal.SIGSTOP)
+        yield workers, hung
+    finally:
+        if hung is not None and hung.poll() is None:
+            hung.send_signal(signal.SIGCONT)
+            hung.kill()
+        workers.close()
+
+
+def test_a_query_that_fills_the_pipe_of_a_hung_worker_times_out_and_the_worker_is_replaced(
+    tmp_path: Path,
+) -> None:
+    """A stopped worker takes nothing off its pipe, which holds 64 KiB: the write of a query of
+    the accepted maximum size has the query's deadline too (it blocked for good)."""
+    with one_hung_worker(tmp_path) as (workers, hung):
         head = PREFIX + "ASK { ?s a rc:File }\n#"
         big = head + "x" * (64 * 1024 - len(head))
         failures: list[Exception] = []
@@ -397,11 +410,6 @@ def test_a_query_that_fills_the_pipe_of_a_hung_worker_times_out_and_the_worker_i
         assert workers.describe()["replaced"] == 1
         assert workers._children[0].process is not hung
         assert asks_a_file(workers)
-    finally:
-        if hung is not None and hung.poll() is None:
-            hung.send_signal(signal.SIGCONT)
-            hung.kill()
-        workers.close()
 
 
 def test_a_replacement_lives_on_when_the_thread_whose_query_replaced_it_ends(
@@ -410,12 +418,7 @@ def test_a_replacement_lives_on_when_the_thread_whose_query_replaced_it_ends(
     """Linux's parent-death signal follows the thread that forked a worker: a replacement was
     forked on the thread of the query that timed out, and killed when that thread ended (anyio
     ends an idle one after 10 s), so the next query failed and reloaded every description."""
-    workers = one_worker(tmp_path, timeout_s=2)
-    hung: subprocess.Popen[bytes] | None = None
-    try:
-        wait_for(lambda: workers.describe()["ready"] == 1, "the worker")
-        hung = workers._children[0].process
-        hung.send_signal(signal.SIGSTOP)
+    with one_hung_worker(tmp_path) as (workers, hung):
 
         def query_then_wait_for_the_replacement() -> None:
             with contextlib.suppress(QueryTimeoutError):
@@ -432,11 +435,6 @@ def test_a_replacement_lives_on_when_the_thread_whose_query_replaced_it_ends(
         assert replacement.poll() is None, "the replacement died with the thread"
         assert asks_a_file(workers)
         assert workers.describe()["replaced"] == 1
-    finally:
-        if hung is not None and hung.poll() is None:
-            hung.send_signal(signal.SIGCONT)
-            hung.kill()
-        workers.close()
 
 
 def test_a_worker_whose_replacement_could_not_be_forked_is_started_again(
