@@ -33,8 +33,12 @@ def endpoint(url: str, **options: Any) -> tuple[RpcEndpoint, NodeForwarder]:
     ), forwarder
 
 
-def answer(url: str, *documents: Any, **options: Any) -> list[Any]:
-    """The endpoint's answers to ``documents``, all sent at once."""
+def answer(
+    url: str, *documents: Any, first_at_node: threading.Event | None = None, **options: Any
+) -> list[Any]:
+    """The endpoint's answers to ``documents``, all sent at once; when ``first_at_node`` is
+    given, the others are sent only once it is set (the node has the first), so which one
+    holds a slot does not depend on how busy the machine is."""
     rpc, forwarder = endpoint(url, **options)
     answers: list[Any] = [None] * len(documents)
 
@@ -46,6 +50,8 @@ def answer(url: str, *documents: Any, **options: Any) -> list[Any]:
             async with anyio.create_task_group() as tasks:
                 for index, document in enumerate(documents):
                     tasks.start_soon(one, index, document)
+                    if index == 0 and first_at_node is not None:
+                        await anyio.to_thread.run_sync(first_at_node.wait, 10)
                     await anyio.sleep(0.05)
         finally:
             await forwarder.aclose()
@@ -150,23 +156,22 @@ def test_a_node_that_takes_longer_than_the_evm_timeout_times_the_call_out() -> N
 
 
 def test_when_every_connection_stays_busy_a_request_is_refused() -> None:
-    release = threading.Event()
+    first_at_node = threading.Event()
 
     def held(exchange: Exchange) -> Reply:
-        release.wait(10)
+        first_at_node.set()
+        time.sleep(1.0)
         return echo_node(exchange)
 
     with scripted_server(held) as node:
-        timer = threading.Timer(1.5, release.set)
-        timer.start()
         first, second = answer(
             node.url,
             request("eth_blockNumber", [], 1),
             request("eth_chainId", [], 2),
+            first_at_node=first_at_node,
             max_connections=1,
             connection_wait_s=0.3,
         )
-        timer.join()
     assert first == {"jsonrpc": "2.0", "id": 1, "result": ["eth_blockNumber", []]}
     assert second["error"] == {
         "code": -32005,
@@ -176,24 +181,24 @@ def test_when_every_connection_stays_busy_a_request_is_refused() -> None:
 
 
 def test_a_costly_call_waits_for_a_call_slot_and_others_do_not() -> None:
-    release = threading.Event()
+    call_at_node = threading.Event()
 
     def node_script(exchange: Exchange) -> Reply:
-        if json.loads(exchange.body)["method"] == "eth_call":
-            release.wait(10)
+        sent = json.loads(exchange.body)
+        if isinstance(sent, dict) and sent["method"] == "eth_call":
+            call_at_node.set()
+            time.sleep(1.0)
         return echo_node(exchange)
 
     with scripted_server(node_script) as node:
-        timer = threading.Timer(1.0, release.set)
-        timer.start()
         held, refused, read = answer(
             node.url,
             request("eth_call", [CALL, "latest"], 1),
             [request("eth_chainId", [], 2), request("eth_estimateGas", [CALL], 3)],
             request("eth_blockNumber", [], 4),
+            first_at_node=call_at_node,
             slot_wait_s=0.3,
         )
-        timer.join()
     assert held["result"] == ["eth_call", [CALL, "latest"]]
     assert refused == {
         "jsonrpc": "2.0",
