@@ -400,6 +400,8 @@ def _open_ingest(
         batch_records=settings.storage_ingest_batch_records,
         staging_workers=settings.storage_ingest_workers,
         parallel_from_messages=settings.storage_ingest_parallel_messages,
+        worker_memory_bytes=settings.storage_ingest_worker_memory_bytes,
+        stall_s=settings.storage_ingest_stall_s,
         max_pending=settings.storage_max_ingest_jobs,
         publish=publish if settings.storage_publish_datasets else None,
     )

@@ -559,6 +559,8 @@ class Bag:
             if self._is_ros1:
                 return store.deserialize_ros1(raw, connection.msgtype)
             return store.deserialize_cdr(raw, connection.msgtype)
+        except MemoryError:
+            raise  # the message is not bad, only too large for this process (see staging)
         except Exception as exc:  # rosbags' serde raises anything, from struct to numpy
             raise MessageUndecodable(
                 connection.topic, connection.msgtype, t_ns, _reason(exc)

@@ -47,6 +47,7 @@ from services.storage.matcher import Bindings, BlobSink, DraftError, draft_templ
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore, record_id
 from services.storage.staging import (
+    STALL_S,
     IngestFailed,
     Plans,
     SpoolDamaged,
@@ -55,7 +56,6 @@ from services.storage.staging import (
     bag_failures,
     check_complete,
     compile_plan,
-    stage_window,
     start_workers_server,
 )
 
@@ -209,6 +209,8 @@ class IngestJobs:
         batch_records: int = 5000,
         staging_workers: int = 1,
         parallel_from_messages: int = 20_000,
+        worker_memory_bytes: int = 0,
+        stall_s: float = STALL_S,
         max_pending: int = 16,
         keep_finished: int = 1000,
         publish: Publish | None = None,
@@ -221,8 +223,13 @@ class IngestJobs:
         self.batch_records = batch_records
         self.staging_workers = staging_workers
         """Processes that stage a bag of at least ``parallel_from_messages`` messages, each a
-        time window of it (see :mod:`services.storage.staging`); smaller bags stage here."""
+        time window of it (see :mod:`services.storage.staging`); one of them stages a smaller
+        bag."""
         self.parallel_from_messages = parallel_from_messages
+        self.worker_memory_bytes = worker_memory_bytes
+        """The address space of each staging process (0: unbounded)."""
+        self.stall_s = stall_s
+        """A staging process silent this long is stuck (:data:`~staging.STALL_S`)."""
         self.max_pending = max_pending
         self.keep_finished = keep_finished
         self.publish = publish
@@ -233,8 +240,7 @@ class IngestJobs:
         root.mkdir(parents=True, exist_ok=True)
         # A bag on its way in when the service stopped (kill -9 during an upload) is no job's.
         shutil.rmtree(self.root / INCOMING, ignore_errors=True)
-        if staging_workers > 1:
-            start_workers_server()
+        start_workers_server()
         for path in sorted(root.glob("*/job.json"), key=lambda p: p.stat().st_mtime):
             job = Job.from_json(json.loads(path.read_text()))
             self._jobs[job.id] = job
@@ -473,34 +479,27 @@ class IngestJobs:
         shutil.rmtree(staged_dir, ignore_errors=True)
         staged_dir.mkdir()
         robot = job.author["signer"]
-        blobs = self.blobs()
-        workers = None
+        workers = StagingProcesses.start(
+            _bag_in(directory),
+            self.staging_workers,
+            staged_dir,
+            robot,
+            self.store.arrays,
+            self.worker_memory_bytes,
+        )
         try:
-            if self.staging_workers > 1:
-                workers = StagingProcesses.start(
-                    _bag_in(directory), self.staging_workers, staged_dir, robot, self.store.arrays
-                )
-            # With staging processes, the bag's files are checked while they stage.
-            with bag_failures(), Bag.open(_bag_in(directory), check=workers is None) as bag:
+            # The bag's files are checked while its messages stage.
+            with bag_failures(), Bag.open(_bag_in(directory), check=False) as bag:
                 reports, plans = self._plan(bag)
                 total = sum(r.messages for r in reports if r.template is not None)
                 planned(reports, total)
-                if workers is not None and total >= self.parallel_from_messages:
-                    staged = workers.stage(plans, blobs, progress, alongside=bag.check_files)
-                    check_complete(bag, plans, staged)
-                    parts = workers.count
-                else:
-                    if workers is not None:
-                        workers.close()
-                        bag.check_files()
-                    arrays = self.store.arrays
-                    staged = stage_window(
-                        bag, plans, None, staged_dir, 0, robot, arrays, blobs, progress
-                    )
-                    parts = 1
+                parts = workers.count if total >= self.parallel_from_messages else 1
+                staged = workers.stage(
+                    plans, parts, self.blobs(), progress, bag.check_files, self.stall_s
+                )
+                check_complete(bag, plans, staged)
         finally:
-            if workers is not None:
-                workers.close()
+            workers.close()
         fsync_dir(staged_dir)
         return staged.records, parts
 

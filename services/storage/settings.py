@@ -133,13 +133,25 @@ class StorageSettings(ServiceSettings):
         ge=1,
         le=64,
         description="processes staging a large bag, each a time window of it (default: the "
-        "machine's cores, at most 4)",
+        "machine's cores, at most 4); the service never decodes a bag's message itself",
     )
     storage_ingest_parallel_messages: int = Field(
         default=20_000,
         ge=1,
-        description="bound messages from which a bag is staged in worker processes; smaller "
-        "bags stage in the service's process, where starting workers would cost more",
+        description="bound messages from which a bag is staged by all those processes, each "
+        "a time window of it; one of them stages a smaller bag",
+    )
+    storage_ingest_worker_memory_bytes: int = Field(
+        default=2 * 1024**3,
+        ge=0,
+        description="address space of a process staging a bag (0: unbounded); a message "
+        "decoding to more fails its job (message_too_large)",
+    )
+    storage_ingest_stall_s: float = Field(
+        default=120.0,
+        gt=0,
+        description="a staging process that sends nothing for this long is stuck: its job "
+        "fails (ingest_stalled)",
     )
     storage_max_ingest_jobs: int = Field(
         default=16, ge=1, description="ingest jobs queued or running at once"

@@ -42,7 +42,6 @@ import pickle
 import platform
 import queue
 import re
-import resource
 import select
 import signal
 import socket
@@ -56,7 +55,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from services.common.lifetime import die_with_parent
+from services.common.lifetime import die_with_parent, limit_memory
 
 log = logging.getLogger("robocloud.storage.sparql")
 
@@ -417,11 +416,6 @@ def _simple(term: Any) -> Any:
     return term
 
 
-def _limit_memory(limit: int) -> None:
-    if limit > 0:
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-
-
 _SECCOMP_ABI = {"x86_64": (0xC000003E, 41), "aarch64": (0xC00000B7, 198)}
 """Per machine: Linux's AUDIT_ARCH value for its native ABI, and the number of socket(2)."""
 
@@ -487,7 +481,7 @@ def worker_main(argv: Sequence[str]) -> None:
             "sparql worker: no seccomp here: queries are not kept off the network", file=sys.stderr
         )
     directory, store, memory, max_result = Path(argv[0]), argv[1], int(argv[2]), int(argv[3])
-    _limit_memory(memory)
+    limit_memory(memory)
     sys.setrecursionlimit(10_000)
     inbox, outbox = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # nothing but framed answers may reach the parent's pipe

@@ -4,10 +4,17 @@ Staging is pure Python for every message (rosbags' deserializer, conversion to t
 the template's check, canonical bytes, the document its views keep), about 25 µs an IMU
 message, and a bag holds hundreds of thousands of them: one interpreter is the bottleneck of an
 ingest. So a large bag is cut into time windows, each staged by its own process
-(:class:`StagingProcesses`) into its own spool part. Windows follow each other in time and the
-bag is read in time order, so the parts of a template read in window order hold its records in
-exactly the order one pass would give, and every message lies in exactly one window. The bag's
-index counts are checked over all windows together.
+(:class:`StagingProcesses`) into its own spool part; a small one is staged by one of them.
+Windows follow each other in time and the bag is read in time order, so the parts of a
+template read in window order hold its records in exactly the order one pass would give, and
+every message lies in exactly one window. The bag's index counts are checked over all windows
+together.
+
+The service never decodes a message itself: a message can decode to a hundred times its
+bytes (a ROS 1 ``std_msgs/Bool[]`` is a Python object per byte, about 100 bytes each: 4 MB
+took 411 MB and 5.8 s), and a chunk may hold 64 MiB. A staging process's address space is
+bounded (:func:`~services.common.lifetime.limit_memory`), so such a message fails its job
+(``message_too_large``) where it would have taken the service's memory.
 
 Worker processes never talk to cas: a worker computes the CID of an image, a file or a large
 array itself (the UnixFS import the SDK checks cas's answer against) and hands the bytes to
@@ -23,6 +30,7 @@ import multiprocessing
 import multiprocessing.forkserver
 import os
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -36,7 +44,7 @@ import orjson
 
 from robocloud.templates import MAX_T, RecordInvalid, Template, check_envelope, parse_template
 from robocloud.unixfs import import_bytes
-from services.common.lifetime import die_with_parent
+from services.common.lifetime import die_with_parent, limit_memory
 from services.storage.bags import (
     Bag,
     BagConnection,
@@ -58,7 +66,16 @@ from services.storage.recordstore import ArrayOffload, OffloadFailed, SpooledRec
 from services.storage.segments import DocumentForm, PreparedDocuments
 
 PROGRESS_EVERY = 1000
-"""Messages between two progress reports."""
+"""Messages between two progress reports, at most."""
+
+PROGRESS_S = 2.0
+"""Seconds between two progress reports, at most (checked after each message): a window of
+slow messages still reports, so that silence means a stuck process (:data:`STALL_S`)."""
+
+STALL_S = 120.0
+"""A staging process that sends nothing for this long is stuck, and its job fails. One
+message takes at most seconds: the costliest a staging process's memory allows (a 64 MiB
+chunk of a ROS 1 ``std_msgs/Bool[]``, failing at 2 GiB) about 20."""
 
 Plans = dict[tuple[str, str], tuple[Template, Converter]]
 """Per (topic, message type) bound to an approved template: the template and its converter."""
@@ -320,7 +337,7 @@ class RecordMaker:
 def stage_window(
     bag: Bag,
     plans: Plans,
-    window: Window | None,
+    window: Window,
     directory: Path,
     part: int,
     robot: str,
@@ -328,8 +345,8 @@ def stage_window(
     blobs: BlobSink,
     progress: Callable[[int], None],
 ) -> Staged:
-    """Spool the records of ``window``'s messages (None: the whole bag, its index counts
-    checked) to part ``part`` of each template's spool under ``directory``."""
+    """Spool the records of ``window``'s messages to part ``part`` of each template's spool
+    under ``directory`` (the caller checks the counts over all windows)."""
     makers_by_key = {
         (topic, msgtype): RecordMaker(template, converter, topic, robot, arrays, blobs)
         for (topic, msgtype), (template, converter) in plans.items()
@@ -339,14 +356,14 @@ def stage_window(
     spools: dict[str, SpoolWriter] = {}
     staged = Staged()
     records, messages = staged.records, staged.messages
-    done = 0
+    unreported, reported_at = 0, time.monotonic()
     try:
         for connection, t_ns, raw in bag.raw_messages({topic for topic, _ in plans}, window):
             key = (connection.topic, connection.msgtype)
             maker = makers_by_key.get(key)
             if maker is None:
                 continue
-            canonical = maker.encoded(bag.deserialize(connection, t_ns, raw), t_ns)
+            canonical = _record_bytes(bag, maker, connection, t_ns, raw)
             template_id = maker.template.id
             spool = spools.get(template_id)
             if spool is None:
@@ -354,16 +371,40 @@ def stage_window(
             spool.write(canonical)
             records[template_id] = records.get(template_id, 0) + 1
             messages[key] = messages.get(key, 0) + 1
-            done += 1
-            if done % PROGRESS_EVERY == 0:
-                progress(PROGRESS_EVERY)
+            unreported += 1
+            if unreported == PROGRESS_EVERY or time.monotonic() - reported_at >= PROGRESS_S:
+                progress(unreported)
+                unreported, reported_at = 0, time.monotonic()
         for spool in spools.values():
             spool.sync()
     finally:
         for spool in spools.values():
             spool.close()
-    progress(done % PROGRESS_EVERY)
+    progress(unreported)
     return staged
+
+
+def _record_bytes(
+    bag: Bag, maker: RecordMaker, connection: BagConnection, t_ns: int, raw: bytes
+) -> bytes:
+    """One message's record; a message decoding past this process's memory fails the job
+    once what it decoded is freed. The :class:`MemoryError`'s traceback holds the decoder's
+    frames, and with them the objects it made: a failure raised while handling it had no
+    memory left to be reported with, and the process spun on failed allocations."""
+    try:
+        return maker.encoded(bag.deserialize(connection, t_ns, raw), t_ns)
+    except MemoryError:
+        pass
+    raise _too_large(connection.topic, t_ns, len(raw))
+
+
+def _too_large(topic: str, t_ns: int, size: int) -> IngestFailed:
+    return IngestFailed(
+        "message_too_large",
+        f"topic {topic!r} at t={t_ns}: its {size}-byte message decodes to more than a staging "
+        "process may hold (ROBOCLOUD_STORAGE_INGEST_WORKER_MEMORY_BYTES)",
+        {"topic": topic, "t": t_ns, "bytes": size},
+    )
 
 
 # ----- staging in worker processes -----
@@ -375,12 +416,13 @@ class WindowTask:
     bag: Path
     directory: Path
     part: int
-    windows: int
-    """The bag's time span is cut into this many windows; the worker stages window ``part``."""
+    """The window this process stages, once the plan tells into how many the bag is cut."""
     robot: str
     inline_bytes: int
     offload: bool
     """Whether large arrays may go to cas (False: this node has none, the job fails)."""
+    memory_bytes: int
+    """The process's address space (0: unbounded)."""
 
 
 class CasBlobs:
@@ -436,24 +478,27 @@ def _stage_task(task: WindowTask, parent: Connection) -> None:
     """A worker process's body: every outcome is one message to the parent.
 
     It dies with the service: a worker decoding a bag's messages writes to the service only
-    every :data:`PROGRESS_EVERY` messages, so one stuck in a slow window ran on after a
-    ``kill -9`` of the service. Its parent is the forkserver, which ends when the service
-    does once no worker holds the pipe it waits on (:func:`_release_forkserver`), and the
-    kernel then kills the worker (:func:`die_with_parent`).
+    between messages (:data:`PROGRESS_EVERY`, :data:`PROGRESS_S`), so one stuck in a slow
+    message ran on after a ``kill -9`` of the service. Its parent is the forkserver, which
+    ends when the service does once no worker holds the pipe it waits on
+    (:func:`_release_forkserver`), and the kernel then kills the worker
+    (:func:`die_with_parent`).
     """
     die_with_parent()
     _release_forkserver()
+    limit_memory(task.memory_bytes)
     try:
         # The job's own open checks the bag; it sends no plan unless the bag passed.
         with bag_failures(), Bag.open(task.bag, check=False) as bag:
-            window = bag.time_windows(task.windows)[task.part]
             order = parent.recv()
             if order[0] != "plan":
                 return
+            _, documents, windows = order
+            window = bag.time_windows(windows)[task.part]
             connections = {(c.topic, c.msgtype): c for c in bag.connections}
             plans = {
                 key: compile_plan(connections[key], parse_template(document))
-                for key, document in order[1].items()
+                for key, document in documents.items()
             }
             blobs = CasBlobs(_forwarded(parent))
             arrays = ArrayOffload(task.inline_bytes, blobs.put if task.offload else None)
@@ -519,7 +564,8 @@ def _store_blob(blobs: BlobSink, cid: str, data: bytes) -> None:
 class StagingProcesses:
     """Processes that stage a bag's windows, started before the job has read the bag: each
     reads the bag's index (a quarter of a second for 200,000 ROS 1 messages) while the job
-    reads it to plan, then waits for the plan (:meth:`stage`) or is stopped (:meth:`close`).
+    reads it to plan, then waits for the plan (:meth:`stage`), or is stopped (:meth:`close`)
+    when the bag is cut into fewer windows than there are processes.
     """
 
     def __init__(self, tasks: list[WindowTask]) -> None:
@@ -541,12 +587,18 @@ class StagingProcesses:
 
     @classmethod
     def start(
-        cls, bag: Path, count: int, directory: Path, robot: str, arrays: ArrayOffload
+        cls,
+        bag: Path,
+        count: int,
+        directory: Path,
+        robot: str,
+        arrays: ArrayOffload,
+        memory_bytes: int,
     ) -> StagingProcesses:
         offload = arrays.offload is not None
         return cls(
             [
-                WindowTask(bag, directory, part, count, robot, arrays.inline_bytes, offload)
+                WindowTask(bag, directory, part, robot, arrays.inline_bytes, offload, memory_bytes)
                 for part in range(count)
             ]
         )
@@ -554,28 +606,35 @@ class StagingProcesses:
     def stage(
         self,
         plans: Plans,
+        windows: int,
         blobs: BlobSink,
         progress: Callable[[int], None],
         alongside: Callable[[], None],
+        stall_s: float = STALL_S,
     ) -> Staged:
-        """Stage every window with ``plans`` while ``alongside`` (the check of the bag's
-        files) runs here; the first failure of either stops them all."""
+        """Stage the bag cut into ``windows`` (at most :attr:`count`) with ``plans`` while
+        ``alongside`` (the check of the bag's files) runs here; the first failure of either
+        stops them all, as does a process that sends nothing for ``stall_s``. The processes
+        past ``windows`` are told to end."""
         templates = {key: template.to_json() for key, (template, _) in plans.items()}
-        for _, worker in self._workers:
+        for part, (_, worker) in enumerate(self._workers):
             try:
-                worker.send(("plan", templates))
+                worker.send(("plan", templates, windows) if part < windows else ("end",))
             except OSError:
                 continue  # it failed reading the bag: its message says why
         check = _Alongside(alongside)
         staged = Staged()
-        pending = {worker: part for part, (_, worker) in enumerate(self._workers)}
+        pending = {worker: part for part, (_, worker) in enumerate(self._workers[:windows])}
+        heard = dict.fromkeys(pending, time.monotonic())
         try:
             while pending or not check.done():
                 check.raise_failure()
                 for ready in wait(list(pending), timeout=0.05):
                     assert isinstance(ready, Connection)
+                    heard[ready] = time.monotonic()
                     if _handle(ready, pending[ready], blobs, progress, staged):
                         del pending[ready]
+                _raise_stalled(pending, heard, stall_s)
         except IngestFailed:
             check.join()  # a worker reading a damaged bag fails in its own words: the check's win
             check.raise_failure()
@@ -584,7 +643,7 @@ class StagingProcesses:
         return staged
 
     def close(self) -> None:
-        """Stop what is still running (after a failure, or when the bag stages here)."""
+        """Stop what is still running (after a failure)."""
         for process, worker in self._workers:
             if process.is_alive():
                 process.terminate()
@@ -619,6 +678,20 @@ class _Alongside:
             raise self._failure
 
 
+def _raise_stalled(
+    pending: Mapping[Connection, int], heard: Mapping[Connection, float], stall_s: float
+) -> None:
+    now = time.monotonic()
+    for worker, part in pending.items():
+        if now - heard[worker] > stall_s:
+            raise IngestFailed(
+                "ingest_stalled",
+                f"staging process {part} sent nothing for {stall_s:g} s: a message it stages "
+                "takes longer than any should (ROBOCLOUD_STORAGE_INGEST_STALL_S)",
+                {"part": part},
+            )
+
+
 def _handle(
     worker: Connection,
     part: int,
@@ -629,7 +702,7 @@ def _handle(
     """Act on one message of a worker; True once it has finished its window."""
     try:
         message = worker.recv()
-    except EOFError:
+    except (EOFError, OSError):  # it ended, or ended mid-message (connection reset)
         raise IngestFailed(
             "ingest_failed", f"staging process {part} ended without a result", {"part": part}
         ) from None

@@ -21,9 +21,9 @@ from eth_utils.crypto import keccak
 from robocloud.identity import Identity
 from robocloud.ingest import Ingest
 from robocloud.ledger.abi import ContractAbi, signature
-from tests.bagfactory import write_bag
+from tests.bagfactory import START_NS, write_bag
 from tests.conftest import ServiceFactory
-from tests.integration.services.storage.test_ingest_http import START_NS, Storage, approve
+from tests.integration.services.storage.test_ingest_http import Storage, approve
 from tests.procs import ServiceProcess
 from tests.scripted_http import Exchange, Reply
 from tests.waiting import wait_for

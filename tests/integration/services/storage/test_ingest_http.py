@@ -7,6 +7,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import signal
 import struct
 from collections.abc import Callable
@@ -31,18 +32,17 @@ from robocloud.unixfs import import_bytes
 from services.storage.bags import MAX_CHUNK_BYTES
 from services.storage.matcher import draft_template
 from tests.bagfactory import (
+    START_NS,
     fanout_store,
     typestore_for,
     write_bag,
+    write_flags_bag,
     write_mcap_bomb,
     write_ros1_big_chunk,
 )
 from tests.conftest import ServiceFactory
 from tests.procs import SHARED_DATA, ServiceProcess
 from tests.waiting import wait_for
-
-START_NS = 1_700_000_000_000_000_000
-"""November 2023 in nanoseconds since the epoch, as real recordings stamp their messages."""
 
 
 class Storage(ServiceClient):
@@ -350,6 +350,52 @@ def test_a_sequence_of_empty_messages_disables_only_its_topic(
         assert records.query(template=seq, limit=10, cursor=None).records == []
 
 
+def peak_resident_bytes(service: ServiceProcess) -> int:
+    assert service.process is not None
+    status = Path(f"/proc/{service.process.pid}/status").read_text()
+    return int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) * 1024  # type: ignore[union-attr]
+
+
+def test_a_message_decoding_past_a_staging_process_memory_fails_its_job_alone(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """A ROS 1 ``std_msgs/Bool[]`` decodes to a Python object of about 100 bytes per byte: 8
+    MB of it to some 800 MB, which staging in the service's process took from the service.
+    Its staging process runs out of its address space instead: the job fails naming the
+    message, stores nothing, and the service, which never held it, ingests the next bag."""
+    storage = service_factory(
+        "storage", {"ROBOCLOUD_STORAGE_INGEST_WORKER_MEMORY_BYTES": str(384 * 1024**2)}
+    )
+    flags = 8 * 1024**2
+    bag = write_flags_bag(tmp_path / "flags.bag", flags, chatter="hello")
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        text = approve(client, "std_msgs/msg/String")
+        seq = approved(client, {"name": "flag_seq", "version": 1, "fields": {"seq": "int"}})
+        ingest.bind(text, topic="/chatter")
+        ingest.bind(seq, topic="/flags")
+        failed = ingest.wait(ingest.upload(bag)["id"], timeout_s=120)
+        error = failed["error"]
+        assert (failed["status"], error["code"], error["details"]) == (
+            "failed",
+            "message_too_large",
+            {"topic": "/flags", "t": START_NS + 1, "bytes": flags + 8},
+        )
+        assert error["message"] == (
+            f"topic '/flags' at t={START_NS + 1}: its {flags + 8}-byte message decodes to more "
+            "than a staging process may hold (ROBOCLOUD_STORAGE_INGEST_WORKER_MEMORY_BYTES)"
+        )
+        assert failed["records"] == {"staged": 0, "committed": 0}
+        for template in (text, seq):
+            assert client.get_json("/v1/records", params={"template": template})["records"] == []
+        assert peak_resident_bytes(storage) < 384 * 1024**2
+
+        small = write_flags_bag(tmp_path / "small.bag", 16, chatter="hello")
+        done = ingest.wait(ingest.upload(small)["id"], timeout_s=60)
+        assert done["status"] == "succeeded", done["error"]
+        stored = client.get_json("/v1/records", params={"template": text})["records"]
+    assert [r["record"]["data"] for r in stored] == [{"data": "hello"}]
+
+
 def storage_address(storage: ServiceProcess) -> str:
     return str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
 
@@ -492,15 +538,15 @@ def _exported(storage: ServiceProcess, identity: Identity, bag: Path, out: Path)
 def test_a_bag_staged_by_worker_processes_gives_the_records_of_one_pass(
     service_factory: ServiceFactory, identity: Identity, tmp_path: Path
 ) -> None:
-    """The same bag through a service staging in two processes and one staging in its own:
-    the exported records are the same bytes, in the same order."""
+    """The same bag through a service staging it in two windows and one staging it whole in
+    one process: the exported records are the same bytes, in the same order."""
     bag = write_bag(tmp_path / "run.bag", "ros1", 2000, start_ns=START_NS)
     parallel = service_factory("storage", {**PARALLEL, **QUIET_NODE})
     single = service_factory("storage", {"ROBOCLOUD_STORAGE_INGEST_WORKERS": "1", **QUIET_NODE})
     staged_apart = _exported(parallel, identity, bag, tmp_path / "parallel.jsonl")
-    staged_here = _exported(single, identity, bag, tmp_path / "single.jsonl")
+    staged_whole = _exported(single, identity, bag, tmp_path / "single.jsonl")
     assert staged_apart.count(b"\n") == 1600
-    assert staged_apart == staged_here
+    assert staged_apart == staged_whole
 
 
 def _descendants(pid: int) -> list[int]:

@@ -20,7 +20,7 @@ from robocloud.ingest import Ingest
 from robocloud.ledger import Ledger
 from robocloud.ledger.rpc import JsonRpcClient
 from robocloud.storage import Storage as StorageClient
-from tests.bagfactory import write_bag
+from tests.bagfactory import START_NS, write_bag
 from tests.conftest import ServiceFactory
 from tests.integration.services.storage.counter import write_counter_records
 from tests.integration.services.storage.ledger_proxy import (
@@ -31,7 +31,7 @@ from tests.integration.services.storage.ledger_proxy import (
     upload_imu_bag,
 )
 from tests.integration.services.storage.test_anchoring import node_state
-from tests.integration.services.storage.test_ingest_http import START_NS, Storage, approve
+from tests.integration.services.storage.test_ingest_http import Storage, approve
 from tests.procs import ServiceProcess
 from tests.scripted_http import Exchange, Reply, scripted_server
 from tests.waiting import wait_for

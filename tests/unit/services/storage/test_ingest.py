@@ -23,20 +23,19 @@ from services.storage.ingest import IngestJobs, Job, JobNotFound, TooManyJobs
 from services.storage.matcher import Bindings, draft_template
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore
-from services.storage.staging import CasBlobs, SpoolWriter
+from services.storage.staging import CasBlobs, SpoolWriter, compile_plan, stage_window
 from tests.bagfactory import (
     FRAME_BYTES,
+    START_NS,
     TOPICS,
     BagKind,
     camera_run,
     typestore_for,
     write_bag,
+    write_flags_bag,
     write_messages,
 )
 from tests.blobs import MemoryBlobs
-
-START_NS = 1_700_000_000_000_000_000
-"""November 2023 in nanoseconds since the epoch, as real recordings stamp their messages."""
 
 
 class Node:
@@ -57,7 +56,7 @@ class Node:
         self.jobs = self.open_jobs()
 
     def open_jobs(self, batch_records: int = 50, staging_workers: int = 1) -> IngestJobs:
-        """Jobs that stage any bag in ``staging_workers`` processes (1: in this one)."""
+        """Jobs that stage any bag in ``staging_workers`` processes, each a window of it."""
         return IngestJobs(
             self.root / "jobs",
             self.store,
@@ -177,13 +176,13 @@ def test_a_bag_left_on_its_way_in_by_a_crash_is_removed_at_open(node: Node) -> N
     assert not incoming.exists()
 
 
-WORKERS = pytest.mark.parametrize("workers", [1, 3], ids=["in-process", "3-processes"])
+WORKERS = pytest.mark.parametrize("workers", [1, 3], ids=["1-process", "3-processes"])
 
 
 @pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
 def test_staging_in_processes_logs_what_one_pass_logs(tmp_path: Path, kind: str) -> None:
     """Time windows staged by three processes give the logs, byte for byte and in the same
-    order, that staging in the service's process gives; their frames reach the blob sink."""
+    order, that one process staging the whole bag gives; their frames reach the blob sink."""
     logs: dict[int, dict[str, list[bytes]]] = {}
     author = authorship()
     for workers in (1, 3):
@@ -479,7 +478,8 @@ def test_job_state_round_trips() -> None:
 
 
 def _traced_peak(node: Node, path: Path) -> int:
-    """Bytes the ingest of ``path`` held at most beyond what was held before it started."""
+    """Bytes the ingest of ``path`` held at most in this process (the service's: receiving
+    frames from its staging process, committing) beyond what was held before it started."""
     tracemalloc.start()
     try:
         before = tracemalloc.get_traced_memory()[0]
@@ -492,13 +492,46 @@ def _traced_peak(node: Node, path: Path) -> int:
     return peak - before
 
 
+def _staging_peak(node: Node, path: Path, spool: Path) -> int:
+    """Bytes staging ``path`` whole held at most beyond what was held before, staged here as
+    its staging process does."""
+    spool.mkdir()
+    with Bag.open(path) as opened:
+        plans = {}
+        for connection in opened.connections:
+            template_id = node.bindings.resolve(connection.topic, connection.msgtype)
+            assert template_id is not None
+            template = node.catalog.approved(template_id)
+            plans[connection.topic, connection.msgtype] = compile_plan(connection, template)
+        tracemalloc.start()
+        try:
+            before = tracemalloc.get_traced_memory()[0]
+            staged = stage_window(
+                opened,
+                plans,
+                (None, None),
+                spool,
+                0,
+                node.author,
+                node.store.arrays,
+                node.blobs,
+                lambda _: None,
+            )
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    assert sum(staged.records.values()) == sum(c.count for c in opened.connections)
+    return peak - before
+
+
 @pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
 def test_memory_does_not_follow_the_size_of_the_bag(
     node: Node, tmp_path: Path, kind: BagKind
 ) -> None:
-    """A bag of 40 camera frames (0.9 MB each) and one of 10 are ingested with the same peak
-    give or take 4 frames: frames, records and spools are streamed, never gathered (a list of
-    records or of image bytes would hold 30 frames' worth more)."""
+    """A bag of 40 camera frames (0.9 MB each) and one of 10 are staged, and ingested, with
+    the same peak give or take 4 frames: frames, records and spools are streamed, never
+    gathered (a list of records or of image bytes would hold 30 frames' worth more), in the
+    staging process and in the service."""
     for msgtype in TOPICS.values():
         node.bindings.bind(template_id=node.approve(msgtype), msgtype=msgtype)
     node.blobs = CasBlobs(lambda data: str(import_bytes(data)[1]))  # type: ignore[assignment]
@@ -507,9 +540,13 @@ def test_memory_does_not_follow_the_size_of_the_bag(
     for name, frames in (("warm", 10), ("small", 10), ("large", 40)):
         path = tmp_path / (f"{name}.bag" if kind == "ros1" else name)
         bags[name] = write_messages(path, kind, store, camera_run(store, frames))
+    _staging_peak(node, bags["warm"], tmp_path / "spool-warm")
+    small = _staging_peak(node, bags["small"], tmp_path / "spool-small")
+    large = _staging_peak(node, bags["large"], tmp_path / "spool-large")
+    assert large - small < 4 * FRAME_BYTES, ("staging", small, large)
     _traced_peak(node, bags["warm"])
     small, large = _traced_peak(node, bags["small"]), _traced_peak(node, bags["large"])
-    assert large - small < 4 * FRAME_BYTES, (small, large)
+    assert large - small < 4 * FRAME_BYTES, ("ingest", small, large)
 
 
 def test_the_blob_memo_forgets_the_oldest_content() -> None:
@@ -524,6 +561,45 @@ def test_the_blob_memo_forgets_the_oldest_content() -> None:
     for data in (b"a", b"a", b"b", b"c", b"c", b"a"):
         blobs.put(data)
     assert added == [b"a", b"b", b"c", b"a"]
+
+
+def test_a_staging_process_silent_past_the_stall_bound_fails_its_job(
+    node: Node, tmp_path: Path
+) -> None:
+    """A message that stages for longer than the bound (8 MiB of ROS 1 ``std_msgs/Bool[]``,
+    memory unbounded: about 12 s) fails its job as stalled, the process stopped, instead of
+    holding the one ingest thread for as long as it runs; nothing is stored, the next bag
+    ingests."""
+    node.jobs.close()
+    node.jobs = IngestJobs(
+        node.root / "jobs",
+        node.store,
+        node.logs,
+        node.bindings,
+        lambda: node.blobs,
+        stall_s=2.0,
+    )
+    seq = node.catalog.create(
+        {"name": "flag_seq", "version": 1, "fields": {"seq": "int"}}, author=node.author
+    ).id
+    node.catalog.submit(seq, author=node.author)
+    node.catalog.review(seq, "approve", reviewer=node.author)
+    node.bindings.bind(template_id=seq, topic="/flags")
+    slow = write_flags_bag(tmp_path / "slow.bag", 8 * 1024**2)
+    failed = node.jobs.wait(node.jobs.submit(slow, "upload:s", authorship()).id, 60)
+    assert failed.status == "failed"
+    assert failed.error == {
+        "code": "ingest_stalled",
+        "message": "staging process 0 sent nothing for 2 s: a message it stages takes "
+        "longer than any should (ROBOCLOUD_STORAGE_INGEST_STALL_S)",
+        "details": {"part": 0},
+        "resumable": False,
+    }
+    assert node.logs.size(seq) == 0
+    quick = write_flags_bag(tmp_path / "quick.bag", 16)
+    done = node.jobs.wait(node.jobs.submit(quick, "upload:q", authorship()).id, 60)
+    assert done.status == "succeeded", done.error
+    assert [json.loads(e.record)["data"] for e in node.logs.entries(seq, 0, 1)] == [{"seq": 7}]
 
 
 def test_a_failure_the_disk_cannot_save_leaves_the_ingest_worker_running(

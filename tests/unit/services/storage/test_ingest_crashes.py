@@ -13,38 +13,35 @@ from typing import Any
 import pytest
 
 from services.storage.ingest import Job
+from tests.bagfactory import START_NS
 from tests.unit.services.ledger.crash import output_of_killed
-from tests.unit.services.storage.test_ingest import START_NS, Node
+from tests.unit.services.storage.synced_files import synced
+from tests.unit.services.storage.test_ingest import Node
 
 IMU_RECORDS = 160
 """The IMU messages of ``bag(..., 200)``, the only topic the jobs here bind."""
 
 KILLED_COMMITTING = """
-import json, os, signal, sys
+import os, signal, sys
 from pathlib import Path
-from services.storage.recordstore import RecordStore
-from tests.unit.services.storage.test_ingest import Node, authorship, bag
 
 root = Path(sys.argv[1])
+os.environ["ROBOCLOUD_TEST_SYNC_LOG"] = str(root / "synced.jsonl")
+from services.storage import staging
+from services.storage.recordstore import RecordStore
+from tests.unit.services.storage import synced_files
+from tests.unit.services.storage.test_ingest import Node, authorship, bag
+
+context = staging._context
+staging._context = lambda: synced_files.preloaded(context())
 node = Node(root / "node")
 node.bindings.bind(template_id=node.approve("sensor_msgs/msg/Imu"), msgtype="sensor_msgs/msg/Imu")
-synced = {}
-
-def recording(sync):
-    def call(fd):
-        sync(fd)
-        path = os.readlink(f"/proc/self/fd/{fd}")
-        synced[path] = sorted(os.listdir(path)) if os.path.isdir(path) else os.fstat(fd).st_size
-    return call
-
-os.fsync, os.fdatasync = recording(os.fsync), recording(os.fdatasync)
 append = RecordStore.append_prepared
 batches = []
 
 def dying(self, *args, **kwargs):
     batches.append(append(self, *args, **kwargs))
     if len(batches) == 2:
-        (root / "synced.json").write_text(json.dumps(synced))
         os.kill(os.getpid(), signal.SIGKILL)
     return batches[-1]
 
@@ -54,7 +51,7 @@ print(job.id, flush=True)
 node.jobs.wait(job.id, 120)
 """
 """Ingests a bag of 160 IMU records in batches of 50, killed after its second batch, having
-noted what each fsync put on the disk: a file's size then, a directory's names."""
+noted what each fsync put on the disk, in the service and in its staging processes."""
 
 
 def run_killed(script: str, root: Path, *args: str) -> str:
@@ -104,7 +101,7 @@ def test_a_power_cut_while_committing_resumes_with_each_record_once(
     state = json.loads((staged.parent / "job.json").read_text())
     assert (state["status"], state["staged"]) == ("committing", {"imu@1": IMU_RECORDS})
     if loss == "unsynced":
-        cut_to_synced(staged, json.loads((tmp_path / "synced.json").read_text()))
+        cut_to_synced(staged, synced(tmp_path / "synced.jsonl"))
     else:
         lose_last_page(staged)
     node = Node(tmp_path / "node")
