@@ -58,6 +58,10 @@ writers stay far below: rosbag2's MCAP plugin closes a chunk at 1 MiB (the large
 recordings under shared/data is 1.02 MiB), rosbag and rosbags' ROS 1 writers at 768 KiB."""
 
 
+FALLBACK_STORES = (Stores.ROS1_NOETIC, Stores.ROS2_HUMBLE)
+"""rosbags' typestores for the types of a ROS 1 and of a ROS 2 bag that carries no
+definition of its own."""
+
 MAX_UNROLLED = 1024
 """Elements of fixed-size arrays of strings or of messages that one bag's definitions may
 hold in all. rosbags generates each type's (de)serializers with a line of Python per such
@@ -371,7 +375,7 @@ class Bag:
             _prepare(connection, digest, ros1=self._is_ros1, fallback=fallback, unrolled=unrolled)
 
     def _fallback_store(self) -> tuple[str, Typestore]:
-        store = Stores.ROS1_NOETIC if self._is_ros1 else Stores.ROS2_HUMBLE
+        store = FALLBACK_STORES[0 if self._is_ros1 else 1]
         return store.value, bundled_typestore(store)
 
     def _open_ros1(self) -> None:

@@ -28,7 +28,9 @@ def _recording(sync: Callable[[int], None], log: str) -> Callable[[int], None]:
 
 def preloaded(context: Any) -> Any:
     """``context`` (a forkserver's) with this module imported by its server too."""
-    context.set_forkserver_preload(["services.storage.staging", __name__])
+    from services.storage.staging import PRELOADED
+
+    context.set_forkserver_preload([*PRELOADED, __name__])
     return context
 
 
