@@ -577,7 +577,7 @@ def test_a_staging_process_silent_past_the_stall_bound_fails_its_job(
         node.logs,
         node.bindings,
         lambda: node.blobs,
-        stall_s=2.0,
+        stall_s=5.0,
     )
     seq = node.catalog.create(
         {"name": "flag_seq", "version": 1, "fields": {"seq": "int"}}, author=node.author
@@ -590,7 +590,7 @@ def test_a_staging_process_silent_past_the_stall_bound_fails_its_job(
     assert failed.status == "failed"
     assert failed.error == {
         "code": "ingest_stalled",
-        "message": "staging process 0 sent nothing for 2 s: a message it stages takes "
+        "message": "staging process 0 sent nothing for 5 s: a message it stages takes "
         "longer than any should (ROBOCLOUD_STORAGE_INGEST_STALL_S)",
         "details": {"part": 0},
         "resumable": False,
