@@ -175,3 +175,15 @@ class ServiceProcess:
 
     def __exit__(self, *exc_info: object) -> None:
         self.stop()
+
+
+def memory_kib(process: ServiceProcess) -> dict[str, int]:
+    """VmRSS (now) and VmHWM (the peak so far) of the service process, in KiB."""
+    assert process.process is not None
+    fields = {}
+    with open(f"/proc/{process.process.pid}/status") as status:
+        for line in status:
+            name, _, value = line.partition(":")
+            if name in ("VmRSS", "VmHWM"):
+                fields[name] = int(value.split()[0])
+    return fields

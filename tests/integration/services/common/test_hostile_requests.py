@@ -19,24 +19,12 @@ import pytest
 from robocloud.identity import Identity
 from robocloud.signing import sign_request
 from tests.conftest import ServiceFactory
-from tests.procs import ServiceProcess
+from tests.procs import ServiceProcess, memory_kib
 from tests.raw_http import read_answer
 
 MiB = 1 << 20
 HEADER_LIMIT = 64 * 1024
 LINE_LIMIT = 8 * 1024
-
-
-def memory_kib(process: ServiceProcess) -> dict[str, int]:
-    """VmRSS (now) and VmHWM (the peak so far) of the service process, in KiB."""
-    assert process.process is not None
-    fields = {}
-    with open(f"/proc/{process.process.pid}/status") as status:
-        for line in status:
-            name, _, value = line.partition(":")
-            if name in ("VmRSS", "VmHWM"):
-                fields[name] = int(value.split()[0])
-    return fields
 
 
 def stream_until_answered(sock: socket.socket, total: int) -> tuple[int, int, dict[str, Any]]:
