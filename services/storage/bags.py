@@ -49,7 +49,6 @@ ROS1_MAGIC = b"#ROSBAG V2.0\n"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 SQLITE_MAGIC = b"SQLite format 3\x00"
 IDL_SEPARATOR = "=" * 80 + "\n"
-BYTE_TYPES = frozenset({"uint8", "byte", "char"})
 MAX_CHUNK_BYTES = 64 * 1024**2
 """The most one chunk (MCAP or ROS 1) may hold decompressed. Every reader here decompresses a
 chunk whole, so a chunk is what a bag can make the service hold at once, and compression
@@ -181,9 +180,6 @@ class MessageUndecodable(Exception):
         self.reason = reason
 
 
-PlainConverter = Callable[[Any], Any]
-
-
 @dataclass
 class BagConnection:
     """One (topic, message type) pair of a bag, over all its storage files and publishers."""
@@ -198,7 +194,6 @@ class BagConnection:
     problem: str | None = None
     """Why this connection's messages cannot be decoded; None when they can."""
     typestore: Typestore | None = field(default=None, repr=False, compare=False)
-    to_plain: PlainConverter | None = field(default=None, repr=False, compare=False)
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -210,14 +205,6 @@ class BagConnection:
             "definition_source": self.definition_source,
             "problem": self.problem,
         }
-
-
-@dataclass(frozen=True)
-class BagMessage:
-    topic: str
-    msgtype: str
-    t_ns: int
-    data: dict[str, Any]
 
 
 RawMessage = tuple[BagConnection, int, bytes]
@@ -570,24 +557,6 @@ class Bag:
                 connection.topic, connection.msgtype, t_ns, _reason(exc)
             ) from None
 
-    def decode(self, connection: BagConnection, t_ns: int, raw: bytes) -> dict[str, Any]:
-        """One message as plain Python: dicts, lists, str, int, float; ``bytes`` for uint8[]."""
-        message = self.deserialize(connection, t_ns, raw)
-        assert connection.to_plain is not None
-        plain: dict[str, Any] = connection.to_plain(message)
-        return plain
-
-    def messages(self, topics: Collection[str] | None = None) -> Iterator[BagMessage]:
-        """Decoded messages in time order; raises on the first one that cannot be decoded."""
-        for connection in self.connections:
-            wanted = topics is None or connection.topic in topics
-            if connection.problem is not None and wanted and connection.count:
-                raise MissingDefinition(connection.topic, connection.msgtype, connection.problem)
-        for connection, t_ns, raw in self.raw_messages(topics):
-            yield BagMessage(
-                connection.topic, connection.msgtype, t_ns, self.decode(connection, t_ns, raw)
-            )
-
 
 _FORMATS: dict[MessageDefinitionFormat, Literal["msg", "idl", "none"]] = {
     MessageDefinitionFormat.MSG: "msg",
@@ -889,63 +858,3 @@ def _prepare(
             connection.msgtype, ros_version=1 if ros1 else 2
         )[0]
         connection.definition_format = "msg"
-    connection.to_plain = plain_converter(connection.typestore, connection.msgtype)
-
-
-def plain_converter(store: Typestore, msgtype: str) -> PlainConverter:
-    """A function turning a rosbags message of ``msgtype`` into plain Python values.
-
-    Compiled once per type from the typestore's field definitions, so the per-message work is
-    attribute reads and list building, no introspection.
-    """
-    compiled: dict[str, PlainConverter] = {}
-
-    def for_type(name: str) -> PlainConverter:
-        if name in compiled:
-            return compiled[name]
-        _, fields = store.fielddefs[name]
-        readers = [(field_name, for_field(desc)) for field_name, desc in fields]
-
-        def convert(message: Any) -> dict[str, Any]:
-            plain: dict[str, Any] = {}
-            for key, read in readers:
-                value = getattr(message, key)
-                plain[key] = value if read is None else read(value)
-            return plain
-
-        compiled[name] = convert
-        return convert
-
-    def for_field(desc: Any) -> PlainConverter | None:
-        """How a field's value becomes plain; None when it already is: rosbags deserializes
-        base types to int, float, bool and str."""
-        nodetype, detail = desc
-        if nodetype == Nodetype.BASE:
-            return None
-        if nodetype == Nodetype.NAME:
-            return for_type(detail)
-        (element_type, element_detail), _size = detail
-        if element_type == Nodetype.BASE:
-            base = element_detail[0]
-            if base in BYTE_TYPES:
-                return _bytes
-            if base in ("string", "wstring"):
-                return list
-            return _numbers
-        element = for_type(element_detail)
-        return lambda values: [element(value) for value in values]
-
-    return for_type(msgtype)
-
-
-def _bytes(value: Any) -> bytes:
-    if isinstance(value, bytes):
-        return value
-    return bytes(value.tobytes() if hasattr(value, "tobytes") else bytearray(value))
-
-
-def _numbers(value: Any) -> list[Any]:
-    if hasattr(value, "tolist"):
-        result: list[Any] = value.tolist()
-        return result
-    return list(value)

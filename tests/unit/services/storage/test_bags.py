@@ -8,6 +8,7 @@ import resource
 import shutil
 import struct
 from collections import Counter
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +40,7 @@ from tests.bagfactory import (
     write_mcap_bomb,
     write_ros1_big_chunk,
 )
-from tests.rosbags_compare import assert_matches_rosbags
+from tests.rosbags_compare import assert_matches_rosbags, decoded
 
 DATA = Path(__file__).resolve().parents[5] / "shared" / "data"
 MANIFEST = json.loads((DATA / "ros_manifest.json").read_text())
@@ -55,7 +56,7 @@ def test_generated_bag_matches_rosbags(tmp_path: Path, kind: BagKind) -> None:
     path = generated(tmp_path, kind)
     with Bag.open(path) as bag:
         listed = {(c.topic, c.msgtype): c for c in bag.connections}
-        messages = list(bag.messages())
+        messages = list(decoded(bag))
     assert set(listed) == set(TOPICS.items())
     assert {topic: c.count for (topic, _), c in listed.items()} == {
         "/imu": 32,
@@ -65,19 +66,21 @@ def test_generated_bag_matches_rosbags(tmp_path: Path, kind: BagKind) -> None:
     imu = listed["/imu", "sensor_msgs/msg/Imu"]
     assert imu.definition_source == "bag"
     assert "geometry_msgs/Vector3 angular_velocity" in imu.definition.replace("msg/", "")
-    assert [m.t_ns for m in messages] == [START_NS + i * 10_000_000 for i in range(40)]
+    assert [t_ns for _, t_ns, _ in messages] == [START_NS + i * 10_000_000 for i in range(40)]
     default = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
     with AnyReader([path], default_typestore=default) as reader:
         expected = [
             (c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()
         ]
     assert len(expected) == len(messages)
-    for message, (topic, t_ns, original) in zip(messages, expected, strict=True):
-        assert (message.topic, message.t_ns) == (topic, t_ns)
-        assert_matches_rosbags(message.data, original)
-    image = next(m for m in messages if m.topic == "/camera/image_raw")
-    assert isinstance(image.data["data"], bytes)
-    assert len(image.data["data"]) == 8 * 6 * 3
+    for (topic, t_ns, message), (their_topic, their_t_ns, original) in zip(
+        messages, expected, strict=True
+    ):
+        assert (topic, t_ns) == (their_topic, their_t_ns)
+        assert_matches_rosbags(message, original)
+    image = next(message for topic, _, message in messages if topic == "/camera/image_raw")
+    assert isinstance(image["data"], bytes)
+    assert len(image["data"]) == 8 * 6 * 3
 
 
 @pytest.mark.parametrize("entry", MANIFEST, ids=[entry["path"] for entry in MANIFEST])
@@ -121,11 +124,7 @@ READABLE = [
 def test_real_recordings_decode_as_rosbags_does(relative: str) -> None:
     path = DATA / relative
     with Bag.open(path) as bag:
-        ours = []
-        for connection, t_ns, raw in bag.raw_messages():
-            ours.append((connection.topic, t_ns, bag.decode(connection, t_ns, raw)))
-            if len(ours) == 300:
-                break
+        ours = list(islice(decoded(bag), 300))
     with AnyReader([path]) as reader:
         theirs = []
         for connection, t_ns, raw in reader.messages():
@@ -141,12 +140,13 @@ def test_real_recordings_decode_as_rosbags_does(relative: str) -> None:
 def test_split_bag_reads_every_file_in_time_order(relative: str) -> None:
     with Bag.open(DATA / relative) as bag:
         assert bag.format is BagFormat.ROS2_DIRECTORY
-        messages = list(bag.messages())
+        messages = list(decoded(bag))
+    stamps = [t_ns for _, t_ns, _ in messages]
     assert len(messages) == 6074
-    assert [m.t_ns for m in messages] == sorted(m.t_ns for m in messages)
-    assert (messages[0].t_ns, messages[-1].t_ns) == (1000, 2998)
-    assert Counter(m.topic for m in messages)["AAA"] == 804
-    assert all(isinstance(m.data["data"], str) for m in messages)
+    assert stamps == sorted(stamps)
+    assert (stamps[0], stamps[-1]) == (1000, 2998)
+    assert Counter(topic for topic, _, _ in messages)["AAA"] == 804
+    assert all(isinstance(message["data"], str) for _, _, message in messages)
 
 
 def test_bag_without_definitions_falls_back_to_the_bundled_typestore() -> None:
@@ -160,7 +160,7 @@ def test_bag_without_definitions_falls_back_to_the_bundled_typestore() -> None:
 @pytest.mark.parametrize("relative", ["rosbag2/rosbag2_talker_sqlite3", "mcap/rosbag2_talker_mcap"])
 def test_talker_directory_yields_its_messages_despite_qos_mismatch(relative: str) -> None:
     with Bag.open(DATA / relative) as bag:
-        strings = [m.data["data"] for m in bag.messages(topics=["/topic"])]
+        strings = [message["data"] for _, _, message in decoded(bag, topics=["/topic"])]
     assert len(strings) == 10
     assert strings[0] == "Hello, world! 0"
 
@@ -170,7 +170,7 @@ def test_undecodable_message_names_topic_type_and_time() -> None:
         Bag.open(DATA / "rosbag2/rosbag2_talker_sqlite3") as bag,
         pytest.raises(MessageUndecodable) as caught,
     ):
-        list(bag.messages(topics=["/rosout"]))
+        list(decoded(bag, topics=["/rosout"]))
     assert caught.value.topic == "/rosout"
     assert caught.value.msgtype == "rcl_interfaces/msg/Log"
     assert caught.value.t_ns > 0
@@ -187,9 +187,9 @@ def test_undecodable_message_names_topic_type_and_time() -> None:
 def test_one_unparsable_definition_disables_only_its_topics(relative: str) -> None:
     with Bag.open(DATA / relative) as bag:
         problems = {c.topic: c.problem for c in bag.connections}
-        good = list(bag.messages(topics=["/test_topic1", "/test_topic2"]))
+        good = list(decoded(bag, topics=["/test_topic1", "/test_topic2"]))
         with pytest.raises(MissingDefinition) as caught:
-            list(bag.messages())
+            list(decoded(bag))
     assert problems["/test_topic1"] is None
     assert problems["/test_service1/_service_event"] is not None
     assert "test_msgs/srv/BasicTypes_Event" in problems["/test_service1/_service_event"]
@@ -212,7 +212,7 @@ def test_message_type_without_definition(tmp_path: Path) -> None:
         assert listed.definition_source is None
         assert "no definition of my_msgs/msg/Counter" in (listed.problem or "")
         with pytest.raises(MissingDefinition) as caught:
-            list(bag.messages())
+            list(decoded(bag))
     assert (caught.value.topic, caught.value.msgtype) == ("/counter", "my_msgs/msg/Counter")
 
 
@@ -244,7 +244,7 @@ def test_fixed_arrays_rosbags_unrolls_are_bounded_per_bag(tmp_path: Path) -> Non
         writer.write(listed["/corners"], START_NS, raw)
     with Bag.open(path) as bag:
         problems = {connection.topic: connection.problem for connection in bag.connections}
-        decoded = list(bag.messages())
+        messages = list(decoded(bag))
     left = MAX_UNROLLED - 4 - 600
     assert problems == {
         "/corners": None,
@@ -256,7 +256,9 @@ def test_fixed_arrays_rosbags_unrolls_are_bounded_per_bag(tmp_path: Path) -> Non
             "may hold (rosbags generates code for each)"
         ),
     }
-    assert [(m.topic, m.data["corners"][3]["x"]) for m in decoded] == [("/corners", 3.0)]
+    assert [(topic, message["corners"][3]["x"]) for topic, _, message in messages] == [
+        ("/corners", 3.0)
+    ]
 
 
 NO_BYTES = "an array of a message that serialises to no bytes"
@@ -323,10 +325,10 @@ def test_arrays_of_messages_of_no_bytes_are_refused_at_open_in_ros1(tmp_path: Pa
             "/cube": no_bytes("cube_msgs/msg/Level0.next"),
             "/points": None,
         }
-        decoded = [m.data for m in bag.messages(topics=["/points"])]
+        points = [message for _, _, message in decoded(bag, topics=["/points"])]
         with pytest.raises(MissingDefinition) as caught:
-            list(bag.messages(topics=["/items"]))
-    assert decoded == [{"points": [{"x": 1.0, "y": 2.0, "z": 3.0}], "none": []}]
+            list(decoded(bag, topics=["/items"]))
+    assert points == [{"points": [{"x": 1.0, "y": 2.0, "z": 3.0}], "none": []}]
     assert caught.value.reason == problems["/items"]
 
 
@@ -359,7 +361,7 @@ def test_cdr_refuses_only_the_arrays_of_no_bytes_it_cannot_bound(tmp_path: Path)
         }
         for topic, _, _ in topics:
             with pytest.raises(MessageUndecodable, match=r"Invalid sequence length|unpack"):
-                list(bag.messages(topics=[topic]))
+                list(decoded(bag, topics=[topic]))
 
 
 def test_no_real_recording_or_bundled_type_holds_an_array_of_no_bytes() -> None:
@@ -381,7 +383,7 @@ def test_empty_bag_has_connections_and_no_messages() -> None:
     with Bag.open(DATA / "rosbag2/rosbag2_empty_bag") as bag:
         assert {c.topic for c in bag.connections} == {"/rosout", "/parameter_events"}
         assert bag.message_count == 0
-        assert list(bag.messages()) == []
+        assert list(decoded(bag)) == []
 
 
 @pytest.mark.parametrize("fraction", [0.1, 0.5, 0.99])
@@ -406,7 +408,7 @@ def test_corrupt_ros1_chunk_names_its_offset(tmp_path: Path) -> None:
     damaged[target + 200 : target + 264] = b"\xff" * 64
     path.write_bytes(bytes(damaged))
     with Bag.open(path) as bag, pytest.raises(BagCorrupt) as caught:
-        list(bag.messages())
+        list(decoded(bag))
     assert caught.value.offset == target
     assert f"at byte {target}" in str(caught.value)
 
@@ -535,6 +537,6 @@ def test_a_ros1_chunk_past_the_limit_is_refused_naming_it(tmp_path: Path) -> Non
     """rosbags decompresses a ROS 1 chunk whole (bz2, lz4) and keeps no size to check it by."""
     bag = write_ros1_big_chunk(tmp_path / "big.bag", MAX_CHUNK_BYTES)
     with Bag.open(bag) as opened, pytest.raises(BagUnreadable) as refused:
-        list(opened.messages())
+        list(decoded(opened))
     assert refused.value.offset == 13 + 4096  # after the magic and the bag header record
     assert refused.value.reason == f"chunk decompresses to more than {MAX_CHUNK_BYTES} bytes (lz4)"
