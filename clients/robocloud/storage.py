@@ -60,9 +60,23 @@ class RecordPage:
 
 @dataclass(frozen=True)
 class Interval:
+    """A time one robot's field held a value: entered at ``enter``, left at ``exit`` (None
+    while it still holds). The service builds these and robots read them, one wire form."""
+
     robot: str
     enter: int
     exit: int | None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"robot": self.robot, "enter": self.enter, "exit": self.exit}
+
+    @classmethod
+    def from_json(cls, item: Any) -> Interval:
+        """Raises ``KeyError``, ``TypeError`` or ``ValueError`` naming what is malformed."""
+        exit_ns = item["exit"]
+        return cls(
+            str(item["robot"]), int(item["enter"]), None if exit_ns is None else int(exit_ns)
+        )
 
 
 class Storage(ServiceClient):
@@ -308,10 +322,7 @@ class Storage(ServiceClient):
             "/v1/intervals", params={k: v for k, v in params.items() if v is not None}
         )
         try:
-            return [
-                Interval(str(item["robot"]), int(item["enter"]), _optional_int(item["exit"]))
-                for item in answer["intervals"]
-            ]
+            return [Interval.from_json(item) for item in answer["intervals"]]
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidAnswerError(f"the storage service sent invalid intervals: {exc}") from exc
 
@@ -332,10 +343,6 @@ def _check_answered(kind: str, asked: str, answered: str) -> None:
         raise InvalidAnswerError(
             f"asked for {kind} {asked[:100]!r}, the storage service sent {answered[:100]!r}"
         )
-
-
-def _optional_int(value: Any) -> int | None:
-    return None if value is None else int(value)
 
 
 def _stored(item: Any) -> StoredRecord:

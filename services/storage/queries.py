@@ -26,6 +26,7 @@ from typing import Any
 
 from robocloud import bounded_json
 from robocloud.cid import CIDError, parse_cid
+from robocloud.storage import Interval
 from robocloud.templates import TEMPLATE_ID, Scalar, Template
 from services.storage.keywords import KeywordIndex
 from services.storage.recordstore import RecordStore, StoredRecord
@@ -94,13 +95,6 @@ class Page:
     records: list[StoredRecord]
     next: str | None
     keywords_pending: int
-
-
-@dataclass(frozen=True)
-class Interval:
-    robot: str
-    enter: int
-    exit: int | None
 
 
 def _value(kind: str, text: str, parameter: str) -> Any:

@@ -428,7 +428,5 @@ async def state_intervals(
         "template": template,
         "field": field,
         "value": value,
-        "intervals": [
-            {"robot": item.robot, "enter": item.enter, "exit": item.exit} for item in intervals
-        ],
+        "intervals": [interval.to_json() for interval in intervals],
     }
