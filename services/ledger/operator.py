@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from robocloud.identity import Identity
-from services.common.durable import fsync_dir, generated_secret
+from services.common.durable import generated_secret
+from services.common.keystores import service_key
 
 SECRET_FILE = "operator.secret"
 KEYS_DIR = "keys"
@@ -58,14 +59,6 @@ def load_or_create(data_dir: Path, secret: str) -> OperatorKeys:
     keys = data_dir / KEYS_DIR
     keys.mkdir(parents=True, exist_ok=True)
     return OperatorKeys(
-        admin=_key(admin_keystore(data_dir), secret), faucet=_key(keys / "faucet.json", secret)
+        admin=service_key(admin_keystore(data_dir), secret),
+        faucet=service_key(keys / "faucet.json", secret),
     )
-
-
-def _key(path: Path, secret: str) -> Identity:
-    if path.exists():
-        return Identity.load(path, secret)
-    identity = Identity.generate()
-    identity.save(path, secret)
-    fsync_dir(path.parent)
-    return identity

@@ -24,7 +24,8 @@ from robocloud.cid import CID
 from robocloud.identity import Identity
 from robocloud.ledger import Ledger
 from robocloud.ledger.models import Role
-from services.common.durable import fsync_dir, generated_secret
+from services.common.durable import generated_secret
+from services.common.keystores import service_key
 
 log = logging.getLogger("robocloud.storage.identity")
 
@@ -40,14 +41,7 @@ def passphrase(data_dir: Path, configured: str | None) -> str:
 def load_or_create(data_dir: Path, configured_passphrase: str | None) -> Identity:
     """The node's key from its keystore, generated and saved on the first start."""
     data_dir.mkdir(parents=True, exist_ok=True)
-    secret = passphrase(data_dir, configured_passphrase)
-    path = data_dir / KEYSTORE
-    if path.exists():
-        return Identity.load(path, secret)
-    identity = Identity.generate()
-    identity.save(path, secret)
-    fsync_dir(path.parent)
-    return identity
+    return service_key(data_dir / KEYSTORE, passphrase(data_dir, configured_passphrase))
 
 
 class Standing(Enum):
