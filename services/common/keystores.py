@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from robocloud.identity import Identity, KeystoreError
+from robocloud.errors import KeystoreError
+from robocloud.identity import Identity
 from services.common.durable import fsync_dir
 
 

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from robocloud.identity import Identity, KeystoreError
+from robocloud.errors import KeystoreError
+from robocloud.identity import Identity
 from services.common.keystores import service_key
 
 
