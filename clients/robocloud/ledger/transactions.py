@@ -42,6 +42,15 @@ GAS_MARGIN = 1.25
 estimate and inclusion."""
 
 
+SIGNING_ATTEMPTS = 5
+"""How often ``send`` signs a call again when another writer of the key took its nonce first:
+each time that writer got a transaction in, so only as many writers racing at once as this
+fail one of them."""
+
+NONCE_TAKEN = ("nonce too low", "replacement transaction underpriced")
+"""How nodes (geth, anvil, the ledger) refuse a transaction whose nonce another transaction of
+its sender holds, mined or waiting: never included, so signing the call again is safe."""
+
 _QUANTITY = re.compile(r"0x[0-9a-fA-F]{1,64}")
 
 
@@ -182,7 +191,7 @@ def nonce_lock(chain_id: int, address: str) -> threading.Lock:
     transactions ("nonce too low"), failing that anchor or publish. The nonce still comes from
     the node each time (none is counted here, so a transaction the node dropped leaves no gap
     behind it); the lock only orders the writers. Other processes signing with the key are not
-    covered.
+    covered by it: ``Transactor.send`` signs again when one of them took the nonce.
     """
     key = (chain_id, address.lower())
     with _nonce_locks_guard:
@@ -319,14 +328,25 @@ class Transactor:
         Without ``gas`` the gas is estimated, so a call that would revert fails before
         anything is sent and costs nothing. ``before_send`` is given the signed transaction
         before it is sent (under ``nonce_lock``), for a caller to save it durably and
-        ``resume`` it after a crash.
+        ``resume`` it after a crash; it is given the new one when the call is signed again.
+
+        ``nonce_lock`` orders the writers of this process; another process signing with the
+        key (two CLI commands at once, a second host) can take the nonce between the read and
+        the send. The node then refuses the transaction (:data:`NONCE_TAKEN`), and the call is
+        signed again on a fresh nonce, up to :data:`SIGNING_ATTEMPTS` times.
         """
         gas = gas if gas is not None else self.estimate_gas(to, data, value)
-        with nonce_lock(self.chain_id, self.identity.address):
-            signed = self.sign_transaction(to, data, gas=gas, value=value)
-            if before_send is not None:
-                before_send(signed)
-            tx_hash = self.submit(signed.raw)
+        for attempt in range(1, SIGNING_ATTEMPTS + 1):
+            with nonce_lock(self.chain_id, self.identity.address):
+                signed = self.sign_transaction(to, data, gas=gas, value=value)
+                if before_send is not None:
+                    before_send(signed)
+                try:
+                    tx_hash = self.submit(signed.raw)
+                    break
+                except RpcError as exc:
+                    if attempt == SIGNING_ATTEMPTS or not self._nonce_taken(signed, exc):
+                        raise
         receipt = self.wait_for_receipt(tx_hash)
         if receipt.status == 0:
             raise self._revert_of(to, data, value, receipt)
@@ -343,6 +363,14 @@ class Transactor:
                 tx_hash,
             )
         return tx_hash
+
+    def _nonce_taken(self, signed: SignedTransaction, refusal: RpcError) -> bool:
+        """Whether the node refused ``signed`` because another transaction holds its nonce,
+        and does not hold ``signed`` itself (a lost answer's resend is refused the same way
+        once the first copy is in: that one must be waited for, never signed again)."""
+        if not refusal.message.lower().startswith(NONCE_TAKEN):
+            return False
+        return self.rpc.request("eth_getTransactionByHash", [signed.tx_hash]) is None
 
     def resume(self, signed: SignedTransaction) -> Receipt | None:
         """The receipt of a transaction saved before it was sent by a process that died before

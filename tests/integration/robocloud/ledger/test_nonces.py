@@ -1,6 +1,7 @@
 """Nonces: two writers of one key in one process, as a storage node's anchorer and dataset
 publisher are, each with its own ``Ledger`` (its own JSON-RPC client), sending at the same time;
-and a transaction saved before it was sent, resumed after a crash."""
+another process of the key taking the nonce first; and a transaction saved before it was sent,
+resumed after a crash."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ from typing import Any
 import pytest
 
 from robocloud.identity import Identity
-from robocloud.ledger import ContractAddresses, JsonRpcClient, Ledger, SignedTransaction
+from robocloud.ledger import ContractAddresses, JsonRpcClient, Ledger, RpcError, SignedTransaction
+from robocloud.ledger.transactions import SIGNING_ATTEMPTS, quantity
 from tests.integration.robocloud.ledger.conftest import Deployment
 from tests.integration.robocloud.ledger.nodes import robot_ledger
 
@@ -73,6 +75,89 @@ def test_two_writers_of_one_key_never_sign_the_same_nonce(deployment: Deployment
         assert errors == []
         advertised = anchorer.advertisements(advertiser=identity.address)
     assert sorted(event.cid for event in advertised) == cids
+
+
+class AnotherProcessFirst(JsonRpcClient):
+    """Each time the writer reads its pending nonce, another process of the key (outside
+    this process's nonce lock) has just sent a transfer on that nonce, ``left`` times more."""
+
+    def __init__(self, url: str, identity: Identity) -> None:
+        super().__init__(url)
+        self.identity = identity
+        self.left = 0
+        self.sent: list[str] = []
+
+    def request(self, method: str, params: list[Any] | None = None) -> Any:
+        answer = super().request(method, params)
+        pending_nonce = method == "eth_getTransactionCount" and params and params[-1] == "pending"
+        if pending_nonce and self.left > 0:
+            self.left -= 1
+            self.sent.append(self._transfer(quantity(answer)))
+        return answer
+
+    def _transfer(self, nonce: int) -> str:
+        signed = self.identity.account.sign_transaction(
+            {
+                "chainId": quantity(super().request("eth_chainId", [])),
+                "nonce": nonce,
+                "gas": 21_000,
+                "gasPrice": quantity(super().request("eth_gasPrice", [])),
+                "to": "0x000000000000000000000000000000000000dEaD",
+                "value": 1,
+            }
+        )
+        tx_hash: str = super().request(
+            "eth_sendRawTransaction", ["0x" + signed.raw_transaction.hex()]
+        )
+        return tx_hash
+
+
+def racing_ledger(deployment: Deployment) -> tuple[Ledger, AnotherProcessFirst]:
+    """A registered robot's ``Ledger`` whose client lets another process win the nonce race
+    as often as its ``left`` says."""
+    identity = Identity.generate()
+    deployment.fund(identity)
+    rpc = AnotherProcessFirst(deployment.url, identity)
+    ledger = Ledger(rpc, deployment.addresses, identity, receipt_timeout_s=10)
+    ledger.register(METADATA)
+    return ledger, rpc
+
+
+def mined_count(deployment: Deployment, address: str) -> int:
+    return quantity(deployment.rpc.request("eth_getTransactionCount", [address, "latest"]))
+
+
+def test_a_nonce_another_process_took_is_signed_again(deployment: Deployment) -> None:
+    """The node refuses the call's transaction ("nonce too low") twice; the call is signed
+    on the next nonce each time and mined once, beside the other process's transfers."""
+    ledger, other = racing_ledger(deployment)
+    with ledger:
+        start = mined_count(deployment, other.identity.address)
+        other.left = 2
+        cid = bytes.fromhex("01551220") + bytes([5] * 32)
+        advertised = ledger.advertise(cid, DESCRIPTION)
+        assert ledger.advertisements(cid=cid) == [advertised]
+    receipts = [deployment.rpc.request("eth_getTransactionReceipt", [tx]) for tx in other.sent]
+    assert [receipt["status"] for receipt in receipts] == ["0x1", "0x1"]
+    assert mined_count(deployment, other.identity.address) == start + 3
+
+
+def test_a_call_whose_nonce_is_taken_every_time_fails_after_its_attempts(
+    deployment: Deployment,
+) -> None:
+    """Bounded: past ``SIGNING_ATTEMPTS`` refusals the node's refusal is the caller's, and
+    nothing of the call is on chain."""
+    ledger, other = racing_ledger(deployment)
+    with ledger:
+        start = mined_count(deployment, other.identity.address)
+        other.left = SIGNING_ATTEMPTS
+        cid = bytes.fromhex("01551220") + bytes([6] * 32)
+        with pytest.raises(RpcError) as refused:
+            ledger.advertise(cid, DESCRIPTION)
+        assert refused.value.message.lower().startswith("nonce too low")
+        assert ledger.advertisements(cid=cid) == []
+    assert len(other.sent) == SIGNING_ATTEMPTS
+    assert mined_count(deployment, other.identity.address) == start + SIGNING_ATTEMPTS
 
 
 class Crash(Exception):
