@@ -332,8 +332,10 @@ class Transactor:
 
         ``nonce_lock`` orders the writers of this process; another process signing with the
         key (two CLI commands at once, a second host) can take the nonce between the read and
-        the send. The node then refuses the transaction (:data:`NONCE_TAKEN`), and the call is
-        signed again on a fresh nonce, up to :data:`SIGNING_ATTEMPTS` times.
+        the send. The node then refuses the transaction (:data:`NONCE_TAKEN`), and a call
+        moving no ether is signed again on a fresh nonce, up to :data:`SIGNING_ATTEMPTS`
+        times. Only the node says the nonce was taken: one that lies could mine every variant,
+        so one that moves ether is never signed twice, and a contract call at most that often.
         """
         gas = gas if gas is not None else self.estimate_gas(to, data, value)
         for attempt in range(1, SIGNING_ATTEMPTS + 1):
@@ -345,7 +347,8 @@ class Transactor:
                     tx_hash = self.submit(signed.raw)
                     break
                 except RpcError as exc:
-                    if attempt == SIGNING_ATTEMPTS or not self._nonce_taken(signed, exc):
+                    last = attempt == SIGNING_ATTEMPTS or value != 0
+                    if last or not self._nonce_taken(signed, exc):
                         raise
         receipt = self.wait_for_receipt(tx_hash)
         if receipt.status == 0:

@@ -13,12 +13,13 @@ import pytest
 
 from robocloud.identity import Identity
 from robocloud.ledger import ContractAddresses, JsonRpcClient, Ledger, RpcError, SignedTransaction
-from robocloud.ledger.transactions import SIGNING_ATTEMPTS, quantity
+from robocloud.ledger.transactions import SIGNING_ATTEMPTS, Transactor, quantity
 from tests.integration.robocloud.ledger.conftest import Deployment
 from tests.integration.robocloud.ledger.nodes import robot_ledger
 
 METADATA = bytes.fromhex("01701220") + bytes(range(32))
 DESCRIPTION = bytes.fromhex("01711220") + bytes(range(2, 34))
+DEAD = "0x000000000000000000000000000000000000dEaD"
 
 
 class MeetingAtTheNonce(JsonRpcClient):
@@ -102,7 +103,7 @@ class AnotherProcessFirst(JsonRpcClient):
                 "nonce": nonce,
                 "gas": 21_000,
                 "gasPrice": quantity(super().request("eth_gasPrice", [])),
-                "to": "0x000000000000000000000000000000000000dEaD",
+                "to": DEAD,
                 "value": 1,
             }
         )
@@ -158,6 +159,21 @@ def test_a_call_whose_nonce_is_taken_every_time_fails_after_its_attempts(
         assert ledger.advertisements(cid=cid) == []
     assert len(other.sent) == SIGNING_ATTEMPTS
     assert mined_count(deployment, other.identity.address) == start + SIGNING_ATTEMPTS
+
+
+def test_a_transfer_whose_nonce_was_taken_is_never_signed_again(deployment: Deployment) -> None:
+    """Only the node says the nonce was taken; were it lying, it could mine every variant, and
+    the robot would pay as often: a transaction moving ether is refused to the caller."""
+    ledger, other = racing_ledger(deployment)
+    with ledger:
+        start = mined_count(deployment, other.identity.address)
+        other.left = 1
+        transactor = Transactor(other, other.identity)
+        with pytest.raises(RpcError) as refused:
+            transactor.send(DEAD, b"", value=2, gas=21_000)
+    assert refused.value.message.lower().startswith("nonce too low")
+    assert (other.left, len(other.sent)) == (0, 1)
+    assert mined_count(deployment, other.identity.address) == start + 1
 
 
 class Crash(Exception):
