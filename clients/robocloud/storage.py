@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeGuard
 from urllib.parse import quote
 
 from robocloud import jcs
@@ -72,11 +72,22 @@ class Interval:
 
     @classmethod
     def from_json(cls, item: Any) -> Interval:
-        """Raises ``KeyError``, ``TypeError`` or ``ValueError`` naming what is malformed."""
-        exit_ns = item["exit"]
-        return cls(
-            str(item["robot"]), int(item["enter"]), None if exit_ns is None else int(exit_ns)
-        )
+        """The interval an answer holds; ``ValueError`` naming the field that is malformed.
+
+        Exact types, no coercion: ``int("12")`` or ``int(True)`` would turn an answer that
+        is wrong into a time the robot then believes."""
+        if not isinstance(item, dict):
+            raise ValueError(f"an interval must be an object, not {type(item).__name__}")
+        robot, enter, exit_ns = item.get("robot"), item.get("enter"), item.get("exit")
+        if not isinstance(robot, str):
+            raise ValueError(f"an interval's robot must be text, not {robot!r:.80}")
+        if not _is_time(enter):
+            raise ValueError(f"an interval's enter must be an integer time, not {enter!r:.80}")
+        if exit_ns is not None and not _is_time(exit_ns):
+            raise ValueError(
+                f"an interval's exit must be an integer time or null, not {exit_ns!r:.80}"
+            )
+        return cls(robot, enter, exit_ns)
 
 
 class Storage(ServiceClient):
@@ -361,6 +372,10 @@ def _stored(item: Any) -> StoredRecord:
         _optional_text(item, "signer"),
         meta if isinstance(meta, dict) else None,
     )
+
+
+def _is_time(value: Any) -> TypeGuard[int]:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _optional_text(answer: dict[str, Any], key: str) -> str | None:
