@@ -9,16 +9,18 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from eth_account import Account
-from eth_account.signers.local import LocalAccount
 from eth_utils.address import to_checksum_address
 
 from robocloud import bounded_json
 from robocloud.bounded_json import JsonError
 from robocloud.errors import KeystoreError
 from robocloud.partial import written_whole
+
+if TYPE_CHECKING:
+    from eth_account import Account
+    from eth_account.signers.local import LocalAccount
 
 PASSPHRASE_ENV = "ROBOCLOUD_PASSPHRASE"
 KEYSTORE_ENV = "ROBOCLOUD_KEYSTORE"
@@ -38,11 +40,11 @@ class Identity:
 
     @classmethod
     def generate(cls) -> Identity:
-        return cls(Account.create())
+        return cls(_account().create())
 
     @classmethod
     def from_key(cls, private_key: bytes | str) -> Identity:
-        return cls(Account.from_key(private_key))
+        return cls(_account().from_key(private_key))
 
     @property
     def address(self) -> str:
@@ -56,7 +58,9 @@ class Identity:
         """Write the encrypted keystore, readable by the owner only; never overwrite a key."""
         if not passphrase:
             raise KeystoreError("an empty passphrase would leave the key unprotected")
-        keystore = Account.encrypt(self.account.key, passphrase, kdf="scrypt", iterations=scrypt_n)
+        keystore = _account().encrypt(
+            self.account.key, passphrase, kdf="scrypt", iterations=scrypt_n
+        )
         path.parent.mkdir(parents=True, exist_ok=True)
         if path.exists() or path.is_symlink():
             raise KeystoreError(f"{path} already exists; refusing to overwrite a key")
@@ -79,7 +83,7 @@ class Identity:
             raise KeystoreError(f"{path} is not a readable keystore: {exc}") from exc
         _check_kdf(path, keystore)
         try:
-            key = Account.decrypt(keystore, passphrase)
+            key = _account().decrypt(keystore, passphrase)
         except (KeyError, TypeError) as exc:
             raise KeystoreError(f"{path} is not a valid keystore: missing {exc}") from exc
         except ValueError as exc:
@@ -100,6 +104,15 @@ class Identity:
             return str(to_checksum_address("0x" + address.removeprefix("0x")))
         except ValueError as exc:
             raise KeystoreError(f"{path} has a malformed address: {address[:64]!r}") from exc
+
+
+def _account() -> type[Account]:
+    """eth-account's ``Account``, imported on first use: the import takes about a second
+    (eth-keyfile loads py_ecc's BLS pairing tables), which every command paid before, even
+    those that never touch a key (``get``, ``cat``, ``verify``, ``query``, ``--help``)."""
+    from eth_account import Account
+
+    return Account
 
 
 def _read_keystore(path: Path) -> dict[str, Any]:

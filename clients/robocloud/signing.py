@@ -17,16 +17,16 @@ import secrets
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qsl, quote, unquote
 
-from eth_account import Account
-from eth_account.messages import encode_defunct
-from eth_account.signers.local import LocalAccount
 from eth_utils.address import to_checksum_address
 
 from robocloud import bounded_json
 from robocloud.errors import FormatError, SignatureError
+
+if TYPE_CHECKING:
+    from eth_account.signers.local import LocalAccount
 
 SCHEME = "ROBOCLOUD-REQUEST-V2"
 MAX_CLOCK_SKEW_S = 300
@@ -202,6 +202,8 @@ def sign_request(
     nonce: str | None = None,
 ) -> dict[str, str]:
     """The six signature headers for one request to the service whose audience is given."""
+    from eth_account.messages import encode_defunct  # on first use (robocloud.identity._account)
+
     parse_audience(audience)
     ts = int(time.time()) if timestamp is None else timestamp
     nonce = new_nonce() if nonce is None else nonce
@@ -319,6 +321,9 @@ def verify_request(
         )
     _canonical_signature(signature)
     message = canonical_request(audience, method, path, query, timestamp, nonce, content_sha256)
+    from eth_account import Account  # on first use (robocloud.identity._account)
+    from eth_account.messages import encode_defunct
+
     try:
         recovered = Account.recover_message(encode_defunct(text=message), signature=signature)
     except Exception as exc:  # eth-keys raises several types for unrecoverable signatures

@@ -29,6 +29,10 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 import anyio
+
+# Loaded at start: robocloud.signing imports eth-account on first use (a second's import, which
+# robots' read-only commands skip), and a service's first signed request must not wait on it.
+import eth_account  # noqa: F401
 from starlette.datastructures import Headers
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send

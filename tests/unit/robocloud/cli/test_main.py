@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import subprocess
 import sys
 from pathlib import Path
 
@@ -118,3 +119,23 @@ def test_an_os_error_is_one_line_without_traceback(tmp_path: Path) -> None:
     assert result.stdout == ""
     assert result.stderr.startswith("error: [Errno 2] No such file or directory")
     assert result.stderr.count("\n") == 1
+
+
+def test_a_command_that_signs_nothing_loads_no_signing_library() -> None:
+    """eth-account takes about a second to import (eth-keyfile loads py_ecc's BLS pairing
+    tables); ``get``, ``cat``, ``verify`` and ``--help`` never sign, so they must not pay it.
+    A key created then loads it."""
+    probe = (
+        "import sys\n"
+        "from typer.testing import CliRunner\n"
+        "from robocloud.cli import app\n"
+        "assert CliRunner().invoke(app, ['verify', '--help']).exit_code == 0\n"
+        "print('eth_account' in sys.modules)\n"
+        "from robocloud.identity import Identity\n"
+        "Identity.generate()\n"
+        "print('eth_account' in sys.modules)\n"
+    )
+    shown = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert shown.stdout.split() == ["False", "True"]
