@@ -25,7 +25,7 @@ WEB_MODULES = {
     "services.common": {"app", "auth", "bodies", "middleware", "responses", "runner", "server"},
     "services.cas": {"__main__", "app", "gateway", "kubo"},
     "services.ledger": {"__main__", "app"},
-    "services.storage": {"__main__", "app", "records_api", "bags_api"},
+    "services.storage": {"__main__", "app", "records_api", "bags_api", "knowledge_api"},
     "services.broker": {"__main__", "app"},
     "services.fl": {"__main__", "app"},
 }
