@@ -426,13 +426,21 @@ class Ledger(Closeable):
         )
         return self._advertised_in(receipt, cid, {"descriptionCid": description_cid})
 
-    def advertised_by(self, signed: SignedTransaction, cid: bytes) -> Advertised | None:
+    def advertised_by(
+        self,
+        signed: SignedTransaction,
+        cid: bytes,
+        *,
+        before_send: Callable[[SignedTransaction], None] | None = None,
+    ) -> Advertised | None:
         """The advertisement of ``cid`` made by ``signed``, an advertise transaction saved
         before a crash cut its sending or its wait short: sent again while the node lacks it
-        and waited for (``Transactor.resume``), rather than another advertisement signed.
-        None when it reverted, or its nonce went to another transaction (it never will be
-        mined)."""
-        receipt = self._signing(self.registry, "advertise").resume(signed)
+        and waited for (``Transactor.resume``), rather than another advertisement signed;
+        replaced at a higher price, given to ``before_send`` first, once it has waited past
+        the receipt timeout. None when it reverted, or its nonce went to another transaction
+        (it never will be mined)."""
+        transactor = self._signing(self.registry, "advertise")
+        receipt = transactor.resume(signed, before_send=before_send)
         if receipt is None or receipt.status == 0:
             return None
         return self._advertised_in(receipt, cid, {})
@@ -567,13 +575,22 @@ class Ledger(Closeable):
         return self._anchored_in(receipt, epoch, root, record_count)
 
     def anchored_by(
-        self, signed: SignedTransaction, epoch: int, root: bytes, record_count: int
+        self,
+        signed: SignedTransaction,
+        epoch: int,
+        root: bytes,
+        record_count: int,
+        *,
+        before_send: Callable[[SignedTransaction], None] | None = None,
     ) -> Anchor | None:
         """The anchor of ``epoch`` made by ``signed``, an anchor transaction saved before a
         crash cut its sending or its wait short: sent again while the node lacks it and waited
-        for (``Transactor.resume``), rather than another anchor signed. None when it reverted,
-        or its nonce went to another transaction (it never will be mined)."""
-        receipt = self._signing(self.anchor_log, "anchor").resume(signed)
+        for (``Transactor.resume``), rather than another anchor signed; replaced at a higher
+        price, given to ``before_send`` first, once it has waited past the receipt timeout.
+        None when it reverted, or its nonce went to another transaction (it never will be
+        mined)."""
+        transactor = self._signing(self.anchor_log, "anchor")
+        receipt = transactor.resume(signed, before_send=before_send)
         if receipt is None or receipt.status == 0:
             return None
         return self._anchored_in(receipt, epoch, root, record_count)

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import rlp
 from eth_utils.address import to_checksum_address
 from eth_utils.crypto import keccak
 
@@ -30,6 +31,7 @@ from robocloud.ledger.abi import ContractAbi, check_block, check_hash
 from robocloud.ledger.errors import (
     DeploymentMismatchError,
     FeeLimitError,
+    LedgerError,
     RevertError,
     RpcError,
     TransactionMismatchError,
@@ -46,6 +48,10 @@ SIGNING_ATTEMPTS = 5
 """How often ``send`` signs a call again when another writer of the key took its nonce first:
 each time that writer got a transaction in, so only as many writers racing at once as this
 fail one of them."""
+
+PRICE_BUMP_EIGHTHS = 1
+"""A replacement pays the saved transaction's gas price plus an eighth (12.5 %): nodes take a
+transaction in the place of another of the same nonce only at 10 % more (geth, anvil)."""
 
 NONCE_TAKEN = ("nonce too low", "replacement transaction underpriced")
 """How nodes (geth, anvil, the ledger) refuse a transaction whose nonce another transaction of
@@ -196,6 +202,11 @@ def nonce_lock(chain_id: int, address: str) -> threading.Lock:
     key = (chain_id, address.lower())
     with _nonce_locks_guard:
         return _nonce_locks.setdefault(key, threading.Lock())
+
+
+def _uint(field: bytes) -> int:
+    """An RLP integer field (big-endian, no leading zeros, empty for 0)."""
+    return int.from_bytes(field, "big")
 
 
 def _receipt_of(tx_hash: str, raw: Any) -> Receipt:
@@ -375,14 +386,25 @@ class Transactor:
             return False
         return self.rpc.request("eth_getTransactionByHash", [signed.tx_hash]) is None
 
-    def resume(self, signed: SignedTransaction) -> Receipt | None:
+    def resume(
+        self,
+        signed: SignedTransaction,
+        *,
+        before_send: Callable[[SignedTransaction], None] | None = None,
+    ) -> Receipt | None:
         """The receipt of a transaction saved before it was sent by a process that died before
         its receipt: sent again (the same bytes, so one transaction however often it arrives)
         unless the node has it mined, then waited for. None once its nonce went to another
         transaction: it can never be mined, and a new one may be signed.
 
         Behind an external node a transaction can stay pending past a crash; signing another
-        for the same call made both be mined.
+        for the same call made both be mined. One still pending after ``receipt_timeout_s``
+        (its gas price fell behind the chain's base fee) is replaced, when ``before_send`` is
+        given to save the replacement: the same call and nonce at a higher price
+        (:meth:`repriced`), so that at most one of them is mined. A caller that saves only
+        the replacement must look on chain for the call's effect before resuming, since the
+        transaction it replaced may still be the one mined (the storage node's anchorer and
+        publisher read ``anchorAt`` and the advertisements first).
         """
         receipt = self.receipt(signed.tx_hash)
         if receipt is not None:
@@ -397,7 +419,48 @@ class Transactor:
                 if self._nonce_used(signed):
                     return self.receipt(signed.tx_hash)
                 raise
-        return self.wait_for_receipt(signed.tx_hash)
+        try:
+            return self.wait_for_receipt(signed.tx_hash)
+        except TransactionTimeoutError:
+            if before_send is None or self._nonce_used(signed):
+                raise
+        replacement = self.repriced(signed)
+        before_send(replacement)
+        self.submit(replacement.raw)
+        return self.wait_for_receipt(replacement.tx_hash)
+
+    def repriced(self, signed: SignedTransaction) -> SignedTransaction:
+        """``signed``'s call on the same nonce at a higher gas price: an eighth more, or the
+        node's price if that is higher still, within ``limits`` (``FeeLimitError`` past them).
+
+        Only a legacy transaction, as this class signs, can be repriced.
+        """
+        fields = rlp.decode(signed.raw) if signed.raw[:1] >= b"\xc0" else None
+        if not isinstance(fields, list) or len(fields) != 9:
+            raise LedgerError(f"transaction {signed.tx_hash} is not a legacy transaction")
+        nonce, old_price, gas, to, value, data = (
+            fields[0],
+            _uint(fields[1]),
+            _uint(fields[2]),
+            fields[3],
+            _uint(fields[4]),
+            fields[5],
+        )
+        bumped = old_price + max(old_price * PRICE_BUMP_EIGHTHS // 8, 1)
+        gas_price = max(bumped, quantity(self.rpc.request("eth_gasPrice", [])))
+        self.limits.check(gas, gas_price)
+        transaction: dict[str, Any] = {
+            "chainId": self.chain_id,
+            "nonce": _uint(nonce),
+            "gas": gas,
+            "gasPrice": gas_price,
+            "data": data,
+            "value": value,
+        }
+        if to:
+            transaction["to"] = to_checksum_address(to)
+        replacement = self.identity.account.sign_transaction(transaction)
+        return SignedTransaction(bytes(replacement.raw_transaction), signed.nonce)
 
     def _nonce_used(self, signed: SignedTransaction) -> bool:
         """Whether a mined transaction of this key took ``signed``'s nonce."""
