@@ -463,12 +463,21 @@ class Anchorer:
     def _sent_before(self, ledger: Ledger, epoch: int, tree: EpochTree) -> Anchor | None:
         """The anchor made by the transaction saved for ``epoch`` before an earlier attempt
         sent it, once mined: sent again and waited for, since behind an external node it may
-        still be pending (``anchorAt`` does not see it). None when none was saved, or it
-        reverted or its nonce went to another transaction, so it anchored nothing."""
+        still be pending (``anchorAt`` does not see it), and replaced at a higher price (saved
+        first) once it has waited past the receipt timeout. None when none was saved, or it
+        reverted or its nonce went to another transaction, so it anchored nothing: a
+        transaction it replaced may have anchored the epoch, which ``anchorAt`` then shows at
+        the next attempt, and AnchorLog refuses a second anchor of an epoch."""
         signed = self.epochs.anchor_tx(epoch)
         if signed is None:
             return None
-        return ledger.anchored_by(signed, epoch, tree.root, tree.record_count)
+        return ledger.anchored_by(
+            signed,
+            epoch,
+            tree.root,
+            tree.record_count,
+            before_send=lambda replacement: self.epochs.set_anchor_tx(epoch, replacement),
+        )
 
     def _recorded_tx(self, ledger: Ledger, existing: Anchor) -> str:
         """The transaction of the ``Anchored`` event that is ``existing``, this node's anchor

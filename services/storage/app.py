@@ -99,7 +99,11 @@ def _open_node(settings: StorageSettings) -> StorageNode:
     )
 
     def connect() -> LedgerAndCas:
-        ledger = Ledger.connect(settings.ledger_url, node_identity.identity)
+        ledger = Ledger.connect(
+            settings.ledger_url,
+            node_identity.identity,
+            receipt_timeout_s=settings.storage_receipt_timeout_s,
+        )
         return LedgerAndCas(ledger, Cas(settings.cas_url, node_identity.identity))
 
     return StorageNode(
@@ -175,7 +179,11 @@ def _open_ingest(
 
     @contextmanager
     def ledger() -> Iterator[Ledger]:
-        with Ledger.connect(settings.ledger_url, node.identity.identity) as chain:
+        with Ledger.connect(
+            settings.ledger_url,
+            node.identity.identity,
+            receipt_timeout_s=settings.storage_receipt_timeout_s,
+        ) as chain:
             yield chain
 
     publish = DatasetPublisher(

@@ -81,7 +81,9 @@ class DatasetPublisher:
             )
             description_cid = self.cas().add_bytes(description.canonical())
             self.knowledge.add(str(description_cid))
-            earlier = self._advertised_before(chain, job, bag_cid, description_cid)
+            earlier = self._advertised_before(
+                chain, job, bag_cid, description_cid, save_advertise_tx
+            )
             if earlier is not None:
                 return earlier
             self.node.ensure_registered(chain)
@@ -97,7 +99,12 @@ class DatasetPublisher:
         return {"cid": str(bag_cid), "description": str(description_cid), "tx": event.tx_hash}
 
     def _advertised_before(
-        self, chain: Ledger, job: Job, bag_cid: CID, description_cid: CID
+        self,
+        chain: Ledger,
+        job: Job,
+        bag_cid: CID,
+        description_cid: CID,
+        save_advertise_tx: Callable[[dict[str, Any]], None],
     ) -> dict[str, Any] | None:
         """This node's advertisement of the bag with this job's description when an attempt of
         the job was cut short between ``Registry.advertise`` and the job saving what it
@@ -111,7 +118,7 @@ class DatasetPublisher:
         """
         if job.publish_attempts <= 1:
             return None
-        sent = self._saved_advertise(chain, job, bag_cid)
+        sent = self._saved_advertise(chain, job, bag_cid, save_advertise_tx)
         mine = chain.advertisements(cid=bag_cid.binary, advertiser=self.node.address)
         if sent is not None:
             mine.append(sent)
@@ -135,14 +142,26 @@ class DatasetPublisher:
         return {"cid": str(bag_cid), "description": str(description_cid), "tx": event.tx_hash}
 
     @staticmethod
-    def _saved_advertise(chain: Ledger, job: Job, bag_cid: CID) -> Advertised | None:
+    def _saved_advertise(
+        chain: Ledger,
+        job: Job,
+        bag_cid: CID,
+        save_advertise_tx: Callable[[dict[str, Any]], None],
+    ) -> Advertised | None:
         """What the advertise transaction an earlier attempt saved advertised, once mined: it
         is sent again and waited for, since behind an external node it may still be pending
-        (not found by ``eth_getLogs``). None when none was saved, or it reverted or its nonce
-        went to another transaction, so it never advertised anything."""
+        (not found by ``eth_getLogs``), and replaced at a higher price (saved first) once it
+        has waited past the receipt timeout. None when none was saved, or it reverted or its
+        nonce went to another transaction, so it never advertised anything; the caller reads
+        the node's advertisements after this, so one made by a transaction the replacement
+        replaced is found there."""
         if job.advertise_tx is None:
             return None
-        return chain.advertised_by(SignedTransaction.from_json(job.advertise_tx), bag_cid.binary)
+        return chain.advertised_by(
+            SignedTransaction.from_json(job.advertise_tx),
+            bag_cid.binary,
+            before_send=lambda signed: save_advertise_tx(signed.to_json()),
+        )
 
     def _epoch(self, job: Job) -> tuple[int | None, str | None]:
         """The first epoch holding every record of the job, and its TMT root: cut within an

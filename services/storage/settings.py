@@ -30,6 +30,13 @@ class StorageSettings(ServiceSettings):
         description="wait before retrying a failed anchor (doubles to 30 s; not while the "
         "node only waits for its role)",
     )
+    storage_receipt_timeout_s: float = Field(
+        default=60.0,
+        ge=1,
+        le=3600,
+        description="wait for an anchor's or advertisement's receipt; one still pending after "
+        "it is replaced at a higher gas price on the next attempt",
+    )
     storage_node_passphrase: SecretStr | None = Field(
         default=None, description="encrypts the node's keystore; generated when unset"
     )
