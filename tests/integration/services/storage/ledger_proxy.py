@@ -11,8 +11,11 @@ import json
 import os
 import signal
 import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import rlp
@@ -20,12 +23,15 @@ from eth_utils.crypto import keccak
 
 from robocloud.identity import Identity
 from robocloud.ingest import Ingest
+from robocloud.ledger import JsonRpcClient
 from robocloud.ledger.abi import ContractAbi, signature
 from tests.bagfactory import START_NS, write_bag
 from tests.conftest import ServiceFactory
+from tests.integration.robocloud.ledger.nodes import ethereum_node
+from tests.integration.services.ledger.conftest import ledger_fronting
 from tests.integration.services.storage.test_ingest_http import Storage, approve
-from tests.procs import ServiceProcess
-from tests.scripted_http import Exchange, Reply
+from tests.procs import ServiceProcess, free_port
+from tests.scripted_http import Exchange, Reply, scripted_server
 from tests.waiting import wait_for
 
 HOP_BY_HOP = {"host", "connection", "keep-alive", "content-length", "transfer-encoding"}
@@ -126,6 +132,48 @@ def storage_behind(
     }
     proxy.storage = service_factory("storage", {**base, **env}, port=port)
     return proxy.storage
+
+
+Proxy = TypeVar("Proxy", bound=LedgerProxy)
+
+
+@dataclass
+class OnAnvil:
+    """What ``anchoring_on_anvil`` started: anvil, the ledger fronting it, the storage node."""
+
+    anvil_url: str
+    anvil: JsonRpcClient
+    ledger: ServiceProcess
+    storage: ServiceProcess
+    node: str
+
+
+@contextmanager
+def anchoring_on_anvil(
+    make_proxy: Callable[[ServiceProcess, JsonRpcClient], Proxy],
+    service_factory: ServiceFactory,
+    tmp_path: Path,
+    env: dict[str, str],
+) -> Iterator[tuple[Proxy, OnAnvil]]:
+    """anvil, a ledger fronting it that grants the storage role, cas, and a funded storage
+    node anchoring 0.2 s epochs (retries from 0.2 s) through the proxy ``make_proxy``
+    builds, with ``env`` on top."""
+    with ethereum_node(tmp_path / "anvil.log") as anvil_url, JsonRpcClient(anvil_url) as anvil:
+        storage_port = free_port()
+        storage_url = f"http://127.0.0.1:{storage_port}"
+        ledger = ledger_fronting(
+            service_factory, anvil_url, anvil, tmp_path / "ledger", storage_url
+        )
+        cas = service_factory("cas")
+        proxy = make_proxy(ledger, anvil)
+        with scripted_server(proxy, answer_audience=False) as server:
+            base = {"ROBOCLOUD_STORAGE_EPOCH_S": "0.2", "ROBOCLOUD_STORAGE_ANCHOR_RETRY_S": "0.2"}
+            storage = storage_behind(
+                proxy, server.url, service_factory, cas, {**base, **env}, port=storage_port
+            )
+            node = str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
+            anvil.request("hardhat_setBalance", [node, hex(10**18)])
+            yield proxy, OnAnvil(anvil_url, anvil, ledger, storage, node)
 
 
 def upload_imu_bag(storage: ServiceProcess, identity: Identity, bag: Path) -> tuple[str, str]:

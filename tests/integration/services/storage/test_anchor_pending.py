@@ -23,19 +23,17 @@ import pytest
 from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService
 from tests.conftest import ServiceFactory
-from tests.integration.robocloud.ledger.nodes import ethereum_node
-from tests.integration.services.ledger.conftest import ledger_fronting
 from tests.integration.services.storage.counter import write_counter_records
 from tests.integration.services.storage.ledger_proxy import (
     LedgerProxy,
+    anchoring_on_anvil,
     rpc_calls,
     selector,
     sends,
-    storage_behind,
 )
 from tests.integration.services.storage.test_anchoring import node_state
-from tests.procs import ServiceProcess, free_port
-from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.procs import ServiceProcess
+from tests.scripted_http import Exchange, Reply
 from tests.waiting import wait_for
 
 ANCHOR = selector("AnchorLog", "anchor")
@@ -120,43 +118,35 @@ def test_kill_9_while_the_anchor_is_pending_anchors_the_epoch_once(
     block) and made another: refused by a gas estimate on the pending block (anvil) until the
     pending one was mined, or, estimated on the latest (geth), signed with the next nonce and
     reverted ("AnchorLog: epoch not increasing") once the first was mined."""
-    with ethereum_node(tmp_path / "anvil.log") as anvil_url, JsonRpcClient(anvil_url) as anvil:
-        storage_port = free_port()
-        storage_url = f"http://127.0.0.1:{storage_port}"
-        ledger = ledger_fronting(
-            service_factory, anvil_url, anvil, tmp_path / "ledger", storage_url
-        )
-        cas = service_factory("cas")
-        proxy = KillWhileAnchorPending(ledger, anvil, estimate_on)
-        with scripted_server(proxy, answer_audience=False) as server:
-            env = {"ROBOCLOUD_STORAGE_EPOCH_S": "0.2", "ROBOCLOUD_STORAGE_ANCHOR_RETRY_S": "0.2"}
-            storage = storage_behind(
-                proxy, server.url, service_factory, cas, env, port=storage_port
-            )
-            node = str(node_state(storage)["address"])
-            anvil.request("hardhat_setBalance", [node, hex(10**18)])
-            writer = Identity.generate()
-            write_counter_records(storage, writer, 0, 40)
-            proxy.wait_killed("the storage node to send its anchor transaction")
+    with anchoring_on_anvil(
+        lambda ledger, anvil: KillWhileAnchorPending(ledger, anvil, estimate_on),
+        service_factory,
+        tmp_path,
+        {},
+    ) as (proxy, on):
+        storage = on.storage
+        writer = Identity.generate()
+        write_counter_records(storage, writer, 0, 40)
+        proxy.wait_killed("the storage node to send its anchor transaction")
 
-            storage.start()
-            wait_anchored(storage, 1, "the pending epoch anchored after the restart")
-            last = int(node_state(storage)["last_epoch"])
-            write_counter_records(storage, writer, 40, 60)
-            wait_anchored(storage, last + 1, "the next epoch anchored")
-            recorded = httpx.get(f"{storage.url}/v1/epochs/1", timeout=10).json()["anchor"]
+        storage.start()
+        wait_anchored(storage, 1, "the pending epoch anchored after the restart")
+        last = int(node_state(storage)["last_epoch"])
+        write_counter_records(storage, writer, 40, 60)
+        wait_anchored(storage, last + 1, "the next epoch anchored")
+        recorded = httpx.get(f"{storage.url}/v1/epochs/1", timeout=10).json()["anchor"]
 
-        with LedgerService(ledger.url) as service:
+        with LedgerService(on.ledger.url) as service:
             addresses = service.contracts()
-        with Ledger(JsonRpcClient(anvil_url), addresses) as chain:
-            anchored = chain.anchors(node=node, epoch=1)
-        sent = transactions_of(anvil, node)
+        with Ledger(JsonRpcClient(on.anvil_url), addresses) as chain:
+            anchored = chain.anchors(node=on.node, epoch=1)
+        sent = transactions_of(on.anvil, on.node)
         reverted = [
             tx["hash"]
             for tx in sent
-            if anvil.request("eth_getTransactionReceipt", [tx["hash"]])["status"] != "0x1"
+            if on.anvil.request("eth_getTransactionReceipt", [tx["hash"]])["status"] != "0x1"
         ]
-        nonce = int(anvil.request("eth_getTransactionCount", [node, "pending"]), 16)
+        nonce = int(on.anvil.request("eth_getTransactionCount", [on.node, "pending"]), 16)
     assert [str(anchor.tx_hash).lower() for anchor in anchored] == [proxy.pending_tx]
     assert recorded["tx"].lower() == proxy.pending_tx
     assert reverted == []

@@ -18,20 +18,17 @@ from robocloud.identity import Identity
 from robocloud.ledger import JsonRpcClient, Ledger, LedgerService
 from robocloud.ledger.transactions import transaction_hash
 from tests.conftest import ServiceFactory
-from tests.integration.robocloud.ledger.nodes import ethereum_node
-from tests.integration.services.ledger.conftest import ledger_fronting
 from tests.integration.services.storage.counter import write_counter_records
 from tests.integration.services.storage.ledger_proxy import (
     LedgerProxy,
+    anchoring_on_anvil,
     rpc_calls,
     selector,
     sends,
-    storage_behind,
 )
 from tests.integration.services.storage.test_anchor_pending import transactions_of, wait_anchored
-from tests.integration.services.storage.test_anchoring import node_state
-from tests.procs import ServiceProcess, free_port
-from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.procs import ServiceProcess
+from tests.scripted_http import Exchange, Reply
 
 ANCHOR = selector("AnchorLog", "anchor")
 
@@ -79,35 +76,17 @@ def gas_price(anvil: JsonRpcClient, tx: str) -> int:
 def test_an_anchor_pending_past_the_receipt_timeout_is_replaced_at_a_higher_price(
     service_factory: ServiceFactory, tmp_path: Path
 ) -> None:
-    with ethereum_node(tmp_path / "anvil.log") as anvil_url, JsonRpcClient(anvil_url) as anvil:
-        storage_port = free_port()
-        storage_url = f"http://127.0.0.1:{storage_port}"
-        ledger = ledger_fronting(
-            service_factory, anvil_url, anvil, tmp_path / "ledger", storage_url
-        )
-        cas = service_factory("cas")
-        proxy = StuckUntilRepriced(ledger, anvil)
-        with scripted_server(proxy, answer_audience=False) as server:
-            env = {
-                "ROBOCLOUD_STORAGE_EPOCH_S": "0.2",
-                "ROBOCLOUD_STORAGE_ANCHOR_RETRY_S": "0.2",
-                "ROBOCLOUD_STORAGE_RECEIPT_TIMEOUT_S": "2",
-            }
-            storage = storage_behind(
-                proxy, server.url, service_factory, cas, env, port=storage_port
-            )
-            node = str(node_state(storage)["address"])
-            anvil.request("hardhat_setBalance", [node, hex(10**18)])
-            write_counter_records(storage, Identity.generate(), 0, 40)
-            wait_anchored(storage, 1, "the stuck epoch anchored by its replacement")
-            recorded = httpx.get(f"{storage.url}/v1/epochs/1", timeout=10).json()["anchor"]
-            original, replacement = proxy.anchor_txs[:2]
-
-        with LedgerService(ledger.url) as service:
+    env = {"ROBOCLOUD_STORAGE_RECEIPT_TIMEOUT_S": "2"}
+    with anchoring_on_anvil(StuckUntilRepriced, service_factory, tmp_path, env) as (proxy, on):
+        write_counter_records(on.storage, Identity.generate(), 0, 40)
+        wait_anchored(on.storage, 1, "the stuck epoch anchored by its replacement")
+        recorded = httpx.get(f"{on.storage.url}/v1/epochs/1", timeout=10).json()["anchor"]
+        original, replacement = proxy.anchor_txs[:2]
+        with LedgerService(on.ledger.url) as service:
             addresses = service.contracts()
-        with Ledger(JsonRpcClient(anvil_url), addresses) as chain:
-            anchored = chain.anchors(node=node, epoch=1)
-        mined = [tx["hash"].lower() for tx in transactions_of(anvil, node)]
+        with Ledger(JsonRpcClient(on.anvil_url), addresses) as chain:
+            anchored = chain.anchors(node=on.node, epoch=1)
+        mined = [tx["hash"].lower() for tx in transactions_of(on.anvil, on.node)]
     assert [str(anchor.tx_hash).lower() for anchor in anchored] == [replacement]
     assert recorded["tx"].lower() == replacement
     assert original not in mined
