@@ -55,3 +55,10 @@ def configure_logging(service: str, level: str = "INFO") -> None:
         logging.getLogger(name).handlers[:] = []
         logging.getLogger(name).propagate = True
     logging.getLogger("uvicorn.access").disabled = True
+    # httpx writes a line at INFO for every request a service makes, with no request id when a
+    # background task makes it: idle under `make up`, the ledger's role granter and the
+    # storage node's knowledge follower wrote several a second, and the peer's access log
+    # already records each request. They are shown at DEBUG.
+    outgoing = logging.NOTSET if root.level <= logging.DEBUG else logging.WARNING
+    for name in ("httpx", "httpcore"):
+        logging.getLogger(name).setLevel(outgoing)

@@ -346,6 +346,9 @@ class Anchorer:
                 self._cut_now.set()
 
     def start(self) -> None:
+        """Start cutting and anchoring; the anchorer's first round, which gets the node its
+        standing, runs at once rather than after the first cut."""
+        self._cut_done.set()
         for name, target in (("epoch-cutter", self._cut_loop), ("anchorer", self._anchor_loop)):
             thread = threading.Thread(target=target, name=name, daemon=True)
             thread.start()
@@ -395,16 +398,17 @@ class Anchorer:
                 while not self._stop.is_set() and self.anchor_next():
                     pass
                 failures = 0
+                self.last_error = None
             except AnchorConflict as exc:
                 self.conflict = str(exc)
                 log.error("anchoring stopped", extra={"reason": str(exc)})
                 return
             except Exception as exc:
                 error = f"{type(exc).__name__}: {exc}"
-                if error != self.last_error:
-                    log.warning("anchoring failed; retrying", extra={"error": error})
-                self.last_error = error
                 waiting_for_role = isinstance(exc, NotYetAnchoring)
+                if error != self.last_error:
+                    _log_failed_round(error, waiting_for_role)
+                self.last_error = error
                 if not waiting_for_role:
                     self._drop_chain()
                 self._stop.wait(retry_wait(self._retry_s, failures, exc))
@@ -422,13 +426,20 @@ class Anchorer:
         return self._chain
 
     def anchor_next(self) -> bool:
-        """Anchor the oldest pending epoch; whether there was one. Raises to retry later."""
+        """Anchor the oldest pending epoch; whether there was one. Raises to retry later.
+
+        The node's standing comes first, with nothing to anchor too: a new node registers at
+        start, not at its first anchor. Until it is registered, cas (``ROBOCLOUD_AUTH=
+        registered``) refused its writes, so the first dataset an ingest published, and any
+        large value it offloaded, failed; and the ledger's granter, waiting for the node to
+        register, asked for its address every second for as long as the node stayed idle.
+        """
+        chain = self._chain_now()
+        self._ensure_standing(chain.ledger)
         pending = self.epochs.pending()
         if not pending:
             return False
         epoch = pending[0]
-        chain = self._chain_now()
-        self._ensure_standing(chain.ledger)
         record = self.epochs.get(epoch)
         assert record is not None
         tree = record.tree
@@ -510,6 +521,16 @@ class Anchorer:
                 "storage_node role; grant it with `robocloud admin grant "
                 f"{self.node.address} storage_node`"
             )
+
+
+def _log_failed_round(error: str, waiting_for_role: bool) -> None:
+    """Once per distinct error. A new node waits for its role at every first start (under
+    ``make up`` for about a second, until the ledger's granter sees it), so that is said at
+    info, not as a failure."""
+    if waiting_for_role:
+        log.info("waiting for the storage_node role", extra={"reason": error})
+    else:
+        log.warning("anchoring failed; retrying", extra={"error": error})
 
 
 def retry_wait(base: float, failures: int, error: Exception) -> float:

@@ -60,7 +60,12 @@ class DatasetPublisher:
         """Publish ``job``'s dataset; what was published, for the job's report.
 
         The advertise transaction is handed to ``save_advertise_tx`` before it is sent, for a
-        later attempt of the job to find it (``_advertised_before``)."""
+        later attempt of the job to find it (``_advertised_before``).
+
+        The node registers before its first write to cas, which takes writes only from
+        registered robots (``ROBOCLOUD_AUTH=registered``, as under ``make up``)."""
+        with self.ledger() as chain:
+            self.node.ensure_registered(chain)
         bag_cid = self._bag_cid(job, bag)
         counts = [self._count(template, ids) for template, ids in job.record_ids.items()]
         start, end = self._time_range(job)
@@ -86,7 +91,6 @@ class DatasetPublisher:
             )
             if earlier is not None:
                 return earlier
-            self.node.ensure_registered(chain)
             event = chain.advertise(
                 bag_cid.binary,
                 description_cid.binary,
