@@ -19,6 +19,7 @@ as lines) so a description can never cost a service more than a small graph does
 
 from __future__ import annotations
 
+import mimetypes
 import re
 import threading
 from collections.abc import Iterable, Mapping, Sequence
@@ -26,6 +27,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from decimal import Decimal
 from importlib import resources
+from pathlib import PurePosixPath
 from typing import Any, Final
 
 from eth_utils.address import is_address, to_checksum_address
@@ -94,6 +96,16 @@ MEDIA_TYPE = re.compile(r"[a-z]+/[A-Za-z0-9][A-Za-z0-9!#$&_.+-]*")
 """RFC 6838's restricted-name characters but ``^``, which no IRI may hold (N-Triples' and
 SPARQL's IRIREF refuse it): a type with one could never be a description's, and its IRI broke
 the query it went into, so it is refused as the parameter it came in."""
+MCAP_MEDIA_TYPE: Final = "application/vnd.mcap"
+"""IANA's type for MCAP files (registered in October 2026)."""
+RECORDING_MEDIA_TYPES: Final[Mapping[str, str]] = {
+    ".mcap": MCAP_MEDIA_TYPE,
+    ".bag": "application/x-rosbag",
+    ".db3": "application/vnd.sqlite3",
+}
+"""The recordings robots share, by file suffix: Python's ``mimetypes`` knows none of them, so
+``robocloud describe`` refused a ROS bag until given ``--media-type``. ROS 1 bags have no
+registered type; a ROS 2 storage file is an SQLite database (IANA's ``vnd.sqlite3``)."""
 _IRI = r"<([^\x00-\x20<>\"{}|^`\\]*)>"
 _LITERAL = r"\"((?:[^\"\\\n\r]|\\[\"\\nr])*)\"(?:@([a-z]+(?:-[a-z0-9]+)*)|\^\^" + _IRI + r")?"
 _LINE = re.compile(f"{_IRI} {_IRI} (?:{_IRI}|{_LITERAL}) \\.")
@@ -492,6 +504,13 @@ def content_iri(cid: CID | str) -> str:
 
 def computation_iri(task: CID | str) -> str:
     return f"{content_iri(task)}#computation"
+
+
+def guess_media_type(name: str) -> str | None:
+    """The media type a file's name says, a recording's first (:data:`RECORDING_MEDIA_TYPES`),
+    else Python's table, which also reads the host's ``mime.types``; None when neither knows."""
+    suffix = PurePosixPath(name).suffix.lower()
+    return RECORDING_MEDIA_TYPES.get(suffix) or mimetypes.guess_type(name, strict=False)[0]
 
 
 def media_type_iri(media_type: str) -> str:

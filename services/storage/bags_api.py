@@ -13,6 +13,7 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
 from robocloud.cid import parse_cid
+from robocloud.semantic import MCAP_MEDIA_TYPE
 from services.common.bodies import json_body, media_type
 from services.common.errors import PayloadTooLarge, UnsupportedMediaType
 from services.common.responses import stream_in_turn
@@ -28,7 +29,7 @@ from services.storage.records_api import RecordFilters, authorship_of, in_query_
 router = APIRouter(tags=["ingest"])
 EXPORT_PAGE = 1000
 EXPORT_FORMATS = {
-    "mcap": ("application/x-mcap", "export.mcap"),
+    "mcap": (MCAP_MEDIA_TYPE, "export.mcap"),
     "jsonl": ("application/x-ndjson", "export.jsonl"),
 }
 """Each export format's media type and file name."""

@@ -9,7 +9,6 @@ description's CID beside it.
 
 from __future__ import annotations
 
-import mimetypes
 import struct
 import sys
 from datetime import datetime
@@ -41,6 +40,7 @@ from robocloud.semantic import (
     DescriptionInvalidError,
     SemanticError,
     file_description,
+    guess_media_type,
     sensor_iri,
 )
 from robocloud.unixfs import Importer
@@ -168,7 +168,7 @@ def describe(
     descriptions = []
     for path in files:
         file_cid, size = _file_cid(path)
-        kind = media_type or mimetypes.guess_type(path.name)[0]
+        kind = media_type or guess_media_type(path.name)
         if kind is None:
             fail(f"cannot tell the media type of {path.name}", ExitCode.USAGE, "give --media-type")
         with path.open("rb") as handle:

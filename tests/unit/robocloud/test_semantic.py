@@ -451,3 +451,23 @@ def test_times_in_other_zones_are_kept_as_written() -> None:
         description.canonical()
     )
     semantic.validate(description)
+
+
+@pytest.mark.parametrize(
+    ("name", "media_type"),
+    [
+        ("run.mcap", "application/vnd.mcap"),
+        ("RUN.MCAP", "application/vnd.mcap"),
+        ("2014-07-21-12-42-53.bag", "application/x-rosbag"),
+        ("rosbag2_0.db3", "application/vnd.sqlite3"),
+        ("front.png", "image/png"),
+        ("notes.unknownext", None),
+        ("bag", None),
+    ],
+)
+def test_guess_media_type_knows_recordings_before_the_platform_table(
+    name: str, media_type: str | None
+) -> None:
+    assert semantic.guess_media_type(name) == media_type
+    if media_type is not None:
+        semantic.media_type_iri(media_type)

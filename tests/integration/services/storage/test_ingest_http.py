@@ -102,6 +102,10 @@ def test_ingest_a_bag_and_export_it(
     reader = make_reader(io.BytesIO(mcap_path.read_bytes()))
     from_mcap = [json.loads(message.data) for _, _, message in reader.iter_messages()]
     assert from_mcap == records
+    params = {"template": imu, "format": "mcap"}
+    answered = httpx.get(f"{storage.url}/v1/export", params=params, timeout=30)
+    assert answered.headers["content-type"] == "application/vnd.mcap"
+    assert answered.content == mcap_path.read_bytes()
 
 
 def test_bad_bags_fail_without_records(

@@ -15,6 +15,7 @@ from robocloud.cli import app
 from robocloud.cli.knowledge import image_size
 from robocloud.identity import Identity
 from robocloud.unixfs import import_bytes
+from tests.procs import SHARED_DATA
 
 runner = CliRunner()
 
@@ -96,6 +97,31 @@ def test_describe_print_builds_a_valid_description_of_the_file(
             attributes={"width": 640, "height": 480},
         ).canonical()
     )
+
+
+@pytest.mark.parametrize(
+    ("recording", "media_type"),
+    [
+        ("mcap/rosbag2_cpp_only_topics.mcap", "application/vnd.mcap"),
+        ("rosbag1/evo_tf_example.bag", "application/x-rosbag"),
+        ("rosbag2/evo_tf_example/tf_example.db3", "application/vnd.sqlite3"),
+    ],
+)
+def test_describe_knows_the_media_type_of_a_recording(
+    keystore: Path, recording: str, media_type: str
+) -> None:
+    """A ROS bag, the data robots share most, was refused: "cannot tell the media type"."""
+    path = SHARED_DATA / recording
+    done = runner.invoke(
+        app,
+        ["describe", str(path), "--chain-id", "1337", "-k", str(keystore), "--print", "ntriples"],
+    )
+    assert done.exit_code == 0, done.output
+    description = semantic.parse_canonical(done.stdout_bytes)
+    semantic.validate(description)
+    media = "<http://www.w3.org/ns/dcat#mediaType>"
+    [line] = [line for line in done.stdout.splitlines() if media in line]
+    assert f"<https://www.iana.org/assignments/media-types/{media_type}>" in line
 
 
 @pytest.mark.parametrize(
