@@ -148,18 +148,27 @@ class Ingest(ServiceClient):
             )
         return bindings
 
-    def export(self, params: dict[str, Any], out: Path, *, max_size: int | None = None) -> int:
+    def export(
+        self,
+        params: dict[str, Any],
+        out: Path,
+        *,
+        max_size: int | None = None,
+        overwrite: bool = True,
+    ) -> int:
         """Write a query's export (``format`` = ``mcap`` or ``jsonl``) to ``out``; its size.
 
         ``out`` is replaced only by a whole export: one that fails midway (a refusal, a
-        broken or too slow answer, one past ``max_size``) leaves it as it was. An export
+        broken or too slow answer, one past ``max_size``) leaves it as it was. Without
+        ``overwrite``, an ``out`` that exists when the export is complete is kept
+        (``FileExistsError``). An export
         declares no size and a node may stream one without end, so at most ``max_size``
         bytes are written (``ExportTooLargeError`` past it), by default the free space in
         ``out``'s directory when the export starts."""
         limit = shutil.disk_usage(out.absolute().parent).free if max_size is None else max_size
         size = 0
         with (
-            written_whole(out, overwrite=True) as handle,
+            written_whole(out, overwrite=overwrite) as handle,
             self.translate_errors("GET", f"{self.base_url}/v1/export"),
         ):
             response = self.request("GET", "/v1/export", params=params, stream=True)

@@ -280,19 +280,19 @@ class Storage(ServiceClient):
     ) -> RecordPage:
         """One page of records matching every filter; ``next`` continues it. The records
         are the node's word, unchecked, as :meth:`record`'s."""
-        params: dict[str, Any] = {
-            "template": template,
-            "topic": topic,
-            "robot": robot,
-            "start": start,
-            "end": end,
-            "keywords": keywords,
-            "limit": limit,
-            "cursor": cursor,
-        }
-        query = [(k, v) for k, v in params.items() if v is not None]
-        query += [("where", clause) for clause in where]
-        answer = self.get_json("/v1/records", params=_Params(query))
+        params = record_filters(
+            template=template,
+            topic=topic,
+            robot=robot,
+            start=start,
+            end=end,
+            where=where,
+            keywords=keywords,
+        )
+        params["limit"] = limit
+        if cursor is not None:
+            params["cursor"] = cursor
+        answer = self.get_json("/v1/records", params=params)
         if not isinstance(answer, dict) or not isinstance(answer.get("records"), list):
             raise InvalidAnswerError("the storage service sent an invalid page of records")
         if len(answer["records"]) > limit:
@@ -338,13 +338,31 @@ class Storage(ServiceClient):
             raise InvalidAnswerError(f"the storage service sent invalid intervals: {exc}") from exc
 
 
-class _Params(dict[str, Any]):
-    """Repeated query keys (``where``) for httpx, which takes a list of pairs as params."""
-
-    def __init__(self, pairs: list[tuple[str, Any]]) -> None:
-        super().__init__()
-        for key, value in pairs:
-            self.setdefault(key, []).append(value)
+def record_filters(
+    *,
+    template: str | None = None,
+    topic: str | None = None,
+    robot: str | None = None,
+    start: int | None = None,
+    end: int | None = None,
+    where: Sequence[str] = (),
+    keywords: str | None = None,
+) -> dict[str, Any]:
+    """The query parameters selecting the records that pass every filter given, as
+    ``GET /v1/records`` and ``GET /v1/export`` take them: ``where`` is repeated (httpx sends a
+    list value as one key a clause)."""
+    given = {
+        "template": template,
+        "topic": topic,
+        "robot": robot,
+        "start": start,
+        "end": end,
+        "keywords": keywords,
+    }
+    params: dict[str, Any] = {key: value for key, value in given.items() if value is not None}
+    if where:
+        params["where"] = list(where)
+    return params
 
 
 def _check_answered(kind: str, asked: str, answered: str) -> None:

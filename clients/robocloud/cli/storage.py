@@ -1,4 +1,5 @@
-"""``robocloud templates ...`` and ``robocloud query``: typed records in the storage service."""
+"""``robocloud templates ...``, ``query``, ``export`` and ``intervals``: typed records in the
+storage service."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ from robocloud.cli.context import JsonOption, KeystoreOption, StorageOption, fai
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.output import rows, show, show_json, untrusted
 from robocloud.errors import FormatError
-from robocloud.storage import Storage, TemplateVersion
+from robocloud.ingest import Ingest
+from robocloud.storage import Storage, TemplateVersion, record_filters
 from robocloud.templates import load_template_document, parse_template_id, type_to_json
 
 MAX_TEMPLATE_FILE = 256 * 1024
@@ -182,14 +184,23 @@ def list_templates(
     )
 
 
+TemplateFilter = typer.Option(None, "--template", help="Template id name@version.")
+TopicFilter = typer.Option(None, "--topic", help="ROS topic.")
+RobotFilter = typer.Option(None, "--robot", help="Robot address.")
+StartFilter = typer.Option(None, "--start", min=0, help="t >= START (ns).")
+EndFilter = typer.Option(None, "--end", min=0, help="t < END (ns).")
+WhereFilter = typer.Option([], "--where", help="field op value (= != < <= > >=); repeatable.")
+KeywordsFilter = typer.Option(None, "--keywords", help="Words every record must hold.")
+
+
 def query(
-    template: str | None = typer.Option(None, help="Template id name@version."),
-    topic: str | None = typer.Option(None, help="ROS topic."),
-    robot: str | None = typer.Option(None, help="Robot address."),
-    start: int | None = typer.Option(None, help="t >= START (ns)."),
-    end: int | None = typer.Option(None, help="t < END (ns)."),
-    where: list[str] = typer.Option([], help="field op value (= != < <= > >=); repeatable."),
-    keywords: str | None = typer.Option(None, help="Words every record must hold."),
+    template: str | None = TemplateFilter,
+    topic: str | None = TopicFilter,
+    robot: str | None = RobotFilter,
+    start: int | None = StartFilter,
+    end: int | None = EndFilter,
+    where: list[str] = WhereFilter,
+    keywords: str | None = KeywordsFilter,
     limit: int = typer.Option(100, min=1, max=1000, help="Records per page."),
     cursor: str | None = typer.Option(None, help="Continue after a previous page."),
     storage: str | None = StorageOption,
@@ -230,6 +241,97 @@ def query(
     show(*lines)
 
 
+EXPORT_SUFFIXES = {".mcap": "mcap", ".jsonl": "jsonl", ".ndjson": "jsonl"}
+
+
+def export(
+    output: Path = typer.Argument(
+        ..., dir_okay=False, help="The file to write: .mcap, or .jsonl (one record a line)."
+    ),
+    export_format: str | None = typer.Option(
+        None,
+        "--format",
+        help="mcap or jsonl.",
+        show_default="from OUTPUT's suffix",
+    ),
+    template: str | None = TemplateFilter,
+    topic: str | None = TopicFilter,
+    robot: str | None = RobotFilter,
+    start: int | None = StartFilter,
+    end: int | None = EndFilter,
+    where: list[str] = WhereFilter,
+    keywords: str | None = KeywordsFilter,
+    limit: int = typer.Option(1_000_000, min=1, max=10_000_000, help="At most this many records."),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace OUTPUT if it exists."),
+    storage: str | None = StorageOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Export the records a query selects to an MCAP or JSON-lines file.
+
+    The file appears only once the whole export arrived; one that fails leaves nothing.
+    MCAP carries each template as a JSON Schema and each record as a JSON message, which
+    the mcap library and Foxglove read.
+    """
+    chosen = export_format or EXPORT_SUFFIXES.get(output.suffix.lower())
+    if chosen not in ("mcap", "jsonl"):
+        raise typer.BadParameter(
+            "mcap or jsonl (OUTPUT's suffix does not say which)", param_hint="--format"
+        )
+    if (output.exists() or output.is_symlink()) and not force:
+        fail(f"{output} exists", hint="pass --force to replace it")
+    params = record_filters(
+        template=template,
+        topic=topic,
+        robot=robot,
+        start=start,
+        end=end,
+        where=where,
+        keywords=keywords,
+    )
+    params |= {"format": chosen, "limit": limit}
+    with Ingest(storage) as client:
+        try:
+            size = client.export(params, output, overwrite=force)
+        except FileExistsError:
+            fail(f"{output} appeared while exporting", hint="pass --force to replace it")
+    if as_json:
+        show_json({"path": str(output), "format": chosen, "size": size})
+    else:
+        show(f"{chosen} export -> {output} ({size} bytes)")
+
+
+def intervals(
+    template: str = typer.Option(..., "--template", help="Template id name@version."),
+    field: str = typer.Option(..., "--field", help="The field, a dotted path."),
+    value: str = typer.Option(..., "--value", help="The state: the field's value."),
+    robot: str | None = RobotFilter,
+    start: int | None = StartFilter,
+    end: int | None = EndFilter,
+    storage: str | None = StorageOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """When each robot entered and left a state (a field holding a value), from its records."""
+    with Storage(storage) as client:
+        found = client.intervals(template, field, value, robot=robot, start=start, end=end)
+    if as_json:
+        show_json(
+            {
+                "template": template,
+                "field": field,
+                "value": value,
+                "intervals": [interval.to_json() for interval in found],
+            }
+        )
+        return
+    lines = [f"{'robot':<42} {'enter':>20} {'exit':>20}"]
+    for interval in found:
+        left = "still in" if interval.exit is None else str(interval.exit)
+        lines.append(f"{untrusted(interval.robot, 42):<42} {interval.enter:>20} {left:>20}")
+    show(*lines)
+
+
 def register(app: typer.Typer) -> None:
     app.add_typer(templates_app)
     app.command("query")(query)
+    app.command("export")(export)
+    app.command("intervals")(intervals)

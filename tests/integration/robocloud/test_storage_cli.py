@@ -1,10 +1,13 @@
-"""``robocloud templates ...`` and ``robocloud query`` against a real storage service."""
+"""``robocloud templates ...``, ``query``, ``export`` and ``intervals`` against a real storage
+service."""
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
+from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 from robocloud.cli import app
@@ -12,6 +15,7 @@ from robocloud.identity import Identity
 from robocloud.storage import Storage
 from tests.bagfactory import write_bag
 from tests.conftest import ServiceFactory
+from tests.integration.services.storage.test_ingest_http import approved
 
 runner = CliRunner()
 
@@ -104,3 +108,84 @@ def test_a_bag_from_draft_to_verified_record_from_the_cli(
     assert both.exit_code == 2
     page = runner.invoke(app, ["query", "--template", "imu@1", "--storage", storage.url, "--json"])
     assert len(json.loads(page.stdout)["records"]) == 48
+
+
+def test_export_and_intervals_from_the_cli(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """What a query selects, exported to MCAP (read back with the mcap library) and JSON
+    lines, and a state's intervals; a refused export leaves no file, an existing one is kept
+    without --force."""
+    storage = service_factory("storage")
+    common = ["--storage", storage.url]
+    fixes = ["none", "rtk", "rtk", "none", "rtk", "none", "rtk"]
+    with Storage(storage.url, identity) as client:
+        gps = approved(client, {"name": "gps", "fields": {"lat": "float", "fix": "string"}})
+        client.append(
+            [
+                {
+                    "template": gps,
+                    "topic": "/fix",
+                    "robot": identity.address,
+                    "t": t,
+                    "data": {"lat": t / 2, "fix": fix},
+                }
+                for t, fix in enumerate(fixes)
+            ]
+        )
+        selected = client.query(template=gps, where=["fix=rtk", "lat>=1"]).records
+        expected_intervals = client.intervals(gps, "fix", "rtk")
+    query = ["--template", gps, "--where", "fix=rtk", "--where", "lat>=1", *common]
+    records = [stored.record for stored in selected]
+    assert [record["t"] for record in records] == [2, 4, 6]
+
+    mcap = tmp_path / "rtk.mcap"
+    done = runner.invoke(app, ["export", str(mcap), *query, "--json"])
+    assert done.exit_code == 0, done.output
+    assert json.loads(done.stdout) == {
+        "path": str(mcap),
+        "format": "mcap",
+        "size": mcap.stat().st_size,
+    }
+    reader = make_reader(io.BytesIO(mcap.read_bytes()))
+    assert [json.loads(message.data) for _, _, message in reader.iter_messages()] == records
+
+    lines = tmp_path / "rtk.jsonl"
+    done = runner.invoke(app, ["export", str(lines), *query])
+    assert done.exit_code == 0, done.output
+    assert [json.loads(line) for line in lines.read_text().splitlines()] == records
+
+    lines.write_text("kept\n")
+    kept = runner.invoke(app, ["export", str(lines), *query])
+    assert kept.exit_code == 1
+    assert "exists" in kept.stderr
+    assert "--force" in kept.stderr
+    assert lines.read_text() == "kept\n"
+    replaced = runner.invoke(app, ["export", str(lines), *query, "--force"])
+    assert replaced.exit_code == 0, replaced.output
+    assert lines.read_text().count("\n") == 3
+
+    before = sorted(tmp_path.iterdir())
+    unknown = runner.invoke(app, ["export", str(tmp_path / "rtk.txt"), *query])
+    assert unknown.exit_code == 2
+    assert "mcap or jsonl" in unknown.output
+    refused = runner.invoke(app, ["export", str(tmp_path / "bad.mcap"), "--where", "alt>1", *query])
+    assert refused.exit_code != 0
+    assert "alt" in refused.stderr
+    assert sorted(tmp_path.iterdir()) == before, "a refused export left a file behind"
+
+    table = runner.invoke(
+        app, ["intervals", "--template", gps, "--field", "fix", "--value", "rtk", *common]
+    )
+    assert table.exit_code == 0, table.output
+    assert [line.split()[1:] for line in table.stdout.splitlines()[1:]] == [
+        ["1", "3"],
+        ["4", "5"],
+        ["6", "still", "in"],
+    ]
+    as_json = runner.invoke(
+        app, ["intervals", "--template", gps, "--field", "fix", "--value", "rtk", "--json", *common]
+    )
+    assert json.loads(as_json.stdout)["intervals"] == [
+        interval.to_json() for interval in expected_intervals
+    ]
