@@ -68,15 +68,21 @@ async def learn_from_ledger(
 
     ``expected`` (``ROBOCLOUD_DEPLOYMENT_ID`` in registered mode) pins the deployment: a ledger
     of any other deployment leaves the service unready, with the reason in ``/readyz``.
+
+    Each problem is logged once, when it appears, not at every retry: under ``make up`` the
+    services start before the ledger listens, and each wrote a warning every few hundred
+    milliseconds until it did.
     """
     delay = retry_s
     with LedgerService(ledger_url, timeout=timeout_s, retries=0) as ledger:
         while True:
+            said = audience.problem
             try:
                 deployment = await anyio.to_thread.run_sync(_deployment_of, ledger)
             except RobocloudError as exc:
                 audience.problem = f"the ledger at {ledger_url} did not tell it ({exc})"
-                log.warning("deployment id not learned yet", extra={"reason": str(exc)})
+                if audience.problem != said:
+                    log.warning("deployment id not learned yet", extra={"reason": str(exc)})
             else:
                 if expected is None or deployment == expected:
                     audience.learn(deployment)
@@ -85,7 +91,10 @@ async def learn_from_ledger(
                     f"the ledger at {ledger_url} serves deployment {deployment}, "
                     f"but ROBOCLOUD_DEPLOYMENT_ID is {expected}"
                 )
-                log.error("wrong ledger", extra={"deployment": deployment, "expected": expected})
+                if audience.problem != said:
+                    log.error(
+                        "wrong ledger", extra={"deployment": deployment, "expected": expected}
+                    )
             await anyio.sleep(delay)
             delay = min(delay * 2, max_retry_s)
 
