@@ -30,6 +30,9 @@ def storage_node(exchange: Exchange) -> Reply:
         return json_reply(json.dumps({"templates": [template()], "next": None}))
     if exchange.path.startswith("/v1/templates/"):
         return json_reply(json.dumps(template()))
+    if exchange.path.startswith("/v1/intervals"):
+        interval = {"robot": EVIL, "enter": 1, "exit": None}
+        return json_reply(json.dumps({"template": "imu@1", "intervals": [interval]}))
     if exchange.path.startswith("/v1/records"):
         record = {"template": "imu@1", "topic": EVIL, "robot": "0x", "t": EVIL, "data": {}}
         return json_reply(json.dumps({"records": [{"id": EVIL, "record": record}], "next": EVIL}))
@@ -57,8 +60,13 @@ def assert_escaped(stdout: str, lines: int) -> None:
 
 @pytest.mark.parametrize(
     ("command", "lines"),
-    [(["templates", "list"], 1), (["templates", "show", "imu@1"], 7), (["query"], 3)],
-    ids=["templates-list", "templates-show", "query"],
+    [
+        (["templates", "list"], 1),
+        (["templates", "show", "imu@1"], 7),
+        (["query"], 3),
+        (["intervals", "--template", "imu@1", "--field", "x", "--value", "1"], 2),
+    ],
+    ids=["templates-list", "templates-show", "query", "intervals"],
 )
 def test_storage_answers_are_printed_escaped(command: list[str], lines: int) -> None:
     with scripted_server(storage_node) as server:
