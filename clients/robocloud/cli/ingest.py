@@ -72,7 +72,8 @@ def ingest(
     if as_json:
         show_json(job)
     else:
-        show(_job_line(job), *(_topic_line(topic) for topic in job["topics"]))
+        topics = (_topic_line(topic) for topic in job["topics"])
+        show(_job_line(job), *topics, *_dataset_lines(job.get("dataset")))
     kept: list[Path] = []
     if drafts is not None:
         kept = _write_drafts(job, drafts, overwrite=overwrite)
@@ -92,6 +93,21 @@ def _job_line(job: dict[str, Any]) -> str:
     """The job's outcome as text; every part of it is the storage node's word."""
     committed = job["records"]["committed"]
     return f"job {untrusted(job['id'])}: {untrusted(job['status'])}, {untrusted(committed)} records"
+
+
+def _dataset_lines(dataset: object) -> list[str]:
+    """What became of the job's dataset, escaped: nothing when none was published (no
+    records, or publishing off). A failure was said only in the node's log, so the robot
+    never learned that its bag was neither advertised nor described."""
+    if not isinstance(dataset, dict):
+        return []
+    if "error" in dataset:
+        return [f"dataset not published: {untrusted(dataset['error'])}"]
+    return [
+        f"dataset {untrusted(dataset.get('cid'), 100)}, described by "
+        f"{untrusted(dataset.get('description'), 100)}, advertised in "
+        f"{untrusted(dataset.get('tx'), 80)}"
+    ]
 
 
 def _topic_line(topic: dict[str, Any]) -> str:

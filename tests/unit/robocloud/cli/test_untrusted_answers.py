@@ -87,6 +87,39 @@ def test_an_ingest_report_is_printed_escaped(keystore: Path, tmp_path: Path) -> 
     assert result.stdout.startswith("job j1: succeeded, 1 records\n")
 
 
+@pytest.mark.parametrize(
+    ("dataset", "said"),
+    [
+        ({"error": EVIL}, f"dataset not published: {ESCAPED}"),
+        (
+            {"cid": "bafy-bag", "description": "bafk-description", "tx": EVIL},
+            f"dataset bafy-bag, described by bafk-description, advertised in {ESCAPED}",
+        ),
+    ],
+    ids=["not-published", "published"],
+)
+def test_an_ingest_report_says_what_became_of_the_dataset(
+    keystore: Path, tmp_path: Path, dataset: dict[str, str], said: str
+) -> None:
+    """A dataset that failed to publish was said only in the storage node's log."""
+
+    def node(exchange: Exchange) -> Reply:
+        status, headers, body = storage_node(exchange) or (500, {}, b"")
+        if exchange.path.startswith("/v1/jobs/"):
+            body = json.dumps({**json.loads(body), "dataset": dataset}).encode()
+        return status, headers, body
+
+    bag = tmp_path / "x.mcap"
+    bag.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
+    with scripted_server(node) as server:
+        result = runner.invoke(
+            app, ["ingest", str(bag), "--storage", server.url, "--keystore", str(keystore)]
+        )
+    assert result.exit_code == 0, result.output
+    assert_escaped(result.stdout, 3)
+    assert result.stdout.splitlines()[-1] == said
+
+
 def sparql_node(body: bytes, media_type: str) -> Any:
     def script(_: Exchange) -> Reply:
         return 200, {"Content-Type": media_type}, body
