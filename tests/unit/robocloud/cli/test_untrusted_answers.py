@@ -9,10 +9,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from typer.testing import CliRunner
+from typer.testing import CliRunner, Result
 
 from robocloud.cli import app
-from tests.scripted_http import Exchange, Reply, json_reply, scripted_server
+from tests.scripted_http import Exchange, Reply, Script, json_reply, scripted_server
 
 EVIL = "ok\x1b[2K\r\x1b[31mFORGED\x1b[0m\nrecord   imu-1-0 verified\u202e"
 ESCAPED = "ok\\x1b[2K\\r\\x1b[31mFORGED\\x1b[0m\\nrecord   imu-1-0 verified\\u202e"
@@ -75,13 +75,18 @@ def test_storage_answers_are_printed_escaped(command: list[str], lines: int) -> 
     assert_escaped(result.stdout, lines)
 
 
-def test_an_ingest_report_is_printed_escaped(keystore: Path, tmp_path: Path) -> None:
+def ingest_report(node: Script, keystore: Path, tmp_path: Path) -> Result:
+    """``robocloud ingest`` of a small MCAP file against the storage node ``node``."""
     bag = tmp_path / "x.mcap"
     bag.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
-    with scripted_server(storage_node) as server:
-        result = runner.invoke(
+    with scripted_server(node) as server:
+        return runner.invoke(
             app, ["ingest", str(bag), "--storage", server.url, "--keystore", str(keystore)]
         )
+
+
+def test_an_ingest_report_is_printed_escaped(keystore: Path, tmp_path: Path) -> None:
+    result = ingest_report(storage_node, keystore, tmp_path)
     assert result.exit_code == 0, result.output
     assert_escaped(result.stdout, 2)
     assert result.stdout.startswith("job j1: succeeded, 1 records\n")
@@ -109,12 +114,7 @@ def test_an_ingest_report_says_what_became_of_the_dataset(
             body = json.dumps({**json.loads(body), "dataset": dataset}).encode()
         return status, headers, body
 
-    bag = tmp_path / "x.mcap"
-    bag.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
-    with scripted_server(node) as server:
-        result = runner.invoke(
-            app, ["ingest", str(bag), "--storage", server.url, "--keystore", str(keystore)]
-        )
+    result = ingest_report(node, keystore, tmp_path)
     assert result.exit_code == 0, result.output
     assert_escaped(result.stdout, 3)
     assert result.stdout.splitlines()[-1] == said
