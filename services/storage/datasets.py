@@ -66,11 +66,10 @@ class DatasetPublisher:
         registered robots (``ROBOCLOUD_AUTH=registered``, as under ``make up``)."""
         with self.ledger() as chain:
             self.node.ensure_registered(chain)
-        bag_cid = self._bag_cid(job, bag)
-        counts = [self._count(template, ids) for template, ids in job.record_ids.items()]
-        start, end = self._time_range(job)
-        epoch, tmt_root = self._epoch(job)
-        with self.ledger() as chain:
+            bag_cid = self._bag_cid(job, bag)
+            counts = [self._count(template, ids) for template, ids in job.record_ids.items()]
+            start, end = self._time_range(job)
+            epoch, tmt_root = self._epoch(job)
             chain_id = chain.chain_id
             description = dataset_description(
                 bag_cid,
