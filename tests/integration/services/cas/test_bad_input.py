@@ -18,7 +18,13 @@ from robocloud.identity import Identity
 from robocloud.signing import sign_request
 from robocloud.unixfs import ImportParams, import_bytes
 from tests.conftest import ServiceFactory
-from tests.integration.services.cas.conftest import QUIET_GC, error_of, multipart, repo_stat
+from tests.integration.services.cas.conftest import (
+    QUIET_GC,
+    error_of,
+    multipart,
+    repo_stat,
+    store_unchanged,
+)
 from tests.procs import ServiceProcess
 
 UNKNOWN = CID.from_block(b"never stored anywhere")
@@ -39,8 +45,8 @@ def nothing_stored(service: ServiceProcess) -> None:
         ("POST", "/api/v0/block/get?arg={cid}"),
     ],
 )
-def test_invalid_cid_is_400(cas_service: ServiceProcess, method: str, path: str) -> None:
-    response = httpx.request(method, cas_service.url + path.format(cid="bafyNOT-A-CID"))
+def test_invalid_cid_is_400(shared_cas_service: ServiceProcess, method: str, path: str) -> None:
+    response = httpx.request(method, shared_cas_service.url + path.format(cid="bafyNOT-A-CID"))
     assert response.status_code == 400
     error = response.json()["error"]
     assert error["code"] == "invalid_cid"
@@ -59,8 +65,8 @@ def test_invalid_cid_is_400(cas_service: ServiceProcess, method: str, path: str)
         ("POST", "/api/v0/dag/export?arg={cid}"),
     ],
 )
-def test_unknown_cid_is_404(cas_service: ServiceProcess, method: str, path: str) -> None:
-    response = httpx.request(method, cas_service.url + path.format(cid=UNKNOWN))
+def test_unknown_cid_is_404(shared_cas_service: ServiceProcess, method: str, path: str) -> None:
+    response = httpx.request(method, shared_cas_service.url + path.format(cid=UNKNOWN))
     assert response.status_code == 404
     error = response.json()["error"]
     assert error["code"] == "block_not_found"
@@ -203,14 +209,15 @@ def test_oversized_upload_is_413(small_cas: ServiceProcess, identity: Identity) 
         "/api/v0/repo/gc",
     ],
 )
-def test_unsigned_write_is_401(cas_service: ServiceProcess, path: str) -> None:
+def test_unsigned_write_is_401(shared_cas_service: ServiceProcess, path: str) -> None:
     body, content_type = multipart(("f", b"Hello world"))
-    response = httpx.post(
-        cas_service.url + path, content=body, headers={"Content-Type": content_type}
-    )
+    with store_unchanged(shared_cas_service):
+        response = httpx.post(
+            shared_cas_service.url + path, content=body, headers={"Content-Type": content_type}
+        )
     assert response.status_code == 401
     assert response.json()["error"]["details"]["header"].startswith("X-Robocloud-")
-    nothing_stored(cas_service)
+    assert list((shared_cas_service.data_dir / "spool").iterdir()) == []
 
 
 def test_unpinning_another_robots_pin_is_403(cas_service: ServiceProcess) -> None:

@@ -25,10 +25,23 @@ from robocloud.dagpb import Link, PBNode
 from robocloud.errors import BadRequestError
 from robocloud.identity import Identity
 from robocloud.unixfs import FILE, ImportParams, UnixfsData, import_bytes
+from tests.conftest import ServiceFactory
+from tests.integration.services.cas.conftest import QUIET_GC
 from tests.procs import ServiceProcess, free_port
 from tests.scripted_http import nested_json, serving
 
 runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def cas_service(shared_cas_service: ServiceProcess) -> ServiceProcess:
+    return shared_cas_service
+
+
+@pytest.fixture
+def own_cas_service(service_factory: ServiceFactory) -> ServiceProcess:
+    """A cas for this test alone: for tests that list every pin of the store."""
+    return service_factory("cas", QUIET_GC)
 
 
 def test_large_file_round_trip_with_repeated_chunks(cas: Cas, tmp_path: Path) -> None:
@@ -108,13 +121,14 @@ def test_cat_refuses_a_range_over_the_answer_limit(cas: Cas, cas_service: Servic
         cas.cat(cid, -1)
 
 
-def test_pin_unpin_and_pins(cas: Cas, identity: Identity) -> None:
-    cid = cas.add_bytes(b"keep me", pin=False)
-    assert cas.pins() == {}
-    cas.pin(cid)
-    assert cas.pins() == {str(cid): {"Type": "recursive", "Owners": [identity.address]}}
-    cas.unpin(cid)
-    assert cas.pins() == {}
+def test_pin_unpin_and_pins(own_cas_service: ServiceProcess, identity: Identity) -> None:
+    with Cas(own_cas_service.url, identity, retries=0) as cas:
+        cid = cas.add_bytes(b"keep me", pin=False)
+        assert cas.pins() == {}
+        cas.pin(cid)
+        assert cas.pins() == {str(cid): {"Type": "recursive", "Owners": [identity.address]}}
+        cas.unpin(cid)
+        assert cas.pins() == {}
 
 
 def gateway_answering(answer: Callable[[str], tuple[int, str, bytes]]) -> Iterator[str]:
@@ -266,11 +280,11 @@ def work(tmp_path: Path) -> Path:
 
 
 def test_cli_put_get_pin_pins(
-    cas_service: ServiceProcess, identity: Identity, keystore: Path, tmp_path: Path
+    own_cas_service: ServiceProcess, identity: Identity, keystore: Path, tmp_path: Path
 ) -> None:
     source = tmp_path / "notes.txt"
     source.write_bytes(b"Hello world")
-    common = ["--cas", cas_service.url]
+    common = ["--cas", own_cas_service.url]
     put = runner.invoke(app, ["put", str(source), "--keystore", str(keystore), *common])
     assert put.exit_code == 0, put.output
     cid = put.stdout.strip()
@@ -326,11 +340,11 @@ def test_cli_cat_prints_a_verified_range(cas: Cas, cas_service: ServiceProcess) 
 
 
 def test_cli_prints_json_on_request(
-    cas_service: ServiceProcess, identity: Identity, keystore: Path, tmp_path: Path
+    own_cas_service: ServiceProcess, identity: Identity, keystore: Path, tmp_path: Path
 ) -> None:
     source = tmp_path / "notes.txt"
     source.write_bytes(b"Hello world")
-    common = ["--cas", cas_service.url, "--json"]
+    common = ["--cas", own_cas_service.url, "--json"]
     signed = [*common, "--keystore", str(keystore)]
     put = runner.invoke(app, ["put", str(source), "--no-pin", *signed])
     cid = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"

@@ -36,9 +36,13 @@ BODY = b'{"challenge":"c-1"}'
 LIMIT = 4096
 
 
-@pytest.fixture
-def storage(service_factory: ServiceFactory) -> ServiceProcess:
-    return service_factory("storage", {"ROBOCLOUD_MAX_BODY_BYTES": str(LIMIT)})
+@pytest.fixture(scope="module")
+def storage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    """One storage service for the module: each test signs with a fresh identity and nonce,
+    and none changes what another reads."""
+    data_dir = tmp_path_factory.mktemp("framework") / "storage"
+    with ServiceProcess("storage", data_dir, {"ROBOCLOUD_MAX_BODY_BYTES": str(LIMIT)}) as process:
+        yield process
 
 
 @pytest.fixture
@@ -51,11 +55,15 @@ AUDIENCE = "storage@local"
 
 
 def signed_headers(
-    identity: Identity, path: str = "/v1/whoami", body: bytes = BODY, **kwargs: object
+    identity: Identity,
+    path: str = "/v1/whoami",
+    body: bytes = BODY,
+    audience: str = AUDIENCE,
+    **kwargs: object,
 ) -> dict[str, str]:
     raw_path, _, query = path.partition("?")
     digest = hashlib.sha256(body).hexdigest() if body else EMPTY_SHA256
-    headers = sign_request(identity.account, AUDIENCE, "POST", raw_path, query, digest, **kwargs)  # type: ignore[arg-type]
+    headers = sign_request(identity.account, audience, "POST", raw_path, query, digest, **kwargs)  # type: ignore[arg-type]
     return {**headers, "Content-Type": "application/json"}
 
 
@@ -156,15 +164,17 @@ def test_stale_timestamp_is_rejected(http: httpx.Client, identity: Identity) -> 
 
 
 def test_replayed_nonce_is_rejected_even_after_a_restart(
-    storage: ServiceProcess, identity: Identity
+    service_factory: ServiceFactory, identity: Identity
 ) -> None:
-    headers = signed_headers(identity)
-    first = httpx.post(f"{storage.url}/v1/whoami", content=BODY, headers=headers)
+    """On fl, whose restart takes a third of storage's: the nonce store is the framework's."""
+    service = service_factory("fl")
+    headers = signed_headers(identity, audience="fl@local")
+    first = httpx.post(f"{service.url}/v1/whoami", content=BODY, headers=headers)
     assert first.status_code == 200
-    replay = httpx.post(f"{storage.url}/v1/whoami", content=BODY, headers=headers)
+    replay = httpx.post(f"{service.url}/v1/whoami", content=BODY, headers=headers)
     assert_error(replay, 401, "replayed_nonce")
-    storage.restart()
-    after = httpx.post(f"{storage.url}/v1/whoami", content=BODY, headers=headers)
+    service.restart()
+    after = httpx.post(f"{service.url}/v1/whoami", content=BODY, headers=headers)
     assert_error(after, 401, "replayed_nonce")
 
 
