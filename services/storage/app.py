@@ -210,6 +210,8 @@ def _open_ingest(
         stall_s=settings.storage_ingest_stall_s,
         max_pending=settings.storage_max_ingest_jobs,
         publish=publish if settings.storage_publish_datasets else None,
+        publish_attempts=settings.storage_publish_attempts,
+        publish_retry_s=settings.storage_publish_retry_s,
     )
 
 

@@ -25,6 +25,7 @@ Topics whose type no approved template binds are reported, not ingested.
 
 from __future__ import annotations
 
+import heapq
 import json
 import logging
 import queue
@@ -63,6 +64,12 @@ log = logging.getLogger("robocloud.storage.ingest")
 
 Status = Literal["queued", "staging", "committing", "succeeded", "failed"]
 JOB_ID_BYTES = 12
+PUBLISH_ATTEMPTS = 8
+"""Attempts to publish a job's dataset before the node gives up and removes the bag."""
+PUBLISH_RETRY_S = 5.0
+"""The wait after the first failed attempt; it doubles after each, up to
+:data:`PUBLISH_RETRY_MAX_S`: the eight attempts span about ten minutes of an outage."""
+PUBLISH_RETRY_MAX_S = 600.0
 INCOMING = "incoming"
 """Under the jobs' root: bags on their way in, each in a directory of its own
 (:meth:`IngestJobs.incoming`)."""
@@ -127,8 +134,11 @@ class Job:
     advertisement's transaction, or the error that stopped it (the records stay committed)."""
     publish_attempts: int = 0
     """Times publishing the dataset began, each saved before it: above 1, an earlier attempt
-    was cut short (kill -9, power cut) and may have advertised the dataset, so the publisher
-    looks on chain for that advertisement before it makes one."""
+    was cut short (kill -9, power cut) or failed and may have advertised the dataset, so the
+    publisher looks on chain for that advertisement before it makes one."""
+    publish_retry_ns: int | None = None
+    """When the next attempt to publish is due (wall clock, ns, so that it survives a
+    restart), after one failed; None when none is. The bag is kept until then."""
     advertise_tx: dict[str, Any] | None = None
     """The advertise transaction the publisher signed (``SignedTransaction.to_json``), saved
     before it was sent: a later attempt sends these same bytes again and waits for them, since
@@ -149,11 +159,21 @@ class Job:
             "topics": [asdict(topic) for topic in self.topics],
             "unbound_topics": [t.topic for t in self.topics if t.template is None],
             "record_ids": self.record_ids,
-            "dataset": self.dataset,
+            "dataset": self._dataset_view(),
             "error": self.error,
             "created_ns": self.created_ns,
             "updated_ns": self.updated_ns,
         }
+
+    def _dataset_view(self) -> dict[str, Any] | None:
+        """The dataset, or why it is not published: after how many attempts, and when the
+        next is due while one is."""
+        if self.dataset is None or "error" not in self.dataset:
+            return self.dataset
+        view = {**self.dataset, "attempts": self.publish_attempts}
+        if self.publish_retry_ns is not None:
+            view["next_attempt_ns"] = self.publish_retry_ns
+        return view
 
     @classmethod
     def from_json(cls, document: dict[str, Any]) -> Job:
@@ -214,6 +234,8 @@ class IngestJobs:
         max_pending: int = 16,
         keep_finished: int = 1000,
         publish: Publish | None = None,
+        publish_attempts: int = PUBLISH_ATTEMPTS,
+        publish_retry_s: float = PUBLISH_RETRY_S,
     ) -> None:
         self.root = root
         self.store = store
@@ -234,9 +256,14 @@ class IngestJobs:
         self.keep_finished = keep_finished
         self.publish = publish
         """Describes and advertises what a job ingested, once its records are committed."""
+        self.publish_attempts = publish_attempts
+        self.publish_retry_s = publish_retry_s
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._lock = threading.Lock()
         self._queue: queue.Queue[str | None] = queue.Queue()
+        self._retries: list[tuple[int, str]] = []
+        """Succeeded jobs whose dataset is to be published again: (due, job id), a heap the
+        worker thread alone uses once it runs."""
         root.mkdir(parents=True, exist_ok=True)
         # A bag on its way in when the service stopped (kill -9 during an upload) is no job's.
         shutil.rmtree(self.root / INCOMING, ignore_errors=True)
@@ -246,6 +273,8 @@ class IngestJobs:
             self._jobs[job.id] = job
             if job.status not in ("succeeded", "failed"):
                 self._queue.put(job.id)
+            elif job.publish_retry_ns is not None:
+                heapq.heappush(self._retries, (job.publish_retry_ns, job.id))
         self._worker = threading.Thread(target=self._work, name="storage-ingest", daemon=True)
         self._worker.start()
 
@@ -316,7 +345,11 @@ class IngestJobs:
             time.sleep(0.05)
 
     def _forget_old(self) -> None:
-        finished = [j.id for j in self._jobs.values() if j.status in ("succeeded", "failed")]
+        finished = [
+            j.id
+            for j in self._jobs.values()
+            if j.status in ("succeeded", "failed") and j.publish_retry_ns is None
+        ]
         for job_id in finished[: max(0, len(finished) - self.keep_finished)]:
             del self._jobs[job_id]
             shutil.rmtree(self.root / job_id, ignore_errors=True)
@@ -340,14 +373,31 @@ class IngestJobs:
         cannot be saved either (a full disk) is logged and left failed in memory, to be
         resumed from its last saved state at the next start: raising out of here killed
         the only ingest thread, and every later job stayed queued."""
-        while (job_id := self._queue.get()) is not None:
+        while (job_id := self._next_job()) is not None:
             job = self._jobs.get(job_id)
             if job is None:
                 continue
             try:
-                self._attempt(job)
+                if job.status == "succeeded":
+                    self._publish_again(job)
+                else:
+                    self._attempt(job)
             except Exception:
                 log.exception("ingest job's failure not saved", extra={"job": job.id})
+
+    def _next_job(self) -> str | None:
+        """The next job queued, or else, once it is due, the next whose dataset is to be
+        published again; None when the jobs close."""
+        while True:
+            timeout = None
+            if self._retries:
+                timeout = (self._retries[0][0] - time.time_ns()) / 1e9
+                if timeout <= 0:
+                    return heapq.heappop(self._retries)[1]
+            try:
+                return self._queue.get(timeout=timeout)
+            except queue.Empty:
+                continue
 
     def _attempt(self, job: Job) -> None:
         try:
@@ -372,27 +422,62 @@ class IngestJobs:
         if self.publish is not None and job.records_committed and job.dataset is None:
             self._publish(job, self.publish)
         shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
-        _remove(_bag_in(self.root / job.id))
+        if job.publish_retry_ns is None:
+            _remove(_bag_in(self.root / job.id))
         self._update(job, status="succeeded")
 
+    def _publish_again(self, job: Job) -> None:
+        """A succeeded job's next attempt to publish its dataset; the bag goes once none is
+        left (publishing turned off since the last start leaves none)."""
+        if job.publish_retry_ns is None:
+            return
+        if self.publish is not None:
+            self._publish(job, self.publish)
+        else:
+            self._update(job, publish_retry_ns=None)
+        if job.publish_retry_ns is None:
+            _remove(_bag_in(self.root / job.id))
+
     def _publish(self, job: Job, publish: Publish) -> None:
-        """Publish the job's dataset; a failure is reported with the job, which succeeded.
+        """Publish the job's dataset; a failure is reported with the job, which succeeded,
+        and tried again later (a cas or ledger outage) while attempts are left.
 
         The attempt is saved before it and its outcome after, while the bag is still there: a
         job cut short once its outcome was saved neither advertises again nor needs its bag,
         and one cut short within tells the publisher so (``publish_attempts``), and what
-        transaction it signed (``advertise_tx``)."""
+        transaction it signed (``advertise_tx``). A retry's due time is cleared only with its
+        outcome, so a retry cut short is made again at the next start."""
         self._update(job, publish_attempts=job.publish_attempts + 1)
 
         def save_advertise_tx(signed: dict[str, Any]) -> None:
             self._update(job, advertise_tx=signed)
 
+        retry_ns = None
         try:
             dataset = publish(job, _bag_in(self.root / job.id), save_advertise_tx)
         except Exception as exc:
-            log.warning("dataset not published", extra={"job": job.id, "error": str(exc)})
             dataset = {"error": str(exc)[:500]}
-        self._update(job, dataset=dataset)
+            retry_ns = self._publish_retry_ns(job)
+            log.warning(
+                "dataset not published",
+                extra={
+                    "job": job.id,
+                    "error": str(exc),
+                    "attempts": job.publish_attempts,
+                    "retry": retry_ns is not None,
+                },
+            )
+        self._update(job, dataset=dataset, publish_retry_ns=retry_ns)
+        if retry_ns is not None:
+            heapq.heappush(self._retries, (retry_ns, job.id))
+
+    def _publish_retry_ns(self, job: Job) -> int | None:
+        """When to try publishing again after ``job``'s latest attempt failed; None once its
+        attempts are spent."""
+        if job.publish_attempts >= self.publish_attempts:
+            return None
+        wait_s = min(self.publish_retry_s * 2 ** (job.publish_attempts - 1), PUBLISH_RETRY_MAX_S)
+        return time.time_ns() + int(wait_s * 1e9)
 
     def _plan(self, bag: Bag) -> tuple[list[TopicReport], Plans]:
         reports: list[TopicReport] = []

@@ -11,6 +11,7 @@ from typing import Literal
 from pydantic import Field, SecretStr
 
 from services.common.settings import ServiceSettings
+from services.storage.ingest import PUBLISH_ATTEMPTS, PUBLISH_RETRY_MAX_S, PUBLISH_RETRY_S
 
 
 class StorageSettings(ServiceSettings):
@@ -166,4 +167,17 @@ class StorageSettings(ServiceSettings):
     storage_publish_datasets: bool = Field(
         default=True,
         description="describe each ingested bag, index it and advertise it on the ledger",
+    )
+    storage_publish_attempts: int = Field(
+        default=PUBLISH_ATTEMPTS,
+        ge=1,
+        le=100,
+        description="attempts to publish a dataset (cas or the ledger out) before its bag is "
+        "removed unpublished",
+    )
+    storage_publish_retry_s: float = Field(
+        default=PUBLISH_RETRY_S,
+        gt=0,
+        description="wait after a dataset's first failed publish; it doubles after each "
+        f"failure, up to {PUBLISH_RETRY_MAX_S:g} s",
     )

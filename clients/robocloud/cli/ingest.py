@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -67,26 +68,65 @@ def ingest(
         fail(
             f"ingest job {job['id']} is still {job['status']} after {wait_timeout:g} s",
             ExitCode.UNAVAILABLE,
-            "the storage node goes on with it; wait longer with --timeout",
+            f"the storage node goes on with it; follow it with robocloud job {job['id']} --wait",
         )
-    if as_json:
-        show_json(job)
-    else:
-        topics = (_topic_line(topic) for topic in job["topics"])
-        show(_job_line(job), *topics, *_dataset_lines(job.get("dataset")))
+    _show_job(job, as_json)
     kept: list[Path] = []
     if drafts is not None:
         kept = _write_drafts(job, drafts, overwrite=overwrite)
         if not as_json:
             show(f"draft templates of unbound topics written to {drafts}")
-    if job["status"] != "succeeded":
-        fail(f"ingest failed: {job['error']['message']}")
+    _fail_if_failed(job)
     if kept:
         fail(
             f"the ingest succeeded, but these files exist and were kept: "
             f"{', '.join(map(str, kept))}",
             hint="pass --overwrite to replace them with the drafts",
         )
+
+
+def inspect_job(
+    job_id: str = typer.Argument(..., help="The ingest job's id, as `robocloud ingest` printed."),
+    wait: bool = typer.Option(False, "--wait", help="Wait for the job to finish."),
+    resume: bool = typer.Option(
+        False, "--resume", help="Run again a job that failed while committing (signed)."
+    ),
+    wait_timeout: float = typer.Option(
+        WAIT_TIMEOUT_S, "--timeout", min=0, help="Seconds to wait, with --wait or --resume."
+    ),
+    storage: str | None = StorageOption,
+    keystore: Path | None = KeystoreOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """Show an ingest job: what became of each topic and of the dataset.
+
+    For a job that `ingest` stopped waiting for, and for a dataset the node publishes later
+    (its first attempt failed while cas or the ledger was out).
+    """
+    with Ingest(storage, load_identity(keystore) if resume else None) as client:
+        state = client.resume(job_id) if resume else client.job(job_id)
+        if wait or resume:
+            state = client.wait(state["id"], timeout_s=wait_timeout)
+    _show_job(state, as_json)
+    _fail_if_failed(state)
+
+
+def _fail_if_failed(job: dict[str, Any]) -> None:
+    """Exit non-zero for a failed job, saying how to run it again when it can be."""
+    if job["status"] != "failed":
+        return
+    error = job.get("error") or {}
+    resumable = error.get("resumable") is True
+    hint = f"run it again with robocloud job {job['id']} --resume" if resumable else None
+    fail(f"ingest failed: {error.get('message')}", hint=hint)
+
+
+def _show_job(job: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        show_json(job)
+    else:
+        topics = (_topic_line(topic) for topic in job["topics"])
+        show(_job_line(job), *topics, *_dataset_lines(job.get("dataset")))
 
 
 def _job_line(job: dict[str, Any]) -> str:
@@ -102,12 +142,27 @@ def _dataset_lines(dataset: object) -> list[str]:
     if not isinstance(dataset, dict):
         return []
     if "error" in dataset:
-        return [f"dataset not published: {untrusted(dataset['error'])}"]
+        return [_unpublished_line(dataset)]
     return [
         f"dataset {untrusted(dataset.get('cid'), 100)}, described by "
         f"{untrusted(dataset.get('description'), 100)}, advertised in "
         f"{untrusted(dataset.get('tx'), 80)}"
     ]
+
+
+def _unpublished_line(dataset: dict[str, Any]) -> str:
+    """Why the dataset is not published, and whether the node tries again (and when)."""
+    error, attempts = untrusted(dataset["error"]), dataset.get("attempts")
+    next_attempt_ns = dataset.get("next_attempt_ns")
+    if isinstance(next_attempt_ns, int):
+        wait_s = max(0, round((next_attempt_ns - time.time_ns()) / 1e9))
+        return (
+            f"dataset not published yet: {error} (attempt {untrusted(attempts)}; the node "
+            f"tries again in about {wait_s} s: see robocloud job ID)"
+        )
+    if isinstance(attempts, int) and attempts > 1:
+        return f"dataset not published: {error} (after {attempts} attempts)"
+    return f"dataset not published: {error}"
 
 
 def _topic_line(topic: dict[str, Any]) -> str:
@@ -164,4 +219,5 @@ def bind(
 
 def register(app: typer.Typer) -> None:
     app.command("ingest")(ingest)
+    app.command("job")(inspect_job)
     app.command("bind")(bind)

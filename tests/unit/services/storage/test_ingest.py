@@ -10,6 +10,7 @@ import tracemalloc
 from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -55,8 +56,11 @@ class Node:
         self.blobs = MemoryBlobs()
         self.jobs = self.open_jobs()
 
-    def open_jobs(self, batch_records: int = 50, staging_workers: int = 1) -> IngestJobs:
-        """Jobs that stage any bag in ``staging_workers`` processes, each a window of it."""
+    def open_jobs(
+        self, batch_records: int = 50, staging_workers: int = 1, **options: Any
+    ) -> IngestJobs:
+        """Jobs that stage any bag in ``staging_workers`` processes, each a window of it;
+        ``options`` are IngestJobs' other keywords."""
         return IngestJobs(
             self.root / "jobs",
             self.store,
@@ -67,6 +71,7 @@ class Node:
             staging_workers=staging_workers,
             parallel_from_messages=0,
             publish=self.publish,
+            **options,
         )
 
     def stage_in(self, workers: int) -> None:
@@ -630,3 +635,39 @@ def test_a_failure_the_disk_cannot_save_leaves_the_ingest_worker_running(
     finished = node.jobs.wait(second.id, 120)
     assert finished.status == "succeeded"
     assert finished.records_committed > 0
+
+
+def test_a_job_failed_while_committing_resumes_with_each_record_once(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The disk fills after the first batch of 50: the job fails resumable, its spool kept;
+    resumed, it appends the other 110 and none twice. A job that succeeded, or failed before
+    committing anything, does not resume."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    append = RecordStore.append_prepared
+    appended: list[int] = []
+
+    def filling(self: RecordStore, *args: Any, **kwargs: Any) -> int:
+        if appended:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        appended.append(append(self, *args, **kwargs))
+        return appended[-1]
+
+    monkeypatch.setattr(RecordStore, "append_prepared", filling)
+    submitted = node.jobs.submit(bag(tmp_path, "b", 200), "upload:b", authorship())
+    failed = node.jobs.wait(submitted.id, 60)
+    assert failed.status == "failed"
+    assert failed.error is not None
+    assert (failed.error["resumable"], failed.records_committed) == (True, 50)
+    assert "No space left on device" in failed.error["message"]
+    assert node.logs.size(imu) == 50
+
+    monkeypatch.undo()
+    assert node.jobs.resume(failed.id).status == "committing"
+    done = node.jobs.wait(failed.id, 60)
+    assert done.status == "succeeded", done.error
+    assert done.records_committed == node.logs.size(imu) == 160
+    assert len({entry.record for entry in node.logs.entries(imu, 0, 160)}) == 160
+    with pytest.raises(ingest.JobNotResumable, match="is succeeded"):
+        node.jobs.resume(failed.id)
