@@ -24,6 +24,8 @@ if TYPE_CHECKING:
 
 PASSPHRASE_ENV = "ROBOCLOUD_PASSPHRASE"
 KEYSTORE_ENV = "ROBOCLOUD_KEYSTORE"
+STANDARD_SCRYPT_N = 2**18
+"""The scrypt cost of a keystore whose passphrase a person chose (geth's "standard")."""
 
 
 def default_keystore_path() -> Path:
@@ -54,7 +56,7 @@ class Identity:
         """The robot's DID as used in semantic descriptions (``did:pkh``)."""
         return f"did:pkh:eip155:{chain_id}:{self.address}"
 
-    def save(self, path: Path, passphrase: str, *, scrypt_n: int = 2**18) -> None:
+    def save(self, path: Path, passphrase: str, *, scrypt_n: int = STANDARD_SCRYPT_N) -> None:
         """Write the encrypted keystore, readable by the owner only; never overwrite a key."""
         if not passphrase:
             raise KeystoreError("an empty passphrase would leave the key unprotected")

@@ -141,7 +141,7 @@ class ExternalLedger:
         current = reader.registration_mode()
         if not must_switch_mode(addresses.registry, current, wanted, reader.admin(), operator):
             return
-        admin = Identity.load(keystore, passphrase(data_dir, secret))
+        admin = Identity.load(keystore, passphrase(data_dir, secret).text)
         receipt = Ledger(self.rpc, addresses, admin).set_registration_mode(wanted)
         log.info(
             "registration mode set", extra={"mode": wanted.name.lower(), "tx": receipt.tx_hash}

@@ -197,7 +197,7 @@ def open_granter(
         return None
 
     def writer() -> Ledger:
-        admin = Identity.load(keystore, passphrase(data_dir, configured_passphrase))
+        admin = Identity.load(keystore, passphrase(data_dir, configured_passphrase).text)
         return Ledger(rpc, addresses, admin)
 
     return RoleGranter(reader, writer, grants)

@@ -17,8 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from robocloud.identity import Identity
-from services.common.durable import generated_secret
-from services.common.keystores import service_key
+from services.common.keystores import KeyPassphrase, key_passphrase, service_key
 
 SECRET_FILE = "operator.secret"
 KEYS_DIR = "keys"
@@ -44,9 +43,9 @@ class OperatorKeys:
         }
 
 
-def passphrase(data_dir: Path, configured: str | None) -> str:
+def passphrase(data_dir: Path, configured: str | None) -> KeyPassphrase:
     """The configured passphrase, else the one generated into ``operator.secret``."""
-    return configured or generated_secret(data_dir / SECRET_FILE)
+    return key_passphrase(configured, data_dir / SECRET_FILE)
 
 
 def admin_keystore(data_dir: Path) -> Path:
@@ -54,7 +53,7 @@ def admin_keystore(data_dir: Path) -> Path:
     return data_dir / KEYS_DIR / "admin.json"
 
 
-def load_or_create(data_dir: Path, secret: str) -> OperatorKeys:
+def load_or_create(data_dir: Path, secret: KeyPassphrase) -> OperatorKeys:
     """The operator's keys from their keystores, generated and saved on the first start."""
     keys = data_dir / KEYS_DIR
     keys.mkdir(parents=True, exist_ok=True)

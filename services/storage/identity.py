@@ -24,8 +24,7 @@ from robocloud.cid import CID
 from robocloud.identity import Identity
 from robocloud.ledger import Ledger
 from robocloud.ledger.models import Role
-from services.common.durable import generated_secret
-from services.common.keystores import service_key
+from services.common.keystores import KeyPassphrase, key_passphrase, service_key
 
 log = logging.getLogger("robocloud.storage.identity")
 
@@ -33,9 +32,9 @@ SECRET_FILE = "node.secret"
 KEYSTORE = Path("keys") / "node.json"
 
 
-def passphrase(data_dir: Path, configured: str | None) -> str:
+def passphrase(data_dir: Path, configured: str | None) -> KeyPassphrase:
     """The configured passphrase, else the one generated into ``node.secret``."""
-    return configured or generated_secret(data_dir / SECRET_FILE)
+    return key_passphrase(configured, data_dir / SECRET_FILE)
 
 
 def load_or_create(data_dir: Path, configured_passphrase: str | None) -> Identity:
