@@ -122,7 +122,7 @@ class Ingest(ServiceClient):
         timeout_s: float = WAIT_TIMEOUT_S,
     ) -> dict[str, Any]:
         """Poll a job until it succeeds or fails, or ``timeout_s`` passes; its last state
-        (whose status is then still ``queued`` or ``running``)."""
+        (whose status is then still ``queued``, ``staging`` or ``committing``)."""
         deadline = time.monotonic() + timeout_s
         while True:
             job = self.job(job_id)
