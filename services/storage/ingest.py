@@ -387,17 +387,17 @@ class IngestJobs:
 
     def _next_job(self) -> str | None:
         """The next job queued, or else, once it is due, the next whose dataset is to be
-        published again; None when the jobs close."""
+        published again; None when the jobs close. Queued jobs (and the close) come first,
+        so retries due while a cas outage lasts hold up neither."""
         while True:
             timeout = None
             if self._retries:
-                timeout = (self._retries[0][0] - time.time_ns()) / 1e9
-                if timeout <= 0:
-                    return heapq.heappop(self._retries)[1]
+                timeout = max(0.0, (self._retries[0][0] - time.time_ns()) / 1e9)
             try:
                 return self._queue.get(timeout=timeout)
             except queue.Empty:
-                continue
+                if self._retries[0][0] <= time.time_ns():
+                    return heapq.heappop(self._retries)[1]
 
     def _attempt(self, job: Job) -> None:
         try:
