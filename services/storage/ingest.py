@@ -422,8 +422,7 @@ class IngestJobs:
         if self.publish is not None and job.records_committed and job.dataset is None:
             self._publish(job, self.publish)
         shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
-        if job.publish_retry_ns is None:
-            _remove(_bag_in(self.root / job.id))
+        self._drop_bag_unless_retrying(job)
         self._update(job, status="succeeded")
 
     def _publish_again(self, job: Job) -> None:
@@ -435,6 +434,10 @@ class IngestJobs:
             self._publish(job, self.publish)
         else:
             self._update(job, publish_retry_ns=None)
+        self._drop_bag_unless_retrying(job)
+
+    def _drop_bag_unless_retrying(self, job: Job) -> None:
+        """A finished job keeps its bag only while a publish retry needs it."""
         if job.publish_retry_ns is None:
             _remove(_bag_in(self.root / job.id))
 

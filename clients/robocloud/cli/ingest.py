@@ -106,7 +106,7 @@ def inspect_job(
     with Ingest(storage, load_identity(keystore) if resume else None) as client:
         state = client.resume(job_id) if resume else client.job(job_id)
         if wait or resume:
-            state = client.wait(state["id"], timeout_s=wait_timeout)
+            state = client.wait(job_id, timeout_s=wait_timeout)
     _show_job(state, as_json)
     _fail_if_failed(state)
 
