@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -11,6 +13,24 @@ from robocloud.identity import Identity
 from tests.procs import ServiceProcess
 
 ServiceFactory = Callable[..., ServiceProcess]
+
+
+class LeftOpen(UserWarning):
+    """Sockets or files a module's tests never closed (Python hides ``ResourceWarning``)."""
+
+
+@pytest.fixture(autouse=True, scope="module")
+def resources_left_open() -> Iterator[None]:
+    """Name the module whose tests left a socket or file open. A client caught in a reference
+    cycle is finalised by whichever later test the garbage collector runs in, and its
+    ``ResourceWarning`` would blame that test (for sessions on end, ``test_gas.py``)."""
+    yield
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ResourceWarning)
+        gc.collect()
+    left_open = [str(w.message) for w in caught if issubclass(w.category, ResourceWarning)]
+    if left_open:
+        warnings.warn(LeftOpen(f"this module's tests left open: {left_open}"), stacklevel=1)
 
 
 @pytest.fixture

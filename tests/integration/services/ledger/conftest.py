@@ -179,7 +179,8 @@ class Pair:
         """A fresh key with ether on both chains."""
         identity = Identity.generate()
         assert faucet(self.service_url, identity).status_code == 200
-        fund(JsonRpcClient(self.anvil), identity)
+        with JsonRpcClient(self.anvil) as anvil:
+            fund(anvil, identity)
         return identity
 
     def deploy(self, identity: Identity, init_code: bytes) -> tuple[str, str]:

@@ -378,8 +378,11 @@ def test_calls_nest_to_the_evm_depth_limit_as_anvil_does(tmp_path: Path) -> None
         robot = Identity.generate()
         assert faucet(ledger.url, robot).status_code == 200
         ours = deploy_code(f"{ledger.url}/rpc", robot, DEPLOY_RECURSE, RECURSE_RUNTIME)
-        with ethereum_node(tmp_path / "anvil.log", extra=["--gas-limit", str(DEEP_GAS)]) as anvil:
-            fund(JsonRpcClient(anvil), robot)
+        with (
+            ethereum_node(tmp_path / "anvil.log", extra=["--gas-limit", str(DEEP_GAS)]) as anvil,
+            JsonRpcClient(anvil) as anvil_rpc,
+        ):
+            fund(anvil_rpc, robot)
             theirs = deploy_code(anvil, robot, DEPLOY_RECURSE, RECURSE_RUNTIME)
             answers = {
                 depth: (

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from contextlib import closing
+
 import anyio
 import pytest
 
@@ -40,32 +42,34 @@ def test_registered_robot_writes_and_unregistered_is_403(
 
 
 def test_roles_and_deactivation_are_checked(service: Service, robot: RobotFactory) -> None:
-    authorizer = RegistryAuthorizer(service.url, cache_s=0, negative_cache_s=0)
     node = robot()
     assert node.identity is not None
     address = node.identity.address
+    authorizer = RegistryAuthorizer(service.url, cache_s=0, negative_cache_s=0)
 
     async def check(role: str | None = None) -> None:
         await authorizer.authorize(address, role)
 
-    anyio.run(check)
-    with pytest.raises(Forbidden) as denied:
-        anyio.run(check, "storage_node")
-    assert denied.value.code == "role_required"
-    service.admin.grant_role(address, Role.STORAGE_NODE)
-    anyio.run(check, "storage_node")
-    node.deactivate()
-    with pytest.raises(Forbidden) as denied:
+    with closing(authorizer):
         anyio.run(check)
+        with pytest.raises(Forbidden) as denied:
+            anyio.run(check, "storage_node")
+        assert denied.value.code == "role_required"
+        service.admin.grant_role(address, Role.STORAGE_NODE)
+        anyio.run(check, "storage_node")
+        node.deactivate()
+        with pytest.raises(Forbidden) as denied:
+            anyio.run(check)
     assert denied.value.code == "robot_inactive"
 
 
 def test_allowed_addresses_skip_the_ledger_and_an_unreachable_ledger_is_503() -> None:
     allowed = Identity.generate().address
     authorizer = RegistryAuthorizer(f"http://127.0.0.1:{free_port()}", [allowed], timeout_s=1)
-    anyio.run(authorizer.authorize, allowed)
-    with pytest.raises(Unavailable) as unavailable:
-        anyio.run(authorizer.authorize, Identity.generate().address)
+    with closing(authorizer):
+        anyio.run(authorizer.authorize, allowed)
+        with pytest.raises(Unavailable) as unavailable:
+            anyio.run(authorizer.authorize, Identity.generate().address)
     assert unavailable.value.code == "ledger_unreachable"
 
 

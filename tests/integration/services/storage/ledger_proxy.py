@@ -31,7 +31,7 @@ from tests.integration.robocloud.ledger.nodes import ethereum_node
 from tests.integration.services.ledger.conftest import ledger_fronting
 from tests.integration.services.storage.test_ingest_http import Storage, approve
 from tests.procs import ServiceProcess, free_port
-from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.scripted_http import Exchange, Reply, ScriptedServer, scripted_server
 from tests.waiting import wait_for
 
 HOP_BY_HOP = {"host", "connection", "keep-alive", "content-length", "transfer-encoding"}
@@ -114,6 +114,14 @@ class LedgerProxy:
         self.storage.process.wait()
 
 
+@contextmanager
+def serving(proxy: LedgerProxy) -> Iterator[ScriptedServer]:
+    """``proxy`` on a free loopback port until the block ends; its client to the ledger is
+    closed after (its pooled connections otherwise outlive the test)."""
+    with proxy.upstream, scripted_server(proxy, answer_audience=False) as server:
+        yield server
+
+
 def storage_behind(
     proxy: LedgerProxy,
     proxy_url: str,
@@ -166,7 +174,7 @@ def anchoring_on_anvil(
         )
         cas = service_factory("cas")
         proxy = make_proxy(ledger, anvil)
-        with scripted_server(proxy, answer_audience=False) as server:
+        with serving(proxy) as server:
             base = {"ROBOCLOUD_STORAGE_EPOCH_S": "0.2", "ROBOCLOUD_STORAGE_ANCHOR_RETRY_S": "0.2"}
             storage = storage_behind(
                 proxy, server.url, service_factory, cas, {**base, **env}, port=storage_port

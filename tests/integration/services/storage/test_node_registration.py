@@ -20,11 +20,12 @@ from tests.integration.services.storage.ledger_proxy import (
     rpc_calls,
     selector,
     sends,
+    serving,
     storage_behind,
     upload_imu_bag,
 )
 from tests.procs import ServiceProcess
-from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.scripted_http import Exchange, Reply
 
 REGISTER = selector("Registry", "register")
 STANDING = selector("Registry", "isActiveWithRole")
@@ -69,7 +70,7 @@ def test_the_anchorer_and_the_first_publish_register_the_node_once(
     ledger = service_factory("ledger")
     cas = service_factory("cas")
     proxy = HoldFirstRegister(ledger)
-    with scripted_server(proxy, answer_audience=False) as server:
+    with serving(proxy) as server:
         env = {"ROBOCLOUD_STORAGE_EPOCH_S": "0.2"}
         storage = storage_behind(proxy, server.url, service_factory, cas, env)
         _, job_id = upload_imu_bag(storage, identity, tmp_path / "run.bag")

@@ -27,13 +27,14 @@ from tests.integration.services.storage.ledger_proxy import (
     ADVERTISE,
     LedgerProxy,
     sends,
+    serving,
     storage_behind,
     upload_imu_bag,
 )
 from tests.integration.services.storage.test_anchoring import node_state
 from tests.integration.services.storage.test_ingest_http import Storage, approve
 from tests.procs import ServiceProcess
-from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.scripted_http import Exchange, Reply
 from tests.waiting import wait_for
 
 
@@ -69,7 +70,7 @@ def test_kill_9_after_the_advertise_is_mined_advertises_the_dataset_once(
     ledger = service_factory("ledger")
     cas = service_factory("cas")
     proxy = KillOnAdvertise(ledger)
-    with scripted_server(proxy, answer_audience=False) as server:
+    with serving(proxy) as server:
         env = {"ROBOCLOUD_STORAGE_ANCHOR": "false"}
         storage = storage_behind(proxy, server.url, service_factory, cas, env)
         imu, job_id = upload_imu_bag(storage, identity, tmp_path / "run.bag")
@@ -131,7 +132,7 @@ def test_a_resumed_job_does_not_take_an_advertisement_of_another_description_for
     ledger = service_factory("ledger")
     cas = service_factory("cas")
     proxy = KillBeforeSecondAdvertise(ledger)
-    with scripted_server(proxy, answer_audience=False) as server:
+    with serving(proxy) as server:
         env = {"ROBOCLOUD_STORAGE_EPOCH_S": "0.2"}
         storage = storage_behind(proxy, server.url, service_factory, cas, env)
         write_counter_records(storage, Identity.generate(), 0, 5, name="counter")

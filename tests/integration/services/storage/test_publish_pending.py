@@ -24,11 +24,12 @@ from tests.integration.services.storage.ledger_proxy import (
     ADVERTISE,
     LedgerProxy,
     sends,
+    serving,
     storage_behind,
     upload_imu_bag,
 )
 from tests.procs import ServiceProcess
-from tests.scripted_http import Exchange, Reply, scripted_server
+from tests.scripted_http import Exchange, Reply
 
 
 class KillWhilePending(LedgerProxy):
@@ -65,7 +66,7 @@ def test_kill_9_while_the_advertise_is_pending_advertises_the_dataset_once(
         ledger = ledger_fronting(service_factory, anvil_url, anvil, tmp_path / "ledger")
         cas = service_factory("cas")
         proxy = KillWhilePending(ledger, anvil)
-        with scripted_server(proxy, answer_audience=False) as server:
+        with serving(proxy) as server:
             env = {"ROBOCLOUD_STORAGE_ANCHOR": "false"}
             storage = storage_behind(proxy, server.url, service_factory, cas, env)
             node = str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
