@@ -23,7 +23,8 @@ class LeftOpen(UserWarning):
 def resources_left_open() -> Iterator[None]:
     """Name the module whose tests left a socket or file open. A client caught in a reference
     cycle is finalised by whichever later test the garbage collector runs in, and its
-    ``ResourceWarning`` would blame that test (for sessions on end, ``test_gas.py``)."""
+    ``ResourceWarning`` blamed that test: five CI logs named ``test_gas.py``, which allocates
+    enough to start a collection, for sockets other modules had opened."""
     yield
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ResourceWarning)

@@ -9,6 +9,8 @@ code and ``details`` each of them becomes. The app factory renders both as
 
 from __future__ import annotations
 
+import errno
+import sqlite3
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -112,6 +114,34 @@ class Unavailable(ServiceError):
 class BadGateway(ServiceError):
     status = 502
     code = "bad_gateway"
+
+
+class InsufficientStorage(ServiceError):
+    """507: the service's own disk is full, which no change to the request can mend."""
+
+    status = 507
+    code = "insufficient_storage"
+
+
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Whether ``exc``, or an exception it was raised from, says the disk (or the quota) is
+    full: an ``OSError`` of ``ENOSPC`` or ``EDQUOT``, or SQLite's ``SQLITE_FULL``. Domain
+    modules re-raise such errors as their own; the chain keeps the cause."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        if isinstance(current, OSError) and current.errno in DISK_FULL_ERRNOS:
+            return True
+        if isinstance(current, sqlite3.Error) and (
+            getattr(current, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
+        ):
+            return True
+        current = current.__cause__ or current.__context__
+    return False
 
 
 def error_body(

@@ -1,7 +1,8 @@
 """The request guard: four plain ASGI layers, each with one job, outermost first.
 
 1. :class:`RequestIdLayer` gives every request an id (the log lines and the answer carry it)
-   and answers whatever escapes the layers below with a 500 in the error model.
+   and answers whatever escapes the layers below with a 500 in the error model (507 when the
+   service's disk is full).
 2. :class:`AccessLogLayer` records metrics by route template and writes one access-log line.
 3. :class:`BodyLimitLayer` refuses a body over the path's limit: 413 at once when
    ``Content-Length`` says so, else as soon as the streamed body grows past it.
@@ -45,11 +46,13 @@ from services.common.errors import (
     UNKNOWN_SIGNER,
     BadRequest,
     Forbidden,
+    InsufficientStorage,
     PayloadTooLarge,
     ServiceError,
     TooManyRequests,
     Unauthorized,
     Unavailable,
+    disk_full,
     error_body,
 )
 from services.common.logs import request_id_var
@@ -62,6 +65,10 @@ log = logging.getLogger("robocloud.http")
 UNSIGNED_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 CLIENT_CLOSED_REQUEST = 499
 INTERNAL_ERROR = ServiceError("internal error; see the service log")
+DISK_FULL = InsufficientStorage(
+    "the service's disk is full, so this request failed; it may succeed once the service's "
+    "operator has freed space"
+)
 REQUEST_ID_SCOPE_KEY = "robocloud.request_id"
 """Where the request id is also kept in the ASGI scope, for the server protocol's log lines."""
 SERVER_ANSWER_SCOPE_KEY = "robocloud.server_answer"
@@ -139,6 +146,10 @@ class RequestIdLayer:
     serving carries it), in the answer's ``X-Request-Id``, and in a 500 for an exception that
     nothing below handled, logged with the same id. Who asks (``slots.client_key`` of the peer
     address) goes in the ``client`` context variable, which the shares of costly turns count.
+
+    A full disk is a 507 (``insufficient_storage``) instead, logged in one line: the robot
+    learns that the failure is the service's and lasts until its operator frees space, and the
+    operator reads that once a request, not a traceback.
     """
 
     def __init__(self, app: ASGIApp) -> None:
@@ -171,10 +182,15 @@ class RequestIdLayer:
             # and the access log's line (status 499) is the one record of it.
             pass
         except Exception as exc:
-            log.exception("unhandled error", exc_info=exc)
             if watch.status:
+                log.exception("unhandled error", exc_info=exc)
                 raise
-            await send_error(watch, INTERNAL_ERROR)
+            if disk_full(exc):
+                log.error("the disk is full: %s", exc)
+                await send_error(watch, DISK_FULL)
+            else:
+                log.exception("unhandled error", exc_info=exc)
+                await send_error(watch, INTERNAL_ERROR)
         finally:
             client_var.reset(client_token)
             request_id_var.reset(token)

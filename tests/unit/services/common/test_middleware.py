@@ -7,8 +7,10 @@ layer lets through, what it answers itself, and what it hands down.
 from __future__ import annotations
 
 import asyncio
+import errno
 import hashlib
 import logging
+import sqlite3
 import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -116,6 +118,70 @@ def test_unhandled_exception_is_a_500_in_the_error_model_logged_with_the_id(
     [record] = [r for r in caplog.records if r.getMessage() == "unhandled error"]
     assert record.exc_info is not None
     assert "secret internal detail" in str(record.exc_info[1])
+
+
+class RecordNotStored(Exception):
+    """A domain module's own error, raised from the disk's."""
+
+
+def sqlite_full(path: Path) -> sqlite3.Error:
+    """SQLite's own ``SQLITE_FULL``: a database capped at two pages, written past them."""
+    with sqlite3.connect(path) as db:
+        db.execute("PRAGMA max_page_count = 2")
+        db.execute("CREATE TABLE t (v BLOB)")
+        try:
+            db.execute("INSERT INTO t VALUES (?)", (bytes(10_000),))
+        except sqlite3.Error as exc:
+            return exc
+    raise AssertionError("SQLite stored past its page cap")
+
+
+def raised_from(cause: Exception) -> Exception:
+    try:
+        raise RecordNotStored("the record log could not append") from cause
+    except RecordNotStored as exc:
+        return exc
+
+
+@pytest.mark.parametrize(
+    "full",
+    [
+        OSError(errno.ENOSPC, "No space left on device", "/data/cas/spool/part"),
+        OSError(errno.EDQUOT, "Disk quota exceeded"),
+        "sqlite",
+        "raised from",
+    ],
+)
+def test_a_full_disk_is_a_507_logged_in_one_line(
+    full: Exception | str, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The robot learns that the failure is the service's and lasts until its operator acts
+    (not a 500 it cannot tell from a bug); the operator gets one line, not a traceback."""
+    if full == "sqlite":
+        full = sqlite_full(tmp_path / "capped.sqlite")
+    elif full == "raised from":
+        full = raised_from(OSError(errno.ENOSPC, "No space left on device"))
+    assert isinstance(full, Exception)
+
+    async def writes(scope: Scope, receive: Receive, send: Send) -> None:
+        raise full
+
+    with caplog.at_level(logging.INFO, logger="robocloud.http"):
+        response = call(RequestIdLayer(writes), "POST", "/", headers={"X-Request-Id": "req-full-1"})
+    error = error_of(response, 507, "insufficient_storage")
+    assert error["message"].startswith("the service's disk is full")
+    assert error["request_id"] == "req-full-1"
+    assert "/data/cas" not in response.text
+    [record] = caplog.records
+    assert (record.levelname, record.exc_info) == ("ERROR", None)
+    assert record.getMessage() == f"the disk is full: {full}"
+
+
+def test_other_os_errors_stay_500() -> None:
+    async def refused(scope: Scope, receive: Receive, send: Send) -> None:
+        raise raised_from(OSError(errno.EACCES, "Permission denied"))
+
+    error_of(call(RequestIdLayer(refused), "POST", "/"), 500, "internal_error")
 
 
 def test_exception_after_the_answer_started_is_not_answered_twice() -> None:
