@@ -170,6 +170,9 @@ _API_HINTS = {
     "stale_timestamp": "check this machine's clock",
     "replayed_nonce": "retry: every attempt is signed with a fresh nonce",
     "faucet_unavailable": "the faucet exists only on the development chain",
+    "insufficient_storage": (
+        "the service's disk is full: it takes writes again once its operator frees space"
+    ),
 }
 
 

@@ -45,6 +45,7 @@ def api(status: int, code: str = "some_code", **details: object) -> ApiError:
         (api(429, retry_after="3"), ExitCode.UNAVAILABLE, "try again in 3 s"),
         (api(500), ExitCode.UNAVAILABLE, "request id"),
         (api(503), ExitCode.UNAVAILABLE, "request id"),
+        (api(507, "insufficient_storage"), ExitCode.UNAVAILABLE, "operator frees space"),
         (
             RpcError("eth_sendRawTransaction", -32000, "insufficient funds"),
             ExitCode.REFUSED,
