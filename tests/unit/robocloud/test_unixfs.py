@@ -113,10 +113,9 @@ def test_reader_reads_legacy_leaves_with_inline_data() -> None:
 
 
 def test_walk_scopes_follow_the_trustless_gateway() -> None:
-    reader = CarReader(
-        car_path("car/gateway-conformance/subdir-with-mixed-block-files.car").open("rb")
-    )
-    store = {block.cid: block.data for block in reader}
+    with car_path("car/gateway-conformance/subdir-with-mixed-block-files.car").open("rb") as car:
+        reader = CarReader(car)
+        store = {block.cid: block.data for block in reader}
     root = reader.roots[0]
     everything = [block.cid for block in walk_dag(root, store.__getitem__, "all")]
     assert sorted(map(str, everything)) == sorted(map(str, store))
@@ -131,8 +130,9 @@ def test_walk_scopes_follow_the_trustless_gateway() -> None:
 
 def test_directory_listing_matches_the_fixture() -> None:
     directory = vectors()["directories"][0]
-    reader = CarReader(car_path(directory["car"]).open("rb"))
-    store = {block.cid: block.data for block in reader}
+    with car_path(directory["car"]).open("rb") as car:
+        reader = CarReader(car)
+        store = {block.cid: block.data for block in reader}
     entries = {
         link.name: str(link.cid) for link in list_directory(reader.roots[0], store.__getitem__)
     }
@@ -164,8 +164,9 @@ def test_kubo_option_semantics() -> None:
 
 
 def test_reading_a_directory_as_a_file_is_an_error() -> None:
-    reader = CarReader(car_path("car/gateway-conformance/tooling-car-dag.car").open("rb"))
-    store = {block.cid: block.data for block in reader}
+    with car_path("car/gateway-conformance/tooling-car-dag.car").open("rb") as car:
+        reader = CarReader(car)
+        store = {block.cid: block.data for block in reader}
     with pytest.raises(UnixfsError, match="not a file"):
         list(read_file(reader.roots[0], store.__getitem__))
 

@@ -98,15 +98,14 @@ def test_all_services_come_up_and_stop_on_sigterm(tmp_path: Path) -> None:
 
 
 def test_services_do_not_outlive_a_killed_supervisor(tmp_path: Path) -> None:
-    supervisor = start_supervisor(tmp_path)
-    assert supervisor.stdout is not None
     pids: list[int] = []
-    for line in supervisor.stdout:
-        pids += [int(pid) for pid in re.findall(r"Started server process \[(\d+)\]", line)]
-        if "Ctrl-C" in line:
-            break
-    supervisor.kill()
-    supervisor.wait()
+    with start_supervisor(tmp_path) as supervisor:
+        assert supervisor.stdout is not None
+        for line in supervisor.stdout:
+            pids += [int(pid) for pid in re.findall(r"Started server process \[(\d+)\]", line)]
+            if "Ctrl-C" in line:
+                break
+        supervisor.kill()
     assert len(pids) == 5
     deadline = time.monotonic() + 15
     while time.monotonic() < deadline and any(Path(f"/proc/{pid}").exists() for pid in pids):

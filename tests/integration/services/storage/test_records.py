@@ -301,25 +301,24 @@ def test_kill_9_keeps_every_acknowledged_record_once(
     with Storage(storage.url, identity) as client:
         _approved(client)
     key = identity.account.key.hex()
-    writer = subprocess.Popen(
+    acknowledged: list[str] = []
+    with subprocess.Popen(
         [sys.executable, "-c", WRITER, storage.url, key],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         cwd=REPO,
         env={**os.environ, "PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
-    )
-    assert writer.stdout is not None
-    acknowledged: list[str] = []
-    for line in writer.stdout:
-        acknowledged.extend(json.loads(line))
-        if len(acknowledged) >= 1500:
-            break
-    assert storage.process is not None
-    os.kill(storage.process.pid, signal.SIGKILL)
-    storage.process.wait()
-    for line in writer.stdout:
-        acknowledged.extend(json.loads(line))
-    writer.wait()
+    ) as writer:
+        assert writer.stdout is not None
+        for line in writer.stdout:
+            acknowledged.extend(json.loads(line))
+            if len(acknowledged) >= 1500:
+                break
+        assert storage.process is not None
+        os.kill(storage.process.pid, signal.SIGKILL)
+        storage.process.wait()
+        for line in writer.stdout:
+            acknowledged.extend(json.loads(line))
     storage.start()
     with Storage(storage.url, identity) as client:
         seen: list[str] = []

@@ -53,6 +53,7 @@ def test_a_pack_without_index_is_dropped_at_start(tmp_path: Path) -> None:
     reopened = Blockstore(tmp_path)
     assert not reopened.has(cid)
     assert list((tmp_path / "packs").iterdir()) == []
+    staged._file.close()  # what the kill would have closed
 
 
 def test_committed_blocks_survive_reopening(tmp_path: Path) -> None:

@@ -94,8 +94,9 @@ class FailingDiskChild:
         return self.answer()
 
     def kill(self) -> None:
-        self.process.send_signal(signal.SIGKILL)
-        self.process.wait()
+        """SIGKILL the child; leaving the block closes its pipes and waits for it."""
+        with self.process:
+            self.process.send_signal(signal.SIGKILL)
 
 
 def copy_as_killed(path: Path, directory: Path) -> Path:
@@ -114,17 +115,16 @@ def acknowledged_before_kill(script: str, path: Path, count: int) -> list[str]:
     Each line the script prints is a write it has acknowledged; what the caller reopens after
     the kill must contain all of them.
     """
-    writer = subprocess.Popen(
+    with subprocess.Popen(
         [sys.executable, "-c", script, str(path)],
         cwd=REPO,
         stdout=subprocess.PIPE,
         text=True,
         env={"PYTHONPATH": f"{REPO}:{REPO / 'clients'}"},
-    )
-    assert writer.stdout is not None
-    lines = [writer.stdout.readline().strip() for _ in range(count)]
-    writer.send_signal(signal.SIGKILL)
-    writer.wait()
+    ) as writer:
+        assert writer.stdout is not None
+        lines = [writer.stdout.readline().strip() for _ in range(count)]
+        writer.send_signal(signal.SIGKILL)
     return lines
 
 
