@@ -126,22 +126,22 @@ class InsufficientStorage(ServiceError):
 DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
 
 
-def disk_full(exc: BaseException) -> bool:
-    """Whether ``exc``, or an exception it was raised from, says the disk (or the quota) is
-    full: an ``OSError`` of ``ENOSPC`` or ``EDQUOT``, or SQLite's ``SQLITE_FULL``. Domain
-    modules re-raise such errors as their own; the chain keeps the cause."""
+def disk_full(exc: BaseException) -> BaseException | None:
+    """The error saying the disk (or the quota) is full, ``exc`` or one it was raised from:
+    an ``OSError`` of ``ENOSPC`` or ``EDQUOT``, or SQLite's ``SQLITE_FULL``; None when there
+    is none. Domain modules re-raise such errors as their own; the chain keeps the cause."""
     seen: set[int] = set()
     current: BaseException | None = exc
     while current is not None and id(current) not in seen:
         seen.add(id(current))
         if isinstance(current, OSError) and current.errno in DISK_FULL_ERRNOS:
-            return True
+            return current
         if isinstance(current, sqlite3.Error) and (
             getattr(current, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
         ):
-            return True
+            return current
         current = current.__cause__ or current.__context__
-    return False
+    return None
 
 
 def error_body(

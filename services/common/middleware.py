@@ -185,8 +185,9 @@ class RequestIdLayer:
             if watch.status:
                 log.exception("unhandled error", exc_info=exc)
                 raise
-            if disk_full(exc):
-                log.error("the disk is full: %s", exc)
+            full = disk_full(exc)
+            if full is not None:
+                log.error("the disk is full: %s", full)
                 await send_error(watch, DISK_FULL)
             else:
                 log.exception("unhandled error", exc_info=exc)
