@@ -25,6 +25,9 @@ from services.common.slots import Slots
 log = logging.getLogger("robocloud.cas")
 
 UPLOAD_PATHS = ("/api/v0/add", "/api/v0/dag/import")
+STORING_PATHS = (*UPLOAD_PATHS, "/api/v0/block/put", "/api/v0/pin/add")
+"""The writes that bring blocks (``pin/add`` fetches missing ones from peers): they leave the
+disk's reserve free. ``pin/rm`` and ``repo/gc`` free space and are never refused for it."""
 MAX_BLOCK_PUT_BYTES = 4 * 1024 * 1024
 
 
@@ -99,6 +102,7 @@ def build_app(settings: CasSettings) -> FastAPI:
             **{path: settings.cas_max_upload_bytes for path in UPLOAD_PATHS},
             "/api/v0/block/put": MAX_BLOCK_PUT_BYTES,
         },
+        storing_paths=STORING_PATHS,
         errors=ERRORS,
         description=services.cas.__doc__ or "",
     )

@@ -42,6 +42,7 @@ from services.common.metrics import CONTENT_TYPE, ServiceMetrics
 from services.common.middleware import (
     AccessLogLayer,
     BodyLimitLayer,
+    DiskReserveLayer,
     RequestIdLayer,
     SignatureLayer,
 )
@@ -195,6 +196,7 @@ def create_app(
     lifespan: Lifespan | None = None,
     unsigned_paths: Sequence[str] = (),
     body_limits: Mapping[str, int] | None = None,
+    storing_paths: Sequence[str] = (),
     errors: ErrorMap | None = None,
     description: str = "",
     deployment_source: DeploymentSource | None = None,
@@ -204,7 +206,9 @@ def create_app(
     ``unsigned_paths`` are write routes that carry their own authentication (the chain's
     JSON-RPC, whose transactions are signed by Ethereum keys). ``body_limits`` sets the
     body limit under a path prefix: above ``settings.max_body_bytes`` for uploads, below it
-    for routes of a few fields (``/v1/whoami`` has ``SMALL_JSON_BODY``). ``errors``
+    for routes of a few fields (``/v1/whoami`` has ``SMALL_JSON_BODY``). Writes under a
+    prefix in ``storing_paths`` (uploads, records) leave ``settings.disk_reserve_bytes`` of the
+    disk free (``DiskReserveLayer``); deletions are never among them. ``errors``
     maps the service's domain exceptions to HTTP errors (see ``services.common.errors``),
     beside ``COMMON_ERRORS`` for the SDK's format errors.
 
@@ -218,6 +222,7 @@ def create_app(
     data_dir = settings.resolved_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     metrics = ServiceMetrics(service)
+    metrics.watch_disk(data_dir, settings.disk_reserve_bytes)
     background = BackgroundTasks()
     nonces = NonceStore(data_dir / "nonces.log", settings.max_clock_skew_s)
     authorizer = build_authorizer(settings)
@@ -266,6 +271,12 @@ def create_app(
     for router in routers:
         app.include_router(router)
     # Starlette runs the middleware added last first: the request id wraps everything.
+    app.add_middleware(
+        DiskReserveLayer,
+        directory=data_dir,
+        reserve_bytes=settings.disk_reserve_bytes,
+        storing_paths=storing_paths,
+    )
     app.add_middleware(
         SignatureLayer,
         audience=audience,

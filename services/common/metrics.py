@@ -7,7 +7,10 @@ send any token as a method), so that label cardinality stays bounded whatever cl
 
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+import shutil
+from pathlib import Path
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
@@ -35,6 +38,25 @@ class ServiceMetrics:
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10),
         )
         self.service = service
+
+    def watch_disk(self, directory: Path, reserve_bytes: int) -> None:
+        """Free space on ``directory``'s disk, read at each scrape, beside the reserve that
+        uploads may not take: an operator alerts on the first nearing the second, before
+        robots get 507s."""
+        free = Gauge(
+            "robocloud_disk_free_bytes",
+            "Free space on the disk of the service's data directory.",
+            ["service"],
+            registry=self.registry,
+        )
+        free.labels(self.service).set_function(lambda: shutil.disk_usage(directory).free)
+        reserve = Gauge(
+            "robocloud_disk_reserve_bytes",
+            "Free space that uploads, records and ingests may not take (0: no reserve).",
+            ["service"],
+            registry=self.registry,
+        )
+        reserve.labels(self.service).set(reserve_bytes)
 
     def observe(self, method: str, route: str, status: int, seconds: float) -> None:
         method = method if method in HTTP_METHODS else "other"

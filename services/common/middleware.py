@@ -1,4 +1,4 @@
-"""The request guard: four plain ASGI layers, each with one job, outermost first.
+"""The request guard: five plain ASGI layers, each with one job, outermost first.
 
 1. :class:`RequestIdLayer` gives every request an id (the log lines and the answer carry it)
    and answers whatever escapes the layers below with a 500 in the error model (507 when the
@@ -8,6 +8,8 @@
    ``Content-Length`` says so, else as soon as the streamed body grows past it.
 4. :class:`SignatureLayer` checks the signature of a write before any body byte is read (401
    at once), then the body's SHA-256 while it streams in.
+5. :class:`DiskReserveLayer` keeps the disk's last bytes from uploads (507 when a write would
+   take them), for the service's own small writes and the deletions that free space.
 
 They are plain ASGI rather than Starlette's ``BaseHTTPMiddleware`` so that they act before the
 body is read. The body checks raise from the ``receive`` they hand down: a route that streams
@@ -24,9 +26,11 @@ import json
 import logging
 import math
 import re
+import shutil
 import time
 import uuid
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 import anyio
@@ -428,3 +432,82 @@ class SignatureLayer:
                 code="replayed_nonce",
                 details={"header": "X-Robocloud-Nonce"},
             )
+
+
+RESERVE_RECHECK_BYTES = 1 << 20
+"""How much of a streamed body arrives between two looks at the disk: a ``statvfs`` costs a
+few microseconds, so an upload pays nothing measurable, and the reserve is overrun by at most
+about this much (and the batches the route holds) an upload at a time."""
+
+
+class _ReserveMeter(_BodyMeter):
+    def __init__(self, receive: Receive, reserve: DiskReserveLayer) -> None:
+        super().__init__(receive)
+        self.reserve = reserve
+        self.unchecked = 0
+
+    def check(self, chunk: bytes, last: bool) -> None:
+        self.unchecked += len(chunk)
+        if self.unchecked >= RESERVE_RECHECK_BYTES:
+            self.unchecked = 0
+            self.reserve.require_room(0)
+
+
+class DiskReserveLayer:
+    """Writes under ``storing_paths`` (uploads, records, ingests) leave ``reserve_bytes`` of
+    the data directory's disk free: 507 ``insufficient_storage`` when the free space less the
+    declared ``Content-Length`` falls under it, before the body is read, and as soon as it
+    does while the body streams in.
+
+    Without a reserve, robots whose uploads succeed fill the disk to its last byte, and then
+    every signed write fails on its nonce's journal line, the deletions and garbage
+    collections that would free space included: only the operator could mend it. With it,
+    the service's own small writes and the writes that free space go on. It sits inside the
+    signature check, so a refused write has used its nonce (it cannot be replayed into
+    success once space is freed) and a stranger learns nothing of the disk.
+    """
+
+    def __init__(
+        self, app: ASGIApp, *, directory: Path, reserve_bytes: int, storing_paths: Iterable[str]
+    ) -> None:
+        self.app = app
+        self.directory = directory
+        self.reserve_bytes = reserve_bytes
+        self.storing_paths = tuple(storing_paths)
+
+    def require_room(self, incoming: int) -> None:
+        """Raise 507 unless ``incoming`` more bytes leave the reserve free."""
+        free = shutil.disk_usage(self.directory).free
+        if free - incoming >= self.reserve_bytes:
+            return
+        log.warning(
+            "write refused: the disk is down to its reserve",
+            extra={"free_bytes": free, "reserve_bytes": self.reserve_bytes, "incoming": incoming},
+        )
+        details: dict[str, Any] = {"free_bytes": free, "reserve_bytes": self.reserve_bytes}
+        if incoming:
+            details |= {"header": "Content-Length", "declared_bytes": incoming}
+        write = f"this write of {incoming} bytes" if incoming else "this write"
+        raise InsufficientStorage(
+            f"the service keeps {self.reserve_bytes} bytes of its disk free and has {free} "
+            f"free: {write} is refused and nothing of it kept; it may succeed once data is "
+            "deleted or the service's operator frees space",
+            details=details,
+        )
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (
+            scope["type"] != "http"
+            or not self.reserve_bytes
+            or scope["method"] in UNSIGNED_METHODS
+            or not scope["path"].startswith(self.storing_paths)
+        ):
+            await self.app(scope, receive, send)
+            return
+        declared = Headers(scope=scope).get("content-length", "")
+        try:
+            self.require_room(int(declared) if declared.isdigit() else 0)
+        except InsufficientStorage as error:
+            await send_error(send, error)
+            return
+        await _run_metered(self.app, scope, _ReserveMeter(receive, self), send)

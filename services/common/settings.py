@@ -59,6 +59,12 @@ class ServiceSettings(BaseSettings):
         default=30.0, gt=0, description="a client must take each piece of an answer within this"
     )
     max_clock_skew_s: int = Field(default=300, gt=0)
+    disk_reserve_bytes: int = Field(
+        default=256 * 1024 * 1024,
+        ge=0,
+        description="free disk space that uploads may not take: what the service's own small "
+        "writes (nonces, journals, indexes) and deletions need once robots have filled the rest",
+    )
     trusted_proxies: CommaList = Field(
         default_factory=list,
         description="addresses whose X-Forwarded-For names the client (a reverse proxy's); "

@@ -35,6 +35,9 @@ from services.storage.settings import StorageSettings
 from services.storage.staging import CasBlobs
 
 _COUNT = re.compile(r"0|[1-9][0-9]{0,18}")
+STORING_PATHS = ("/v1/records", "/v1/ingest", "/v1/jobs/", "/v1/knowledge")
+"""The writes that bring data (records, bags, a job's commit run again, descriptions): they
+leave the disk's reserve free. Templates and bindings are a few fields each and pass."""
 
 
 def _count(value: str | None, field: str) -> int:
@@ -250,6 +253,7 @@ def build_app(settings: StorageSettings) -> FastAPI:
             "/v1/records": settings.storage_max_batch_bytes,
             "/v1/ingest": settings.storage_max_bag_bytes,
         },
+        storing_paths=STORING_PATHS,
         errors=ERRORS,
         description=services.storage.__doc__ or "",
     )

@@ -171,7 +171,8 @@ _API_HINTS = {
     "replayed_nonce": "retry: every attempt is signed with a fresh nonce",
     "faucet_unavailable": "the faucet exists only on the development chain",
     "insufficient_storage": (
-        "the service's disk is full: it takes writes again once its operator frees space"
+        "the service's disk is full, or down to the reserve it keeps: it takes writes again "
+        "once data is deleted or its operator frees space"
     ),
 }
 

@@ -2,12 +2,19 @@
 directory. The write that does not fit is a 507 ``insufficient_storage`` (it was a 500
 ``internal_error``, and a traceback in the log for each request); nothing of it is kept, what
 was acknowledged before stays readable, and the service goes on serving, across a restart too.
+
+Uploads stop at the disk's reserve (``ROBOCLOUD_DISK_RESERVE_BYTES``), so the robots' other
+signed writes, deletions first, still have room; the first tests turn the reserve off to fill
+the disk itself.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import shutil
 import subprocess
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -16,12 +23,13 @@ import httpx
 import pytest
 
 from robocloud.cas import Cas
+from robocloud.cid import CID
 from robocloud.errors import ServerError
 from robocloud.identity import Identity
 from robocloud.storage import Storage
 from robocloud.unixfs import import_bytes
 from tests.conftest import ServiceFactory
-from tests.integration.services.cas.conftest import store_unchanged
+from tests.integration.services.cas.conftest import multipart, store_unchanged
 from tests.integration.services.storage.test_ingest_http import approved
 
 QUIET_STORAGE = {
@@ -29,6 +37,9 @@ QUIET_STORAGE = {
     "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
     "ROBOCLOUD_STORAGE_PUBLISH_DATASETS": "false",
 }
+NO_RESERVE = {"ROBOCLOUD_DISK_RESERVE_BYTES": "0"}
+RESERVE = 2 * 1024 * 1024
+WITH_RESERVE = {"ROBOCLOUD_DISK_RESERVE_BYTES": str(RESERVE)}
 
 
 @contextmanager
@@ -62,15 +73,30 @@ def disk(tmp_path: Path) -> Iterator[Path]:
         yield path
 
 
+@pytest.fixture
+def larger_disk(tmp_path: Path) -> Iterator[Path]:
+    """Room for a reserve of 2 MiB and writes beside it."""
+    with small_disk(tmp_path / "disk", 8) as path:
+        yield path
+
+
 def insufficient_storage(raised: pytest.ExceptionInfo[ServerError]) -> None:
     assert (raised.value.status, raised.value.code) == (507, "insufficient_storage")
     assert raised.value.message.startswith("the service's disk is full")
 
 
+def down_to_the_reserve(raised: pytest.ExceptionInfo[ServerError], disk: Path) -> None:
+    """Refused for the reserve, while the disk still holds about that much free."""
+    assert (raised.value.status, raised.value.code) == (507, "insufficient_storage")
+    assert raised.value.message.startswith(f"the service keeps {RESERVE} bytes of its disk free")
+    assert raised.value.details["reserve_bytes"] == RESERVE
+    assert shutil.disk_usage(disk).free > RESERVE // 2
+
+
 def test_cas_refuses_what_does_not_fit_and_keeps_what_it_had(
     disk: Path, service_factory: ServiceFactory, identity: Identity
 ) -> None:
-    service = service_factory("cas", data_dir=disk)
+    service = service_factory("cas", NO_RESERVE, data_dir=disk)
     with Cas(service.url, identity, retries=0) as cas:
         kept = os.urandom(100_000)
         kept_cid = cas.add_bytes(kept)
@@ -104,7 +130,7 @@ def append_until_refused(
 def test_storage_keeps_every_acknowledged_record_and_starts_again_on_a_full_disk(
     disk: Path, service_factory: ServiceFactory, identity: Identity
 ) -> None:
-    service = service_factory("storage", QUIET_STORAGE, data_dir=disk)
+    service = service_factory("storage", QUIET_STORAGE | NO_RESERVE, data_dir=disk)
     acknowledged: list[str] = []
     with Storage(service.url, identity, retries=0) as storage:
         template = approved(storage, {"name": "blob", "version": 1, "fields": {"text": "string"}})
@@ -121,3 +147,92 @@ def test_storage_keeps_every_acknowledged_record_and_starts_again_on_a_full_disk
         stored = storage.query(template=template, limit=1000).records
         assert [item.id for item in stored] == acknowledged
         assert storage.record(acknowledged[-1]).record["data"] == {"text": "a" * 60_000}
+
+
+def add_until_refused(cas: Cas, added: list[CID]) -> None:
+    """Add 400 kB files one at a time, each CID acknowledged into ``added``."""
+    for _ in range(30):
+        added.append(cas.add_bytes(os.urandom(400_000)))
+
+
+def test_cas_keeps_its_reserve_so_robots_can_still_free_space(
+    larger_disk: Path, service_factory: ServiceFactory, identity: Identity
+) -> None:
+    """Without the reserve the last upload that fit took the disk's last bytes, and then
+    ``pin/rm`` and ``repo/gc`` failed too, on their nonces' journal lines: no robot could free
+    space, only the operator."""
+    env = WITH_RESERVE | {"ROBOCLOUD_CAS_GC_GRACE_S": "0", "ROBOCLOUD_CAS_GC_INTERVAL_S": "0"}
+    service = service_factory("cas", env, data_dir=larger_disk)
+    kept = os.urandom(400_000)
+    with Cas(service.url, identity, retries=0) as cas:
+        added = [cas.add_bytes(kept)]
+        with pytest.raises(ServerError) as refused:
+            add_until_refused(cas, added)
+        down_to_the_reserve(refused, larger_disk)
+        assert len(added) >= 5, "the disk held some uploads first"
+        for cid in added[1:]:
+            cas.unpin(cid)
+        cas.request("POST", "/api/v0/repo/gc")
+        again = os.urandom(400_000)
+        assert cas.get(cas.add_bytes(again)) == again
+        assert cas.get(added[0]) == kept, "what stayed pinned stayed readable"
+
+
+def staged_bytes(disk: Path) -> int:
+    return sum(pack.stat().st_size for pack in (disk / "packs").glob("*.pack"))
+
+
+def test_cas_stops_an_upload_when_the_disk_reaches_its_reserve_while_the_body_arrives(
+    larger_disk: Path, service_factory: ServiceFactory, identity: Identity
+) -> None:
+    """The upload's declared length fit when it started; something else (another upload, a
+    log) then took the room. The body is refused as soon as the service looks at the disk
+    again (every MiB received), before the upload itself fills it, and nothing of it is kept.
+    """
+    service = service_factory("cas", WITH_RESERVE, data_dir=larger_disk)
+    body, content_type = multipart(("late", os.urandom(3 * 1024 * 1024)))
+    first = 1024 * 1024 + 100_000
+    filler = larger_disk / "filler"
+
+    def arriving() -> Iterator[bytes]:
+        yield body[:first]
+        deadline = time.monotonic() + 30
+        while staged_bytes(larger_disk) == 0:
+            assert time.monotonic() < deadline, "the service staged nothing of the first MiB"
+            time.sleep(0.01)
+        room = shutil.disk_usage(larger_disk).free - RESERVE
+        filler.write_bytes(os.urandom(room + 128 * 1024))
+        yield from (body[at : at + 64 * 1024] for at in range(first, len(body), 64 * 1024))
+
+    with Cas(service.url, identity, retries=0) as cas:
+        with store_unchanged(service), pytest.raises(ServerError) as refused:
+            cas.request(
+                "POST",
+                "/api/v0/add",
+                content=arriving(),
+                content_sha256=hashlib.sha256(body).hexdigest(),
+                headers={"Content-Type": content_type, "Content-Length": str(len(body))},
+            )
+        down_to_the_reserve(refused, larger_disk)
+        assert "declared_bytes" not in refused.value.details
+        assert staged_bytes(larger_disk) == 0
+        filler.unlink()
+        after = os.urandom(100_000)
+        assert cas.get(cas.add_bytes(after)) == after
+
+
+def test_storage_refuses_records_at_its_reserve_and_still_takes_other_signed_writes(
+    larger_disk: Path, service_factory: ServiceFactory, identity: Identity
+) -> None:
+    service = service_factory("storage", QUIET_STORAGE | WITH_RESERVE, data_dir=larger_disk)
+    acknowledged: list[str] = []
+    with Storage(service.url, identity, retries=0) as storage:
+        template = approved(storage, {"name": "blob", "version": 1, "fields": {"text": "string"}})
+        with pytest.raises(ServerError) as refused:
+            append_until_refused(storage, template, identity, acknowledged)
+        down_to_the_reserve(refused, larger_disk)
+        assert len(acknowledged) > 10, "the disk held some records first"
+        stored = storage.query(template=template, limit=1000).records
+        assert [item.id for item in stored] == acknowledged
+        other = approved(storage, {"name": "note", "version": 1, "fields": {"text": "string"}})
+        assert storage.get_json(f"/v1/templates/{other}")["status"] == "approved"

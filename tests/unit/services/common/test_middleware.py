@@ -10,6 +10,7 @@ import asyncio
 import errno
 import hashlib
 import logging
+import shutil
 import sqlite3
 import threading
 from collections.abc import Awaitable, Callable
@@ -20,6 +21,7 @@ import anyio
 import httpx
 import pytest
 from prometheus_client import Counter
+from prometheus_client.parser import text_string_to_metric_families
 from starlette.requests import Request
 from starlette.responses import JSONResponse
 from starlette.routing import Route, Router
@@ -36,6 +38,7 @@ from services.common.middleware import (
     UNKNOWN_SIGNER,
     AccessLogLayer,
     BodyLimitLayer,
+    DiskReserveLayer,
     RequestIdLayer,
     SignatureLayer,
 )
@@ -593,6 +596,85 @@ def test_body_not_matching_the_signed_digest_is_400_when_it_ends(tmp_path: Path)
     )
     error = error_of(response, 400, "body_digest_mismatch")
     assert error["details"]["header"] == "X-Robocloud-Content-SHA256"
+
+
+# DiskReserveLayer
+
+MORE_THAN_ANY_DISK = 1 << 60
+
+
+def reserve_layer(tmp_path: Path, app: ASGIApp, reserve_bytes: int) -> DiskReserveLayer:
+    return DiskReserveLayer(
+        app, directory=tmp_path, reserve_bytes=reserve_bytes, storing_paths=["/up"]
+    )
+
+
+def test_a_write_that_would_take_the_reserve_is_507_before_the_app_runs(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    app = reserve_layer(tmp_path, never_called, MORE_THAN_ANY_DISK)
+    with caplog.at_level(logging.WARNING, logger="robocloud.http"):
+        response = call(app, "POST", "/up/add", content=b"x" * 10)
+    error = error_of(response, 507, "insufficient_storage")
+    assert error["details"]["reserve_bytes"] == MORE_THAN_ANY_DISK
+    assert 0 <= error["details"]["free_bytes"] < MORE_THAN_ANY_DISK
+    assert error["details"]["declared_bytes"] == 10
+    assert error["message"].startswith(f"the service keeps {MORE_THAN_ANY_DISK} bytes of its")
+    [record] = caplog.records
+    assert record.getMessage() == "write refused: the disk is down to its reserve"
+    assert record.__dict__["reserve_bytes"] == MORE_THAN_ANY_DISK
+
+
+def test_a_declared_body_larger_than_the_room_left_is_507_naming_content_length(
+    tmp_path: Path,
+) -> None:
+    app = reserve_layer(tmp_path, never_called, 1)
+    response = call(
+        app, "POST", "/up", content=b"{}", headers={"Content-Length": str(MORE_THAN_ANY_DISK)}
+    )
+    error = error_of(response, 507, "insufficient_storage")
+    assert error["details"]["header"] == "Content-Length"
+    assert error["details"]["declared_bytes"] == MORE_THAN_ANY_DISK
+    assert f"this write of {MORE_THAN_ANY_DISK} bytes is refused" in error["message"]
+
+
+def test_reads_other_paths_and_a_zero_reserve_pass_whatever_the_disk(tmp_path: Path) -> None:
+    """Deletions (``pin/rm``, ``repo/gc``) are not storing paths: they free the space."""
+    assert call(reserve_layer(tmp_path, echo, MORE_THAN_ANY_DISK), "GET", "/up").status_code == 200
+    to_other = call(reserve_layer(tmp_path, echo, MORE_THAN_ANY_DISK), "POST", "/rm", content=b"1")
+    assert to_other.json()["body_bytes"] == 1
+    unreserved = call(reserve_layer(tmp_path, echo, 0), "POST", "/up", content=b"x" * 1000)
+    assert unreserved.json()["body_bytes"] == 1000
+
+
+def test_a_write_with_room_left_reaches_the_app_whole(tmp_path: Path) -> None:
+    app = reserve_layer(tmp_path, echo, 1)
+    assert call(app, "POST", "/up", content=b"z" * 3_000_000).json()["body_bytes"] == 3_000_000
+
+
+def test_metrics_show_the_disks_free_space_beside_its_reserve(tmp_path: Path) -> None:
+    metrics = ServiceMetrics("test")
+    metrics.watch_disk(tmp_path, 12345)
+    samples = {
+        sample.name: sample.value
+        for family in text_string_to_metric_families(metrics.render().decode())
+        for sample in family.samples
+    }
+    assert samples["robocloud_disk_reserve_bytes"] == 12345
+    free = shutil.disk_usage(tmp_path).free
+    assert abs(samples["robocloud_disk_free_bytes"] - free) < 0.01 * free
+
+
+def test_a_write_refused_for_the_reserve_is_signed_first_and_uses_its_nonce(
+    tmp_path: Path,
+) -> None:
+    """A stranger learns nothing of the disk, and a refused write cannot be replayed into
+    success once space is freed."""
+    app = signature_layer(tmp_path, reserve_layer(tmp_path, never_called, MORE_THAN_ANY_DISK))
+    error_of(call(app, "POST", "/up", content=b"{}"), 401, "missing_signature_header")
+    headers = signed(Identity.generate(), "/up", b"{}")
+    error_of(call(app, "POST", "/up", content=b"{}", headers=headers), 507, "insufficient_storage")
+    error_of(call(app, "POST", "/up", content=b"{}", headers=headers), 401, "replayed_nonce")
 
 
 def test_layers_compose_outermost_request_id_first(tmp_path: Path) -> None:
