@@ -57,6 +57,7 @@ from services.storage.staging import (
     bag_failures,
     check_complete,
     compile_plan,
+    disk_full_failure,
     start_workers_server,
 )
 
@@ -405,10 +406,16 @@ class IngestJobs:
         except IngestFailed as exc:
             self._fail(job, exc.code, str(exc), exc.details)
         except Exception as exc:
-            log.exception("ingest job failed", extra={"job": job.id})
-            self._fail(job, "ingest_failed", f"{type(exc).__name__}: {exc}", {})
+            failure = disk_full_failure(exc)
+            if failure is None:
+                log.exception("ingest job failed", extra={"job": job.id})
+                self._fail(job, "ingest_failed", f"{type(exc).__name__}: {exc}", {})
+            else:
+                self._fail(job, failure.code, str(failure), failure.details)
 
     def _fail(self, job: Job, code: str, message: str, details: dict[str, Any]) -> None:
+        if code == "insufficient_storage":
+            log.error("ingest job failed: %s", message, extra={"job": job.id})
         resumable = job.status == "committing"
         error = {"code": code, "message": message, "details": details, "resumable": resumable}
         if not resumable:

@@ -44,6 +44,7 @@ import orjson
 
 from robocloud.templates import MAX_T, RecordInvalid, Template, check_envelope, parse_template
 from robocloud.unixfs import import_bytes
+from services.common.errors import disk_full
 from services.common.lifetime import die_with_parent, limit_memory
 from services.storage.bags import (
     FALLBACK_STORES,
@@ -89,6 +90,22 @@ class IngestFailed(Exception):
         super().__init__(message)
         self.code = code
         self.details = details
+
+
+def disk_full_failure(exc: BaseException) -> IngestFailed | None:
+    """``insufficient_storage`` when ``exc`` (or what it was raised from) says the disk is
+    full, else None: the robot learns the job failed for the service's disk, which lasts
+    until space is freed, not for its bag. The reason names no path of the service's."""
+    full = disk_full(exc)
+    if full is None:
+        return None
+    reason = full.strerror if isinstance(full, OSError) and full.strerror else str(full)
+    return IngestFailed(
+        "insufficient_storage",
+        f"the service's disk is full ({reason}), so this job failed; it may succeed once "
+        "data is deleted or the service's operator frees space",
+        {},
+    )
 
 
 class SpoolDamaged(Exception):
@@ -522,7 +539,11 @@ def _stage_task(task: WindowTask, parent: Connection) -> None:
     except IngestFailed as exc:
         parent.send(("failed", exc.code, str(exc), exc.details))
     except Exception as exc:
-        parent.send(("crashed", f"{type(exc).__name__}: {exc}"))
+        failure = disk_full_failure(exc)
+        if failure is None:
+            parent.send(("crashed", f"{type(exc).__name__}: {exc}"))
+        else:
+            parent.send(("failed", failure.code, str(failure), failure.details))
 
 
 PRELOADED = [__name__, *(f"rosbags.typesys.stores.{store.value}" for store in FALLBACK_STORES)]

@@ -26,11 +26,13 @@ from robocloud.cas import Cas
 from robocloud.cid import CID
 from robocloud.errors import ServerError
 from robocloud.identity import Identity
+from robocloud.ingest import Ingest
 from robocloud.storage import Storage
 from robocloud.unixfs import import_bytes
+from tests.bagfactory import START_NS, write_bag
 from tests.conftest import ServiceFactory
 from tests.integration.services.cas.conftest import multipart, store_unchanged
-from tests.integration.services.storage.test_ingest_http import approved
+from tests.integration.services.storage.test_ingest_http import approve, approved
 
 QUIET_STORAGE = {
     "ROBOCLOUD_STORAGE_ANCHOR": "false",
@@ -80,16 +82,16 @@ def larger_disk(tmp_path: Path) -> Iterator[Path]:
         yield path
 
 
-def insufficient_storage(raised: pytest.ExceptionInfo[ServerError]) -> None:
-    assert (raised.value.status, raised.value.code) == (507, "insufficient_storage")
-    assert raised.value.message.startswith("the service's disk is full")
+def insufficient_storage(refused: ServerError) -> None:
+    assert (refused.status, refused.code) == (507, "insufficient_storage")
+    assert refused.message.startswith("the service's disk is full")
 
 
-def down_to_the_reserve(raised: pytest.ExceptionInfo[ServerError], disk: Path) -> None:
+def down_to_the_reserve(refused: ServerError, disk: Path) -> None:
     """Refused for the reserve, while the disk still holds about that much free."""
-    assert (raised.value.status, raised.value.code) == (507, "insufficient_storage")
-    assert raised.value.message.startswith(f"the service keeps {RESERVE} bytes of its disk free")
-    assert raised.value.details["reserve_bytes"] == RESERVE
+    assert (refused.status, refused.code) == (507, "insufficient_storage")
+    assert refused.message.startswith(f"the service keeps {RESERVE} bytes of its disk free")
+    assert refused.details["reserve_bytes"] == RESERVE
     assert shutil.disk_usage(disk).free > RESERVE // 2
 
 
@@ -103,7 +105,7 @@ def test_cas_refuses_what_does_not_fit_and_keeps_what_it_had(
         too_large = os.urandom(6_000_000)
         with store_unchanged(service), pytest.raises(ServerError) as refused:
             cas.add_bytes(too_large)
-        insufficient_storage(refused)
+        insufficient_storage(refused.value)
         assert list((disk / "spool").iterdir()) == []
         _, too_large_cid = import_bytes(too_large)
         assert httpx.get(f"{service.url}/ipfs/{too_large_cid}", timeout=10).status_code == 404
@@ -112,10 +114,11 @@ def test_cas_refuses_what_does_not_fit_and_keeps_what_it_had(
         assert cas.get(cas.add_bytes(after)) == after, "the failed upload's space was freed"
 
 
-def append_until_refused(
-    storage: Storage, template: str, identity: Identity, acknowledged: list[str]
-) -> None:
-    """Append 60 kB records one at a time, each id acknowledged into ``acknowledged``."""
+def fill_with_records(storage: Storage, identity: Identity) -> tuple[str, list[str], ServerError]:
+    """Append 60 kB records to a new template one at a time until one is refused: the
+    template, the ids acknowledged (each still stored, in order) and the refusal."""
+    template = approved(storage, {"name": "blob", "version": 1, "fields": {"text": "string"}})
+    acknowledged: list[str] = []
     for t in range(200):
         record = {
             "template": template,
@@ -124,22 +127,26 @@ def append_until_refused(
             "topic": "/blob",
             "data": {"text": "a" * 60_000},
         }
-        acknowledged += storage.append([record])
+        try:
+            acknowledged += storage.append([record])
+        except ServerError as error:
+            refused = error
+            break
+    else:
+        pytest.fail("the disk took 200 records of 60 kB")
+    assert len(acknowledged) > 10, "the disk held some records first"
+    stored = storage.query(template=template, limit=1000).records
+    assert [item.id for item in stored] == acknowledged
+    return template, acknowledged, refused
 
 
 def test_storage_keeps_every_acknowledged_record_and_starts_again_on_a_full_disk(
     disk: Path, service_factory: ServiceFactory, identity: Identity
 ) -> None:
     service = service_factory("storage", QUIET_STORAGE | NO_RESERVE, data_dir=disk)
-    acknowledged: list[str] = []
     with Storage(service.url, identity, retries=0) as storage:
-        template = approved(storage, {"name": "blob", "version": 1, "fields": {"text": "string"}})
-        with pytest.raises(ServerError) as refused:
-            append_until_refused(storage, template, identity, acknowledged)
+        template, acknowledged, refused = fill_with_records(storage, identity)
         insufficient_storage(refused)
-        assert len(acknowledged) > 10, "the disk held some records first"
-        stored = storage.query(template=template, limit=1000).records
-        assert [item.id for item in stored] == acknowledged
     service.stop()
     service.start()
     assert httpx.get(f"{service.url}/readyz", timeout=10).json()["status"] == "ready"
@@ -147,6 +154,29 @@ def test_storage_keeps_every_acknowledged_record_and_starts_again_on_a_full_disk
         stored = storage.query(template=template, limit=1000).records
         assert [item.id for item in stored] == acknowledged
         assert storage.record(acknowledged[-1]).record["data"] == {"text": "a" * 60_000}
+
+
+def test_an_ingest_that_fills_the_disk_fails_for_the_disk_and_the_next_one_fits(
+    disk: Path, service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """A bag of 6,000 IMU messages (350 kB) stages more than 4 MiB of records. The job was
+    ``ingest_failed`` with the worker's ``OSError`` and the spool's path in its message: the
+    robot could not tell its bag's fault from the service's disk."""
+    service = service_factory("storage", QUIET_STORAGE | NO_RESERVE, data_dir=disk)
+    large = write_bag(tmp_path / "large.bag", "ros1", 6000, start_ns=START_NS)
+    small = write_bag(tmp_path / "small.bag", "ros1", 50, start_ns=START_NS)
+    with Storage(service.url, identity) as storage, Ingest(service.url, identity) as ingest:
+        imu = approve(storage, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        failed = ingest.wait(ingest.upload(large)["id"], timeout_s=120)
+        assert failed["status"] == "failed"
+        assert failed["error"]["code"] == "insufficient_storage"
+        assert failed["error"]["message"].startswith("the service's disk is full (No space")
+        assert str(disk) not in failed["error"]["message"]
+        assert failed["records"]["committed"] == 0
+        assert storage.query(template=imu, limit=10).records == []
+        done = ingest.wait(ingest.upload(small)["id"], timeout_s=120)
+        assert (done["status"], done["records"]["committed"]) == ("succeeded", 40), done["error"]
 
 
 def add_until_refused(cas: Cas, added: list[CID]) -> None:
@@ -168,7 +198,7 @@ def test_cas_keeps_its_reserve_so_robots_can_still_free_space(
         added = [cas.add_bytes(kept)]
         with pytest.raises(ServerError) as refused:
             add_until_refused(cas, added)
-        down_to_the_reserve(refused, larger_disk)
+        down_to_the_reserve(refused.value, larger_disk)
         assert len(added) >= 5, "the disk held some uploads first"
         for cid in added[1:]:
             cas.unpin(cid)
@@ -213,7 +243,7 @@ def test_cas_stops_an_upload_when_the_disk_reaches_its_reserve_while_the_body_ar
                 content_sha256=hashlib.sha256(body).hexdigest(),
                 headers={"Content-Type": content_type, "Content-Length": str(len(body))},
             )
-        down_to_the_reserve(refused, larger_disk)
+        down_to_the_reserve(refused.value, larger_disk)
         assert "declared_bytes" not in refused.value.details
         assert staged_bytes(larger_disk) == 0
         filler.unlink()
@@ -225,14 +255,8 @@ def test_storage_refuses_records_at_its_reserve_and_still_takes_other_signed_wri
     larger_disk: Path, service_factory: ServiceFactory, identity: Identity
 ) -> None:
     service = service_factory("storage", QUIET_STORAGE | WITH_RESERVE, data_dir=larger_disk)
-    acknowledged: list[str] = []
     with Storage(service.url, identity, retries=0) as storage:
-        template = approved(storage, {"name": "blob", "version": 1, "fields": {"text": "string"}})
-        with pytest.raises(ServerError) as refused:
-            append_until_refused(storage, template, identity, acknowledged)
+        _, _, refused = fill_with_records(storage, identity)
         down_to_the_reserve(refused, larger_disk)
-        assert len(acknowledged) > 10, "the disk held some records first"
-        stored = storage.query(template=template, limit=1000).records
-        assert [item.id for item in stored] == acknowledged
         other = approved(storage, {"name": "note", "version": 1, "fields": {"text": "string"}})
         assert storage.get_json(f"/v1/templates/{other}")["status"] == "approved"
