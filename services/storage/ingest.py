@@ -57,7 +57,7 @@ from services.storage.staging import (
     bag_failures,
     check_complete,
     compile_plan,
-    disk_full_failure,
+    job_failure,
     start_workers_server,
 )
 
@@ -403,15 +403,12 @@ class IngestJobs:
     def _attempt(self, job: Job) -> None:
         try:
             self._run(job)
-        except IngestFailed as exc:
-            self._fail(job, exc.code, str(exc), exc.details)
         except Exception as exc:
-            failure = disk_full_failure(exc)
+            failure = job_failure(exc)
             if failure is None:
                 log.exception("ingest job failed", extra={"job": job.id})
-                self._fail(job, "ingest_failed", f"{type(exc).__name__}: {exc}", {})
-            else:
-                self._fail(job, failure.code, str(failure), failure.details)
+                failure = IngestFailed("ingest_failed", f"{type(exc).__name__}: {exc}", {})
+            self._fail(job, failure.code, str(failure), failure.details)
 
     def _fail(self, job: Job, code: str, message: str, details: dict[str, Any]) -> None:
         if code == "insufficient_storage":

@@ -92,10 +92,14 @@ class IngestFailed(Exception):
         self.details = details
 
 
-def disk_full_failure(exc: BaseException) -> IngestFailed | None:
-    """``insufficient_storage`` when ``exc`` (or what it was raised from) says the disk is
-    full, else None: the robot learns the job failed for the service's disk, which lasts
-    until space is freed, not for its bag. The reason names no path of the service's."""
+def job_failure(exc: BaseException) -> IngestFailed | None:
+    """What a job that raised ``exc`` reports: ``exc`` itself when it is an
+    ``IngestFailed``, ``insufficient_storage`` when it (or what it was raised from) says the
+    disk is full, else None (a crash). A full disk is named so that the robot learns the job
+    failed for the service's disk, which lasts until space is freed, not for its bag; the
+    reason names no path of the service's."""
+    if isinstance(exc, IngestFailed):
+        return exc
     full = disk_full(exc)
     if full is None:
         return None
@@ -536,10 +540,8 @@ def _stage_task(task: WindowTask, parent: Connection) -> None:
                 progress,
             )
         parent.send(("done", staged))
-    except IngestFailed as exc:
-        parent.send(("failed", exc.code, str(exc), exc.details))
     except Exception as exc:
-        failure = disk_full_failure(exc)
+        failure = job_failure(exc)
         if failure is None:
             parent.send(("crashed", f"{type(exc).__name__}: {exc}"))
         else:
