@@ -1,21 +1,25 @@
-"""`make up`'s supervisor: all five up and ready, clean stop, loud failure."""
+"""`make up`'s supervisor: all five up and ready, clean stop, a dead service started again,
+loud failure."""
 
 from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import httpx
+import pytest
 
 from tests.procs import REPO
 
 
-def start_supervisor(data_dir: Path, **env: str) -> subprocess.Popen[str]:
+def start_supervisor(data_dir: Path, *args: str, **env: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [
             sys.executable,
@@ -24,6 +28,7 @@ def start_supervisor(data_dir: Path, **env: str) -> subprocess.Popen[str]:
             "--free-ports",
             "--data-dir",
             str(data_dir),
+            *args,
         ],
         cwd=REPO,
         env={**os.environ, "ROBOCLOUD_AUTH": "signed", **env},
@@ -31,6 +36,57 @@ def start_supervisor(data_dir: Path, **env: str) -> subprocess.Popen[str]:
         stderr=subprocess.STDOUT,
         text=True,
     )
+
+
+class Output:
+    """A supervisor's output, read on a thread of its own so a test can wait for a line while
+    the supervisor goes on writing."""
+
+    def __init__(self, process: subprocess.Popen[str]) -> None:
+        assert process.stdout is not None
+        self.lines: list[str] = []
+        self._changed = threading.Condition()
+        self._stream = process.stdout
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self._stream:
+            with self._changed:
+                self.lines.append(line)
+                self._changed.notify_all()
+
+    def wait_for(self, pattern: str, timeout_s: float = 60.0) -> re.Match[str]:
+        """The first line, of those read or still to come, that matches ``pattern``."""
+        deadline = time.monotonic() + timeout_s
+        seen = 0
+        with self._changed:
+            while True:
+                for line in self.lines[seen:]:
+                    if match := re.search(pattern, line):
+                        return match
+                seen = len(self.lines)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(f"no line matched {pattern!r} in {timeout_s} s")
+                self._changed.wait(left)
+
+    def server_pids(self) -> dict[str, list[int]]:
+        """Each service's uvicorn server processes, in the order they started."""
+        pids: dict[str, list[int]] = {}
+        with self._changed:
+            for line in self.lines:
+                if match := re.match(r"(\w+)\s*\|.*Started server process \[(\d+)\]", line):
+                    pids.setdefault(match[1], []).append(int(match[2]))
+        return pids
+
+    def ready_urls(self) -> dict[str, str]:
+        self.wait_for("Ctrl-C stops everything")
+        with self._changed:
+            return {
+                match[1]: match[2]
+                for line in self.lines
+                if (match := re.match(r"supervisor\|\s+(\w+)\s+(http://\S+)\s", line))
+            }
 
 
 def robocloud(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
@@ -111,6 +167,56 @@ def test_services_do_not_outlive_a_killed_supervisor(tmp_path: Path) -> None:
     while time.monotonic() < deadline and any(Path(f"/proc/{pid}").exists() for pid in pids):
         time.sleep(0.2)
     assert not any(Path(f"/proc/{pid}").exists() for pid in pids)
+
+
+def first_block_hash(ledger_url: str) -> str:
+    params = ["0x1", False]
+    request = {"jsonrpc": "2.0", "id": 1, "method": "eth_getBlockByNumber", "params": params}
+    block = httpx.post(f"{ledger_url}/rpc", json=request, timeout=10).json()["result"]
+    return str(block["hash"])
+
+
+def test_a_service_killed_later_is_started_again_alone_on_its_data(tmp_path: Path) -> None:
+    with start_supervisor(tmp_path) as supervisor:
+        output = Output(supervisor)
+        try:
+            urls = output.ready_urls()
+            before = output.server_pids()
+            chain = first_block_hash(urls["ledger"])
+            os.kill(before["ledger"][0], signal.SIGKILL)
+            output.wait_for(r"ledger exited with status -9 after \d+ s; starting it again in 1 s")
+            output.wait_for(f"ledger ready again at {re.escape(urls['ledger'])}")
+            after = output.server_pids()
+            for name, url in urls.items():
+                assert httpx.get(f"{url}/readyz").status_code == 200, name
+            assert first_block_hash(urls["ledger"]) == chain
+        finally:
+            supervisor.terminate()
+            supervisor.wait(30)
+    assert len(after.pop("ledger")) == 2
+    assert after == {name: pids for name, pids in before.items() if name != "ledger"}
+    assert supervisor.returncode == 0
+
+
+def test_a_service_that_keeps_dying_stops_everything(tmp_path: Path) -> None:
+    with start_supervisor(tmp_path, "--max-restarts", "1") as supervisor:
+        output = Output(supervisor)
+        try:
+            urls = output.ready_urls()
+            shutil.rmtree(tmp_path / "cas")
+            (tmp_path / "cas").write_text("a file where cas keeps its data")
+            os.kill(output.server_pids()["cas"][0], signal.SIGKILL)
+            output.wait_for(r"cas exited with status -9 after \d+ s; starting it again in 1 s")
+            output.wait_for(r"starting cas again")
+            output.wait_for(r"cas exited with status 1 after \d+ s, its death 2 in a row; giving")
+            supervisor.wait(30)
+        finally:
+            supervisor.kill()
+            supervisor.wait()
+    assert supervisor.returncode == 1
+    for url in urls.values():
+        with pytest.raises(httpx.ConnectError):
+            httpx.get(f"{url}/healthz", timeout=1)
 
 
 def test_a_service_that_dies_at_start_fails_the_whole_start(tmp_path: Path) -> None:
