@@ -30,6 +30,7 @@ from services.common.audience import ServiceAudience, learn_from_ledger
 from services.common.auth import SignedAddress, build_authorizer
 from services.common.background import BackgroundTasks
 from services.common.bodies import SMALL_JSON_BODY, read_json
+from services.common.disk import DiskReserve
 from services.common.errors import (
     COMMON_ERRORS,
     ErrorMap,
@@ -222,7 +223,8 @@ def create_app(
     data_dir = settings.resolved_data_dir()
     data_dir.mkdir(parents=True, exist_ok=True)
     metrics = ServiceMetrics(service)
-    metrics.watch_disk(data_dir, settings.disk_reserve_bytes)
+    reserve = DiskReserve(data_dir, settings.disk_reserve_bytes)
+    metrics.watch_disk(reserve)
     background = BackgroundTasks()
     nonces = NonceStore(data_dir / "nonces.log", settings.max_clock_skew_s)
     authorizer = build_authorizer(settings)
@@ -261,6 +263,7 @@ def create_app(
     )
     app.state.settings = settings
     app.state.metrics = metrics
+    app.state.disk_reserve = reserve
     app.state.nonces = nonces
     app.state.authorizer = authorizer
     app.state.audience = audience
@@ -273,8 +276,7 @@ def create_app(
     # Starlette runs the middleware added last first: the request id wraps everything.
     app.add_middleware(
         DiskReserveLayer,
-        directory=data_dir,
-        reserve_bytes=settings.disk_reserve_bytes,
+        reserve=reserve,
         storing_paths=storing_paths,
     )
     app.add_middleware(

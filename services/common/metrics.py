@@ -7,10 +7,9 @@ send any token as a method), so that label cardinality stays bounded whatever cl
 
 from __future__ import annotations
 
-import shutil
-from pathlib import Path
-
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+from services.common.disk import DiskReserve
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
@@ -39,9 +38,9 @@ class ServiceMetrics:
         )
         self.service = service
 
-    def watch_disk(self, directory: Path, reserve_bytes: int) -> None:
-        """Free space on ``directory``'s disk, read at each scrape, beside the reserve that
-        uploads may not take: an operator alerts on the first nearing the second, before
+    def watch_disk(self, reserve: DiskReserve) -> None:
+        """Free space on the data directory's disk, read at each scrape, beside the reserve
+        that uploads may not take: an operator alerts on the first nearing the second, before
         robots get 507s."""
         free = Gauge(
             "robocloud_disk_free_bytes",
@@ -49,14 +48,14 @@ class ServiceMetrics:
             ["service"],
             registry=self.registry,
         )
-        free.labels(self.service).set_function(lambda: shutil.disk_usage(directory).free)
-        reserve = Gauge(
+        free.labels(self.service).set_function(reserve.free_bytes)
+        reserve_gauge = Gauge(
             "robocloud_disk_reserve_bytes",
             "Free space that uploads, records and ingests may not take (0: no reserve).",
             ["service"],
             registry=self.registry,
         )
-        reserve.labels(self.service).set(reserve_bytes)
+        reserve_gauge.labels(self.service).set(reserve.reserve_bytes)
 
     def observe(self, method: str, route: str, status: int, seconds: float) -> None:
         method = method if method in HTTP_METHODS else "other"

@@ -26,11 +26,9 @@ import json
 import logging
 import math
 import re
-import shutil
 import time
 import uuid
 from collections.abc import Iterable, Mapping
-from pathlib import Path
 from typing import Any
 
 import anyio
@@ -46,6 +44,7 @@ from robocloud.errors import SignatureError
 from robocloud.signing import HEADER_CONTENT_SHA256, WrongAudienceError, verify_request
 from services.common.audience import ServiceAudience
 from services.common.auth import Authorizer
+from services.common.disk import DiskReserve, ReserveReached
 from services.common.errors import (
     UNKNOWN_SIGNER,
     BadRequest,
@@ -454,51 +453,50 @@ class _ReserveMeter(_BodyMeter):
 
 
 class DiskReserveLayer:
-    """Writes under ``storing_paths`` (uploads, records, ingests) leave ``reserve_bytes`` of
-    the data directory's disk free: 507 ``insufficient_storage`` when the free space less the
-    declared ``Content-Length`` falls under it, before the body is read, and as soon as it
+    """Writes under ``storing_paths`` (uploads, records, ingests) leave the disk's reserve
+    (:mod:`services.common.disk`) free: 507 ``insufficient_storage`` when the free space less
+    the declared ``Content-Length`` falls under it, before the body is read, and as soon as it
     does while the body streams in.
 
-    Without a reserve, robots whose uploads succeed fill the disk to its last byte, and then
-    every signed write fails on its nonce's journal line, the deletions and garbage
-    collections that would free space included: only the operator could mend it. With it,
-    the service's own small writes and the writes that free space go on. It sits inside the
-    signature check, so a refused write has used its nonce (it cannot be replayed into
-    success once space is freed) and a stranger learns nothing of the disk.
+    It sits inside the signature check, so a refused write has used its nonce (it cannot be
+    replayed into success once space is freed) and a stranger learns nothing of the disk.
     """
 
-    def __init__(
-        self, app: ASGIApp, *, directory: Path, reserve_bytes: int, storing_paths: Iterable[str]
-    ) -> None:
+    def __init__(self, app: ASGIApp, *, reserve: DiskReserve, storing_paths: Iterable[str]) -> None:
         self.app = app
-        self.directory = directory
-        self.reserve_bytes = reserve_bytes
+        self.reserve = reserve
         self.storing_paths = tuple(storing_paths)
 
     def require_room(self, incoming: int) -> None:
         """Raise 507 unless ``incoming`` more bytes leave the reserve free."""
-        free = shutil.disk_usage(self.directory).free
-        if free - incoming >= self.reserve_bytes:
-            return
-        log.warning(
-            "write refused: the disk is down to its reserve",
-            extra={"free_bytes": free, "reserve_bytes": self.reserve_bytes, "incoming": incoming},
-        )
-        details: dict[str, Any] = {"free_bytes": free, "reserve_bytes": self.reserve_bytes}
-        if incoming:
-            details |= {"header": "Content-Length", "declared_bytes": incoming}
-        write = f"this write of {incoming} bytes" if incoming else "this write"
-        raise InsufficientStorage(
-            f"the service keeps {self.reserve_bytes} bytes of its disk free and has {free} "
-            f"free: {write} is refused and nothing of it kept; it may succeed once data is "
-            "deleted or the service's operator frees space",
-            details=details,
-        )
+        try:
+            self.reserve.require_room(incoming)
+        except ReserveReached as reached:
+            log.warning(
+                "write refused: the disk is down to its reserve",
+                extra={
+                    "free_bytes": reached.free_bytes,
+                    "reserve_bytes": reached.reserve_bytes,
+                    "incoming": incoming,
+                },
+            )
+            details: dict[str, Any] = {
+                "free_bytes": reached.free_bytes,
+                "reserve_bytes": reached.reserve_bytes,
+            }
+            if incoming:
+                details |= {"header": "Content-Length", "declared_bytes": incoming}
+            write = f"this write of {incoming} bytes" if incoming else "this write"
+            raise InsufficientStorage(
+                f"{reached}: {write} is refused and nothing of it kept; it may succeed once data "
+                "is deleted or the service's operator frees space",
+                details=details,
+            ) from None
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if (
             scope["type"] != "http"
-            or not self.reserve_bytes
+            or not self.reserve.reserve_bytes
             or scope["method"] in UNSIGNED_METHODS
             or not scope["path"].startswith(self.storing_paths)
         ):

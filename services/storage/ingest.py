@@ -41,6 +41,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
+from services.common.disk import DiskReserve
 from services.common.durable import atomic_write, fsync_dir
 from services.storage.bags import Bag, BagConnection
 from services.storage.catalog import CatalogError
@@ -237,6 +238,7 @@ class IngestJobs:
         publish: Publish | None = None,
         publish_attempts: int = PUBLISH_ATTEMPTS,
         publish_retry_s: float = PUBLISH_RETRY_S,
+        disk_reserve: DiskReserve | None = None,
     ) -> None:
         self.root = root
         self.store = store
@@ -259,6 +261,10 @@ class IngestJobs:
         """Describes and advertises what a job ingested, once its records are committed."""
         self.publish_attempts = publish_attempts
         self.publish_retry_s = publish_retry_s
+        self.disk_reserve = disk_reserve or DiskReserve(root, 0)
+        """Kept free between the job's writes: a bag of a few hundred kB that passed the
+        request's check stages and commits records, indexes and logs of several times its
+        size, which took the disk's last bytes and left the robots' deletions no room."""
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._lock = threading.Lock()
         self._queue: queue.Queue[str | None] = queue.Queue()
@@ -569,8 +575,14 @@ class IngestJobs:
         directory = self.root / job.id
         staged_dir = directory / "staged"
         shutil.rmtree(staged_dir, ignore_errors=True)
+        self.disk_reserve.require_room()
         staged_dir.mkdir()
         robot = job.author["signer"]
+
+        def progress_within_reserve(count: int) -> None:
+            self.disk_reserve.require_room()
+            progress(count)
+
         workers = StagingProcesses.start(
             _bag_in(directory),
             self.staging_workers,
@@ -587,7 +599,12 @@ class IngestJobs:
                 planned(reports, total)
                 parts = workers.count if total >= self.parallel_from_messages else 1
                 staged = workers.stage(
-                    plans, parts, self.blobs(), progress, bag.check_files, self.stall_s
+                    plans,
+                    parts,
+                    self.blobs(),
+                    progress_within_reserve,
+                    bag.check_files,
+                    self.stall_s,
                 )
                 check_complete(bag, plans, staged)
         finally:
@@ -623,6 +640,7 @@ class IngestJobs:
         """Append a template's spooled records past those already committed, in batches."""
         spool.skip(job.committed[template_id])
         while job.committed[template_id] < staged:
+            self.disk_reserve.require_room()
             start = job.committed[template_id]
             wanted = self.store.fitting(template_id, min(self.batch_records, staged - start))
             batch = spool.batch(wanted)

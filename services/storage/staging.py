@@ -44,6 +44,7 @@ import orjson
 
 from robocloud.templates import MAX_T, RecordInvalid, Template, check_envelope, parse_template
 from robocloud.unixfs import import_bytes
+from services.common.disk import ReserveReached
 from services.common.errors import disk_full
 from services.common.lifetime import die_with_parent, limit_memory
 from services.storage.bags import (
@@ -79,6 +80,8 @@ STALL_S = 120.0
 message takes at most seconds: the costliest a staging process's memory allows (a 64 MiB
 chunk of a ROS 1 ``std_msgs/Bool[]``, failing at 2 GiB) about 20."""
 
+FREE_SPACE_HINT = "it may succeed once data is deleted or the service's operator frees space"
+
 Plans = dict[tuple[str, str], tuple[Template, Converter]]
 """Per (topic, message type) bound to an approved template: the template and its converter."""
 
@@ -94,20 +97,25 @@ class IngestFailed(Exception):
 
 def job_failure(exc: BaseException) -> IngestFailed | None:
     """What a job that raised ``exc`` reports: ``exc`` itself when it is an
-    ``IngestFailed``, ``insufficient_storage`` when it (or what it was raised from) says the
-    disk is full, else None (a crash). A full disk is named so that the robot learns the job
-    failed for the service's disk, which lasts until space is freed, not for its bag; the
-    reason names no path of the service's."""
+    ``IngestFailed``, ``insufficient_storage`` when it stopped at the disk's reserve or when it
+    (or what it was raised from) says the disk is full, else None (a crash). The disk is named
+    so that the robot learns the job failed for the service's disk, which lasts until space is
+    freed, not for its bag; the reason names no path of the service's."""
     if isinstance(exc, IngestFailed):
         return exc
+    if isinstance(exc, ReserveReached):
+        return IngestFailed(
+            "insufficient_storage",
+            f"{exc}, so this job stopped; {FREE_SPACE_HINT}",
+            {"free_bytes": exc.free_bytes, "reserve_bytes": exc.reserve_bytes},
+        )
     full = disk_full(exc)
     if full is None:
         return None
     reason = full.strerror if isinstance(full, OSError) and full.strerror else str(full)
     return IngestFailed(
         "insufficient_storage",
-        f"the service's disk is full ({reason}), so this job failed; it may succeed once "
-        "data is deleted or the service's operator frees space",
+        f"the service's disk is full ({reason}), so this job failed; {FREE_SPACE_HINT}",
         {},
     )
 

@@ -260,3 +260,63 @@ def test_storage_refuses_records_at_its_reserve_and_still_takes_other_signed_wri
         down_to_the_reserve(refused, larger_disk)
         other = approved(storage, {"name": "note", "version": 1, "fields": {"text": "string"}})
         assert storage.get_json(f"/v1/templates/{other}")["status"] == "approved"
+
+
+def stored_ids(storage: Storage, template: str) -> list[str]:
+    ids: list[str] = []
+    cursor = None
+    while True:
+        page = storage.query(template=template, limit=1000, cursor=cursor)
+        ids += [item.id for item in page.records]
+        if (cursor := page.next) is None:
+            return ids
+
+
+@pytest.mark.parametrize(("room_mib", "stopped_while"), [(4, "staging"), (10, "committing")])
+def test_an_ingest_job_stops_at_the_reserve_and_goes_on_once_space_is_freed(
+    room_mib: int,
+    stopped_while: str,
+    service_factory: ServiceFactory,
+    identity: Identity,
+    tmp_path: Path,
+) -> None:
+    """The bag (350 kB) passes the request's check; its job then writes 40 times that at its
+    peak (spool, records, indexes, logs), which took the disk's last bytes behind the
+    reserve's back. It stops at the reserve instead, staging or committing (one batch of 250
+    records past it, at most), and once space is freed the robot sends the bag again or
+    resumes the job, whose committed records stay."""
+    env = QUIET_STORAGE | WITH_RESERVE
+    env |= {
+        "ROBOCLOUD_STORAGE_INGEST_BATCH_RECORDS": "250",
+        "ROBOCLOUD_STORAGE_SEGMENT_RECORDS": "250",
+    }
+    bag = write_bag(tmp_path / "large.bag", "ros1", 6000, start_ns=START_NS)
+    with small_disk(tmp_path / "disk", 32) as disk:
+        service = service_factory("storage", env, data_dir=disk)
+        filler = disk / "filler"
+        with Storage(service.url, identity) as storage, Ingest(service.url, identity) as ingest:
+            imu = approve(storage, "sensor_msgs/msg/Imu")
+            ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+            filler.write_bytes(bytes(shutil.disk_usage(disk).free - RESERVE - (room_mib << 20)))
+            failed = ingest.wait(ingest.upload(bag)["id"], timeout_s=120)
+            assert failed["status"] == "failed"
+            error = failed["error"]
+            assert error["code"] == "insufficient_storage"
+            assert error["message"].startswith(f"the service keeps {RESERVE} bytes of its disk")
+            assert error["details"]["reserve_bytes"] == RESERVE
+            assert shutil.disk_usage(disk).free > RESERVE // 2
+            committed = failed["records"]["committed"]
+            kept = stored_ids(storage, imu)
+            assert len(kept) == committed
+            filler.unlink()
+            if stopped_while == "staging":
+                assert (error["resumable"], committed) == (False, 0)
+                done = ingest.wait(ingest.upload(bag)["id"], timeout_s=120)
+            else:
+                assert error["resumable"]
+                assert 0 < committed < 4800
+                done = ingest.wait(ingest.resume(failed["id"])["id"], timeout_s=120)
+            assert (done["status"], done["records"]["committed"]) == ("succeeded", 4800), done
+            ids = stored_ids(storage, imu)
+            assert (len(set(ids)), ids[:committed]) == (4800, kept)
+        service.stop()

@@ -31,6 +31,7 @@ from robocloud.identity import Identity
 from robocloud.signing import HEADER_AUDIENCE, HEADER_NONCE, sign_request
 from services.common.audience import ServiceAudience
 from services.common.auth import AnySigner, Authorizer
+from services.common.disk import DiskReserve
 from services.common.errors import Forbidden, ServiceError, Unavailable
 from services.common.logs import request_id_var
 from services.common.metrics import ServiceMetrics
@@ -605,7 +606,7 @@ MORE_THAN_ANY_DISK = 1 << 60
 
 def reserve_layer(tmp_path: Path, app: ASGIApp, reserve_bytes: int) -> DiskReserveLayer:
     return DiskReserveLayer(
-        app, directory=tmp_path, reserve_bytes=reserve_bytes, storing_paths=["/up"]
+        app, reserve=DiskReserve(tmp_path, reserve_bytes), storing_paths=["/up"]
     )
 
 
@@ -654,7 +655,7 @@ def test_a_write_with_room_left_reaches_the_app_whole(tmp_path: Path) -> None:
 
 def test_metrics_show_the_disks_free_space_beside_its_reserve(tmp_path: Path) -> None:
     metrics = ServiceMetrics("test")
-    metrics.watch_disk(tmp_path, 12345)
+    metrics.watch_disk(DiskReserve(tmp_path, 12345))
     samples = {
         sample.name: sample.value
         for family in text_string_to_metric_families(metrics.render().decode())
