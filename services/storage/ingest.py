@@ -280,6 +280,8 @@ class IngestJobs:
             self._jobs[job.id] = job
             if job.status not in ("succeeded", "failed"):
                 self._queue.put(job.id)
+            elif job.status == "failed" and not (job.error or {}).get("resumable"):
+                self._drop_inputs(job)
             elif job.publish_retry_ns is not None:
                 heapq.heappush(self._retries, (job.publish_retry_ns, job.id))
         self._worker = threading.Thread(target=self._work, name="storage-ingest", daemon=True)
@@ -421,9 +423,16 @@ class IngestJobs:
             log.error("ingest job failed: %s", message, extra={"job": job.id})
         resumable = job.status == "committing"
         error = {"code": code, "message": message, "details": details, "resumable": resumable}
-        if not resumable:
-            shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         self._update(job, status="failed", error=error)
+        if not resumable:
+            self._drop_inputs(job)
+
+    def _drop_inputs(self, job: Job) -> None:
+        """A job that cannot be resumed keeps neither its spool nor its bag: a robot sends the
+        bag again. Bags of failed jobs were kept until a thousand later jobs had finished, so
+        one robot sending bags that fail (16 GiB each at most) could fill the disk."""
+        shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
+        _remove(_bag_in(self.root / job.id))
 
     def _run(self, job: Job) -> None:
         if job.status in ("queued", "staging"):

@@ -335,6 +335,28 @@ def test_a_failing_bag_appends_nothing(
         assert job.error["details"]["topic"].startswith("/test_service")
     assert node.logs.size(imu) == 0
     assert node.logs.template_ids() == []
+    assert kept_files(node, job.id) == ["job.json"], "the robot sends the bag again"
+
+
+def kept_files(node: Node, job_id: str) -> list[str]:
+    return sorted(path.name for path in (node.root / "jobs" / job_id).iterdir())
+
+
+def test_a_failed_job_that_kept_its_bag_drops_it_at_open(node: Node, tmp_path: Path) -> None:
+    """As jobs failed before bags were dropped at once, or one cut short between saving its
+    failure and dropping its bag, left them."""
+    path = bag(tmp_path, "broken.bag", 100, kind="ros1")
+    path.write_bytes(path.read_bytes()[:-200])
+    failed = node.jobs.wait(node.jobs.submit(path, "upload:f", authorship()).id, 60)
+    assert failed.status == "failed"
+    node.jobs.close()
+    shutil.copy(
+        bag(tmp_path, "old.bag", 10, kind="ros1"), node.root / "jobs" / failed.id / "bag.bag"
+    )
+    (node.root / "jobs" / failed.id / "staged").mkdir()
+    node.jobs = node.open_jobs()
+    assert kept_files(node, failed.id) == ["job.json"]
+    assert node.jobs.get(failed.id).error == failed.error
 
 
 @WORKERS
