@@ -8,10 +8,14 @@ from __future__ import annotations
 import os
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
 
 from services.common.settings import ServiceSettings
 from services.storage.ingest import PUBLISH_ATTEMPTS, PUBLISH_RETRY_MAX_S, PUBLISH_RETRY_S
+
+SMALLEST_STAGING_MEMORY_BYTES = 320 * 1024**2
+"""Below it every job failed as ``ingest_failed`` with a bare ``MemoryError``: 256 MiB could
+not start a staging process, 300 MiB staged a small bag (measured 2026-11-28)."""
 
 
 class StorageSettings(ServiceSettings):
@@ -152,8 +156,8 @@ class StorageSettings(ServiceSettings):
     storage_ingest_worker_memory_bytes: int = Field(
         default=2 * 1024**3,
         ge=0,
-        description="address space of a process staging a bag (0: unbounded); a message "
-        "decoding to more fails its job (message_too_large)",
+        description="address space of a process staging a bag (0: unbounded, else at least "
+        "320 MiB); a message decoding to more fails its job (message_too_large)",
     )
     storage_ingest_stall_s: float = Field(
         default=120.0,
@@ -181,3 +185,14 @@ class StorageSettings(ServiceSettings):
         description="wait after a dataset's first failed publish; it doubles after each "
         f"failure, up to {PUBLISH_RETRY_MAX_S:g} s",
     )
+
+    @field_validator("storage_ingest_worker_memory_bytes")
+    @classmethod
+    def _staging_process_can_start(cls, value: int) -> int:
+        if 0 < value < SMALLEST_STAGING_MEMORY_BYTES:
+            raise ValueError(
+                f"a staging process maps about 300 MiB (the interpreter, rosbags, numpy) before "
+                f"it reads a message: give it at least {SMALLEST_STAGING_MEMORY_BYTES} bytes, "
+                "or 0 for no bound"
+            )
+        return value

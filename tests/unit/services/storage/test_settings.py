@@ -1,0 +1,26 @@
+"""Storage settings an operator can get wrong, refused at start with the variable named."""
+
+from __future__ import annotations
+
+import pytest
+from pydantic import ValidationError
+
+from services.storage.settings import SMALLEST_STAGING_MEMORY_BYTES, StorageSettings
+
+
+def test_a_staging_memory_bound_no_process_starts_in_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Before, the service started and every ingest job failed with a bare ``MemoryError``."""
+    monkeypatch.setenv("ROBOCLOUD_STORAGE_INGEST_WORKER_MEMORY_BYTES", str(256 * 1024**2))
+    with pytest.raises(ValidationError) as refused:
+        StorageSettings(service="storage")
+    [error] = refused.value.errors()
+    assert error["loc"] == ("storage_ingest_worker_memory_bytes",)
+    assert f"at least {SMALLEST_STAGING_MEMORY_BYTES} bytes, or 0 for no bound" in error["msg"]
+
+
+@pytest.mark.parametrize("bound", [0, SMALLEST_STAGING_MEMORY_BYTES, 2 * 1024**3])
+def test_no_bound_and_bounds_a_process_starts_in_are_taken(bound: int) -> None:
+    settings = StorageSettings(service="storage", storage_ingest_worker_memory_bytes=bound)
+    assert settings.storage_ingest_worker_memory_bytes == bound
