@@ -212,6 +212,7 @@ def _open_ingest(
         worker_memory_bytes=settings.storage_ingest_worker_memory_bytes,
         stall_s=settings.storage_ingest_stall_s,
         max_pending=settings.storage_max_ingest_jobs,
+        max_pending_per_robot=settings.storage_max_ingest_jobs_per_robot,
         publish=publish if settings.storage_publish_datasets else None,
         publish_attempts=settings.storage_publish_attempts,
         publish_retry_s=settings.storage_publish_retry_s,

@@ -83,6 +83,7 @@ async def ingest(request: Request) -> JSONResponse:
             "send application/json with a cid, or the bag as application/octet-stream",
             details={"header": "Content-Type", "received": request.headers.get("content-type")},
         )
+    jobs.admit(author.signer)
     with jobs.incoming() as spool:
         if kind == "application/json":
             body = await json_body(IngestFromCas)(request)

@@ -161,7 +161,7 @@ ERRORS = ErrorMap(
         TooManyJobs: ErrorRule(
             429,
             "too_many_jobs",
-            lambda exc: {"limit": exc.limit, "retry_after": 5},
+            lambda exc: {"limit": exc.limit, "per": exc.per, "retry_after": 5},
             lambda _: {"Retry-After": "5"},
         ),
         BindingRefused: ErrorRule(400, "invalid_binding", lambda exc: {"field": exc.field}),

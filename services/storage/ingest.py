@@ -93,9 +93,19 @@ class JobNotResumable(Exception):
 
 
 class TooManyJobs(Exception):
-    def __init__(self, limit: int) -> None:
-        super().__init__(f"{limit} ingest jobs are queued or running; try again later")
+    """No place for one more job: the service holds ``limit`` queued or running (``per``
+    ``service``), or the robot holds its share of them (``per`` ``robot``)."""
+
+    def __init__(self, limit: int, per: Literal["service", "robot"]) -> None:
+        message = (
+            f"{limit} ingest jobs are queued or running; try again later"
+            if per == "service"
+            else f"this robot has {limit} ingest jobs queued or running, its share of the "
+            "service's; send the next once one has finished"
+        )
+        super().__init__(message)
         self.limit = limit
+        self.per = per
 
 
 @dataclass
@@ -234,6 +244,7 @@ class IngestJobs:
         worker_memory_bytes: int = 0,
         stall_s: float = STALL_S,
         max_pending: int = 16,
+        max_pending_per_robot: int = 4,
         keep_finished: int = 1000,
         publish: Publish | None = None,
         publish_attempts: int = PUBLISH_ATTEMPTS,
@@ -256,6 +267,7 @@ class IngestJobs:
         self.stall_s = stall_s
         """A staging process silent this long is stuck (:data:`~staging.STALL_S`)."""
         self.max_pending = max_pending
+        self.max_pending_per_robot = max_pending_per_robot
         self.keep_finished = keep_finished
         self.publish = publish
         """Describes and advertises what a job ingested, once its records are committed."""
@@ -308,12 +320,25 @@ class IngestJobs:
         finally:
             shutil.rmtree(spool, ignore_errors=True)
 
+    def admit(self, signer: str) -> None:
+        """Raise :class:`TooManyJobs` unless a job of ``signer``'s would have a place now.
+        Asked before a bag is received, so that a robot refused is refused before it sends
+        gigabytes; :meth:`submit` asks again."""
+        with self._lock:
+            self._admit(signer)
+
+    def _admit(self, signer: str) -> None:
+        pending = [j for j in self._jobs.values() if j.status not in ("succeeded", "failed")]
+        if len(pending) >= self.max_pending:
+            raise TooManyJobs(self.max_pending, "service")
+        robot = signer.lower()
+        if sum(j.author["signer"].lower() == robot for j in pending) >= self.max_pending_per_robot:
+            raise TooManyJobs(self.max_pending_per_robot, "robot")
+
     def submit(self, bag: Path, source: str, author: Authorship) -> Job:
         """Take ownership of ``bag`` (moved into the job's directory) and queue its ingest."""
         with self._lock:
-            pending = sum(j.status not in ("succeeded", "failed") for j in self._jobs.values())
-            if pending >= self.max_pending:
-                raise TooManyJobs(self.max_pending)
+            self._admit(author.signer)
             job = Job(id=secrets.token_hex(JOB_ID_BYTES), bag=source, author=asdict(author))
             directory = self.root / job.id
             directory.mkdir()
@@ -332,6 +357,7 @@ class IngestJobs:
                 raise JobNotFound(job_id)
             if job.status != "failed" or not (job.error or {}).get("resumable"):
                 raise JobNotResumable(job_id, job.status)
+            self._admit(job.author["signer"])
             job.status, job.error = "committing", None
             self._save(job)
         self._queue.put(job_id)

@@ -168,6 +168,12 @@ class StorageSettings(ServiceSettings):
     storage_max_ingest_jobs: int = Field(
         default=16, ge=1, description="ingest jobs queued or running at once"
     )
+    storage_max_ingest_jobs_per_robot: int = Field(
+        default=4,
+        ge=1,
+        description="ingest jobs one robot may have queued or running at once, so that one "
+        "robot's bags never hold every place in the queue",
+    )
     storage_publish_datasets: bool = Field(
         default=True,
         description="describe each ingested bag, index it and advertise it on the ledger",

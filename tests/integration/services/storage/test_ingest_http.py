@@ -8,6 +8,7 @@ import io
 import json
 import os
 import signal
+import socket
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -40,7 +41,9 @@ from tests.bagfactory import (
     write_ros1_big_chunk,
 )
 from tests.conftest import ServiceFactory
+from tests.integration.services.common.test_framework import signed_headers
 from tests.procs import SHARED_DATA, ServiceProcess, memory_kib
+from tests.raw_http import read_answer
 from tests.waiting import wait_for
 
 
@@ -675,3 +678,59 @@ def test_kill_9_ends_staging_processes_in_the_midst_of_decoding(
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
         raise
+
+
+def refused_for_jobs(refusal: ApiError, limit: int, per: str) -> None:
+    assert (refusal.status, refusal.code) == (429, "too_many_jobs")
+    assert refusal.details == {"limit": limit, "per": per, "retry_after": 5}
+
+
+def test_one_robot_holds_its_share_of_the_ingest_queue_and_is_refused_before_its_body(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """Two places, one a robot: while the first robot's long bag stages, its next bag is
+    refused before a byte of it is read (it was received whole, up to 16 GiB, then refused),
+    a second robot still gets the other place, and a third finds the queue full."""
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_STORAGE_MAX_INGEST_JOBS": "2",
+            "ROBOCLOUD_STORAGE_MAX_INGEST_JOBS_PER_ROBOT": "1",
+        },
+    )
+    long_bag = write_bag(tmp_path / "long.bag", "ros1", 50_000, start_ns=START_NS)
+    small_bag = write_bag(tmp_path / "small.bag", "ros1", 20, start_ns=START_NS)
+    second, third = Identity.generate(), Identity.generate()
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        ingest.bind(approve(client, "sensor_msgs/msg/Imu"), msgtype="sensor_msgs/msg/Imu")
+    with (
+        Ingest(storage.url, identity, retries=0) as first_robot,
+        Ingest(storage.url, second, retries=0) as second_robot,
+        Ingest(storage.url, third, retries=0) as third_robot,
+    ):
+        running = first_robot.upload(long_bag)
+        with pytest.raises(ApiError) as refused:
+            first_robot.upload(small_bag)
+        refused_for_jobs(refused.value, 1, "robot")
+        declared = f"POST /v1/ingest HTTP/1.1\r\nHost: x\r\nContent-Length: {1 << 30}\r\n"
+        headers = signed_headers(identity, "/v1/ingest", b"never sent")
+        head = declared + "".join(f"{name}: {value}\r\n" for name, value in headers.items())
+        with socket.create_connection(("127.0.0.1", storage.port)) as sock:
+            sock.sendall(head.encode() + b"\r\n")
+            status, answer = read_answer(sock)
+        assert (status, answer["error"]["code"]) == (429, "too_many_jobs")
+        queued = second_robot.upload(small_bag)
+        with pytest.raises(ApiError) as full:
+            third_robot.upload(small_bag)
+        refused_for_jobs(full.value, 2, "service")
+        assert first_robot.job(running["id"])["status"] in ("queued", "staging", "committing")
+        for job in (running, queued):
+            assert first_robot.wait(job["id"], timeout_s=300)["status"] == "succeeded"
+        assert (
+            third_robot.wait(third_robot.upload(small_bag)["id"], timeout_s=60)["status"]
+            == "succeeded"
+        )
+    jobs = [
+        path.name for path in (storage.data_dir / "ingest").iterdir() if path.name != "incoming"
+    ]
+    assert len(jobs) == 3, "the refused bags left nothing behind"

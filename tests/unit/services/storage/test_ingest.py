@@ -172,6 +172,33 @@ def test_a_bag_on_its_way_in_leaves_nothing_behind(node: Node, tmp_path: Path) -
     assert sorted(path.name for path in (node.root / "jobs").iterdir()) == [job.id, "incoming"]
 
 
+def test_one_robot_holds_its_share_of_the_queue_and_the_rest_is_for_others(
+    node: Node, tmp_path: Path
+) -> None:
+    """Before, one robot's bags could hold every place and refuse every other robot's."""
+    node.jobs.close()
+    node.jobs = node.open_jobs(max_pending=3, max_pending_per_robot=2)
+    node.jobs.close()  # its worker ends: what is submitted stays queued
+    greedy, other = authorship(), authorship()
+    source = bag(tmp_path, "b.bag", 20, kind="ros1")
+    queued = [
+        node.jobs.submit(Path(shutil.copy(source, tmp_path / f"{n}.bag")), "upload:g", greedy)
+        for n in range(2)
+    ]
+    with pytest.raises(TooManyJobs) as robot_full:
+        node.jobs.admit(greedy.signer.lower())
+    assert (robot_full.value.limit, robot_full.value.per) == (2, "robot")
+    assert str(robot_full.value).startswith("this robot has 2 ingest jobs queued or running")
+    node.jobs.admit(other.signer)
+    queued.append(
+        node.jobs.submit(Path(shutil.copy(source, tmp_path / "o.bag")), "upload:o", other)
+    )
+    with pytest.raises(TooManyJobs) as service_full:
+        node.jobs.admit(authorship().signer)
+    assert (service_full.value.limit, service_full.value.per) == (3, "service")
+    assert [node.jobs.get(job.id).status for job in queued] == ["queued"] * 3
+
+
 def test_a_bag_left_on_its_way_in_by_a_crash_is_removed_at_open(node: Node) -> None:
     incoming = node.root / "jobs" / "incoming"
     (incoming / ".bag-torn").mkdir(parents=True)
