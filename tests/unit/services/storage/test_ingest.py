@@ -713,6 +713,11 @@ def test_a_job_failed_while_committing_resumes_with_each_record_once(
     assert node.logs.size(imu) == 50
 
     monkeypatch.undo()
+    node.jobs.max_pending = 0
+    with pytest.raises(TooManyJobs, match="0 ingest jobs are queued or running"):
+        node.jobs.resume(failed.id)
+    assert node.jobs.get(failed.id).status == "failed", "a resume refused changes nothing"
+    node.jobs.max_pending = 16
     assert node.jobs.resume(failed.id).status == "committing"
     done = node.jobs.wait(failed.id, 60)
     assert done.status == "succeeded", done.error
