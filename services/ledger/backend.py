@@ -32,6 +32,10 @@ def open_ledger(settings: LedgerSettings) -> Ledger:
         settings.call_limits(),
         settings.pool_limits(),
         settings.registration_mode(),
-        Filters(settings.ledger_max_filters, settings.ledger_filter_timeout_s),
+        Filters(
+            settings.ledger_max_filters,
+            settings.ledger_filter_timeout_s,
+            max_per_client=settings.ledger_max_filters_per_client,
+        ),
         settings.ledger_rpc_batch_response_max_bytes,
     )

@@ -2,7 +2,10 @@
 
 A filter is state a stranger leaves on the node, so it is bounded as geth bounds it and
 more: at most ``max_filters`` at once (a new one is refused beyond, never evicting someone
-else's), each dropped when nobody has polled it for ``timeout_s`` (geth's five minutes).
+else's), of which at most ``max_per_client`` installed from one client address (one client
+installing filters in a loop held every place, and every other client's were refused for as
+long as it went on), each dropped when nobody has polled it for ``timeout_s`` (geth's five
+minutes).
 Ids are 128 random bits, so nobody polls or removes a filter they were not given.
 
 A filter reports what changed since it was last polled: blocks mined since then (block
@@ -103,9 +106,10 @@ class FilterNotFound(ChainError):
 
 
 class TooManyFilters(ChainError):
-    def __init__(self, limit: int) -> None:
+    def __init__(self, limit: int, *, from_client: bool = False) -> None:
+        whose = " from one client" if from_client else ""
         super().__init__(
-            f"too many filters: at most {limit} at once; uninstall filters no longer polled"
+            f"too many filters{whose}: at most {limit} at once; uninstall filters no longer polled"
         )
 
 
@@ -117,6 +121,8 @@ class Installed:
     criteria: LogCriteria | None
     reported: int
     deadline: float
+    client: str | None = None
+    """Who installed it (``services.common.slots.client_key``); None: the node itself."""
 
 
 @dataclass(frozen=True)
@@ -136,8 +142,10 @@ class Filters:
         max_filters: int,
         timeout_s: float,
         clock: Callable[[], float] = time.monotonic,
+        max_per_client: int | None = None,
     ) -> None:
         self.max_filters = max_filters
+        self.max_per_client = max_filters if max_per_client is None else max_per_client
         self.timeout_s = timeout_s
         self._clock = clock
         self._lock = threading.Lock()
@@ -148,16 +156,21 @@ class Filters:
             self._expire()
             return len(self._filters)
 
-    def install(self, criteria: LogCriteria | None, head: int) -> str:
-        """A new filter reporting what happens after block ``head``; its id."""
+    def install(self, criteria: LogCriteria | None, head: int, client: str | None = None) -> str:
+        """A new filter reporting what happens after block ``head``, for ``client``; its id."""
         with self._lock:
             self._expire()
             if len(self._filters) >= self.max_filters:
                 raise TooManyFilters(self.max_filters)
+            if client is not None and self._installed_by(client) >= self.max_per_client:
+                raise TooManyFilters(self.max_per_client, from_client=True)
             filter_id = "0x" + secrets.token_hex(16)
             deadline = self._clock() + self.timeout_s
-            self._filters[filter_id] = Installed(criteria, head, deadline)
+            self._filters[filter_id] = Installed(criteria, head, deadline, client)
             return filter_id
+
+    def _installed_by(self, client: str) -> int:
+        return sum(installed.client == client for installed in self._filters.values())
 
     def changes(self, filter_id: str, head: int) -> Changes:
         """What ``filter_id`` has to report at ``head`` (call ``reported`` once answered)."""

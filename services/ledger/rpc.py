@@ -24,6 +24,7 @@ from eth_utils.crypto import keccak
 
 import robocloud
 from robocloud import bounded_json
+from services.common.slots import client_var
 from services.ledger import encoding, fees
 from services.ledger.calls import OverBudget
 from services.ledger.chain import (
@@ -917,10 +918,10 @@ class EmbeddedMethods:
         criteria = self.log_criteria(param(params, 0))
         head = self.chain.head().block_number
         criteria.resolve(head)  # refused now, as eth_getLogs would be, not at the first poll
-        return self.filters.install(criteria, head)
+        return self.filters.install(criteria, head, client_var.get())
 
     def new_block_filter(self, params: list[Any]) -> Any:
-        return self.filters.install(None, self.chain.head().block_number)
+        return self.filters.install(None, self.chain.head().block_number, client_var.get())
 
     def filter_changes(self, params: list[Any]) -> Any:
         filter_id = _filter_id(param(params, 0))

@@ -56,6 +56,12 @@ class LedgerSettings(ServiceSettings):
     ledger_max_filters: int = Field(
         default=1000, gt=0, description="filters (eth_newFilter, eth_newBlockFilter) at once"
     )
+    ledger_max_filters_per_client: int = Field(
+        default=64,
+        gt=0,
+        description="of those, installed from one client address (an IPv4 address, an IPv6 "
+        "/64) at once",
+    )
     ledger_filter_timeout_s: float = Field(
         default=300.0, gt=0, description="a filter nobody polls for this long is removed"
     )

@@ -4,6 +4,7 @@ expect, each side by side with anvil; a web3.py event filter polling by filters.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -232,7 +233,11 @@ def test_web3_event_filter_works_by_filters(service: Service, robot: RobotFactor
 def few_filters(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     process = start_ledger(
         tmp_path_factory.mktemp("filters") / "data",
-        {"ROBOCLOUD_LEDGER_MAX_FILTERS": "2", "ROBOCLOUD_LEDGER_FILTER_TIMEOUT_S": "600"},
+        {
+            "ROBOCLOUD_LEDGER_MAX_FILTERS": "2",
+            "ROBOCLOUD_LEDGER_MAX_FILTERS_PER_CLIENT": "2",
+            "ROBOCLOUD_LEDGER_FILTER_TIMEOUT_S": "600",
+        },
     )
     try:
         yield f"{process.url}/rpc"
@@ -251,6 +256,35 @@ def test_filters_are_bounded_in_number(few_filters: str) -> None:
     assert result(few_filters, "eth_getFilterChanges", [first]) == []
     assert result(few_filters, "eth_uninstallFilter", [first]) is True
     assert result(few_filters, "eth_newBlockFilter", []).startswith("0x")
+
+
+def test_one_client_address_holds_only_its_share_of_the_filters(
+    tmp_path: Path,
+) -> None:
+    """Clients told apart by the address they connect from (127.0.0.2 and 127.0.0.3 reach the
+    ledger on 127.0.0.1): one installing filters in a loop fills its share, not the node."""
+    process = start_ledger(
+        tmp_path / "data",
+        {"ROBOCLOUD_LEDGER_MAX_FILTERS": "3", "ROBOCLOUD_LEDGER_MAX_FILTERS_PER_CLIENT": "2"},
+    )
+    url = f"{process.url}/rpc"
+    request = {"jsonrpc": "2.0", "id": 1, "method": "eth_newBlockFilter", "params": []}
+    try:
+        with (
+            httpx.Client(transport=httpx.HTTPTransport(local_address="127.0.0.2")) as greedy,
+            httpx.Client(transport=httpx.HTTPTransport(local_address="127.0.0.3")) as other,
+        ):
+            installed = [greedy.post(url, json=request).json()["result"] for _ in range(2)]
+            assert greedy.post(url, json=request).json()["error"] == {
+                "code": -32000,
+                "message": "too many filters from one client: at most 2 at once; uninstall "
+                "filters no longer polled",
+            }
+            assert other.post(url, json=request).json()["result"].startswith("0x")
+            assert result(url, "eth_getFilterChanges", [installed[0]]) == []
+            assert "at most 3 at once" in call(url, "eth_newBlockFilter", [])["error"]["message"]
+    finally:
+        process.stop()
 
 
 @pytest.mark.parametrize("value", [7, "0x", "nothex", "0x" + "1" * 100])

@@ -47,6 +47,22 @@ def test_the_number_of_filters_is_bounded_and_expired_ones_make_room() -> None:
     assert filters.install(None, 0).startswith("0x")
 
 
+def test_one_client_holds_its_share_of_the_filters_and_the_rest_is_for_others() -> None:
+    clock = Clock()
+    filters = Filters(max_filters=4, timeout_s=60, clock=clock, max_per_client=2)
+    greedy = [filters.install(None, 0, "192.0.2.1"), filters.install(LogCriteria(), 0, "192.0.2.1")]
+    with pytest.raises(TooManyFilters, match="too many filters from one client: at most 2"):
+        filters.install(None, 0, "192.0.2.1")
+    filters.install(None, 0, "192.0.2.2")
+    filters.install(None, 0, None)  # the node's own count against the total only
+    assert filters.uninstall(greedy[0])
+    filters.install(None, 0, "192.0.2.1")
+    with pytest.raises(TooManyFilters, match="too many filters: at most 4"):
+        filters.install(None, 0, "192.0.2.3")
+    clock.now += 61
+    assert len(filters) == 0
+
+
 def test_the_cursor_moves_only_when_the_answer_was_given() -> None:
     filters = Filters(max_filters=2, timeout_s=60)
     filter_id = filters.install(LogCriteria(), 10)
