@@ -52,51 +52,40 @@ class RegistryAuthorizer:
         self.negative_cache_s = negative_cache_s
         self.clock = clock
         self.max_cached = max_cached
-        self._cache: OrderedDict[str, tuple[float, RegisteredRobot | None]] = OrderedDict()
+        self._cache: OrderedDict[str, tuple[float, float, RegisteredRobot | None]] = OrderedDict()
+        """Per address: when its record expires, when it was fetched, and the record."""
 
     async def authorize(self, address: str, role: str | None = None) -> None:
         if address in self.allowed:
             return
         robot = await self.robot(address)
-        if robot is None:
-            raise Forbidden(
-                f"address {address} is not a registered robot on the ledger "
-                "(`robocloud register` registers it)",
-                code=UNKNOWN_SIGNER,
-                details={"address": address},
-            )
-        if robot.pending:
-            raise Forbidden(
-                f"robot {address} asked to register and awaits approval by the ledger's admin or "
-                f"a registrar (`robocloud admin approve {address}`)",
-                code="registration_pending",
-                details={"address": address},
-            )
-        if not robot.active:
-            raise Forbidden(
-                f"robot {address} is deactivated or suspended",
-                code="robot_inactive",
-                details={"address": address},
-            )
-        if role is not None and role not in robot.roles:
-            raise Forbidden(
-                f"robot {address} does not hold the role {role}",
-                code="role_required",
-                details={"address": address, "role": role},
-            )
+        if role is not None and robot is not None and role not in robot.roles:
+            robot = await self.robot(address, max_age_s=self.negative_cache_s)
+        _require_standing(address, robot, role)
 
-    async def robot(self, address: str) -> RegisteredRobot | None:
-        """The ledger's record of ``address`` (None when unregistered), cached briefly."""
+    async def robot(
+        self, address: str, *, max_age_s: float | None = None
+    ) -> RegisteredRobot | None:
+        """The ledger's record of ``address`` (None when unregistered), cached briefly;
+        asked again when the cached one is older than ``max_age_s``. A role a robot lacks is
+        checked against a record at most ``negative_cache_s`` old, as a refusal is: a role is
+        granted as the step right after a refusal (`admin grant` once `role_required` came
+        back), and the record cached for ten seconds by that refusal's request refused the
+        robot's retry too."""
         now = self.clock()
         cached = self._cache.get(address)
-        if cached is not None and cached[0] > now:
+        if (
+            cached is not None
+            and cached[0] > now
+            and (max_age_s is None or now - cached[1] <= max_age_s)
+        ):
             self._cache.move_to_end(address)
-            return cached[1]
+            return cached[2]
         robot = await self._fetch(address)
         lifetime = (
             self.cache_s if robot is not None and not robot.pending else self.negative_cache_s
         )
-        self._cache[address] = (now + lifetime, robot)
+        self._cache[address] = (now + lifetime, now, robot)
         self._cache.move_to_end(address)
         while len(self._cache) > self.max_cached:
             self._cache.popitem(last=False)
@@ -120,3 +109,34 @@ class RegistryAuthorizer:
 
     def close(self) -> None:
         self.ledger.close()
+
+
+def _require_standing(address: str, robot: RegisteredRobot | None, role: str | None) -> None:
+    """Raise 403 unless ``robot``, the ledger's record of ``address``, is registered, active,
+    and holds ``role`` when one is asked for."""
+    if robot is None:
+        raise Forbidden(
+            f"address {address} is not a registered robot on the ledger "
+            "(`robocloud register` registers it)",
+            code=UNKNOWN_SIGNER,
+            details={"address": address},
+        )
+    if robot.pending:
+        raise Forbidden(
+            f"robot {address} asked to register and awaits approval by the ledger's admin or "
+            f"a registrar (`robocloud admin approve {address}`)",
+            code="registration_pending",
+            details={"address": address},
+        )
+    if not robot.active:
+        raise Forbidden(
+            f"robot {address} is deactivated or suspended",
+            code="robot_inactive",
+            details={"address": address},
+        )
+    if role is not None and role not in robot.roles:
+        raise Forbidden(
+            f"robot {address} does not hold the role {role}",
+            code="role_required",
+            details={"address": address, "role": role},
+        )
