@@ -449,6 +449,8 @@ class IngestJobs:
             log.error("ingest job failed: %s", message, extra={"job": job.id})
         resumable = job.status == "committing"
         error = {"code": code, "message": message, "details": details, "resumable": resumable}
+        if not resumable:
+            shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         self._update(job, status="failed", error=error)
         if not resumable:
             self._drop_inputs(job)
@@ -456,7 +458,9 @@ class IngestJobs:
     def _drop_inputs(self, job: Job) -> None:
         """A job that cannot be resumed keeps neither its spool nor its bag: a robot sends the
         bag again. Bags of failed jobs were kept until a thousand later jobs had finished, so
-        one robot sending bags that fail (16 GiB each at most) could fill the disk."""
+        one robot sending bags that fail (16 GiB each at most) could fill the disk. The spool
+        goes before the failure is saved, which a full disk needs the room for; the bag only
+        after, since a job whose failure was not saved runs again at the next start."""
         shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         _remove(_bag_in(self.root / job.id))
 
