@@ -60,7 +60,12 @@ from services.common.errors import (
 )
 from services.common.logs import request_id_var
 from services.common.metrics import ServiceMetrics
-from services.common.nonces import NonceQuotaExceeded, NonceStore, NonceStoreFull
+from services.common.nonces import (
+    NonceQuotaExceeded,
+    NonceStore,
+    NonceStoreFull,
+    StrangerNonces,
+)
 from services.common.slots import client_key, client_var
 
 log = logging.getLogger("robocloud.http")
@@ -329,8 +334,8 @@ class SignatureLayer:
     included, so that they are final: a 503 (the ledger down), after which the SDK retries
     with a fresh nonce, and a 403 for a known robot (pending, inactive) cannot be replayed
     into success once the ledger answers or the robot is approved. A stranger's refused
-    request can: if its key is registered and approved within the clock window, a copy of
-    it succeeds once (never twice), even if its robot sent the same write again meanwhile.
+    request is final too, while its nonce is held in memory (:class:`StrangerNonces`): a copy
+    sent once its key is registered and approved is 401 ``replayed_nonce``.
     """
 
     def __init__(
@@ -349,6 +354,7 @@ class SignatureLayer:
         self.authorizer = authorizer
         self.max_clock_skew_s = max_clock_skew_s
         self.unsigned_paths = frozenset(unsigned_paths)
+        self.strangers = StrangerNonces(max_clock_skew_s)
         self._journal = anyio.CapacityLimiter(1)
         """One worker thread records nonces (the store's lock serialises them anyway), so a
         burst of signed writes waits on the event loop, not in threads others need."""
@@ -390,10 +396,14 @@ class SignatureLayer:
         try:
             await self.authorizer.authorize(verified.address)
         except Exception as refused:
-            if not (isinstance(refused, Forbidden) and refused.code == UNKNOWN_SIGNER):
+            if isinstance(refused, Forbidden) and refused.code == UNKNOWN_SIGNER:
+                self.strangers.remember(verified.address, verified.nonce, verified.timestamp)
+            else:
                 await self._use_nonce(verified.address, verified.nonce, verified.timestamp)
             raise
         await self._use_nonce(verified.address, verified.nonce, verified.timestamp)
+        if self.strangers.refused(verified.address, verified.nonce):
+            raise _replayed()
         return verified.content_sha256
 
     async def _use_nonce(self, address: str, nonce: str, timestamp: int) -> None:
@@ -426,11 +436,15 @@ class SignatureLayer:
                 headers={"Retry-After": str(seconds)},
             ) from full
         if not fresh:
-            raise Unauthorized(
-                "this nonce was already used by this address",
-                code="replayed_nonce",
-                details={"header": "X-Robocloud-Nonce"},
-            )
+            raise _replayed()
+
+
+def _replayed() -> Unauthorized:
+    return Unauthorized(
+        "this nonce was already used by this address",
+        code="replayed_nonce",
+        details={"header": "X-Robocloud-Nonce"},
+    )
 
 
 RESERVE_RECHECK_BYTES = 1 << 20

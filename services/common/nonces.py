@@ -21,6 +21,8 @@ import heapq
 import logging
 import threading
 import time
+from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 
 from services.common.durable import AppendLog
@@ -147,3 +149,50 @@ class NonceStore:
             self._appended = len(self._expiry)
             return
         self._appended = len(lines)
+
+
+MAX_STRANGER_NONCES = 50_000
+"""Refused strangers' nonces held at once: some 20 MB at worst (each its own address and a
+64-character nonce; 13.7 MB measured with 32-character ones)."""
+
+
+class StrangerNonces:
+    """Nonces of requests refused because the registry had no record of their signer (403
+    ``address_not_allowed``), held in memory only until their timestamp leaves the window.
+
+    Such a request uses no nonce of the store, since self-made keys cost nothing and their
+    journal lines would fill it. Without this, a copy of one succeeded once if its key was
+    registered and approved within the clock window, after its robot had moved on. Past
+    ``limit`` the oldest goes, so a flood of strangers pushes out each other's and nobody is
+    refused for it; a restart forgets them all.
+    """
+
+    def __init__(
+        self,
+        window_s: int,
+        limit: int = MAX_STRANGER_NONCES,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.window_s = window_s
+        self.limit = limit
+        self.clock = clock
+        self._expiry: OrderedDict[tuple[str, str], float] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._expiry)
+
+    def remember(self, address: str, nonce: str, timestamp: int) -> None:
+        with self._lock:
+            self._expiry[address, nonce] = timestamp + self.window_s
+            self._expiry.move_to_end((address, nonce))
+            now = self.clock()
+            while self._expiry and (
+                len(self._expiry) > self.limit or next(iter(self._expiry.values())) < now
+            ):
+                self._expiry.popitem(last=False)
+
+    def refused(self, address: str, nonce: str) -> bool:
+        """Whether a request of ``address`` with ``nonce`` was refused as a stranger's."""
+        with self._lock:
+            return self._expiry.get((address, nonce), 0.0) >= self.clock()

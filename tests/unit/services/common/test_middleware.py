@@ -43,7 +43,7 @@ from services.common.middleware import (
     RequestIdLayer,
     SignatureLayer,
 )
-from services.common.nonces import NonceStore
+from services.common.nonces import NonceStore, StrangerNonces
 
 AUDIENCE = "cas@local"
 
@@ -524,6 +524,34 @@ def test_a_stranger_refused_leaves_no_nonce(tmp_path: Path) -> None:
         assert first["details"] == {"address": robot.address}
     assert len(nonces) == 0
     assert (tmp_path / "nonces.log").read_text() == ""
+
+
+def test_a_strangers_refused_request_is_not_replayed_into_success_once_approved(
+    tmp_path: Path,
+) -> None:
+    """It was: a copy sent within the clock window after the key's approval succeeded once,
+    though its robot had moved on after the 403."""
+    robot = Identity.generate()
+    listed = Listed()
+    app = signature_layer(tmp_path, echo, authorizer=listed)
+    headers = signed(robot, "/w")
+    error_of(call(app, "POST", "/w", headers=headers), 403, UNKNOWN_SIGNER)
+    listed.addresses.add(robot.address)
+    for _ in range(2):
+        error_of(call(app, "POST", "/w", headers=headers), 401, "replayed_nonce")
+    assert call(app, "POST", "/w", headers=signed(robot, "/w")).json()["signer"] == robot.address
+
+
+def test_strangers_nonces_are_bounded_and_forgotten_with_their_window() -> None:
+    now = [1000.0]
+    strangers = StrangerNonces(window_s=300, limit=2, clock=lambda: now[0])
+    for nonce in ("a", "b", "c"):
+        strangers.remember("0xS", nonce, 1000)
+    assert [strangers.refused("0xS", nonce) for nonce in "abc"] == [False, True, True]
+    now[0] = 1301.0
+    assert not strangers.refused("0xS", "c"), "its timestamp left the window"
+    strangers.remember("0xT", "d", 1301)
+    assert len(strangers) == 1, "expired ones go as new ones come"
 
 
 def test_a_replay_is_refused_though_the_authorizer_is_asked_first(tmp_path: Path) -> None:
