@@ -56,6 +56,11 @@ class RegistryAuthorizer:
         """Per address: when its record expires, when it was fetched, and the record."""
 
     async def authorize(self, address: str, role: str | None = None) -> None:
+        """Raise 403 unless ``address`` may write (holding ``role`` when one is asked for).
+        A role the robot lacks is checked against a record at most ``negative_cache_s`` old,
+        as any refusal is: a role is granted right after a refusal (``admin grant`` once
+        ``role_required`` came back), and the record the refusal cached for ``cache_s``
+        refused the robot's retry too."""
         if address in self.allowed:
             return
         robot = await self.robot(address)
@@ -67,11 +72,7 @@ class RegistryAuthorizer:
         self, address: str, *, max_age_s: float | None = None
     ) -> RegisteredRobot | None:
         """The ledger's record of ``address`` (None when unregistered), cached briefly;
-        asked again when the cached one is older than ``max_age_s``. A role a robot lacks is
-        checked against a record at most ``negative_cache_s`` old, as a refusal is: a role is
-        granted as the step right after a refusal (`admin grant` once `role_required` came
-        back), and the record cached for ten seconds by that refusal's request refused the
-        robot's retry too."""
+        asked again when the cached one is older than ``max_age_s``."""
         now = self.clock()
         cached = self._cache.get(address)
         if (

@@ -445,6 +445,10 @@ class IngestJobs:
             self._fail(job, failure.code, str(failure), failure.details)
 
     def _fail(self, job: Job, code: str, message: str, details: dict[str, Any]) -> None:
+        """Save the job as failed. One that cannot be resumed keeps neither its spool nor its
+        bag (:meth:`_drop_inputs`): the spool goes before the failure is saved, which a full
+        disk needs the room for, the bag only after, since a job whose failure was not saved
+        runs again at the next start."""
         if code == "insufficient_storage":
             log.error("ingest job failed: %s", message, extra={"job": job.id})
         resumable = job.status == "committing"
@@ -453,14 +457,12 @@ class IngestJobs:
             shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         self._update(job, status="failed", error=error)
         if not resumable:
-            self._drop_inputs(job)
+            _remove(_bag_in(self.root / job.id))
 
     def _drop_inputs(self, job: Job) -> None:
-        """A job that cannot be resumed keeps neither its spool nor its bag: a robot sends the
+        """What a failed job that cannot be resumed left, its failure saved: a robot sends the
         bag again. Bags of failed jobs were kept until a thousand later jobs had finished, so
-        one robot sending bags that fail (16 GiB each at most) could fill the disk. The spool
-        goes before the failure is saved, which a full disk needs the room for; the bag only
-        after, since a job whose failure was not saved runs again at the next start."""
+        one robot sending bags that fail (16 GiB each at most) could fill the disk."""
         shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         _remove(_bag_in(self.root / job.id))
 
