@@ -36,6 +36,7 @@ from services.storage.knowledge import (
     DescriptionTooLarge,
     DescriptionUnparsable,
     InvalidTypeParameter,
+    KnowledgeBaseFull,
     NotADescription,
 )
 from services.storage.matcher import BindingRefused
@@ -182,6 +183,11 @@ ERRORS = ErrorMap(
             400, "description_too_large", lambda exc: {"cid": exc.cid, "limit": exc.limit}
         ),
         DescriptionNotFound: ErrorRule(404, "description_not_found", lambda exc: {"cid": exc.cid}),
+        KnowledgeBaseFull: ErrorRule(
+            507,
+            "knowledge_base_full",
+            lambda exc: {"cid": exc.cid, "size": exc.size, "used": exc.used, "limit": exc.limit},
+        ),
         CasUnavailable: ErrorRule(502, "cas_unavailable", lambda exc: {"cid": exc.cid}),
         InvalidTypeParameter: ErrorRule(
             400, "invalid_parameter", lambda exc: {"field": exc.field, "value": exc.value[:200]}

@@ -134,6 +134,23 @@ class DescriptionTooLarge(DescriptionRefused):
         return self.reason.limit
 
 
+class KnowledgeBaseFull(KnowledgeError):
+    """The description would take the knowledge base past its total size: every SPARQL
+    worker holds the whole graph, and one that cannot load it dies at start, again and again,
+    leaving no query answered. Not the description's fault: the ledger follower tries it again
+    later, as after a failed fetch."""
+
+    def __init__(self, cid: str, size: int, used: int, limit: int) -> None:
+        super().__init__(
+            f"the knowledge base holds {used} bytes of descriptions; {cid} ({size} bytes) "
+            f"would take it past its {limit} (ROBOCLOUD_KNOWLEDGE_MAX_TOTAL_BYTES)",
+            cid,
+        )
+        self.size = size
+        self.used = used
+        self.limit = limit
+
+
 def _refused(cid: str, reason: SemanticError) -> DescriptionRefused:
     kinds: list[tuple[type[SemanticError], type[DescriptionRefused]]] = [
         (DescriptionInvalidError, DescriptionInvalid),
@@ -263,6 +280,7 @@ class KnowledgeBase:
         *,
         max_bytes: int = MAX_DESCRIPTION_BYTES,
         max_triples: int = MAX_DESCRIPTION_TRIPLES,
+        max_total_bytes: int | None = None,
     ) -> None:
         self.root = root
         self.descriptions = root / "descriptions"
@@ -271,8 +289,13 @@ class KnowledgeBase:
         self.connect_cas = connect_cas
         self.max_bytes = max_bytes
         self.max_triples = max_triples
+        self.max_total_bytes = max_total_bytes
         self._lock = threading.Lock()
-        self._known = {path.stem for path in self.descriptions.glob("*.nt")}
+        files = list(self.descriptions.glob("*.nt"))
+        self._known = {path.stem for path in files}
+        self.total_bytes = sum(path.stat().st_size for path in files)
+        """The canonical N-Triples of every description: what each worker's graph is built
+        from, and what ``max_total_bytes`` bounds."""
         self._follower: LedgerFollower | None = None
 
     def __len__(self) -> int:
@@ -320,11 +343,16 @@ class KnowledgeBase:
             raise _refused(cid, exc) from None
 
     def _store(self, cid: str, description: Description) -> bool:
+        data = description.canonical()
         with self._lock:
             if cid in self._known:
                 return False
-            atomic_write(self.descriptions / f"{cid}.nt", description.canonical())
+            limit = self.max_total_bytes
+            if limit is not None and self.total_bytes + len(data) > limit:
+                raise KnowledgeBaseFull(cid, len(data), self.total_bytes, limit)
+            atomic_write(self.descriptions / f"{cid}.nt", data)
             self._known.add(cid)
+            self.total_bytes += len(data)
         self.workers.add([cid])
         return True
 
@@ -568,7 +596,7 @@ class LedgerFollower:
         except ValueError as exc:  # a CID the chain holds that is not a valid CID
             _refuse(refused, cid, str(exc))
             return None
-        except Exception as exc:  # a full disk, a bug: keep the description, try it again later
+        except Exception as exc:  # a full disk or knowledge base, a bug: try it again later
             log.warning(
                 "indexing advertised description %s failed, kept for a retry: %s: %s",
                 cid,

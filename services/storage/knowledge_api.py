@@ -104,6 +104,8 @@ def knowledge_router(settings: StorageSettings) -> APIRouter:
         knowledge = _knowledge(request)
         return {
             "descriptions": len(knowledge),
+            "bytes": knowledge.total_bytes,
+            "max_bytes": settings.knowledge_max_total_bytes,
             "store": settings.knowledge_store,
             "workers": knowledge.workers.describe(),
             "ledger": knowledge.follow_state(),
@@ -199,7 +201,9 @@ def open_knowledge(settings: StorageSettings) -> KnowledgeBase:
         with Cas(settings.cas_url) as cas:
             yield cas
 
-    return KnowledgeBase(root, workers, connect_cas)
+    return KnowledgeBase(
+        root, workers, connect_cas, max_total_bytes=settings.knowledge_max_total_bytes
+    )
 
 
 @asynccontextmanager

@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 from typing import Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 
 from services.common.settings import ServiceSettings
 from services.storage.ingest import PUBLISH_ATTEMPTS, PUBLISH_RETRY_MAX_S, PUBLISH_RETRY_S
@@ -16,6 +16,13 @@ from services.storage.ingest import PUBLISH_ATTEMPTS, PUBLISH_RETRY_MAX_S, PUBLI
 SMALLEST_STAGING_MEMORY_BYTES = 320 * 1024**2
 """Below it every job failed as ``ingest_failed`` with a bare ``MemoryError``: 256 MiB could
 not start a staging process, 300 MiB staged a small bag (measured 2026-11-28)."""
+WORKER_BYTES_PER_DESCRIPTION_BYTE = {"oxigraph": 3, "memory": 10}
+"""A SPARQL worker's memory per byte of canonical N-Triples it loads, by store: measured 2.2
+with Oxigraph (100,000 file descriptions, 151 MB, peaked at 412 MB of address space over an
+empty worker's 80 MB) and 8.8 with rdflib's memory store (20,000, 30 MB, 332 MB), rounded up
+for descriptions of more, shorter terms."""
+WORKER_BASE_BYTES = 256 * 1024**2
+"""An empty worker's address space (80 MB measured), with room to answer queries."""
 
 
 class StorageSettings(ServiceSettings):
@@ -68,6 +75,12 @@ class StorageSettings(ServiceSettings):
     )
     knowledge_worker_memory_bytes: int = Field(
         default=4 * 1024**3, ge=0, description="address space of a SPARQL worker (0: unbounded)"
+    )
+    knowledge_max_total_bytes: int = Field(
+        default=512 * 1024**2,
+        gt=0,
+        description="the canonical N-Triples of every description together; past it a new "
+        "description is 507 knowledge_base_full (each worker holds the whole graph)",
     )
     knowledge_store: Literal["memory", "oxigraph"] = Field(
         default="oxigraph", description="the rdflib store behind SPARQL (docs/semantics.md)"
@@ -191,6 +204,21 @@ class StorageSettings(ServiceSettings):
         description="wait after a dataset's first failed publish; it doubles after each "
         f"failure, up to {PUBLISH_RETRY_MAX_S:g} s",
     )
+
+    @model_validator(mode="after")
+    def _knowledge_fits_a_worker(self) -> StorageSettings:
+        memory = self.knowledge_worker_memory_bytes
+        ratio = WORKER_BYTES_PER_DESCRIPTION_BYTE[self.knowledge_store]
+        needed = self.knowledge_max_total_bytes * ratio
+        if 0 < memory < needed + WORKER_BASE_BYTES:
+            raise ValueError(
+                f"a SPARQL worker holding {self.knowledge_max_total_bytes} bytes of descriptions "
+                f"(knowledge_max_total_bytes) in the {self.knowledge_store} store needs about "
+                f"{needed + WORKER_BASE_BYTES} bytes "
+                f"of memory, more than knowledge_worker_memory_bytes ({memory}): it would die "
+                "loading them; lower the first or raise the second"
+            )
+        return self
 
     @field_validator("storage_ingest_worker_memory_bytes")
     @classmethod

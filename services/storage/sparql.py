@@ -253,6 +253,12 @@ def _framed_read(stream: IO[bytes]) -> Any:
     return pickle.loads(data)
 
 
+LOAD_BATCH_TRIPLES = 10_000
+"""Triples parsed before they go into the store. Parsing every description first held all
+their rdflib terms at once beside the store: loading 20,000 descriptions (30 MB of N-Triples)
+peaked at 393 MB resident for a graph that then held 217 MB."""
+
+
 class _Worker:
     """Inside the child: the graph, the prepared queries, and the message loop."""
 
@@ -279,6 +285,9 @@ class _Worker:
         for cid in cids:
             if cid in self.loaded:
                 continue
+            if len(quads) >= LOAD_BATCH_TRIPLES:
+                self.graph.addN(quads)
+                quads.clear()
             path = self.directory / f"{cid}.nt"
             try:
                 data = path.read_bytes()
@@ -650,6 +659,12 @@ SPAWN_RETRY_S = 0.5
 """How long after a failed start of a worker (a fork refused: EAGAIN, ENOMEM) it is tried
 again; doubled after each further failure, up to ``SPAWN_RETRY_MAX_S``."""
 SPAWN_RETRY_MAX_S = 30.0
+START_RETRY_S = 1.0
+"""How long after a worker died before it was ready it is replaced; doubled after each further
+one in a row, up to ``START_RETRY_MAX_S``. A graph larger than the workers' memory ends every
+worker while it loads: replaced after a second each, two workers loading in turn held both
+cores of a development machine for good."""
+START_RETRY_MAX_S = 60.0
 
 
 class _StalledWrite(Exception):
@@ -702,6 +717,8 @@ class SparqlWorkers:
         self.replaced = 0
         self.stopped = 0
         self.refreshed = 0
+        self.start_failures = 0
+        """Workers in a row that died before they were ready."""
         self._closing = threading.Event()
         self._starting = 0
         """Workers being started (between their fork and their registration)."""
@@ -734,6 +751,7 @@ class SparqlWorkers:
             "replaced": self.replaced,
             "stopped": self.stopped,
             "refreshed": self.refreshed,
+            "start_failures": self.start_failures,
         }
 
     def add(self, cids: Sequence[str]) -> None:
@@ -991,13 +1009,24 @@ class SparqlWorkers:
             if answer[0] != "ready":
                 raise EOFError(f"the worker said {answer!r}")
         except (SparqlError, OSError, EOFError, ValueError, pickle.UnpicklingError) as exc:
-            log.error("a SPARQL worker did not start: %s", exc)
-            time.sleep(1.0)
+            with self._lock:
+                self.start_failures += 1
+                failures = self.start_failures
+            delay = min(START_RETRY_S * 2 ** min(failures - 1, 16), START_RETRY_MAX_S)
+            log.error(
+                "a SPARQL worker did not start (%d in a row, replaced in %g s): %s; a graph "
+                "larger than ROBOCLOUD_KNOWLEDGE_WORKER_MEMORY_BYTES allows ends each one",
+                failures,
+                delay,
+                exc,
+            )
+            self._closing.wait(delay)
             self._replace(child, "did not start")
             return
         with self._lock:
             child.ready = True
             self._loaded = True
+            self.start_failures = 0
         log.info("SPARQL worker %d ready with %d descriptions", child.process.pid, answer[1])
         self._idle.put(child)
 

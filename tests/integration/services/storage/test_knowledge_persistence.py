@@ -8,10 +8,12 @@ import shutil
 from pathlib import Path
 
 import httpx
+import pytest
 
 from robocloud import semantic
 from robocloud.cas import Cas
 from robocloud.cid import parse_cid
+from robocloud.errors import ServerError
 from robocloud.identity import Identity
 from robocloud.knowledge import Knowledge
 from robocloud.ledger import Ledger
@@ -132,3 +134,56 @@ def test_advertised_descriptions_are_indexed_and_rebuilt_when_the_files_are_lost
     assert holds(storage, *FILE)
     assert holds(storage, *APP)
     assert not holds(storage, *TASK)
+
+
+def test_a_description_past_the_knowledge_bases_size_is_refused_and_nothing_kept(
+    service_factory: ServiceFactory,
+) -> None:
+    """Each SPARQL worker holds the whole graph; past the bound the next one is 507 naming the
+    sizes, the bound counts what is on disk after a restart, and raising it makes room."""
+    file, application, task = example("file"), example("application"), example("task")
+    room = len(file.canonical()) + len(application.canonical())
+    cas = service_factory("cas")
+    env = {
+        "ROBOCLOUD_CAS_URL": cas.url,
+        "ROBOCLOUD_STORAGE_ANCHOR": "false",
+        "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+        "ROBOCLOUD_KNOWLEDGE_MAX_TOTAL_BYTES": str(room),
+    }
+    storage = service_factory("storage", env)
+    identity = Identity.generate()
+
+    def refused_task() -> None:
+        with (
+            Cas(cas.url, identity) as cas_client,
+            Knowledge(storage.url, identity) as knowledge,
+            pytest.raises(ServerError) as refused,
+        ):
+            knowledge.store(task, cas_client)
+        assert refused.value.status == 507
+        assert refused.value.code == "knowledge_base_full"
+        assert refused.value.details == {
+            "cid": str(task.cid()),
+            "size": len(task.canonical()),
+            "used": room,
+            "limit": room,
+        }
+        assert descriptions_of(storage) == {str(file.cid()), str(application.cid())}
+        assert not holds(storage, *TASK)
+        state = httpx.get(f"{storage.url}/v1/knowledge", timeout=10).json()
+        assert (state["descriptions"], state["bytes"], state["max_bytes"]) == (2, room, room)
+
+    with Cas(cas.url, identity) as cas_client, Knowledge(storage.url, identity) as knowledge:
+        knowledge.store(file, cas_client)
+        knowledge.store(application, cas_client)
+        assert knowledge.add(file.cid())["new"] is False  # known ones are still answered
+    refused_task()
+    storage.restart()
+    refused_task()
+
+    storage.stop()
+    storage.env["ROBOCLOUD_KNOWLEDGE_MAX_TOTAL_BYTES"] = str(room + len(task.canonical()))
+    storage.start()
+    with Cas(cas.url, identity) as cas_client, Knowledge(storage.url, identity) as knowledge:
+        knowledge.store(task, cas_client)
+    assert holds(storage, *TASK)

@@ -170,6 +170,40 @@ def test_a_disk_error_storing_one_description_keeps_it_pending(
     assert (restarted.state.pending, restarted.state.retries) == ([], {})
 
 
+def test_a_description_past_the_knowledge_bases_size_stays_pending_until_there_is_room(
+    tmp_path: Path, cas: Cas, ledger: Ledger, clock: Clock
+) -> None:
+    """Not the description's fault, so not refused for good: the operator may raise the bound."""
+    file_cid, app_cid = cas.put("file"), cas.put("application")
+    kb = KnowledgeBase(
+        tmp_path / "knowledge",
+        cast(SparqlWorkers, Workers()),
+        cas.connect,
+        max_total_bytes=len(cas.blobs[file_cid]),
+    )
+
+    @contextmanager
+    def connect_ledger() -> Iterator[Ledger]:
+        yield ledger
+
+    follower = LedgerFollower(kb, connect_ledger, 10.0, 1000)
+    follower.clock = clock
+    ledger.ads += [Ad(1, 0, file_cid), Ad(2, 0, app_cid)]
+    follower.poll()
+    assert (file_cid in kb, app_cid in kb) == (True, False)
+    assert follower.state.pending == [app_cid]
+    assert follower.state.refused == {}
+    assert kb.total_bytes == len(cas.blobs[file_cid])
+    assert sorted(path.stem for path in kb.descriptions.iterdir()) == [file_cid]
+
+    kb.max_total_bytes = len(cas.blobs[file_cid]) + len(cas.blobs[app_cid])
+    clock.now += 3600
+    follower.poll()
+    assert app_cid in kb
+    assert (follower.state.pending, follower.state.refused) == ([], {})
+    assert kb.total_bytes == kb.max_total_bytes
+
+
 def test_a_block_with_more_advertisements_than_a_batch_is_read_past(
     make_follower: Any, cas: Cas, ledger: Ledger
 ) -> None:

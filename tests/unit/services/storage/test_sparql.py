@@ -29,6 +29,7 @@ from services.storage.sparql import (
     SparqlWorkers,
     UpdateRejectedError,
     WorkerFailedError,
+    WorkersUnavailableError,
     choose_format,
     negotiate,
 )
@@ -253,7 +254,14 @@ def test_a_query_past_its_deadline_is_killed_and_its_worker_free_at_once(
     assert json.loads(body)["boolean"] is True
     thread.join()
     assert [str(exc) for exc in failures] == ["the query did not finish within 3 s; it was stopped"]
-    assert pool.describe() == {"ready": 2, "busy": 0, "replaced": 0, "stopped": 1, "refreshed": 0}
+    assert pool.describe() == {
+        "ready": 2,
+        "busy": 0,
+        "replaced": 0,
+        "stopped": 1,
+        "refreshed": 0,
+        "start_failures": 0,
+    }
     for _ in range(2):  # both workers, the one that ran the slow query included
         _, body = pool.query(PREFIX + "ASK { ?s a rc:File }", None)
         assert json.loads(body)["boolean"] is True
@@ -469,5 +477,33 @@ def test_a_worker_whose_replacement_could_not_be_forked_is_started_again(
         assert len(workers._children) == 1
         assert workers.loaded()
         assert asks_a_file(workers)
+    finally:
+        workers.close()
+
+
+def test_workers_that_die_while_loading_are_replaced_ever_more_slowly(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A graph larger than the workers' memory ends each worker while it loads; replaced a
+    second later every time, two of them loading in turn held both cores for good. Here 16 MiB
+    ends a worker before it has imported rdflib."""
+    write(tmp_path, example("file"))
+    workers = SparqlWorkers(
+        tmp_path, workers=1, timeout_s=5, max_result_bytes=1 << 20, memory_bytes=16 << 20
+    )
+    caplog.set_level("ERROR", logger="robocloud.storage.sparql")
+    workers.start()
+    try:
+        wait_for(lambda: workers.describe()["start_failures"] >= 3, "three failed starts", 30)
+        delays = [
+            record.args[1]
+            for record in caplog.records
+            if record.getMessage().startswith("a SPARQL worker did not start")
+        ]
+        assert delays[:3] == [1.0, 2.0, 4.0]
+        assert "ROBOCLOUD_KNOWLEDGE_WORKER_MEMORY_BYTES" in caplog.records[0].getMessage()
+        assert not workers.loaded()
+        with pytest.raises(WorkersUnavailableError):
+            asks_a_file(workers)
     finally:
         workers.close()
