@@ -38,6 +38,7 @@ from services.storage.knowledge import (
     InvalidTypeParameter,
     KnowledgeBaseFull,
     NotADescription,
+    ShareExhausted,
 )
 from services.storage.matcher import BindingRefused
 from services.storage.queries import QueryInvalid
@@ -187,6 +188,17 @@ ERRORS = ErrorMap(
             507,
             "knowledge_base_full",
             lambda exc: {"cid": exc.cid, "size": exc.size, "used": exc.used, "limit": exc.limit},
+        ),
+        ShareExhausted: ErrorRule(
+            507,
+            "quota_exceeded",
+            lambda exc: {
+                "cid": exc.cid,
+                "robot": exc.robot,
+                "size": exc.size,
+                "used": exc.used,
+                "limit": exc.limit,
+            },
         ),
         CasUnavailable: ErrorRule(502, "cas_unavailable", lambda exc: {"cid": exc.cid}),
         InvalidTypeParameter: ErrorRule(

@@ -43,7 +43,7 @@ from robocloud.semantic import (
     validate,
 )
 from robocloud.unixfs import import_bytes
-from services.common.durable import atomic_write
+from services.common.durable import AppendLog, atomic_write
 from services.storage.sparql import SparqlWorkers
 
 log = logging.getLogger("robocloud.storage.knowledge")
@@ -151,6 +151,23 @@ class KnowledgeBaseFull(KnowledgeError):
         self.limit = limit
 
 
+class ShareExhausted(KnowledgeError):
+    """The description would take the robot that adds it (its signer, or its advertiser on the
+    ledger) past its share of the knowledge base: without one, a single robot could fill the
+    whole of it, and every other robot's descriptions were refused."""
+
+    def __init__(self, cid: str, robot: str, size: int, used: int, limit: int) -> None:
+        super().__init__(
+            f"{robot} holds {used} bytes of descriptions; {cid} ({size} bytes) would take it "
+            f"past its share of {limit} (ROBOCLOUD_KNOWLEDGE_MAX_BYTES_PER_ROBOT)",
+            cid,
+        )
+        self.robot = robot
+        self.size = size
+        self.used = used
+        self.limit = limit
+
+
 def _refused(cid: str, reason: SemanticError) -> DescriptionRefused:
     kinds: list[tuple[type[SemanticError], type[DescriptionRefused]]] = [
         (DescriptionInvalidError, DescriptionInvalid),
@@ -180,6 +197,7 @@ class CasReader(Protocol):
 class Advertisement(Protocol):
     block_number: int
     log_index: int
+    advertiser: str
     description: str | None
 
 
@@ -213,10 +231,12 @@ class Indexed:
 
 @dataclass(frozen=True)
 class Retry:
-    """A pending description's failed fetches so far and when (epoch seconds) to fetch it again."""
+    """A pending description's failed fetches so far, when (epoch seconds) to fetch it again,
+    and who advertised it (charged for it once it is indexed; None in files saved before)."""
 
     attempts: int
     due: float
+    advertiser: str | None = None
 
 
 @dataclass
@@ -245,7 +265,11 @@ class FollowState:
                 [str(cid) for cid in document["pending"]],
                 {str(cid): str(why) for cid, why in document["refused"].items()},
                 {
-                    str(cid): Retry(int(retry["attempts"]), float(retry["due"]))
+                    str(cid): Retry(
+                        int(retry["attempts"]),
+                        float(retry["due"]),
+                        None if retry.get("advertiser") is None else str(retry["advertiser"]),
+                    )
                     for cid, retry in document.get("retries", {}).items()
                 },
             )
@@ -262,7 +286,7 @@ class FollowState:
             "pending": self.pending or [],
             "refused": self.refused or {},
             "retries": {
-                cid: {"attempts": retry.attempts, "due": retry.due}
+                cid: {"attempts": retry.attempts, "due": retry.due, "advertiser": retry.advertiser}
                 for cid, retry in self.retries.items()
             },
         }
@@ -281,6 +305,7 @@ class KnowledgeBase:
         max_bytes: int = MAX_DESCRIPTION_BYTES,
         max_triples: int = MAX_DESCRIPTION_TRIPLES,
         max_total_bytes: int | None = None,
+        max_bytes_per_robot: int | None = None,
     ) -> None:
         self.root = root
         self.descriptions = root / "descriptions"
@@ -290,12 +315,16 @@ class KnowledgeBase:
         self.max_bytes = max_bytes
         self.max_triples = max_triples
         self.max_total_bytes = max_total_bytes
+        self.max_bytes_per_robot = max_bytes_per_robot
         self._lock = threading.Lock()
-        files = list(self.descriptions.glob("*.nt"))
-        self._known = {path.stem for path in files}
-        self.total_bytes = sum(path.stat().st_size for path in files)
+        sizes = {path.stem: path.stat().st_size for path in self.descriptions.glob("*.nt")}
+        self._known = set(sizes)
+        self.total_bytes = sum(sizes.values())
         """The canonical N-Triples of every description: what each worker's graph is built
         from, and what ``max_total_bytes`` bounds."""
+        self._owners = AppendLog(root / "owners.log")
+        self._robot_bytes = self._read_owners(sizes)
+        """What each robot's descriptions take, for ``max_bytes_per_robot``."""
         self._follower: LedgerFollower | None = None
 
     def __len__(self) -> int:
@@ -306,16 +335,20 @@ class KnowledgeBase:
         with self._lock:
             return cid in self._known
 
-    def add(self, cid_text: str, cas: CasReader | None = None) -> Indexed:
+    def add(
+        self, cid_text: str, cas: CasReader | None = None, *, robot: str | None = None
+    ) -> Indexed:
         """Fetch, read, validate and store the description at ``cid_text``; idempotent.
 
         ``cas`` is a client to fetch it with (the follower's, shared by one round); without
-        one, a client is opened for this description. Raises :class:`CidNotCanonical` when the
-        bytes there have another canonical CID.
+        one, a client is opened for this description. ``robot`` (the signer, or the
+        advertiser) is charged for a new description; None charges no one (the node's own
+        dataset descriptions). Raises :class:`CidNotCanonical` when the bytes there have
+        another canonical CID.
         """
         cid = str(parse_cid(cid_text, "cid").to_v1())
         description = self._fetch(cid, cid_text, cas)
-        new = self._store(cid, description)
+        new = self._store(cid, description, robot)
         return Indexed(cid, description.subjects(), len(description), new)
 
     def _fetch(self, cid: str, cid_text: str, client: CasReader | None) -> Description:
@@ -342,7 +375,27 @@ class KnowledgeBase:
         except SemanticError as exc:
             raise _refused(cid, exc) from None
 
-    def _store(self, cid: str, description: Description) -> bool:
+    def _read_owners(self, sizes: dict[str, int]) -> dict[str, int]:
+        """Each robot's bytes, from ``owners.log``: a line ``<cid> <robot>`` is appended before
+        a robot's description is written. A line whose file is missing (a crash between the
+        two, or a write that failed) is dropped; the next one for that CID, written by the add
+        that stored it, wins. Descriptions without a line (the node's own dataset
+        descriptions, or held before lines were kept) count towards the total only."""
+        lines = self._owners.read_lines()
+        owners = {}
+        for line in lines:
+            cid, _, robot = line.partition(" ")
+            if cid in sizes:
+                owners[cid] = robot
+        robot_bytes: dict[str, int] = {}
+        for cid, robot in owners.items():
+            robot_bytes[robot] = robot_bytes.get(robot, 0) + sizes[cid]
+        self._owners.compact_at_open(
+            [f"{cid} {robot}" for cid, robot in owners.items()], len(lines)
+        )
+        return robot_bytes
+
+    def _store(self, cid: str, description: Description, robot: str | None) -> bool:
         data = description.canonical()
         with self._lock:
             if cid in self._known:
@@ -350,11 +403,27 @@ class KnowledgeBase:
             limit = self.max_total_bytes
             if limit is not None and self.total_bytes + len(data) > limit:
                 raise KnowledgeBaseFull(cid, len(data), self.total_bytes, limit)
+            if robot is not None:
+                self._charge(cid, robot, len(data))
             atomic_write(self.descriptions / f"{cid}.nt", data)
             self._known.add(cid)
             self.total_bytes += len(data)
+            if robot is not None:
+                self._robot_bytes[robot.lower()] = self.robot_bytes(robot) + len(data)
         self.workers.add([cid])
         return True
+
+    def _charge(self, cid: str, robot: str, size: int) -> None:
+        """Check ``robot``'s share and note it as the owner of ``cid`` (before its file)."""
+        used = self.robot_bytes(robot)
+        limit = self.max_bytes_per_robot
+        if limit is not None and used + size > limit:
+            raise ShareExhausted(cid, robot, size, used, limit)
+        self._owners.append(f"{cid} {robot.lower()}")
+
+    def robot_bytes(self, robot: str) -> int:
+        """What the descriptions ``robot`` added take."""
+        return self._robot_bytes.get(robot.lower(), 0)
 
     def cids(self) -> Iterator[str]:
         with self._lock:
@@ -428,6 +497,7 @@ class KnowledgeBase:
     def close(self) -> None:
         if self._follower is not None:
             self._follower.stop()
+        self._owners.close()
 
 
 def type_iri(value: str, field: str) -> str:
@@ -527,7 +597,7 @@ class LedgerFollower:
                     or cid in state.retries
                     or cid in state.pending
                 ):
-                    self._attempt(cid, cas, new=True)
+                    self._attempt(cid, ad.advertiser, cas, new=True)
                 state.block, state.log_index = ad.block_number, ad.log_index
                 progressed = True
             retried = self._retry_due(cas)
@@ -544,17 +614,19 @@ class LedgerFollower:
         for cid in due:
             if cas.unavailable:
                 break
-            self._attempt(cid, cas, new=False)
+            self._attempt(cid, retries[cid].advertiser if cid in retries else None, cas, new=False)
         return bool(due)
 
-    def _attempt(self, cid: str, cas: _RoundCas, *, new: bool) -> None:
+    def _attempt(self, cid: str, advertiser: str | None, cas: _RoundCas, *, new: bool) -> None:
         """Index ``cid``; when that fails, keep it pending with its backoff, or refuse it once
         ``MAX_ATTEMPTS`` fetches failed. Once cas was unreachable this round, a new CID is
         queued without a fetch."""
         pending, refused, retries = self.state.pending, self.state.refused, self.state.retries
         assert pending is not None
         assert refused is not None
-        failure = "cas was unreachable" if cas.unavailable else self._index(cid, refused, cas)
+        failure = (
+            "cas was unreachable" if cas.unavailable else self._index(cid, advertiser, refused, cas)
+        )
         if failure is None:
             if not new:
                 pending.remove(cid)
@@ -570,7 +642,7 @@ class LedgerFollower:
             retries.pop(cid, None)
             return
         wait = min(self.interval_s * 2 ** min(max(attempts - 1, 0), 32), MAX_BACKOFF_S)
-        retries[cid] = Retry(attempts, self.clock() + wait)
+        retries[cid] = Retry(attempts, self.clock() + wait, advertiser)
         if new:
             pending.append(cid)
             for dropped in pending[:-MAX_PENDING]:
@@ -578,13 +650,22 @@ class LedgerFollower:
                 _refuse(refused, dropped, f"dropped: more than {MAX_PENDING} descriptions pending")
             del pending[:-MAX_PENDING]
 
-    def _index(self, cid: str, refused: dict[str, str], cas: _RoundCas) -> str | None:
-        """None once the description is indexed or refused for good; else why to retry it."""
+    def _index(
+        self, cid: str, advertiser: str | None, refused: dict[str, str], cas: _RoundCas
+    ) -> str | None:
+        """None once the description is indexed or refused for good; else why to retry it.
+
+        One past its advertiser's share is refused for good: kept pending, one robot's
+        advertisements could take every place of the pending list."""
         try:
-            indexed = self.knowledge.add(cid, cas)
+            indexed = self.knowledge.add(cid, cas, robot=advertiser)
         except DescriptionRefused as exc:
             log.info("advertised description %s refused: %s", cid, exc.reason)
             _refuse(refused, cid, str(exc.reason))
+            return None
+        except ShareExhausted as exc:
+            log.info("advertised description %s refused: %s", cid, exc)
+            _refuse(refused, cid, str(exc))
             return None
         except DescriptionNotFound as exc:
             log.info("advertised description %s not fetched yet: %s", cid, exc)

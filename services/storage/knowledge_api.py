@@ -92,10 +92,12 @@ def knowledge_router(settings: StorageSettings) -> APIRouter:
 
     @router.post("/v1/knowledge")
     async def add_description(request: Request, signer: SignedAddress) -> dict[str, Any]:
-        """Fetch a description from cas by CID, validate it against its shapes and index it."""
+        """Fetch a description from cas by CID, validate it against its shapes and index it;
+        a new one counts towards its signer's share."""
         body = await read_json(request, KnowledgeRequest)
         assert body is not None
-        indexed = await anyio.to_thread.run_sync(_knowledge(request).add, body.cid)
+        knowledge = _knowledge(request)
+        indexed = await anyio.to_thread.run_sync(lambda: knowledge.add(body.cid, robot=signer))
         return indexed.as_dict()
 
     @router.get("/v1/knowledge")
@@ -106,6 +108,7 @@ def knowledge_router(settings: StorageSettings) -> APIRouter:
             "descriptions": len(knowledge),
             "bytes": knowledge.total_bytes,
             "max_bytes": settings.knowledge_max_total_bytes,
+            "max_bytes_per_robot": settings.knowledge_max_bytes_per_robot,
             "store": settings.knowledge_store,
             "workers": knowledge.workers.describe(),
             "ledger": knowledge.follow_state(),
@@ -202,7 +205,11 @@ def open_knowledge(settings: StorageSettings) -> KnowledgeBase:
             yield cas
 
     return KnowledgeBase(
-        root, workers, connect_cas, max_total_bytes=settings.knowledge_max_total_bytes
+        root,
+        workers,
+        connect_cas,
+        max_total_bytes=settings.knowledge_max_total_bytes,
+        max_bytes_per_robot=settings.knowledge_max_bytes_per_robot,
     )
 
 

@@ -82,6 +82,12 @@ class StorageSettings(ServiceSettings):
         description="the canonical N-Triples of every description together; past it a new "
         "description is 507 knowledge_base_full (each worker holds the whole graph)",
     )
+    knowledge_max_bytes_per_robot: int = Field(
+        default=64 * 1024**2,
+        gt=0,
+        description="what the descriptions one robot adds (signed or advertised) may take; "
+        "past it its next one is 507 quota_exceeded",
+    )
     knowledge_store: Literal["memory", "oxigraph"] = Field(
         default="oxigraph", description="the rdflib store behind SPARQL (docs/semantics.md)"
     )

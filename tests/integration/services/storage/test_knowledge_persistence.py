@@ -187,3 +187,50 @@ def test_a_description_past_the_knowledge_bases_size_is_refused_and_nothing_kept
     with Cas(cas.url, identity) as cas_client, Knowledge(storage.url, identity) as knowledge:
         knowledge.store(task, cas_client)
     assert holds(storage, *TASK)
+
+
+def test_a_robot_past_its_share_is_refused_and_others_go_on_across_a_restart(
+    service_factory: ServiceFactory,
+) -> None:
+    file, application, task = example("file"), example("application"), example("task")
+    share = len(application.canonical())  # more than the file, less than the file and another
+    cas = service_factory("cas")
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_CAS_URL": cas.url,
+            "ROBOCLOUD_STORAGE_ANCHOR": "false",
+            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+            "ROBOCLOUD_KNOWLEDGE_MAX_BYTES_PER_ROBOT": str(share),
+        },
+    )
+    greedy, other = Identity.generate(), Identity.generate()
+
+    def refused(description: Description) -> None:
+        with (
+            Cas(cas.url, greedy) as cas_client,
+            Knowledge(storage.url, greedy) as knowledge,
+            pytest.raises(ServerError) as refusal,
+        ):
+            knowledge.store(description, cas_client)
+        assert (refusal.value.status, refusal.value.code) == (507, "quota_exceeded")
+        assert refusal.value.details == {
+            "cid": str(description.cid()),
+            "robot": greedy.address,
+            "size": len(description.canonical()),
+            "used": len(file.canonical()),
+            "limit": share,
+        }
+        assert str(description.cid()) not in descriptions_of(storage)
+
+    with Cas(cas.url, greedy) as cas_client, Knowledge(storage.url, greedy) as knowledge:
+        knowledge.store(file, cas_client)
+    refused(application)
+    with Cas(cas.url, other) as cas_client, Knowledge(storage.url, other) as knowledge:
+        knowledge.store(application, cas_client)
+    storage.restart()
+    refused(task)
+    assert descriptions_of(storage) == {str(file.cid()), str(application.cid())}
+    with Knowledge(storage.url, greedy) as knowledge:
+        assert knowledge.add(application.cid())["new"] is False  # held: nothing to charge
+    assert holds(storage, *APP)

@@ -32,11 +32,16 @@ from services.storage.sparql import SparqlWorkers
 EXAMPLES = Path(__file__).resolve().parents[4] / "ontology" / "examples"
 
 
+ROBOT = "0x1a642f0E3c3aF545E7AcBD38b07251B3990914F1"
+OTHER_ROBOT = "0x5B38Da6a701c568545dCfcB03FcB875f56beddC4"
+
+
 @dataclass
 class Ad:
     block_number: int
     log_index: int
     description: str | None
+    advertiser: str = ROBOT
 
 
 class Ledger:
@@ -202,6 +207,48 @@ def test_a_description_past_the_knowledge_bases_size_stays_pending_until_there_i
     assert app_cid in kb
     assert (follower.state.pending, follower.state.refused) == ([], {})
     assert kb.total_bytes == kb.max_total_bytes
+
+
+def test_a_description_past_its_advertisers_share_is_refused_for_good(
+    tmp_path: Path, cas: Cas, ledger: Ledger, clock: Clock
+) -> None:
+    """The advertiser is charged, a pending one's too once it is fetched at last; one past the
+    share is refused, not kept pending, and other robots' descriptions go on."""
+    file_cid, app_cid, task_cid = cas.put("file"), cas.put("application"), cas.put("task")
+    app = cas.blobs.pop(app_cid)  # not in cas yet: pending
+    kb = KnowledgeBase(
+        tmp_path / "knowledge",
+        cast(SparqlWorkers, Workers()),
+        cas.connect,
+        max_bytes_per_robot=len(cas.blobs[file_cid]),
+    )
+
+    @contextmanager
+    def connect_ledger() -> Iterator[Ledger]:
+        yield ledger
+
+    follower = LedgerFollower(kb, connect_ledger, 10.0, 1000)
+    follower.clock = clock
+    ledger.ads += [Ad(1, 0, file_cid), Ad(2, 0, app_cid), Ad(3, 0, task_cid, OTHER_ROBOT)]
+    follower.poll()
+    assert (file_cid in kb, app_cid in kb, task_cid in kb) == (True, False, True)
+    assert follower.state.pending == [app_cid]
+    assert FollowState.load(kb.root / "follow.json").retries[app_cid].advertiser == ROBOT
+    assert kb.robot_bytes(ROBOT) == len(cas.blobs[file_cid])
+    assert kb.robot_bytes(OTHER_ROBOT.lower()) == len(cas.blobs[task_cid])
+
+    cas.blobs[app_cid] = app
+    clock.now += 3600
+    restarted = LedgerFollower(kb, connect_ledger, 10.0, 1000)  # the advertiser is read again
+    restarted.clock = clock
+    restarted.poll()
+    assert app_cid not in kb
+    saved = FollowState.load(kb.root / "follow.json")
+    assert saved.pending == []
+    assert saved.refused is not None
+    assert f"{ROBOT} holds {len(cas.blobs[file_cid])} bytes" in saved.refused[app_cid]
+    assert "past its share" in saved.refused[app_cid]
+    assert sorted(path.stem for path in kb.descriptions.iterdir()) == sorted([file_cid, task_cid])
 
 
 def test_a_block_with_more_advertisements_than_a_batch_is_read_past(
