@@ -18,7 +18,7 @@ SMALLEST_STAGING_MEMORY_BYTES = 320 * 1024**2
 not start a staging process, 300 MiB staged a small bag (measured 2026-11-28)."""
 WORKER_BYTES_PER_DESCRIPTION_BYTE = {"oxigraph": 3, "memory": 10}
 """A SPARQL worker's memory per byte of canonical N-Triples it loads, by store: measured 2.2
-with Oxigraph (100,000 file descriptions, 151 MB, peaked at 412 MB of address space over an
+with Oxigraph (100,000 file descriptions, 151 MB, peaked at 408 MB of address space over an
 empty worker's 80 MB) and 8.8 with rdflib's memory store (20,000, 30 MB, 332 MB), rounded up
 for descriptions of more, shorter terms."""
 WORKER_BASE_BYTES = 256 * 1024**2

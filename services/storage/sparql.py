@@ -254,9 +254,10 @@ def _framed_read(stream: IO[bytes]) -> Any:
 
 
 LOAD_BATCH_TRIPLES = 10_000
-"""Triples parsed before they go into the store. Parsing every description first held all
-their rdflib terms at once beside the store: loading 20,000 descriptions (30 MB of N-Triples)
-peaked at 393 MB resident for a graph that then held 217 MB."""
+"""Triples read into rdflib terms before they go into rdflib's memory store. Reading every
+description first held all their terms at once beside the store: loading 20,000 descriptions
+(30 MB of N-Triples) into Oxigraph that way peaked at 393 MB resident for a graph that then
+held 217 MB."""
 
 
 class _Worker:
@@ -278,28 +279,48 @@ class _Worker:
         self.load(sorted(path.stem for path in directory.glob("*.nt")))
 
     def load(self, cids: Sequence[str]) -> None:
+        """Add the descriptions not loaded yet. Oxigraph parses their N-Triples itself, ten
+        times faster than reading each into rdflib terms first (5,000 descriptions in 0.5 s
+        against 5.2 s): the files are the service's own, written once validated, and each is
+        checked against its CID, so they need no second validation here."""
         from robocloud.semantic import SemanticError, parse_canonical
-        from robocloud.unixfs import import_bytes
 
         quads: list[Any] = []
         for cid in cids:
             if cid in self.loaded:
                 continue
+            data = self._verified(cid)
+            if data is None:
+                continue
+            try:
+                if self.native:
+                    self.graph.parse(data=data, format="ox-nt")
+                else:
+                    quads.extend((s, p, o, self.graph) for s, p, o in parse_canonical(data).graph)
+            except (SyntaxError, SemanticError) as exc:
+                print(f"sparql worker: skipping {cid}: {exc}", file=sys.stderr)
+                continue
+            self.loaded.add(cid)
             if len(quads) >= LOAD_BATCH_TRIPLES:
                 self.graph.addN(quads)
                 quads.clear()
-            path = self.directory / f"{cid}.nt"
-            try:
-                data = path.read_bytes()
-                if str(import_bytes(data)[1]) != cid:
-                    raise SemanticError(f"the file's bytes have another CID than {cid}")
-                description = parse_canonical(data)
-            except (OSError, SemanticError) as exc:
-                print(f"sparql worker: skipping {path}: {exc}", file=sys.stderr)
-                continue
-            quads.extend((s, p, o, self.graph) for s, p, o in description.graph)
-            self.loaded.add(cid)
         self.graph.addN(quads)
+
+    def _verified(self, cid: str) -> bytes | None:
+        """The description file's bytes, or None when it cannot be read or holds other bytes
+        than its CID names."""
+        from robocloud.unixfs import import_bytes
+
+        path = self.directory / f"{cid}.nt"
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            print(f"sparql worker: skipping {path}: {exc}", file=sys.stderr)
+            return None
+        if str(import_bytes(data)[1]) != cid:
+            print(f"sparql worker: skipping {path}: its bytes have another CID", file=sys.stderr)
+            return None
+        return data
 
     def query(self, text: str, accept: str | None, format_parameter: str | None) -> Any:
         from rdflib import Graph

@@ -19,6 +19,7 @@ import pytest
 
 from robocloud import semantic
 from robocloud.cid import CID
+from robocloud.unixfs import import_bytes
 from services.common.durable import atomic_write
 from services.storage.sparql import (
     NotAcceptableError,
@@ -91,7 +92,9 @@ def example(kind: str) -> semantic.Description:
 @pytest.fixture(params=["memory", "oxigraph"])
 def pool(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[SparqlWorkers]:
     write(tmp_path, example("file"))
-    (tmp_path / "bafkreigarbage.nt").write_bytes(b"not a description\n")
+    (tmp_path / "bafkreigarbage.nt").write_bytes(b"not a description\n")  # not its CID
+    garbage = b'<https://a.example/s> <https://a.example/p> "unterminated .\n'
+    (tmp_path / f"{import_bytes(garbage)[1]}.nt").write_bytes(garbage)  # its CID, not RDF
     workers = SparqlWorkers(
         tmp_path,
         workers=2,
