@@ -6,6 +6,7 @@ import contextlib
 import itertools
 import json
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -43,7 +44,10 @@ def _worker_ports() -> range:
 
 
 _SHARE = _worker_ports()
-_IN_TURN = itertools.cycle(_SHARE)
+_IN_TURN = itertools.islice(itertools.cycle(_SHARE), random.randrange(len(_SHARE)), None)
+"""From a random place in the share: two pytest sessions on one machine (two checkouts, or a
+run beside CI) both started at its first port and took the same ports in the same order, and
+a test talked to the other session's service."""
 
 
 def free_port() -> int:
