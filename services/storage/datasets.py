@@ -26,7 +26,7 @@ from robocloud.semantic import TemplateCount, dataset_description, robot_iri
 from services.storage.anchoring import EpochStore
 from services.storage.identity import NodeIdentity
 from services.storage.ingest import Job
-from services.storage.knowledge import KnowledgeBase
+from services.storage.knowledge import KnowledgeBase, KnowledgeBaseFull
 from services.storage.recordstore import RecordStore
 
 log = logging.getLogger("robocloud.storage.datasets")
@@ -84,7 +84,7 @@ class DatasetPublisher:
                 title=f"ROS bag {bag_cid}",
             )
             description_cid = self.cas().add_bytes(description.canonical())
-            self.knowledge.add(str(description_cid))
+            self._index(description_cid, job)
             earlier = self._advertised_before(
                 chain, job, bag_cid, description_cid, save_advertise_tx
             )
@@ -100,6 +100,18 @@ class DatasetPublisher:
             extra={"job": job.id, "cid": str(bag_cid), "description": str(description_cid)},
         )
         return {"cid": str(bag_cid), "description": str(description_cid), "tx": event.tx_hash}
+
+    def _index(self, description_cid: CID, job: Job) -> None:
+        """Index the description here; a full knowledge base does not hold the dataset back.
+        The advertisement is what other robots find it by, and this node's ledger follower
+        keeps the description pending until there is room."""
+        try:
+            self.knowledge.add(str(description_cid))
+        except KnowledgeBaseFull as exc:
+            log.warning(
+                "dataset description not indexed here: the knowledge base is full",
+                extra={"job": job.id, "description": str(description_cid), "error": str(exc)},
+            )
 
     def _advertised_before(
         self,

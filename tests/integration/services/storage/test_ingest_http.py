@@ -447,6 +447,43 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
     ]
 
 
+def test_a_full_knowledge_base_does_not_hold_back_the_datasets_advertisement(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """The description is not indexed here; it is advertised, and the node's own ledger
+    follower keeps it pending until there is room. Before, the dataset was never published."""
+    ledger = service_factory("ledger")
+    cas = service_factory("cas")
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_LEDGER_URL": ledger.url,
+            "ROBOCLOUD_CAS_URL": cas.url,
+            "ROBOCLOUD_KNOWLEDGE_MAX_TOTAL_BYTES": "1",
+            "ROBOCLOUD_KNOWLEDGE_POLL_S": "0.2",
+        },
+    )
+    bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        imu = approve(records, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        job = ingest.wait(ingest.upload(bag)["id"], timeout_s=180)
+    assert job["status"] == "succeeded", job["error"]
+    dataset = job["dataset"]
+    assert set(dataset) == {"cid", "description", "tx"}, dataset
+    with LedgerService(ledger.url) as service:
+        (advertised,) = service.advertisements(cid=dataset["cid"])
+    assert advertised.description == dataset["description"]
+
+    def knowledge() -> dict[str, Any]:
+        return dict(httpx.get(f"{storage.url}/v1/knowledge", timeout=10).json())
+
+    wait_for(lambda: knowledge()["ledger"]["pending"] == 1, "the follower to keep it pending")
+    state = knowledge()
+    assert (state["descriptions"], state["bytes"]) == (0, 0)
+    assert not list((storage.data_dir / "knowledge" / "descriptions").iterdir())
+
+
 def _ingest_imu_until(
     storage: ServiceProcess,
     identity: Identity,
