@@ -396,33 +396,40 @@ def storage_address(storage: ServiceProcess) -> str:
     return str(httpx.get(f"{storage.url}/v1/node", timeout=10).json()["address"])
 
 
-def test_an_ingested_bag_is_described_indexed_and_advertised(
-    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
-) -> None:
-    ledger = service_factory("ledger")
-    cas = service_factory("cas")
-    storage = service_factory(
-        "storage",
-        {
-            "ROBOCLOUD_LEDGER_URL": ledger.url,
-            "ROBOCLOUD_CAS_URL": cas.url,
-            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
-        },
-    )
+def _publish_an_imu_bag(
+    storage: ServiceProcess, ledger: ServiceProcess, identity: Identity, tmp_path: Path
+) -> tuple[Path, str, dict[str, Any]]:
+    """Ingest a bag of IMU messages and check its dataset was advertised by the node: the bag,
+    the IMU template's id and the job's dataset."""
     bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
     with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
         imu = approve(records, "sensor_msgs/msg/Imu")
         ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
         job = ingest.wait(ingest.upload(bag)["id"], timeout_s=180)
     assert job["status"] == "succeeded", job["error"]
-    dataset = job["dataset"]
+    dataset: dict[str, Any] = job["dataset"]
     assert set(dataset) == {"cid", "description", "tx"}, dataset
-    assert dataset["cid"] == str(import_bytes(bag.read_bytes())[1])
-
     with LedgerService(ledger.url) as service:
         (advertised,) = service.advertisements(cid=dataset["cid"])
     assert advertised.description == dataset["description"]
     assert advertised.advertiser == storage_address(storage)
+    return bag, imu, dataset
+
+
+def test_an_ingested_bag_is_described_indexed_and_advertised(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    ledger = service_factory("ledger")
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_LEDGER_URL": ledger.url,
+            "ROBOCLOUD_CAS_URL": service_factory("cas").url,
+            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+        },
+    )
+    bag, imu, dataset = _publish_an_imu_bag(storage, ledger, identity, tmp_path)
+    assert dataset["cid"] == str(import_bytes(bag.read_bytes())[1])
     query = f"""
         PREFIX rc: <https://w3id.org/robocloud#>
         SELECT ?count ?epoch ?root WHERE {{
@@ -453,27 +460,16 @@ def test_a_full_knowledge_base_does_not_hold_back_the_datasets_advertisement(
     """The description is not indexed here; it is advertised, and the node's own ledger
     follower keeps it pending until there is room. Before, the dataset was never published."""
     ledger = service_factory("ledger")
-    cas = service_factory("cas")
     storage = service_factory(
         "storage",
         {
             "ROBOCLOUD_LEDGER_URL": ledger.url,
-            "ROBOCLOUD_CAS_URL": cas.url,
+            "ROBOCLOUD_CAS_URL": service_factory("cas").url,
             "ROBOCLOUD_KNOWLEDGE_MAX_TOTAL_BYTES": "1",
             "ROBOCLOUD_KNOWLEDGE_POLL_S": "0.2",
         },
     )
-    bag = write_bag(tmp_path / "run.bag", "ros1", 50, start_ns=START_NS)
-    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
-        imu = approve(records, "sensor_msgs/msg/Imu")
-        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
-        job = ingest.wait(ingest.upload(bag)["id"], timeout_s=180)
-    assert job["status"] == "succeeded", job["error"]
-    dataset = job["dataset"]
-    assert set(dataset) == {"cid", "description", "tx"}, dataset
-    with LedgerService(ledger.url) as service:
-        (advertised,) = service.advertisements(cid=dataset["cid"])
-    assert advertised.description == dataset["description"]
+    _publish_an_imu_bag(storage, ledger, identity, tmp_path)
 
     def knowledge() -> dict[str, Any]:
         return dict(httpx.get(f"{storage.url}/v1/knowledge", timeout=10).json())

@@ -50,18 +50,39 @@ APP = ("ipfs://bafkreia357kjlhicbaks5xy6g5ridjm6wevmf6ccufgzsdrlpfyi6ydb34", "Ap
 TASK = ("ipfs://bafkreida5gq3v6rabjib2uiqzefbdra2cxrzx2sctf56h2igs73ndf2ouu", "Task")
 
 
-def test_restart_and_kill_9_keep_every_description_without_cas(
-    service_factory: ServiceFactory,
-) -> None:
-    cas = service_factory("cas")
-    storage = service_factory(
+def storage_beside(
+    service_factory: ServiceFactory, cas: ServiceProcess, **env: str
+) -> ServiceProcess:
+    """A storage service over ``cas`` that neither anchors nor follows the ledger."""
+    return service_factory(
         "storage",
         {
             "ROBOCLOUD_CAS_URL": cas.url,
             "ROBOCLOUD_STORAGE_ANCHOR": "false",
             "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+            **{f"ROBOCLOUD_{name.upper()}": value for name, value in env.items()},
         },
     )
+
+
+def refusal(
+    storage: ServiceProcess, cas: ServiceProcess, identity: Identity, description: Description
+) -> ServerError:
+    """The error storing ``description`` as ``identity`` ends in."""
+    with (
+        Cas(cas.url, identity) as cas_client,
+        Knowledge(storage.url, identity) as knowledge,
+        pytest.raises(ServerError) as refused,
+    ):
+        knowledge.store(description, cas_client)
+    return refused.value
+
+
+def test_restart_and_kill_9_keep_every_description_without_cas(
+    service_factory: ServiceFactory,
+) -> None:
+    cas = service_factory("cas")
+    storage = storage_beside(service_factory, cas)
     identity = Identity.generate()
     with Cas(cas.url, identity) as cas_client, Knowledge(storage.url, identity) as knowledge:
         knowledge.store(example("file"), cas_client)
@@ -144,25 +165,13 @@ def test_a_description_past_the_knowledge_bases_size_is_refused_and_nothing_kept
     file, application, task = example("file"), example("application"), example("task")
     room = len(file.canonical()) + len(application.canonical())
     cas = service_factory("cas")
-    env = {
-        "ROBOCLOUD_CAS_URL": cas.url,
-        "ROBOCLOUD_STORAGE_ANCHOR": "false",
-        "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
-        "ROBOCLOUD_KNOWLEDGE_MAX_TOTAL_BYTES": str(room),
-    }
-    storage = service_factory("storage", env)
+    storage = storage_beside(service_factory, cas, knowledge_max_total_bytes=str(room))
     identity = Identity.generate()
 
     def refused_task() -> None:
-        with (
-            Cas(cas.url, identity) as cas_client,
-            Knowledge(storage.url, identity) as knowledge,
-            pytest.raises(ServerError) as refused,
-        ):
-            knowledge.store(task, cas_client)
-        assert refused.value.status == 507
-        assert refused.value.code == "knowledge_base_full"
-        assert refused.value.details == {
+        refused = refusal(storage, cas, identity, task)
+        assert (refused.status, refused.code) == (507, "knowledge_base_full")
+        assert refused.details == {
             "cid": str(task.cid()),
             "size": len(task.canonical()),
             "used": room,
@@ -195,26 +204,13 @@ def test_a_robot_past_its_share_is_refused_and_others_go_on_across_a_restart(
     file, application, task = example("file"), example("application"), example("task")
     share = len(application.canonical())  # more than the file, less than the file and another
     cas = service_factory("cas")
-    storage = service_factory(
-        "storage",
-        {
-            "ROBOCLOUD_CAS_URL": cas.url,
-            "ROBOCLOUD_STORAGE_ANCHOR": "false",
-            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
-            "ROBOCLOUD_KNOWLEDGE_MAX_BYTES_PER_ROBOT": str(share),
-        },
-    )
+    storage = storage_beside(service_factory, cas, knowledge_max_bytes_per_robot=str(share))
     greedy, other = Identity.generate(), Identity.generate()
 
     def refused(description: Description) -> None:
-        with (
-            Cas(cas.url, greedy) as cas_client,
-            Knowledge(storage.url, greedy) as knowledge,
-            pytest.raises(ServerError) as refusal,
-        ):
-            knowledge.store(description, cas_client)
-        assert (refusal.value.status, refusal.value.code) == (507, "quota_exceeded")
-        assert refusal.value.details == {
+        refused = refusal(storage, cas, greedy, description)
+        assert (refused.status, refused.code) == (507, "quota_exceeded")
+        assert refused.details == {
             "cid": str(description.cid()),
             "robot": greedy.address,
             "size": len(description.canonical()),

@@ -120,20 +120,28 @@ def clock() -> Clock:
     return Clock()
 
 
-@pytest.fixture
-def make_follower(tmp_path: Path, cas: Cas, ledger: Ledger, clock: Clock) -> Any:
-    kb = KnowledgeBase(tmp_path / "knowledge", cast(SparqlWorkers, Workers()), cas.connect)
+def follower_of(
+    kb: KnowledgeBase, ledger: Ledger, clock: Clock, batch: int = 1000
+) -> LedgerFollower:
+    """A follower of ``ledger`` feeding ``kb``, on ``clock``; a new one is a restart."""
 
     @contextmanager
     def connect_ledger() -> Iterator[Ledger]:
         yield ledger
 
-    def make(batch: int = 1000) -> LedgerFollower:
-        follower = LedgerFollower(kb, connect_ledger, 10.0, batch)
-        follower.clock = clock
-        return follower
+    follower = LedgerFollower(kb, connect_ledger, 10.0, batch)
+    follower.clock = clock
+    return follower
 
-    return make
+
+def knowledge_base(root: Path, cas: Cas, **limits: int) -> KnowledgeBase:
+    return KnowledgeBase(root / "knowledge", cast(SparqlWorkers, Workers()), cas.connect, **limits)
+
+
+@pytest.fixture
+def make_follower(tmp_path: Path, cas: Cas, ledger: Ledger, clock: Clock) -> Any:
+    kb = knowledge_base(tmp_path, cas)
+    return lambda batch=1000: follower_of(kb, ledger, clock, batch)
 
 
 def bogus_cid(n: int) -> str:
@@ -180,19 +188,8 @@ def test_a_description_past_the_knowledge_bases_size_stays_pending_until_there_i
 ) -> None:
     """Not the description's fault, so not refused for good: the operator may raise the bound."""
     file_cid, app_cid = cas.put("file"), cas.put("application")
-    kb = KnowledgeBase(
-        tmp_path / "knowledge",
-        cast(SparqlWorkers, Workers()),
-        cas.connect,
-        max_total_bytes=len(cas.blobs[file_cid]),
-    )
-
-    @contextmanager
-    def connect_ledger() -> Iterator[Ledger]:
-        yield ledger
-
-    follower = LedgerFollower(kb, connect_ledger, 10.0, 1000)
-    follower.clock = clock
+    kb = knowledge_base(tmp_path, cas, max_total_bytes=len(cas.blobs[file_cid]))
+    follower = follower_of(kb, ledger, clock)
     ledger.ads += [Ad(1, 0, file_cid), Ad(2, 0, app_cid)]
     follower.poll()
     assert (file_cid in kb, app_cid in kb) == (True, False)
@@ -216,19 +213,8 @@ def test_a_description_past_its_advertisers_share_is_refused_for_good(
     share is refused, not kept pending, and other robots' descriptions go on."""
     file_cid, app_cid, task_cid = cas.put("file"), cas.put("application"), cas.put("task")
     app = cas.blobs.pop(app_cid)  # not in cas yet: pending
-    kb = KnowledgeBase(
-        tmp_path / "knowledge",
-        cast(SparqlWorkers, Workers()),
-        cas.connect,
-        max_bytes_per_robot=len(cas.blobs[file_cid]),
-    )
-
-    @contextmanager
-    def connect_ledger() -> Iterator[Ledger]:
-        yield ledger
-
-    follower = LedgerFollower(kb, connect_ledger, 10.0, 1000)
-    follower.clock = clock
+    kb = knowledge_base(tmp_path, cas, max_bytes_per_robot=len(cas.blobs[file_cid]))
+    follower = follower_of(kb, ledger, clock)
     ledger.ads += [Ad(1, 0, file_cid), Ad(2, 0, app_cid), Ad(3, 0, task_cid, OTHER_ROBOT)]
     follower.poll()
     assert (file_cid in kb, app_cid in kb, task_cid in kb) == (True, False, True)
@@ -239,9 +225,7 @@ def test_a_description_past_its_advertisers_share_is_refused_for_good(
 
     cas.blobs[app_cid] = app
     clock.now += 3600
-    restarted = LedgerFollower(kb, connect_ledger, 10.0, 1000)  # the advertiser is read again
-    restarted.clock = clock
-    restarted.poll()
+    follower_of(kb, ledger, clock).poll()  # a restart: the advertiser is read again
     assert app_cid not in kb
     saved = FollowState.load(kb.root / "follow.json")
     assert saved.pending == []
