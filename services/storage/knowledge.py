@@ -29,6 +29,7 @@ from typing import Any, Protocol
 from robocloud.cas import ContentTooLargeError
 from robocloud.cid import CID, parse_cid
 from robocloud.errors import NotFoundError, RobocloudError
+from robocloud.ledger.models import Role
 from robocloud.semantic import (
     MAX_DESCRIPTION_BYTES,
     MAX_DESCRIPTION_TRIPLES,
@@ -206,6 +207,8 @@ class LedgerReader(Protocol):
         self, *, since: int, after_log_index: int | None, limit: int
     ) -> list[Any]: ...
 
+    def robot(self, address: str) -> Any: ...
+
 
 Connect = Callable[[], AbstractContextManager[CasReader]]
 ConnectLedger = Callable[[], AbstractContextManager[LedgerReader]]
@@ -232,7 +235,8 @@ class Indexed:
 @dataclass(frozen=True)
 class Retry:
     """A pending description's failed fetches so far, when (epoch seconds) to fetch it again,
-    and who advertised it (charged for it once it is indexed; None in files saved before)."""
+    and who is charged for it once it is indexed: its advertiser, or None for a storage
+    node's (and in files saved before)."""
 
     attempts: int
     due: float
@@ -584,6 +588,7 @@ class LedgerFollower:
                 after_log_index=state.log_index if state.log_index >= 0 else None,
                 limit=self.batch,
             )
+            nodes = _storage_nodes(ledger, {ad.advertiser for ad in advertisements})
         with _RoundCas(self.knowledge.connect_cas) as cas:
             progressed = False
             for ad in advertisements:
@@ -597,7 +602,8 @@ class LedgerFollower:
                     or cid in state.retries
                     or cid in state.pending
                 ):
-                    self._attempt(cid, ad.advertiser, cas, new=True)
+                    charged = None if ad.advertiser in nodes else ad.advertiser
+                    self._attempt(cid, charged, cas, new=True)
                 state.block, state.log_index = ad.block_number, ad.log_index
                 progressed = True
             retried = self._retry_due(cas)
@@ -688,6 +694,18 @@ class LedgerFollower:
         if indexed.new:
             self.indexed += 1
         return None
+
+
+def _storage_nodes(ledger: LedgerReader, advertisers: set[str]) -> set[str]:
+    """The advertisers holding the storage node role. Their descriptions are the datasets of
+    every robot's bags, charged to no one here as a node's own are on its own knowledge base:
+    charged to the node, another node's datasets were refused after some 25,000 bags."""
+    nodes = set()
+    for advertiser in advertisers:
+        robot = ledger.robot(advertiser)
+        if robot is not None and Role.STORAGE_NODE.value in robot.roles:
+            nodes.add(advertiser)
+    return nodes
 
 
 def _refuse(refused: dict[str, str], cid: str, why: str) -> None:

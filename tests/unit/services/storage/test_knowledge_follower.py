@@ -44,9 +44,20 @@ class Ad:
     advertiser: str = ROBOT
 
 
+@dataclass
+class Robot:
+    roles: tuple[str, ...]
+
+
 class Ledger:
     def __init__(self) -> None:
         self.ads: list[Ad] = []
+        self.roles: dict[str, tuple[str, ...]] = {}
+
+    def robot(self, address: str) -> Robot | None:
+        """As ``GET /v1/robots/{address}`` answers: None for one never registered."""
+        roles = self.roles.get(address)
+        return None if roles is None else Robot(roles)
 
     def advertisements(
         self, *, since: int, limit: int, after_log_index: int | None = None
@@ -233,6 +244,26 @@ def test_a_description_past_its_advertisers_share_is_refused_for_good(
     assert f"{ROBOT} holds {len(cas.blobs[file_cid])} bytes" in saved.refused[app_cid]
     assert "past its share" in saved.refused[app_cid]
     assert sorted(path.stem for path in kb.descriptions.iterdir()) == sorted([file_cid, task_cid])
+
+
+def test_a_storage_nodes_dataset_descriptions_are_charged_to_no_one(
+    tmp_path: Path, cas: Cas, ledger: Ledger, clock: Clock
+) -> None:
+    """Another node advertises the datasets of every robot's bags: charged to it, they were
+    refused once its share was spent. A robot that lost the role is charged again."""
+    file_cid, app_cid, task_cid = cas.put("file"), cas.put("application"), cas.put("task")
+    kb = knowledge_base(tmp_path, cas, max_bytes_per_robot=len(cas.blobs[file_cid]))
+    follower = follower_of(kb, ledger, clock)
+    ledger.roles = {ROBOT: ("storage_node",), OTHER_ROBOT: ()}
+    ledger.ads += [Ad(1, 0, file_cid), Ad(2, 0, app_cid)]
+    follower.poll()
+    assert (file_cid in kb, app_cid in kb) == (True, True)
+    assert kb.robot_bytes(ROBOT) == 0
+
+    ledger.roles[ROBOT] = ()
+    ledger.ads += [Ad(3, 0, task_cid)]
+    follower.poll()
+    assert kb.robot_bytes(ROBOT) == len(cas.blobs[task_cid])
 
 
 def test_a_block_with_more_advertisements_than_a_batch_is_read_past(
