@@ -208,7 +208,7 @@ def main() -> None:
         for description in everything:
             atomic_write(directory / f"{description.cid()}.nt", description.canonical())
         start = time.perf_counter()
-        with ServiceProcess(
+        storage = ServiceProcess(
             "storage",
             Path(tmp) / "storage",
             {
@@ -216,7 +216,9 @@ def main() -> None:
                 "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
                 "ROBOCLOUD_KNOWLEDGE_WORKERS": "1",
             },
-        ).start(timeout_s=600) as storage:
+        )
+        try:
+            storage.start(timeout_s=600)
             print(
                 f"service ready with {len(everything)} descriptions in "
                 f"{time.perf_counter() - start:.1f} s (workers load and warm the parser)"
@@ -234,6 +236,8 @@ def main() -> None:
 
                 found = ask()
                 service_p50 = p50_ms(ask, args.queries)
+        finally:
+            storage.stop()
         paths = sorted(directory.glob("*.nt"))
         native_s, terms_s = load_files_natively(paths), load_files_as_terms(paths)
 

@@ -94,7 +94,12 @@ class ServiceProcess:
         return audience_of(self.url)
 
     def start(self, timeout_s: float = 30.0, *, ready: bool = True) -> ServiceProcess:
-        """Start and wait until ``/readyz`` answers 200 (``/healthz`` when not ``ready``)."""
+        """Start and wait until ``/readyz`` answers 200 (``/healthz`` when not ``ready``).
+
+        Refused while its process runs: ``with ServiceProcess(...).start()`` started a second
+        one on entering, and the first ran on after the ``with``, orphaned."""
+        if self.process is not None and self.process.poll() is None:
+            raise RuntimeError(f"{self.name} on port {self.port} is running already")
         self.data_dir.mkdir(parents=True, exist_ok=True)
         with self.log_path.open("ab") as log:  # the child keeps its own descriptor
             self.process = subprocess.Popen(

@@ -219,10 +219,10 @@ class StorageSettings(ServiceSettings):
         if 0 < memory < needed + WORKER_BASE_BYTES:
             raise ValueError(
                 f"a SPARQL worker holding {self.knowledge_max_total_bytes} bytes of descriptions "
-                f"(knowledge_max_total_bytes) in the {self.knowledge_store} store needs about "
-                f"{needed + WORKER_BASE_BYTES} bytes "
-                f"of memory, more than knowledge_worker_memory_bytes ({memory}): it would die "
-                "loading them; lower the first or raise the second"
+                f"(ROBOCLOUD_KNOWLEDGE_MAX_TOTAL_BYTES) in the {self.knowledge_store} store "
+                f"needs about {needed + WORKER_BASE_BYTES} bytes of memory, more than "
+                f"ROBOCLOUD_KNOWLEDGE_WORKER_MEMORY_BYTES ({memory}): it would die loading them; "
+                "lower the first or raise the second"
             )
         return self
 

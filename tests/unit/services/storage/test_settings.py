@@ -35,8 +35,8 @@ def test_a_knowledge_base_larger_than_a_worker_can_load_is_refused_at_start(
     with pytest.raises(ValidationError) as refused:
         StorageSettings(service="storage")
     [error] = refused.value.errors()
-    assert "knowledge_max_total_bytes" in error["msg"]
-    assert "more than knowledge_worker_memory_bytes (4294967296)" in error["msg"]
+    assert "(ROBOCLOUD_KNOWLEDGE_MAX_TOTAL_BYTES)" in error["msg"]
+    assert "more than ROBOCLOUD_KNOWLEDGE_WORKER_MEMORY_BYTES (4294967296)" in error["msg"]
 
 
 def test_rdflibs_memory_store_holds_less_in_the_same_memory() -> None:
