@@ -240,7 +240,7 @@ class Retry:
 
     attempts: int
     due: float
-    advertiser: str | None = None
+    robot: str | None = None
 
 
 @dataclass
@@ -272,7 +272,7 @@ class FollowState:
                     str(cid): Retry(
                         int(retry["attempts"]),
                         float(retry["due"]),
-                        None if retry.get("advertiser") is None else str(retry["advertiser"]),
+                        None if retry.get("robot") is None else str(retry["robot"]),
                     )
                     for cid, retry in document.get("retries", {}).items()
                 },
@@ -290,7 +290,7 @@ class FollowState:
             "pending": self.pending or [],
             "refused": self.refused or {},
             "retries": {
-                cid: {"attempts": retry.attempts, "due": retry.due, "advertiser": retry.advertiser}
+                cid: {"attempts": retry.attempts, "due": retry.due, "robot": retry.robot}
                 for cid, retry in self.retries.items()
             },
         }
@@ -588,7 +588,14 @@ class LedgerFollower:
                 after_log_index=state.log_index if state.log_index >= 0 else None,
                 limit=self.batch,
             )
-            nodes = _storage_nodes(ledger, {ad.advertiser for ad in advertisements})
+            nodes = _storage_nodes(
+                ledger,
+                {
+                    ad.advertiser
+                    for ad in advertisements
+                    if ad.description is not None and ad.description not in self.knowledge
+                },
+            )
         with _RoundCas(self.knowledge.connect_cas) as cas:
             progressed = False
             for ad in advertisements:
@@ -620,10 +627,10 @@ class LedgerFollower:
         for cid in due:
             if cas.unavailable:
                 break
-            self._attempt(cid, retries[cid].advertiser if cid in retries else None, cas, new=False)
+            self._attempt(cid, retries[cid].robot if cid in retries else None, cas, new=False)
         return bool(due)
 
-    def _attempt(self, cid: str, advertiser: str | None, cas: _RoundCas, *, new: bool) -> None:
+    def _attempt(self, cid: str, robot: str | None, cas: _RoundCas, *, new: bool) -> None:
         """Index ``cid``; when that fails, keep it pending with its backoff, or refuse it once
         ``MAX_ATTEMPTS`` fetches failed. Once cas was unreachable this round, a new CID is
         queued without a fetch."""
@@ -631,7 +638,7 @@ class LedgerFollower:
         assert pending is not None
         assert refused is not None
         failure = (
-            "cas was unreachable" if cas.unavailable else self._index(cid, advertiser, refused, cas)
+            "cas was unreachable" if cas.unavailable else self._index(cid, robot, refused, cas)
         )
         if failure is None:
             if not new:
@@ -648,7 +655,7 @@ class LedgerFollower:
             retries.pop(cid, None)
             return
         wait = min(self.interval_s * 2 ** min(max(attempts - 1, 0), 32), MAX_BACKOFF_S)
-        retries[cid] = Retry(attempts, self.clock() + wait, advertiser)
+        retries[cid] = Retry(attempts, self.clock() + wait, robot)
         if new:
             pending.append(cid)
             for dropped in pending[:-MAX_PENDING]:
@@ -657,14 +664,14 @@ class LedgerFollower:
             del pending[:-MAX_PENDING]
 
     def _index(
-        self, cid: str, advertiser: str | None, refused: dict[str, str], cas: _RoundCas
+        self, cid: str, robot: str | None, refused: dict[str, str], cas: _RoundCas
     ) -> str | None:
         """None once the description is indexed or refused for good; else why to retry it.
 
         One past its advertiser's share is refused for good: kept pending, one robot's
         advertisements could take every place of the pending list."""
         try:
-            indexed = self.knowledge.add(cid, cas, robot=advertiser)
+            indexed = self.knowledge.add(cid, cas, robot=robot)
         except DescriptionRefused as exc:
             log.info("advertised description %s refused: %s", cid, exc.reason)
             _refuse(refused, cid, str(exc.reason))

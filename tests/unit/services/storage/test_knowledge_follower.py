@@ -230,13 +230,13 @@ def test_a_description_past_its_advertisers_share_is_refused_for_good(
     follower.poll()
     assert (file_cid in kb, app_cid in kb, task_cid in kb) == (True, False, True)
     assert follower.state.pending == [app_cid]
-    assert FollowState.load(kb.root / "follow.json").retries[app_cid].advertiser == ROBOT
+    assert FollowState.load(kb.root / "follow.json").retries[app_cid].robot == ROBOT
     assert kb.robot_bytes(ROBOT) == len(cas.blobs[file_cid])
     assert kb.robot_bytes(OTHER_ROBOT.lower()) == len(cas.blobs[task_cid])
 
     cas.blobs[app_cid] = app
     clock.now += 3600
-    follower_of(kb, ledger, clock).poll()  # a restart: the advertiser is read again
+    follower_of(kb, ledger, clock).poll()  # a restart: the robot charged is read again
     assert app_cid not in kb
     saved = FollowState.load(kb.root / "follow.json")
     assert saved.pending == []
