@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from robocloud.directory import NotADirectory, PathNotFound
 from services.cas.multipart import MultipartError, NotMultipart, TruncatedMultipart
-from services.cas.pins import NotPinned, PinNotOwned
+from services.cas.pins import NotPinned, PinNotOwned, PinQuotaExceeded
 from services.cas.ranges import InvalidEntityBytes, UnsatisfiableRange
 from services.cas.store import (
     BlockUnavailable,
@@ -61,6 +61,16 @@ ERRORS = ErrorMap(
         UnknownScope: ErrorRule(400, "invalid_dag_scope", lambda _: {"field": "dag-scope"}),
         UnpinnedArgument: ErrorRule(400, "not_pinned", _cid),
         NotPinned: ErrorRule(404, "not_pinned", _cid),
+        PinQuotaExceeded: ErrorRule(
+            507,
+            "quota_exceeded",
+            lambda exc: {
+                "robot": exc.owner,
+                "size": exc.size,
+                "used": exc.used,
+                "limit": exc.limit,
+            },
+        ),
         PinNotOwned: ErrorRule(
             403, "pin_not_owned", lambda exc: {"cid": str(exc.cid), "address": exc.owner}
         ),

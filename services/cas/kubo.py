@@ -9,15 +9,17 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterable, Iterator
+from functools import partial
 from typing import Annotated, Any
 
 import anyio
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 import robocloud
 from robocloud.cid import CID, CODEC_NAMES, parse_cid
 from robocloud.directory import Resolved
+from robocloud.ledger.models import Role
 from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD, ImportParams, UnixfsError
 from services.cas.gateway import file_answer, streamed
 from services.cas.store import BudgetedReads, ContentStore
@@ -45,6 +47,19 @@ router = APIRouter(prefix="/api/v0", tags=["kubo rpc"])
 
 Arg = Annotated[str, Query(description="a CID")]
 Args = Annotated[list[str], Query(description="one or more CIDs")]
+
+
+async def _pin_share(request: Request, address: SignedAddress) -> int | None:
+    """The bytes of pins the signer may keep: ``ROBOCLOUD_CAS_MAX_PINNED_BYTES_PER_ROBOT``,
+    or no bound for a storage node (it pins every robot's bags under its own key) and the
+    operator's keys. Asked before the body is read."""
+    if await request.app.state.authorizer.holds_role(address, Role.STORAGE_NODE.value):
+        return None
+    limit: int = request.app.state.settings.cas_max_pinned_bytes_per_robot
+    return limit
+
+
+PinShare = Annotated[int | None, Depends(_pin_share)]
 
 
 def _store(request: Request) -> ContentStore:
@@ -116,6 +131,7 @@ def _refuse_unimplemented(request: Request, hash_function: str) -> None:
 async def add(
     request: Request,
     address: SignedAddress,
+    share: PinShare,
     cid_version: Annotated[int | None, Query(alias="cid-version")] = None,
     raw_leaves: Annotated[bool | None, Query(alias="raw-leaves")] = None,
     chunker: Annotated[str | None, Query(description="size-<bytes>")] = None,
@@ -141,7 +157,8 @@ async def add(
         wrap=wrap_with_directory,
         max_parts=request.app.state.settings.cas_max_upload_entries,
     )
-    added = await upload(request.stream(), request.headers.get("content-type"), adder, address)
+    content_type = request.headers.get("content-type")
+    added = await upload(request.stream(), content_type, adder, address, share)
     return await _lines(_added_lines(added, progress))
 
 
@@ -270,6 +287,7 @@ async def block_stat(request: Request, arg: Arg) -> dict[str, Any]:
 async def block_put(
     request: Request,
     address: SignedAddress,
+    share: PinShare,
     cid_codec: Annotated[str, Query(alias="cid-codec")] = "raw",
     mhtype: str = "sha2-256",
     pin: bool = False,
@@ -292,21 +310,24 @@ async def block_put(
             details={"field": "mhtype"},
         )
     collector = BlockCollector(_store(request), CODECS[cid_codec], pin=pin)
-    blocks = await upload(request.stream(), request.headers.get("content-type"), collector, address)
+    content_type = request.headers.get("content-type")
+    blocks = await upload(request.stream(), content_type, collector, address, share)
     return await _lines({"Key": str(block.cid), "Size": len(block.data)} for block in blocks)
 
 
 @router.post("/pin/add")
 async def pin_add(
-    request: Request, address: SignedAddress, arg: Args, recursive: bool = True
+    request: Request, address: SignedAddress, share: PinShare, arg: Args, recursive: bool = True
 ) -> dict[str, list[str]]:
-    """Pin DAGs for the signing robot, all or none; every block must be here or at a peer."""
+    """Pin DAGs for the signing robot, all or none; every block must be here or at a peer,
+    and the pins within the robot's share (507 ``quota_exceeded``)."""
     if not recursive:
         raise BadRequest(
             "only recursive pins are supported", code="unsupported", details={"field": "recursive"}
         )
     roots = [parse_cid(text, "arg") for text in arg]
-    await anyio.to_thread.run_sync(_store(request).pin, roots, address)
+    pin = partial(_store(request).pin, max_bytes=share)
+    await anyio.to_thread.run_sync(pin, roots, address)
     return {"Pins": [str(root) for root in roots]}
 
 
@@ -348,11 +369,13 @@ async def dag_export(request: Request, arg: Arg) -> Response:
 async def dag_import(
     request: Request,
     address: SignedAddress,
+    share: PinShare,
     pin_roots: Annotated[bool, Query(alias="pin-roots")] = True,
 ) -> Response:
     """Import CARs: every block is verified, and one bad block rejects the whole upload."""
     car_import = CarImport(_store(request), pin_roots=pin_roots)
-    roots = await upload(request.stream(), request.headers.get("content-type"), car_import, address)
+    content_type = request.headers.get("content-type")
+    roots = await upload(request.stream(), content_type, car_import, address, share)
     return await _lines(
         {"Root": {"Cid": {"/": str(root.cid)}, "PinErrorMsg": root.pin_error}} for root in roots
     )

@@ -16,6 +16,12 @@ class CasSettings(ServiceSettings):
     cas_max_upload_entries: int = Field(
         default=250_000, gt=0, description="files and directories one add may hold"
     )
+    cas_max_pinned_bytes_per_robot: int = Field(
+        default=16 * 1024**3,
+        gt=0,
+        description="bytes of pinned DAGs one robot may keep (storage nodes and "
+        "ROBOCLOUD_ALLOWED_ADDRESSES are not bounded): past it a pin is 507 quota_exceeded",
+    )
     cas_gc_grace_s: float = Field(default=3600.0, ge=0)
     cas_max_streams: int = Field(
         default=64,

@@ -142,6 +142,18 @@ class UnpinnedArgument(ValueError):
 
 
 @dataclass(frozen=True)
+class WalkedDag:
+    """One root of a request's walk over the DAGs it pins."""
+
+    root: CID
+    missing: CID | None
+    """The first block that neither the store nor its peers have; None when the DAG is whole."""
+    size: int
+    """Bytes of the blocks the walk read first under this root: the roots of one request
+    share a walk, so a block under several roots counts once, under the first."""
+
+
+@dataclass(frozen=True)
 class ImportedRoot:
     """A root of an imported CAR; ``pin_error`` says why it was not pinned, if it was not."""
 
@@ -153,8 +165,8 @@ class ContentStore:
     def __init__(self, root: Path, blocks: Blockstore, peers: PeerFetcher | None = None) -> None:
         remove_temporaries(root)
         self.blocks = blocks
-        self.pins = PinSet(root / "pins.log")
         self.peers = peers
+        self.pins = PinSet(root / "pins.log", dag_bytes=self._stored_dag_bytes)
         self.collecting = threading.Lock()
         """Held by a whole collection, compaction included: the periodic one and ``repo/gc``
         ran at once, both rewrote the same pack, and the one that found it gone failed."""
@@ -212,23 +224,31 @@ class ContentStore:
             return self.blocks.size(cid)
         return len(self.get_block(cid, use_peers=use_peers))
 
-    def put_blocks(self, blocks: list[bytes], codec: int, owner: str, *, pin: bool) -> list[CID]:
+    def put_blocks(
+        self,
+        blocks: list[bytes],
+        codec: int,
+        owner: str,
+        *,
+        pin: bool,
+        max_bytes: int | None = None,
+    ) -> list[CID]:
         """Store raw blocks as one pack (one fsync, all or none), then pin them if asked.
 
         A pin keeps a whole DAG, so with ``pin`` every block's DAG must be complete, as for
         ``pin/add``: the blocks of this request count, and a block that neither they, the
-        store nor a peer has refuses the request (``DagIncomplete``) with nothing stored.
+        store nor a peer has refuses the request (``DagIncomplete``) with nothing stored, as
+        do pins past ``owner``'s ``max_bytes`` (``PinQuotaExceeded``).
         """
         cids = [CID.from_block(data, codec, 1) for data in blocks]
-        roots = list(dict.fromkeys(cids))
         with self.blocks.stage() as staging:
             for cid, data in zip(cids, blocks, strict=True):
                 staging.add(cid, data)
-            if pin:
-                self._require_complete(roots, staging.hold, staging)
+            charges = self._require_complete(cids, staging.hold, staging) if pin else {}
+            self.pins.check_share(charges, owner, max_bytes=max_bytes)
             staging.commit()
             if pin:
-                self.pins.add_all(roots, owner)
+                self.pins.add_all(charges, owner, max_bytes=max_bytes)
         return cids
 
     # ---- files ----
@@ -395,16 +415,38 @@ class ContentStore:
         ``seen``: blocks whose DAGs earlier calls found complete, not read again. ``hold``
         (the staging's by default) keeps every stored block read from garbage collection.
         """
+        return self._walk(root, staging, seen=seen, hold=hold).missing
+
+    def _walk(
+        self,
+        root: CID,
+        staging: Staging | None = None,
+        *,
+        seen: set[CID] | None = None,
+        hold: Hold | None = None,
+    ) -> WalkedDag:
         keeper = hold or (staging.hold if staging is not None else None)
         get = partial(self._staged_or_stored, staging=staging, hold=keeper)
+        size = 0
         try:
-            for _ in walk_dag(root, get, "all", seen):
-                pass
+            for block in walk_dag(root, get, "all", seen):
+                size += _stored_size(block)
         except _Missing as missing:
-            return missing.cid
+            return WalkedDag(root, missing.cid, size)
         except UnixfsError as exc:
             raise InvalidDag(root, str(exc)) from exc
-        return None
+        return WalkedDag(root, None, size)
+
+    def _stored_dag_bytes(self, root: CID) -> int:
+        """The bytes of ``root``'s DAG stored here, asking no peer: the charge of a pin read
+        from a journal written before pins were charged (a pinned DAG is whole here)."""
+        size = 0
+        try:
+            for block in walk_dag(root, partial(self.get_block, use_peers=False)):
+                size += _stored_size(block)
+        except (BlockUnavailable, UnixfsError) as exc:
+            log.warning("pinned DAG not whole here", extra={"cid": str(root), "error": str(exc)})
+        return size
 
     def _staged_or_stored(self, cid: CID, staging: Staging | None, hold: Hold | None) -> bytes:
         if staging is not None and cid in staging:
@@ -425,26 +467,31 @@ class ContentStore:
 
     # ---- pins and garbage collection ----
 
-    def pin(self, roots: list[CID], owner: str) -> None:
+    def pin(self, roots: list[CID], owner: str, *, max_bytes: int | None = None) -> None:
         """Pin DAGs for ``owner``, all or none, once every block of each is here (fetched from
-        peers if need be): a request refused for one root leaves no pin behind, as ``unpin``."""
+        peers if need be) and they fit its ``max_bytes``: a request refused for one root
+        leaves no pin behind, as ``unpin``."""
         with self.blocks.hold() as hold:
-            self._require_complete(roots, hold)
-            self.pins.add_all(roots, owner)
+            charges = self._require_complete(roots, hold)
+            self.pins.add_all(charges, owner, max_bytes=max_bytes)
 
     def _require_complete(
         self, roots: list[CID], hold: Hold, staging: Staging | None = None
-    ) -> None:
-        """Raise ``DagIncomplete`` for the first root whose DAG lacks a block; every stored
-        block read stays in ``hold`` until the caller's pin is made."""
-        for root, missing in self.missing_blocks(roots, staging, hold=hold):
-            if missing is not None:
-                raise DagIncomplete(root, missing)
+    ) -> dict[CID, int]:
+        """Each root with the bytes its pin is charged; ``DagIncomplete`` for the first root
+        whose DAG lacks a block. Every stored block read stays in ``hold`` until the caller's
+        pin is made."""
+        charges = {}
+        for walked in self.walked_dags(roots, staging, hold=hold):
+            if walked.missing is not None:
+                raise DagIncomplete(walked.root, walked.missing)
+            charges[walked.root] = walked.size
+        return charges
 
-    def missing_blocks(
+    def walked_dags(
         self, roots: list[CID], staging: Staging | None = None, *, hold: Hold | None = None
-    ) -> Iterator[tuple[CID, CID | None]]:
-        """Each distinct root with its ``missing_block``, walked as it is asked for.
+    ) -> Iterator[WalkedDag]:
+        """Each distinct root's DAG walked, as it is asked for.
 
         One ``seen`` set for all roots: a sub-DAG that several roots share (every block of a
         ``block/put`` is a root; a CAR may name one DAG under its 1,024 header roots) is
@@ -452,7 +499,21 @@ class ContentStore:
         """
         seen: set[CID] = set()
         for root in dict.fromkeys(roots):
-            yield root, self.missing_block(root, staging, seen=seen, hold=hold)
+            yield self._walk(root, staging, seen=seen, hold=hold)
+
+    def pin_charges(
+        self, walked: list[WalkedDag], staging: Staging | None = None
+    ) -> dict[CID, int]:
+        """The whole DAGs of ``walked`` with what pinning each is charged.
+
+        A DAG not whole may have read blocks that a later root shares, and that root's walk
+        then skipped them: the whole ones are walked again on their own, or a CAR whose
+        first root lacks a block would have its second root, the same DAG, pinned for free.
+        """
+        whole = [dag.root for dag in walked if dag.missing is None]
+        if len(whole) == len(walked):
+            return {dag.root: dag.size for dag in walked}
+        return {dag.root: dag.size for dag in self.walked_dags(whole, staging)}
 
     def unpin(self, roots: list[CID], owner: str) -> None:
         """Remove ``owner``'s pins on every root, or none (see ``PinSet.remove``)."""
@@ -541,6 +602,11 @@ class ContentStore:
         self.pins.close()
         if self.peers is not None:
             self.peers.close()
+
+
+def _stored_size(block: Block) -> int:
+    """What a block takes in the store: nothing for an identity CID, which carries it."""
+    return 0 if block.cid.hash_code == IDENTITY else len(block.data)
 
 
 def _once(first: Iterator[Block], rest: Iterator[Block]) -> Iterator[Block]:

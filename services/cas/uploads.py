@@ -95,18 +95,24 @@ class PartSink(Protocol):
 class Sink(PartSink, Protocol, Generic[R]):
     """A part sink that makes what it received visible (``commit``) or drops it."""
 
-    def commit(self, owner: str) -> list[R]: ...
+    def commit(self, owner: str, max_bytes: int | None = None) -> list[R]:
+        """Store what was received, pinned for ``owner`` within its ``max_bytes`` of pins."""
+        ...
 
     def discard(self) -> None: ...
 
 
 async def upload(
-    body: AsyncIterator[bytes], content_type: str | None, sink: Sink[R], owner: str
+    body: AsyncIterator[bytes],
+    content_type: str | None,
+    sink: Sink[R],
+    owner: str,
+    max_bytes: int | None = None,
 ) -> list[R]:
     """Stream a multipart ``body`` into ``sink`` and commit it for ``owner``, or store nothing."""
     try:
         await receive_parts(body, boundary_of(content_type), sink)
-        return await anyio.to_thread.run_sync(sink.commit, owner)
+        return await anyio.to_thread.run_sync(sink.commit, owner, max_bytes)
     finally:
         sink.discard()
 
@@ -257,17 +263,22 @@ class FileAdder:
             if not self.only_hash:
                 self.staging.add(block.cid, block.data)
 
-    def commit(self, owner: str) -> list[Added]:
+    def commit(self, owner: str, max_bytes: int | None = None) -> list[Added]:
         """Kubo's order: the files as they came, the directories after their contents.
 
         Every top-level item is pinned in one journal line: all or none, one fsync (they were
         pinned one a line, 2,003 fsyncs for 2,000 files, and a crash kept the first few).
+        Each is charged its ``Size`` in the answer, the bytes of its DAG's blocks, a block
+        repeated counting each time (not walked again: it would read the whole upload back).
         """
         directories = self._build_directories() if self._is_tree() else []
-        if not self.only_hash:
-            self.staging.commit()
-            if self.pin:
-                self.store.pins.add_all([root.cid for root in self._roots(directories)], owner)
+        if self.only_hash:
+            return self.files + directories
+        charges = {root.cid: root.dag_size for root in self._roots(directories)} if self.pin else {}
+        self.store.pins.check_share(charges, owner, max_bytes=max_bytes)
+        self.staging.commit()
+        if self.pin:
+            self.store.pins.add_all(charges, owner, max_bytes=max_bytes)
         return self.files + directories
 
     def _is_tree(self) -> bool:
@@ -359,17 +370,21 @@ class CarImport:
         if len(self.roots) > MAX_ROOTS:
             raise TooManyRoots(len(self.roots), MAX_ROOTS)
 
-    def commit(self, owner: str) -> list[ImportedRoot]:
+    def commit(self, owner: str, max_bytes: int | None = None) -> list[ImportedRoot]:
         """Walk every root's DAG first (one too deep or malformed rejects the whole import),
-        then pin the complete ones in one journal line.
+        then pin the complete ones in one journal line; pins past ``owner``'s ``max_bytes``
+        refuse the import with nothing stored.
 
-        The roots share one walk (``ContentStore.missing_blocks``): a CAR naming one large
+        The roots share one walk (``ContentStore.walked_dags``): a CAR naming one large
         DAG under many roots costs one pass over its blocks."""
-        missing = dict(self.store.missing_blocks(list(self.roots), self.staging))
+        walked = list(self.store.walked_dags(list(self.roots), self.staging))
+        charges = self.store.pin_charges(walked, self.staging) if self.pin_roots else {}
+        self.store.pins.check_share(charges, owner, max_bytes=max_bytes)
         self.staging.commit()
         if not self.pin_roots:
             return [ImportedRoot(root, "") for root in self.roots]
-        self.store.pins.add_all([root for root, block in missing.items() if block is None], owner)
+        self.store.pins.add_all(charges, owner, max_bytes=max_bytes)
+        missing = {dag.root: dag.missing for dag in walked}
         return [ImportedRoot(root, _pin_error(root, missing[root])) for root in self.roots]
 
     def discard(self) -> None:
@@ -413,8 +428,10 @@ class BlockCollector:
                 raise InvalidBlock(len(self.blocks), str(exc)) from exc
         self.blocks.append(data)
 
-    def commit(self, owner: str) -> list[Block]:
-        cids = self.store.put_blocks(self.blocks, self.codec, owner, pin=self.pin)
+    def commit(self, owner: str, max_bytes: int | None = None) -> list[Block]:
+        cids = self.store.put_blocks(
+            self.blocks, self.codec, owner, pin=self.pin, max_bytes=max_bytes
+        )
         return [Block(cid, data) for cid, data in zip(cids, self.blocks, strict=True)]
 
     def discard(self) -> None:

@@ -23,6 +23,11 @@ class Authorizer(Protocol):
         """Return if allowed; raise :class:`Forbidden` naming the address otherwise."""
         ...
 
+    async def holds_role(self, address: str, role: str) -> bool:
+        """Whether ``address`` holds ``role`` (an operator's key holds every role), for what a
+        role exempts its holder from rather than lets it do."""
+        ...
+
     def close(self) -> None:
         """Release what the authorizer holds (connections to the ledger)."""
         ...
@@ -33,6 +38,10 @@ class AnySigner:
 
     async def authorize(self, address: str, role: str | None = None) -> None:
         return None
+
+    async def holds_role(self, address: str, role: str) -> bool:
+        """Nobody: without a ledger there are no roles."""
+        return False
 
     def close(self) -> None:
         return None

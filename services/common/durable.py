@@ -198,14 +198,14 @@ class AppendLog:
             self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
             self._size = os.fstat(self._fd).st_size
 
-    def compact_at_open(self, live: list[str], read: int) -> None:
+    def compact_at_open(self, live: list[str], read: int, *, force: bool = False) -> None:
         """Replace the journal, which held ``read`` lines at open, with the ``live`` ones, when
         enough of it is dead to be worth a rewrite: :data:`MIN_DEAD_LINES`, and no fewer than
-        the live lines. A rewrite the disk refuses is logged and the journal kept as it is:
-        rewritten at every open, a full disk stopped the service from starting again, even
-        to free space."""
+        the live lines; with ``force`` (lines of an older format to write anew) in any case.
+        A rewrite the disk refuses is logged and the journal kept as it is: rewritten at
+        every open, a full disk stopped the service from starting again, even to free space."""
         dead = read - len(live)
-        if dead < max(MIN_DEAD_LINES, len(live)):
+        if not force and dead < max(MIN_DEAD_LINES, len(live)):
             return
         try:
             self.rewrite(live)

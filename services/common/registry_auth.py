@@ -68,6 +68,12 @@ class RegistryAuthorizer:
             robot = await self.robot(address, max_age_s=self.negative_cache_s)
         _require_standing(address, robot, role)
 
+    async def holds_role(self, address: str, role: str) -> bool:
+        if address in self.allowed:
+            return True
+        robot = await self.robot(address)
+        return robot is not None and robot.active and role in robot.roles
+
     async def robot(
         self, address: str, *, max_age_s: float | None = None
     ) -> RegisteredRobot | None:

@@ -99,7 +99,7 @@ def test_an_upload_relying_on_a_stored_block_keeps_it_until_it_is_done(
         assert collect(store) == []
         staging.commit()
         assert collect(store) == []
-        store.pins.add_all([root], ALICE)
+        store.pins.add_all({root: len(node) + len(leaf.data)}, ALICE)
     assert store.missing_block(root) is None
     assert collect(store) == []
 

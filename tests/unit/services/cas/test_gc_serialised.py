@@ -95,7 +95,7 @@ def test_a_second_collection_waits_for_the_first_compaction_included(
     copying: tuple[threading.Event, threading.Event],
 ) -> None:
     reached, go = copying
-    store.pins.add_all([leaf.cid for leaf in LEAVES], ALICE)
+    store.pins.add_all({leaf.cid: len(leaf.data) for leaf in LEAVES}, ALICE)
     collecting = Watched(store.collecting)
     monkeypatch.setattr(store, "collecting", collecting)
     first = Run(lambda: collect(store))

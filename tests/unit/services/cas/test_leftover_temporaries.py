@@ -18,7 +18,7 @@ BLOCK = raw(b"a block stored before the kill")
 def test_a_start_removes_the_temporaries_a_kill_left(tmp_path: Path) -> None:
     store = ContentStore.open(tmp_path, [])
     put(store, BLOCK)
-    store.pins.add_all([BLOCK.cid], ALICE)
+    store.pins.add_all({BLOCK.cid: len(BLOCK.data)}, ALICE)
     store.close()
     kept = sorted(tmp_path.rglob("*"))
     leftovers = [

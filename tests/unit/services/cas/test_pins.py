@@ -16,9 +16,9 @@ ONE, TWO = CID.from_block(b"one"), CID.from_block(b"two")
 
 def test_two_robots_pin_the_same_cid_and_each_owns_its_pin(tmp_path: Path) -> None:
     pins = PinSet(tmp_path / "pins.log")
-    assert pins.add_all([ONE], ALICE) == [ONE]
-    assert pins.add_all([ONE], ALICE) == []
-    assert pins.add_all([ONE], BOB) == [ONE]
+    assert pins.add_all({ONE: 3}, ALICE) == [ONE]
+    assert pins.add_all({ONE: 3}, ALICE) == []
+    assert pins.add_all({ONE: 3}, BOB) == [ONE]
     assert pins.owners(ONE) == {ALICE, BOB}
     pins.remove([ONE], ALICE)
     assert pins.snapshot() == {ONE: frozenset({BOB})}
@@ -26,7 +26,7 @@ def test_two_robots_pin_the_same_cid_and_each_owns_its_pin(tmp_path: Path) -> No
 
 def test_removing_another_robots_pin_is_refused(tmp_path: Path) -> None:
     pins = PinSet(tmp_path / "pins.log")
-    pins.add_all([ONE], ALICE)
+    pins.add_all({ONE: 3}, ALICE)
     with pytest.raises(PinNotOwned) as raised:
         pins.remove([ONE], BOB)
     assert (raised.value.cid, raised.value.owner) == (ONE, BOB)
@@ -35,7 +35,7 @@ def test_removing_another_robots_pin_is_refused(tmp_path: Path) -> None:
 
 def test_removal_is_all_or_nothing(tmp_path: Path) -> None:
     pins = PinSet(tmp_path / "pins.log")
-    pins.add_all([ONE], ALICE)
+    pins.add_all({ONE: 3}, ALICE)
     with pytest.raises(NotPinned) as raised:
         pins.remove([ONE, TWO], ALICE)
     assert raised.value.cid == TWO
@@ -46,9 +46,9 @@ def test_the_journal_is_replayed_on_open(tmp_path: Path) -> None:
     """Two dead lines are too few to compact (``test_pins_journal``)."""
     path = tmp_path / "pins.log"
     pins = PinSet(path)
-    pins.add_all([ONE], ALICE)
-    pins.add_all([TWO], ALICE)
-    pins.add_all([TWO], BOB)
+    pins.add_all({ONE: 3}, ALICE)
+    pins.add_all({TWO: 3}, ALICE)
+    pins.add_all({TWO: 3}, BOB)
     pins.remove([TWO], ALICE)
     pins.close()
     assert len(path.read_text().splitlines()) == 4
@@ -63,9 +63,9 @@ def test_a_many_root_pin_torn_by_a_crash_leaves_none_of_its_roots(tmp_path: Path
     read. With a line a root, the first roots of a pin/add stayed pinned after the crash."""
     path = tmp_path / "pins.log"
     pins = PinSet(path)
-    pins.add_all([ONE], BOB)
+    pins.add_all({ONE: 3}, BOB)
     roots = [CID.from_block(bytes([n])) for n in range(50)]
-    assert pins.add_all(roots, ALICE) == roots
+    assert pins.add_all(dict.fromkeys(roots, 1), ALICE) == roots
     pins.close()
     journal = path.read_bytes()
     assert journal.count(b"\n") == 2

@@ -37,10 +37,10 @@ def journal(path: Path, churn: int) -> None:
     """Alice keeps ``ONE`` and Bob ``TWO``; Alice also pins and unpins ``TWO`` ``churn``
     times, leaving ``2 * churn`` dead lines."""
     pins = PinSet(path)
-    pins.add_all([ONE], ALICE)
-    pins.add_all([TWO], BOB)
+    pins.add_all({ONE: 3}, ALICE)
+    pins.add_all({TWO: 3}, BOB)
     for _ in range(churn):
-        pins.add_all([TWO], ALICE)
+        pins.add_all({TWO: 3}, ALICE)
         pins.remove([TWO], ALICE)
     pins.close()
 
@@ -77,7 +77,7 @@ def test_a_journal_with_many_dead_lines_is_compacted_at_start(tmp_path: Path) ->
     assert len(path.read_text().splitlines()) == 2 + 2 * CHURN
     pins = PinSet(path)
     assert pins.snapshot() == EXPECTED
-    pins.add_all([ONE], BOB)
+    pins.add_all({ONE: 3}, BOB)
     pins.close()
     assert len(path.read_text().splitlines()) == 2 + 1
     assert reopened(path) == {ONE: frozenset({ALICE, BOB}), TWO: frozenset({BOB})}
@@ -96,7 +96,7 @@ def test_a_compaction_that_fails_is_logged_and_the_journal_kept(
     assert pins.snapshot() == EXPECTED
     assert path.read_bytes() == before
     assert list(tmp_path.iterdir()) == [path]
-    pins.add_all([ONE], BOB)
+    pins.add_all({ONE: 3}, BOB)
     pins.close()
     assert path.read_bytes().startswith(before)
     assert reopened(path) == {ONE: frozenset({ALICE, BOB}), TWO: frozenset({BOB})}

@@ -502,6 +502,9 @@ class Listed:
         if address not in self.addresses:
             raise self.refusal(address)
 
+    async def holds_role(self, address: str, role: str) -> bool:
+        return False
+
     def close(self) -> None:
         return None
 

@@ -1,0 +1,159 @@
+"""Each robot's share of pinned bytes: what a pin is charged, on every path that pins, and
+that a pin past the share is refused with nothing stored and nothing pinned.
+
+Without a share one registered robot could fill the disk that every robot's data lives on.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from robocloud.car import write_car
+from robocloud.cid import CID, DAG_PB, RAW, Block
+from robocloud.unixfs import ImportParams
+from services.cas.pins import PinQuotaExceeded, PinSet
+from services.cas.store import ContentStore
+from services.cas.uploads import BlockCollector, CarImport, FileAdder
+from tests.unit.services.cas.test_car_import import node_over
+from tests.unit.services.cas.test_pins import ALICE, BOB, ONE, TWO
+from tests.unit.services.cas.test_reachability import file_node, put, raw
+
+
+def test_a_pin_past_the_share_is_refused_and_a_removal_gives_its_charge_back(
+    tmp_path: Path,
+) -> None:
+    pins = PinSet(tmp_path / "pins.log")
+    pins.add_all({ONE: 60}, ALICE, max_bytes=100)
+    with pytest.raises(PinQuotaExceeded) as refused:
+        pins.add_all({TWO: 41}, ALICE, max_bytes=100)
+    assert (refused.value.owner, refused.value.size, refused.value.used) == (ALICE, 41, 60)
+    assert refused.value.limit == 100
+    assert pins.snapshot() == {ONE: frozenset({ALICE})}
+    assert pins.add_all({TWO: 40}, BOB, max_bytes=100) == [TWO]
+    assert pins.add_all({ONE: 60}, ALICE, max_bytes=60) == []
+    pins.remove([ONE], ALICE)
+    assert pins.pinned_bytes(ALICE) == 0
+    assert pins.add_all({TWO: 41}, ALICE, max_bytes=100) == [TWO]
+    assert (pins.pinned_bytes(ALICE), pins.pinned_bytes(BOB)) == (41, 40)
+    pins.close()
+
+
+def test_charges_survive_a_restart_and_a_compaction(tmp_path: Path) -> None:
+    path = tmp_path / "pins.log"
+    pins = PinSet(path)
+    pins.add_all({ONE: 7, TWO: 11}, ALICE)
+    for _ in range(1_000):
+        pins.add_all({TWO: 5}, BOB)
+        pins.remove([TWO], BOB)
+    pins.close()
+    reopened = PinSet(path)
+    assert len(path.read_text().splitlines()) == 1
+    assert (reopened.pinned_bytes(ALICE), reopened.pinned_bytes(BOB)) == (18, 0)
+    with pytest.raises(PinQuotaExceeded):
+        reopened.add_all({CID.from_block(b"x"): 3}, ALICE, max_bytes=20)
+    reopened.close()
+
+
+def test_pins_of_a_journal_without_charges_are_charged_their_stored_dag_once(
+    tmp_path: Path,
+) -> None:
+    leaf = raw(b"pinned before pins were charged")
+    node = file_node(leaf)
+    root = CID.from_block(node, DAG_PB)
+    store = ContentStore.open(tmp_path, [])
+    put(store, leaf, Block(root, node))
+    store.close()
+    (tmp_path / "pins.log").write_text(
+        json.dumps({"op": "add", "cids": [str(root)], "owner": ALICE}) + "\n"
+    )
+    reopened = ContentStore.open(tmp_path, [])
+    assert reopened.pins.pinned_bytes(ALICE) == len(node) + len(leaf.data)
+    reopened.close()
+    (line,) = (tmp_path / "pins.log").read_text().splitlines()
+    assert json.loads(line)["bytes"] == [len(node) + len(leaf.data)]
+
+
+def test_pin_add_charges_each_block_of_a_request_once(store: ContentStore) -> None:
+    """Two roots over one leaf: the leaf is charged under the first only."""
+    leaf = raw(b"s" * 1000)
+    first, second = node_over([leaf.cid], b"first"), node_over([leaf.cid], b"second")
+    put(store, leaf, first, second)
+    store.pin([first.cid, second.cid], ALICE, max_bytes=10_000)
+    size = len(leaf.data) + len(first.data) + len(second.data)
+    assert store.pins.pinned_bytes(ALICE) == size
+    store.pin([leaf.cid], ALICE)
+    assert store.pins.pinned_bytes(ALICE) == size + len(leaf.data)
+
+
+def test_pin_add_past_the_share_pins_nothing(store: ContentStore) -> None:
+    small, large = raw(b"small"), raw(b"L" * 500)
+    put(store, small, large)
+    with pytest.raises(PinQuotaExceeded) as refused:
+        store.pin([small.cid, large.cid], ALICE, max_bytes=100)
+    assert refused.value.size == len(small.data) + len(large.data)
+    assert store.pinned() == {}
+    store.pin([small.cid], ALICE, max_bytes=100)
+    assert store.pinned() == {small.cid: frozenset({ALICE})}
+
+
+def test_block_put_past_the_share_stores_nothing(store: ContentStore) -> None:
+    collector = BlockCollector(store, RAW, pin=True)
+    for data in (b"a" * 60, b"b" * 60):
+        collector.begin("block")
+        collector.write(data)
+        collector.end()
+    with pytest.raises(PinQuotaExceeded):
+        collector.commit(ALICE, 100)
+    assert store.usage()[0] == 0
+    assert store.pinned() == {}
+    unpinned = BlockCollector(store, RAW, pin=False)
+    unpinned.blocks = collector.blocks
+    assert len(unpinned.commit(ALICE, 100)) == 2
+
+
+def test_an_add_is_charged_the_size_it_answers_and_past_the_share_stores_nothing(
+    store: ContentStore,
+) -> None:
+    def add(data: bytes, max_bytes: int) -> int:
+        adder = FileAdder(store, ImportParams(), only_hash=False, pin=True)
+        try:
+            adder.begin("file")
+            adder.write(data)
+            adder.end()
+            (added,) = adder.commit(ALICE, max_bytes)
+            return added.dag_size
+        finally:
+            adder.discard()
+
+    size = add(b"f" * 300_000, 400_000)
+    assert store.pins.pinned_bytes(ALICE) == size > 300_000
+    blocks = store.usage()[0]
+    with pytest.raises(PinQuotaExceeded):
+        add(b"g" * 200_000, 400_000)
+    assert store.usage()[0] == blocks
+    assert store.pins.pinned_bytes(ALICE) == size
+
+
+def test_a_car_whose_first_root_is_incomplete_has_the_shared_dag_charged_to_the_second(
+    store: ContentStore,
+) -> None:
+    """The first root's walk reads the shared DAG and then misses a block: the second root,
+    that DAG itself, was skipped as seen and would have been pinned for nothing."""
+    shared = node_over([raw(b"x" * 5000).cid], b"shared")
+    absent = raw(b"never sent")
+    first = node_over([shared.cid, absent.cid], b"first")
+    blocks = [first, shared, raw(b"x" * 5000)]
+    car_import = CarImport(store, pin_roots=True)
+    try:
+        car_import.begin("import.car")
+        for part in write_car([first.cid, shared.cid], blocks):
+            car_import.write(part)
+        car_import.end()
+        roots = car_import.commit(ALICE, 100_000)
+    finally:
+        car_import.discard()
+    assert [bool(root.pin_error) for root in roots] == [True, False]
+    assert store.pins.pinned_bytes(ALICE) == len(shared.data) + 5000
