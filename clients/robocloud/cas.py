@@ -454,6 +454,15 @@ class Cas(ServiceClient):
     def unpin(self, cid: CID | str) -> None:
         self.request("POST", "/api/v0/pin/rm", params={"arg": str(cid)}, idempotent=True)
 
+    def pin_share(self) -> PinShare:
+        """This robot's pinned bytes and its bound (robocloud's ``pin/share``)."""
+        response = self.request("POST", "/api/v0/pin/share", idempotent=True)
+        body = self.json_of(response)
+        share = PinShare.from_answer(body)
+        if share is None:
+            raise self._invalid(response, "a pin share that is not {Robot, PinnedBytes, MaxBytes}")
+        return share
+
     def pins(self) -> dict[str, dict[str, Any]]:
         """``{cid: {"Type": ..., "Owners": [...]}}`` as kubo's ``pin/ls`` answers."""
         response = self.request("POST", "/api/v0/pin/ls", signed=False, idempotent=True)
@@ -468,6 +477,32 @@ class Cas(ServiceClient):
         ):
             raise self._invalid(response, "a pin list that is not kubo's {Keys: {cid: {...}}}")
         return dict(keys)
+
+
+@dataclass(frozen=True)
+class PinShare:
+    """A robot's pins in a cas: the bytes they were charged, and the most it may keep (None:
+    no bound, as for a storage node)."""
+
+    robot: str
+    pinned_bytes: int
+    max_bytes: int | None
+
+    @classmethod
+    def from_answer(cls, body: Any) -> PinShare | None:
+        """The share in a ``pin/share`` answer, None when the answer is not one."""
+        if not isinstance(body, dict):
+            return None
+        robot, pinned, limit = body.get("Robot"), body.get("PinnedBytes"), body.get("MaxBytes")
+        if not isinstance(robot, str) or not _is_count(pinned):
+            return None
+        if limit is not None and not _is_count(limit):
+            return None
+        return cls(robot, pinned, limit)
+
+
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
 class _CappedWriter(io.BufferedIOBase, BinaryIO):

@@ -59,7 +59,7 @@ async def _pin_share(request: Request, address: SignedAddress) -> int | None:
     return limit
 
 
-PinShare = Annotated[int | None, Depends(_pin_share)]
+MaxPinnedBytes = Annotated[int | None, Depends(_pin_share)]
 
 
 def _store(request: Request) -> ContentStore:
@@ -131,7 +131,7 @@ def _refuse_unimplemented(request: Request, hash_function: str) -> None:
 async def add(
     request: Request,
     address: SignedAddress,
-    share: PinShare,
+    share: MaxPinnedBytes,
     cid_version: Annotated[int | None, Query(alias="cid-version")] = None,
     raw_leaves: Annotated[bool | None, Query(alias="raw-leaves")] = None,
     chunker: Annotated[str | None, Query(description="size-<bytes>")] = None,
@@ -287,7 +287,7 @@ async def block_stat(request: Request, arg: Arg) -> dict[str, Any]:
 async def block_put(
     request: Request,
     address: SignedAddress,
-    share: PinShare,
+    share: MaxPinnedBytes,
     cid_codec: Annotated[str, Query(alias="cid-codec")] = "raw",
     mhtype: str = "sha2-256",
     pin: bool = False,
@@ -317,7 +317,11 @@ async def block_put(
 
 @router.post("/pin/add")
 async def pin_add(
-    request: Request, address: SignedAddress, share: PinShare, arg: Args, recursive: bool = True
+    request: Request,
+    address: SignedAddress,
+    share: MaxPinnedBytes,
+    arg: Args,
+    recursive: bool = True,
 ) -> dict[str, list[str]]:
     """Pin DAGs for the signing robot, all or none; every block must be here or at a peer,
     and the pins within the robot's share (507 ``quota_exceeded``)."""
@@ -337,6 +341,20 @@ async def pin_rm(request: Request, address: SignedAddress, arg: Args) -> dict[st
     roots = [parse_cid(text, "arg") for text in arg]
     await anyio.to_thread.run_sync(_store(request).unpin, roots, address)
     return {"Pins": [str(root) for root in roots]}
+
+
+@router.post("/pin/share")
+async def pin_share(
+    request: Request, address: SignedAddress, share: MaxPinnedBytes
+) -> dict[str, Any]:
+    """The signer's pinned bytes and the most it may keep (null: no bound), robocloud's
+    addition to kubo's RPC: what a robot checks before an upload it wants pinned. Signed,
+    so that a stranger cannot have the cas ask the ledger about address after address."""
+    return {
+        "Robot": address,
+        "PinnedBytes": _store(request).pins.pinned_bytes(address),
+        "MaxBytes": share,
+    }
 
 
 @router.post("/pin/ls")
@@ -369,7 +387,7 @@ async def dag_export(request: Request, arg: Arg) -> Response:
 async def dag_import(
     request: Request,
     address: SignedAddress,
-    share: PinShare,
+    share: MaxPinnedBytes,
     pin_roots: Annotated[bool, Query(alias="pin-roots")] = True,
 ) -> Response:
     """Import CARs: every block is verified, and one bad block rejects the whole upload."""

@@ -1,4 +1,5 @@
-"""``robocloud put``, ``get``, ``cat``, ``pin``, ``unpin``, ``pins``: files in the content store."""
+"""``robocloud put``, ``get``, ``cat``, ``pin``, ``unpin``, ``pins``, ``pinned``: files in the
+content store."""
 
 from __future__ import annotations
 
@@ -232,6 +233,25 @@ def pins(cas: str | None = CasOption, as_json: bool = JsonOption) -> None:
     show(*(untrusted(" ".join([cid, *info.get("Owners", [])]), 10_000) for cid, info in listed))
 
 
+def pinned(
+    cas: str | None = CasOption, keystore: Path | None = KeystoreOption, as_json: bool = JsonOption
+) -> None:
+    """How many bytes this robot keeps pinned, and the most it may keep."""
+    with Cas(cas, load_identity(keystore)) as client:
+        share = client.pin_share()
+    if as_json:
+        show_json(
+            {
+                "robot": share.robot,
+                "pinned_bytes": share.pinned_bytes,
+                "max_bytes": share.max_bytes,
+            }
+        )
+        return
+    bound = "no bound" if share.max_bytes is None else f"at most {size_text(share.max_bytes)}"
+    show(f"{share.robot} keeps {size_text(share.pinned_bytes)} pinned ({bound})")
+
+
 def register(app: typer.Typer) -> None:
-    for command in (put, get, cat, pin, unpin, pins):
+    for command in (put, get, cat, pin, unpin, pins, pinned):
         app.command(command.__name__)(command)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from robocloud.car import write_car
-from robocloud.cas import Cas
+from robocloud.cas import Cas, PinShare
 from robocloud.client import ServiceClient
 from robocloud.errors import ApiError
 from robocloud.identity import Identity
@@ -78,8 +78,10 @@ def test_every_path_that_pins_is_refused_past_the_share_with_nothing_stored(
             theirs.pin(unpinned)
             assert cas.pins()[str(unpinned)]["Owners"] == [other.address]
 
+        assert cas.pin_share() == PinShare(identity.address, used, SHARE)
         cas.unpin(kept)
         cas.pin(unpinned)
+        assert cas.pin_share() == PinShare(identity.address, 5_000, SHARE)
         assert sorted(cas.pins()[str(unpinned)]["Owners"]) == sorted(
             [identity.address, other.address]
         )

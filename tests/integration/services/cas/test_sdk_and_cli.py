@@ -296,9 +296,14 @@ def test_cli_put_get_pin_pins(
     assert (tmp_path / "back.txt").read_bytes() == b"Hello world"
     listed = runner.invoke(app, ["pins", *common])
     assert listed.stdout.split() == [cid, identity.address]
+    share = runner.invoke(app, ["pinned", "--keystore", str(keystore), *common])
+    bound = "at most 16.0 GiB (17179869184 bytes)"
+    assert share.stdout == f"{identity.address} keeps 11 bytes pinned ({bound})\n"
     unpinned = runner.invoke(app, ["unpin", cid, "--keystore", str(keystore), *common])
     assert unpinned.exit_code == 0, unpinned.output
     assert runner.invoke(app, ["pins", *common]).stdout == ""
+    share = runner.invoke(app, ["pinned", "--keystore", str(keystore), *common])
+    assert share.stdout == f"{identity.address} keeps 0 bytes pinned ({bound})\n"
     absent = "bafkreibercdsoj77g6v724b2gdmwwblgejcogoat4eatckoanjo2periym"
     missing = runner.invoke(app, ["get", absent, "-o", str(tmp_path / "x"), *common])
     assert missing.exit_code == 4
@@ -354,6 +359,11 @@ def test_cli_prints_json_on_request(
     assert json.loads(pinned.stdout) == {"cid": cid, "pinned": True}
     assert json.loads(runner.invoke(app, ["pins", *common]).stdout) == {
         "pins": [{"cid": cid, "type": "recursive", "owners": [identity.address]}]
+    }
+    assert json.loads(runner.invoke(app, ["pinned", *signed]).stdout) == {
+        "robot": identity.address,
+        "pinned_bytes": 11,
+        "max_bytes": 16 * 1024**3,
     }
     out = tmp_path / "out.txt"
     got = runner.invoke(app, ["get", cid, "-o", str(out), *common])
