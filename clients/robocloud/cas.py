@@ -455,12 +455,13 @@ class Cas(ServiceClient):
         self.request("POST", "/api/v0/pin/rm", params={"arg": str(cid)}, idempotent=True)
 
     def pin_share(self) -> PinShare:
-        """This robot's pinned bytes and its bound (robocloud's ``pin/share``)."""
+        """This robot's pinned bytes and new bytes written in the last hour, with their bounds
+        (robocloud's ``pin/share``)."""
         response = self.request("POST", "/api/v0/pin/share", idempotent=True)
         body = self.json_of(response)
         share = PinShare.from_answer(body)
         if share is None:
-            raise self._invalid(response, "a pin share that is not {Robot, PinnedBytes, MaxBytes}")
+            raise self._invalid(response, "a pin/share answer of another shape")
         return share
 
     def pins(self) -> dict[str, dict[str, Any]]:
@@ -481,24 +482,27 @@ class Cas(ServiceClient):
 
 @dataclass(frozen=True)
 class PinShare:
-    """A robot's pins in a cas: the bytes they were charged, and the most it may keep (None:
-    no bound, as for a storage node)."""
+    """A robot's part of a cas: the bytes its pins were charged and the new bytes it wrote
+    in the last hour, each with the most it may (None: no bound, as for a storage node)."""
 
     robot: str
     pinned_bytes: int
     max_bytes: int | None
+    written_bytes_last_hour: int
+    max_written_bytes_per_hour: int | None
 
     @classmethod
     def from_answer(cls, body: Any) -> PinShare | None:
         """The share in a ``pin/share`` answer, None when the answer is not one."""
-        if not isinstance(body, dict):
+        if not isinstance(body, dict) or not isinstance(body.get("Robot"), str):
             return None
-        robot, pinned, limit = body.get("Robot"), body.get("PinnedBytes"), body.get("MaxBytes")
-        if not isinstance(robot, str) or not _is_count(pinned):
+        pinned, written = body.get("PinnedBytes"), body.get("WrittenBytesLastHour")
+        limits = body.get("MaxBytes"), body.get("MaxWrittenBytesPerHour")
+        if not (_is_count(pinned) and _is_count(written)):
             return None
-        if limit is not None and not _is_count(limit):
+        if not all(limit is None or _is_count(limit) for limit in limits):
             return None
-        return cls(robot, pinned, limit)
+        return cls(body["Robot"], pinned, limits[0], written, limits[1])
 
 
 def _is_count(value: Any) -> TypeGuard[int]:

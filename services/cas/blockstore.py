@@ -381,6 +381,11 @@ class Staging:
     def __contains__(self, cid: CID) -> bool:
         return cid.multihash in self._members
 
+    @property
+    def new_bytes(self) -> int:
+        """Bytes of the blocks staged that the store did not hold: what a commit adds."""
+        return self._offset
+
     def add(self, cid: CID, data: bytes | memoryview) -> None:
         """Stage a block the caller has already checked against ``cid``.
 

@@ -6,6 +6,7 @@ from robocloud.directory import NotADirectory, PathNotFound
 from services.cas.multipart import MultipartError, NotMultipart, TruncatedMultipart
 from services.cas.pins import NotPinned, PinNotOwned, PinQuotaExceeded
 from services.cas.ranges import InvalidEntityBytes, UnsatisfiableRange
+from services.cas.shares import WriteRateExceeded
 from services.cas.store import (
     BlockUnavailable,
     CarRejected,
@@ -70,6 +71,18 @@ ERRORS = ErrorMap(
                 "used": exc.used,
                 "limit": exc.limit,
             },
+        ),
+        WriteRateExceeded: ErrorRule(
+            429,
+            "write_rate_exceeded",
+            lambda exc: {
+                "robot": exc.robot,
+                "size": exc.size,
+                "written": exc.written,
+                "limit": exc.limit,
+                "retry_after": exc.retry_after_s,
+            },
+            headers=lambda exc: {"Retry-After": str(exc.retry_after_s)},
         ),
         PinNotOwned: ErrorRule(
             403, "pin_not_owned", lambda exc: {"cid": str(exc.cid), "address": exc.owner}

@@ -22,6 +22,7 @@ from robocloud.directory import Resolved
 from robocloud.ledger.models import Role
 from robocloud.unixfs import DIRECTORY, FILE, HAMT_SHARD, ImportParams, UnixfsError
 from services.cas.gateway import file_answer, streamed
+from services.cas.shares import UNBOUNDED, Share
 from services.cas.store import BudgetedReads, ContentStore
 from services.cas.uploads import Added, BlockCollector, CarImport, FileAdder, upload
 from services.common.auth import SignedAddress
@@ -49,17 +50,21 @@ Arg = Annotated[str, Query(description="a CID")]
 Args = Annotated[list[str], Query(description="one or more CIDs")]
 
 
-async def _pin_share(request: Request, address: SignedAddress) -> int | None:
-    """The bytes of pins the signer may keep: ``ROBOCLOUD_CAS_MAX_PINNED_BYTES_PER_ROBOT``,
-    or no bound for a storage node (it pins every robot's bags under its own key) and the
-    operator's keys. Asked before the body is read."""
+async def _signer_share(request: Request, address: SignedAddress) -> Share:
+    """What the signer may take of the store (``ROBOCLOUD_CAS_MAX_PINNED_BYTES_PER_ROBOT``,
+    ``ROBOCLOUD_CAS_MAX_WRITTEN_BYTES_PER_ROBOT_PER_HOUR``), unbounded for a storage node
+    (it stores every robot's bags under its own key) and the operator's keys. Asked before
+    the body is read."""
     if await request.app.state.authorizer.holds_role(address, Role.STORAGE_NODE.value):
-        return None
-    limit: int = request.app.state.settings.cas_max_pinned_bytes_per_robot
-    return limit
+        return UNBOUNDED
+    settings = request.app.state.settings
+    return Share(
+        settings.cas_max_pinned_bytes_per_robot,
+        settings.cas_max_written_bytes_per_robot_per_hour,
+    )
 
 
-MaxPinnedBytes = Annotated[int | None, Depends(_pin_share)]
+SignerShare = Annotated[Share, Depends(_signer_share)]
 
 
 def _store(request: Request) -> ContentStore:
@@ -131,7 +136,7 @@ def _refuse_unimplemented(request: Request, hash_function: str) -> None:
 async def add(
     request: Request,
     address: SignedAddress,
-    share: MaxPinnedBytes,
+    share: SignerShare,
     cid_version: Annotated[int | None, Query(alias="cid-version")] = None,
     raw_leaves: Annotated[bool | None, Query(alias="raw-leaves")] = None,
     chunker: Annotated[str | None, Query(description="size-<bytes>")] = None,
@@ -287,7 +292,7 @@ async def block_stat(request: Request, arg: Arg) -> dict[str, Any]:
 async def block_put(
     request: Request,
     address: SignedAddress,
-    share: MaxPinnedBytes,
+    share: SignerShare,
     cid_codec: Annotated[str, Query(alias="cid-codec")] = "raw",
     mhtype: str = "sha2-256",
     pin: bool = False,
@@ -319,7 +324,7 @@ async def block_put(
 async def pin_add(
     request: Request,
     address: SignedAddress,
-    share: MaxPinnedBytes,
+    share: SignerShare,
     arg: Args,
     recursive: bool = True,
 ) -> dict[str, list[str]]:
@@ -330,7 +335,7 @@ async def pin_add(
             "only recursive pins are supported", code="unsupported", details={"field": "recursive"}
         )
     roots = [parse_cid(text, "arg") for text in arg]
-    pin = partial(_store(request).pin, max_bytes=share)
+    pin = partial(_store(request).pin, share=share)
     await anyio.to_thread.run_sync(pin, roots, address)
     return {"Pins": [str(root) for root in roots]}
 
@@ -344,16 +349,18 @@ async def pin_rm(request: Request, address: SignedAddress, arg: Args) -> dict[st
 
 
 @router.post("/pin/share")
-async def pin_share(
-    request: Request, address: SignedAddress, share: MaxPinnedBytes
-) -> dict[str, Any]:
-    """The signer's pinned bytes and the most it may keep (null: no bound), robocloud's
-    addition to kubo's RPC: what a robot checks before an upload it wants pinned. Signed,
-    so that a stranger cannot have the cas ask the ledger about address after address."""
+async def pin_share(request: Request, address: SignedAddress, share: SignerShare) -> dict[str, Any]:
+    """The signer's pinned bytes and new bytes written in the last hour, with the most it
+    may keep and write (null: no bound), robocloud's addition to kubo's RPC: what a robot
+    checks before an upload. Signed, so that a stranger cannot have the cas ask the ledger
+    about address after address."""
+    store = _store(request)
     return {
         "Robot": address,
-        "PinnedBytes": _store(request).pins.pinned_bytes(address),
-        "MaxBytes": share,
+        "PinnedBytes": store.pins.pinned_bytes(address),
+        "MaxBytes": share.max_pinned_bytes,
+        "WrittenBytesLastHour": store.writes.written(address),
+        "MaxWrittenBytesPerHour": share.max_written_bytes_per_hour,
     }
 
 
@@ -387,7 +394,7 @@ async def dag_export(request: Request, arg: Arg) -> Response:
 async def dag_import(
     request: Request,
     address: SignedAddress,
-    share: MaxPinnedBytes,
+    share: SignerShare,
     pin_roots: Annotated[bool, Query(alias="pin-roots")] = True,
 ) -> Response:
     """Import CARs: every block is verified, and one bad block rejects the whole upload."""

@@ -22,6 +22,13 @@ class CasSettings(ServiceSettings):
         description="bytes of pinned DAGs one robot may keep (storage nodes and "
         "ROBOCLOUD_ALLOWED_ADDRESSES are not bounded): past it a pin is 507 quota_exceeded",
     )
+    cas_max_written_bytes_per_robot_per_hour: int = Field(
+        default=16 * 1024**3,
+        gt=0,
+        description="new bytes one robot may store in a rolling hour, pinned or not (storage "
+        "nodes and ROBOCLOUD_ALLOWED_ADDRESSES are not bounded): past it an upload is 429 "
+        "write_rate_exceeded",
+    )
     cas_gc_grace_s: float = Field(default=3600.0, ge=0)
     cas_max_streams: int = Field(
         default=64,

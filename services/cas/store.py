@@ -43,6 +43,7 @@ from services.cas.blockstore import (
 )
 from services.cas.peers import OutcomeHook, PeerFetcher
 from services.cas.pins import PinSet
+from services.cas.shares import UNBOUNDED, RecentWrites, Share
 
 log = logging.getLogger("robocloud.cas.store")
 
@@ -167,6 +168,7 @@ class ContentStore:
         self.blocks = blocks
         self.peers = peers
         self.pins = PinSet(root / "pins.log", dag_bytes=self._stored_dag_bytes)
+        self.writes = RecentWrites()
         self.collecting = threading.Lock()
         """Held by a whole collection, compaction included: the periodic one and ``repo/gc``
         ran at once, both rewrote the same pack, and the one that found it gone failed."""
@@ -231,25 +233,36 @@ class ContentStore:
         owner: str,
         *,
         pin: bool,
-        max_bytes: int | None = None,
+        share: Share = UNBOUNDED,
     ) -> list[CID]:
         """Store raw blocks as one pack (one fsync, all or none), then pin them if asked.
 
         A pin keeps a whole DAG, so with ``pin`` every block's DAG must be complete, as for
         ``pin/add``: the blocks of this request count, and a block that neither they, the
         store nor a peer has refuses the request (``DagIncomplete``) with nothing stored, as
-        do pins past ``owner``'s ``max_bytes`` (``PinQuotaExceeded``).
+        does ``owner``'s ``share`` (``commit_within``).
         """
         cids = [CID.from_block(data, codec, 1) for data in blocks]
         with self.blocks.stage() as staging:
             for cid, data in zip(cids, blocks, strict=True):
                 staging.add(cid, data)
             charges = self._require_complete(cids, staging.hold, staging) if pin else {}
-            self.pins.check_share(charges, owner, max_bytes=max_bytes)
-            staging.commit()
-            if pin:
-                self.pins.add_all(charges, owner, max_bytes=max_bytes)
+            self.commit_within(staging, charges, owner, share)
         return cids
+
+    def commit_within(
+        self, staging: Staging, charges: dict[CID, int], owner: str, share: Share
+    ) -> None:
+        """Store what ``staging`` holds and pin the roots of ``charges`` for ``owner``, within
+        its ``share``: past either bound (``PinQuotaExceeded``, ``WriteRateExceeded``)
+        nothing is stored. Two requests of one robot may both pass the pin check before
+        either pins; the second is then refused after its blocks are stored, pinned by
+        nobody, for the next collection past the grace period."""
+        self.pins.check_share(charges, owner, max_bytes=share.max_pinned_bytes)
+        with self.writes.charge(owner, staging.new_bytes, share.max_written_bytes_per_hour):
+            staging.commit()
+        if charges:
+            self.pins.add_all(charges, owner, max_bytes=share.max_pinned_bytes)
 
     # ---- files ----
 
@@ -467,13 +480,13 @@ class ContentStore:
 
     # ---- pins and garbage collection ----
 
-    def pin(self, roots: list[CID], owner: str, *, max_bytes: int | None = None) -> None:
+    def pin(self, roots: list[CID], owner: str, *, share: Share = UNBOUNDED) -> None:
         """Pin DAGs for ``owner``, all or none, once every block of each is here (fetched from
-        peers if need be) and they fit its ``max_bytes``: a request refused for one root
+        peers if need be) and they fit its ``share`` of pins: a request refused for one root
         leaves no pin behind, as ``unpin``."""
         with self.blocks.hold() as hold:
             charges = self._require_complete(roots, hold)
-            self.pins.add_all(charges, owner, max_bytes=max_bytes)
+            self.pins.add_all(charges, owner, max_bytes=share.max_pinned_bytes)
 
     def _require_complete(
         self, roots: list[CID], hold: Hold, staging: Staging | None = None

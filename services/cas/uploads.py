@@ -27,6 +27,7 @@ from robocloud.dagpb import DagPbError, PBNode
 from robocloud.directory import DirectoryBuilder, split_path
 from robocloud.unixfs import Importer, ImportParams, UnixfsError
 from services.cas.multipart import Event, MultipartParser, Part, PartData, boundary_of
+from services.cas.shares import UNBOUNDED, Share
 from services.cas.store import ContentStore, ImportedRoot
 from services.cas.streams import first_error
 
@@ -95,8 +96,8 @@ class PartSink(Protocol):
 class Sink(PartSink, Protocol, Generic[R]):
     """A part sink that makes what it received visible (``commit``) or drops it."""
 
-    def commit(self, owner: str, max_bytes: int | None = None) -> list[R]:
-        """Store what was received, pinned for ``owner`` within its ``max_bytes`` of pins."""
+    def commit(self, owner: str, share: Share = UNBOUNDED) -> list[R]:
+        """Store what was received, pinned for ``owner``, within its ``share``."""
         ...
 
     def discard(self) -> None: ...
@@ -107,12 +108,12 @@ async def upload(
     content_type: str | None,
     sink: Sink[R],
     owner: str,
-    max_bytes: int | None = None,
+    share: Share = UNBOUNDED,
 ) -> list[R]:
     """Stream a multipart ``body`` into ``sink`` and commit it for ``owner``, or store nothing."""
     try:
         await receive_parts(body, boundary_of(content_type), sink)
-        return await anyio.to_thread.run_sync(sink.commit, owner, max_bytes)
+        return await anyio.to_thread.run_sync(sink.commit, owner, share)
     finally:
         sink.discard()
 
@@ -263,7 +264,7 @@ class FileAdder:
             if not self.only_hash:
                 self.staging.add(block.cid, block.data)
 
-    def commit(self, owner: str, max_bytes: int | None = None) -> list[Added]:
+    def commit(self, owner: str, share: Share = UNBOUNDED) -> list[Added]:
         """Kubo's order: the files as they came, the directories after their contents.
 
         Every top-level item is pinned in one journal line: all or none, one fsync (they were
@@ -275,10 +276,7 @@ class FileAdder:
         if self.only_hash:
             return self.files + directories
         charges = {root.cid: root.dag_size for root in self._roots(directories)} if self.pin else {}
-        self.store.pins.check_share(charges, owner, max_bytes=max_bytes)
-        self.staging.commit()
-        if self.pin:
-            self.store.pins.add_all(charges, owner, max_bytes=max_bytes)
+        self.store.commit_within(self.staging, charges, owner, share)
         return self.files + directories
 
     def _is_tree(self) -> bool:
@@ -370,20 +368,18 @@ class CarImport:
         if len(self.roots) > MAX_ROOTS:
             raise TooManyRoots(len(self.roots), MAX_ROOTS)
 
-    def commit(self, owner: str, max_bytes: int | None = None) -> list[ImportedRoot]:
+    def commit(self, owner: str, share: Share = UNBOUNDED) -> list[ImportedRoot]:
         """Walk every root's DAG first (one too deep or malformed rejects the whole import),
-        then pin the complete ones in one journal line; pins past ``owner``'s ``max_bytes``
-        refuse the import with nothing stored.
+        then pin the complete ones in one journal line; past ``owner``'s ``share`` the
+        import is refused with nothing stored.
 
         The roots share one walk (``ContentStore.walked_dags``): a CAR naming one large
         DAG under many roots costs one pass over its blocks."""
         walked = list(self.store.walked_dags(list(self.roots), self.staging))
         charges = self.store.pin_charges(walked, self.staging) if self.pin_roots else {}
-        self.store.pins.check_share(charges, owner, max_bytes=max_bytes)
-        self.staging.commit()
+        self.store.commit_within(self.staging, charges, owner, share)
         if not self.pin_roots:
             return [ImportedRoot(root, "") for root in self.roots]
-        self.store.pins.add_all(charges, owner, max_bytes=max_bytes)
         missing = {dag.root: dag.missing for dag in walked}
         return [ImportedRoot(root, _pin_error(root, missing[root])) for root in self.roots]
 
@@ -428,10 +424,8 @@ class BlockCollector:
                 raise InvalidBlock(len(self.blocks), str(exc)) from exc
         self.blocks.append(data)
 
-    def commit(self, owner: str, max_bytes: int | None = None) -> list[Block]:
-        cids = self.store.put_blocks(
-            self.blocks, self.codec, owner, pin=self.pin, max_bytes=max_bytes
-        )
+    def commit(self, owner: str, share: Share = UNBOUNDED) -> list[Block]:
+        cids = self.store.put_blocks(self.blocks, self.codec, owner, pin=self.pin, share=share)
         return [Block(cid, data) for cid, data in zip(cids, self.blocks, strict=True)]
 
     def discard(self) -> None:

@@ -4,6 +4,7 @@ content store."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import shutil
 import sys
 from collections.abc import Callable, Iterator
@@ -236,20 +237,22 @@ def pins(cas: str | None = CasOption, as_json: bool = JsonOption) -> None:
 def pinned(
     cas: str | None = CasOption, keystore: Path | None = KeystoreOption, as_json: bool = JsonOption
 ) -> None:
-    """How many bytes this robot keeps pinned, and the most it may keep."""
+    """How many bytes this robot keeps pinned and wrote in the last hour, and the most it
+    may."""
     with Cas(cas, load_identity(keystore)) as client:
         share = client.pin_share()
     if as_json:
-        show_json(
-            {
-                "robot": share.robot,
-                "pinned_bytes": share.pinned_bytes,
-                "max_bytes": share.max_bytes,
-            }
-        )
+        show_json(dataclasses.asdict(share))
         return
-    bound = "no bound" if share.max_bytes is None else f"at most {size_text(share.max_bytes)}"
-    show(f"{share.robot} keeps {size_text(share.pinned_bytes)} pinned ({bound})")
+    show(
+        f"{share.robot} keeps {size_text(share.pinned_bytes)} pinned "
+        f"({_bound(share.max_bytes)}) and wrote {size_text(share.written_bytes_last_hour)} "
+        f"in the last hour ({_bound(share.max_written_bytes_per_hour)})"
+    )
+
+
+def _bound(limit: int | None) -> str:
+    return "no bound" if limit is None else f"at most {size_text(limit)}"
 
 
 def register(app: typer.Typer) -> None:

@@ -1,6 +1,7 @@
-"""A robot's share of pinned bytes, through a real cas: a pin past it is 507
-``quota_exceeded`` naming the robot and the figures, on every path that pins, and leaves the
-store as it was; removing a pin makes room, and other robots keep their own shares."""
+"""A robot's share of a real cas: a pin past its pinned bytes is 507 ``quota_exceeded``
+naming the robot and the figures, on every path that pins, and an upload past its new bytes
+of the hour is 429 ``write_rate_exceeded`` with ``Retry-After``; either leaves the store as
+it was. Removing a pin makes room, and other robots keep their own shares."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 from robocloud.car import write_car
 from robocloud.cas import Cas, PinShare
 from robocloud.client import ServiceClient
-from robocloud.errors import ApiError
+from robocloud.errors import ApiError, RateLimitedError
 from robocloud.identity import Identity
 from robocloud.unixfs import ImportParams, import_bytes
 from tests.conftest import ServiceFactory
@@ -22,12 +23,18 @@ from tests.integration.services.cas.conftest import (
 from tests.procs import ServiceProcess
 
 SHARE = 10_000
+WRITES = 30_000
 
 
 @pytest.fixture
 def cas_service(service_factory: ServiceFactory) -> ServiceProcess:
     return service_factory(
-        "cas", {**QUIET_GC, "ROBOCLOUD_CAS_MAX_PINNED_BYTES_PER_ROBOT": str(SHARE)}
+        "cas",
+        {
+            **QUIET_GC,
+            "ROBOCLOUD_CAS_MAX_PINNED_BYTES_PER_ROBOT": str(SHARE),
+            "ROBOCLOUD_CAS_MAX_WRITTEN_BYTES_PER_ROBOT_PER_HOUR": str(WRITES),
+        },
     )
 
 
@@ -78,10 +85,37 @@ def test_every_path_that_pins_is_refused_past_the_share_with_nothing_stored(
             theirs.pin(unpinned)
             assert cas.pins()[str(unpinned)]["Owners"] == [other.address]
 
-        assert cas.pin_share() == PinShare(identity.address, used, SHARE)
+        assert cas.pin_share() == PinShare(identity.address, used, SHARE, 11_000, WRITES)
         cas.unpin(kept)
         cas.pin(unpinned)
-        assert cas.pin_share() == PinShare(identity.address, 5_000, SHARE)
+        assert cas.pin_share() == PinShare(identity.address, 5_000, SHARE, 11_000, WRITES)
         assert sorted(cas.pins()[str(unpinned)]["Owners"]) == sorted(
             [identity.address, other.address]
         )
+
+
+def test_pinning_unpinning_and_writing_again_is_bounded_by_the_hour(
+    cas_service: ServiceProcess, identity: Identity
+) -> None:
+    """Each upload is unpinned before the next, so the pins stay within their share; the
+    blocks stay until a collection past the grace period, and the hour's bound stops them."""
+    with Cas(cas_service.url, identity, retries=0) as cas:
+        for turn in range(3):
+            cas.unpin(cas.add_bytes(bytes([turn]) * 9_000))
+        again = cas.add_bytes(bytes([0]) * 9_000)  # stored already: no new bytes
+        cas.unpin(again)
+        with store_unchanged(cas_service), pytest.raises(ApiError) as exc:
+            cas.add_bytes(b"w" * 9_000, pin=False)
+        error = error_of(exc, 429, "write_rate_exceeded")
+        retry_after = error.details.pop("retry_after")
+        assert error.details == {
+            "robot": identity.address,
+            "size": 9_000,
+            "written": 27_000,
+            "limit": WRITES,
+        }
+        assert 3000 < retry_after <= 3660
+        assert isinstance(exc.value, RateLimitedError)
+        other = Identity.generate()
+        with Cas(cas_service.url, other, retries=0) as theirs:
+            theirs.add_bytes(b"w" * 9_000, pin=False)

@@ -298,12 +298,15 @@ def test_cli_put_get_pin_pins(
     assert listed.stdout.split() == [cid, identity.address]
     share = runner.invoke(app, ["pinned", "--keystore", str(keystore), *common])
     bound = "at most 16.0 GiB (17179869184 bytes)"
-    assert share.stdout == f"{identity.address} keeps 11 bytes pinned ({bound})\n"
+    assert share.stdout == (
+        f"{identity.address} keeps 11 bytes pinned ({bound}) and wrote 11 bytes in the last "
+        f"hour ({bound})\n"
+    )
     unpinned = runner.invoke(app, ["unpin", cid, "--keystore", str(keystore), *common])
     assert unpinned.exit_code == 0, unpinned.output
     assert runner.invoke(app, ["pins", *common]).stdout == ""
     share = runner.invoke(app, ["pinned", "--keystore", str(keystore), *common])
-    assert share.stdout == f"{identity.address} keeps 0 bytes pinned ({bound})\n"
+    assert share.stdout.startswith(f"{identity.address} keeps 0 bytes pinned ({bound}) and")
     absent = "bafkreibercdsoj77g6v724b2gdmwwblgejcogoat4eatckoanjo2periym"
     missing = runner.invoke(app, ["get", absent, "-o", str(tmp_path / "x"), *common])
     assert missing.exit_code == 4
@@ -364,6 +367,8 @@ def test_cli_prints_json_on_request(
         "robot": identity.address,
         "pinned_bytes": 11,
         "max_bytes": 16 * 1024**3,
+        "written_bytes_last_hour": 11,
+        "max_written_bytes_per_hour": 16 * 1024**3,
     }
     out = tmp_path / "out.txt"
     got = runner.invoke(app, ["get", cid, "-o", str(out), *common])

@@ -15,6 +15,7 @@ from robocloud.car import write_car
 from robocloud.cid import CID, DAG_PB, RAW, Block
 from robocloud.unixfs import ImportParams
 from services.cas.pins import PinQuotaExceeded, PinSet
+from services.cas.shares import Share
 from services.cas.store import ContentStore
 from services.cas.uploads import BlockCollector, CarImport, FileAdder
 from tests.unit.services.cas.test_car_import import node_over
@@ -81,7 +82,7 @@ def test_pin_add_charges_each_block_of_a_request_once(store: ContentStore) -> No
     leaf = raw(b"s" * 1000)
     first, second = node_over([leaf.cid], b"first"), node_over([leaf.cid], b"second")
     put(store, leaf, first, second)
-    store.pin([first.cid, second.cid], ALICE, max_bytes=10_000)
+    store.pin([first.cid, second.cid], ALICE, share=Share(10_000))
     size = len(leaf.data) + len(first.data) + len(second.data)
     assert store.pins.pinned_bytes(ALICE) == size
     store.pin([leaf.cid], ALICE)
@@ -92,10 +93,10 @@ def test_pin_add_past_the_share_pins_nothing(store: ContentStore) -> None:
     small, large = raw(b"small"), raw(b"L" * 500)
     put(store, small, large)
     with pytest.raises(PinQuotaExceeded) as refused:
-        store.pin([small.cid, large.cid], ALICE, max_bytes=100)
+        store.pin([small.cid, large.cid], ALICE, share=Share(100))
     assert refused.value.size == len(small.data) + len(large.data)
     assert store.pinned() == {}
-    store.pin([small.cid], ALICE, max_bytes=100)
+    store.pin([small.cid], ALICE, share=Share(100))
     assert store.pinned() == {small.cid: frozenset({ALICE})}
 
 
@@ -106,12 +107,12 @@ def test_block_put_past_the_share_stores_nothing(store: ContentStore) -> None:
         collector.write(data)
         collector.end()
     with pytest.raises(PinQuotaExceeded):
-        collector.commit(ALICE, 100)
+        collector.commit(ALICE, Share(100))
     assert store.usage()[0] == 0
     assert store.pinned() == {}
     unpinned = BlockCollector(store, RAW, pin=False)
     unpinned.blocks = collector.blocks
-    assert len(unpinned.commit(ALICE, 100)) == 2
+    assert len(unpinned.commit(ALICE, Share(100))) == 2
 
 
 def test_an_add_is_charged_the_size_it_answers_and_past_the_share_stores_nothing(
@@ -123,7 +124,7 @@ def test_an_add_is_charged_the_size_it_answers_and_past_the_share_stores_nothing
             adder.begin("file")
             adder.write(data)
             adder.end()
-            (added,) = adder.commit(ALICE, max_bytes)
+            (added,) = adder.commit(ALICE, Share(max_bytes))
             return added.dag_size
         finally:
             adder.discard()
@@ -152,7 +153,7 @@ def test_a_car_whose_first_root_is_incomplete_has_the_shared_dag_charged_to_the_
         for part in write_car([first.cid, shared.cid], blocks):
             car_import.write(part)
         car_import.end()
-        roots = car_import.commit(ALICE, 100_000)
+        roots = car_import.commit(ALICE, Share(100_000))
     finally:
         car_import.discard()
     assert [bool(root.pin_error) for root in roots] == [True, False]
