@@ -6,15 +6,8 @@ from __future__ import annotations
 import pytest
 
 from services.cas.shares import BUCKET_S, WINDOW_S, RecentWrites, WriteRateExceeded
+from tests.clock import Clock
 from tests.unit.services.cas.test_pins import ALICE, BOB
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1_000_000.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def test_writes_past_the_hourly_bound_are_refused_until_the_oldest_leave_the_window() -> None:

@@ -9,17 +9,10 @@ from pathlib import Path
 import pytest
 
 from services.ledger.faucet import FaucetLimits, RateLimited
+from tests.clock import Clock
 from tests.unit.services.ledger.crash import FailingDiskChild, copy_as_killed, failing_fsync_library
 
 Opener = Callable[..., FaucetLimits]
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1_000_000.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 @pytest.fixture

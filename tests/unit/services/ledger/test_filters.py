@@ -13,18 +13,11 @@ from services.ledger.filters import (
     TooManyFilters,
 )
 from services.ledger.refusals import InvalidParams
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.clock import Clock
 
 
 def test_a_filter_nobody_polls_expires_and_polling_keeps_it() -> None:
-    clock = Clock()
+    clock = Clock(100.0)
     filters = Filters(max_filters=10, timeout_s=60, clock=clock)
     kept, dropped = filters.install(None, 5), filters.install(None, 5)
     clock.now += 50
@@ -37,7 +30,7 @@ def test_a_filter_nobody_polls_expires_and_polling_keeps_it() -> None:
 
 
 def test_the_number_of_filters_is_bounded_and_expired_ones_make_room() -> None:
-    clock = Clock()
+    clock = Clock(100.0)
     filters = Filters(max_filters=2, timeout_s=60, clock=clock)
     filters.install(None, 0)
     filters.install(LogCriteria(), 0)
@@ -48,7 +41,7 @@ def test_the_number_of_filters_is_bounded_and_expired_ones_make_room() -> None:
 
 
 def test_one_client_holds_its_share_of_the_filters_and_the_rest_is_for_others() -> None:
-    clock = Clock()
+    clock = Clock(100.0)
     filters = Filters(max_filters=4, timeout_s=60, clock=clock, max_per_client=2)
     greedy = [filters.install(None, 0, "192.0.2.1"), filters.install(LogCriteria(), 0, "192.0.2.1")]
     with pytest.raises(TooManyFilters, match="too many filters from one client: at most 2"):

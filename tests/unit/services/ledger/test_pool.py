@@ -9,14 +9,8 @@ from eth.vm.forks.prague import PragueVM
 from robocloud.identity import Identity
 from services.ledger.pool import PendingPool, PoolLimits
 from services.ledger.refusals import ChainError
+from tests.clock import Clock
 from tests.rawtx import RawTx
-
-
-class Clock:
-    now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def signed(
@@ -30,7 +24,7 @@ def signed(
 
 
 def test_expired_transactions_leave_and_free_room() -> None:
-    clock = Clock()
+    clock = Clock(0.0)
     pool = PendingPool(PoolLimits(max_per_sender=2, max_total=2, timeout_s=10), clock)
     sender = Identity.generate()
     pool.add(signed(sender, 1))
@@ -73,7 +67,7 @@ def test_replacement_needs_ten_percent_more() -> None:
 def test_a_transaction_is_found_by_hash_until_it_leaves() -> None:
     """``find`` answers the receipt polls of waiting transactions without the chain's lock,
     so it must forget each hash as its transaction leaves: replaced, taken, stale, expired."""
-    clock = Clock()
+    clock = Clock(0.0)
     pool = PendingPool(PoolLimits(timeout_s=10), clock)
     sender = Identity.generate()
     address = bytes.fromhex(sender.address[2:])

@@ -28,6 +28,7 @@ from services.storage.knowledge import (
     Retry,
 )
 from services.storage.sparql import SparqlWorkers
+from tests.clock import Clock
 
 EXAMPLES = Path(__file__).resolve().parents[4] / "ontology" / "examples"
 
@@ -108,14 +109,6 @@ class Workers:
         self.added.extend(cids)
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1_800_000_000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 @pytest.fixture
 def cas() -> Cas:
     return Cas()
@@ -128,7 +121,7 @@ def ledger() -> Ledger:
 
 @pytest.fixture
 def clock() -> Clock:
-    return Clock()
+    return Clock(1_800_000_000.0)
 
 
 def follower_of(
