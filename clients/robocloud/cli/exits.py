@@ -174,7 +174,13 @@ _API_HINTS = {
         "the service's disk is full, or down to the reserve it keeps: it takes writes again "
         "once data is deleted or its operator frees space"
     ),
+    "quota_exceeded": (
+        "this robot's share is used up, and waiting does not free it: remove some of its data "
+        "(in the cas `robocloud pinned` shows the share, `robocloud unpin CID` frees part)"
+    ),
 }
+_OWN_SHARE = frozenset({"quota_exceeded"})
+"""5xx codes that only the robot itself can mend: refused, not a service to retry later."""
 
 
 def _api(exc: ApiError) -> Failure:
@@ -185,7 +191,7 @@ def _api(exc: ApiError) -> Failure:
         after = exc.details.get("retry_after")
         wait = f"in {after} s" if after is not None else "later"
         return Failure(ExitCode.UNAVAILABLE, message, f"try again {wait}")
-    if isinstance(exc, ServerError):
+    if isinstance(exc, ServerError) and exc.code not in _OWN_SHARE:
         return Failure(
             ExitCode.UNAVAILABLE, message, hint or "retry later; the request id finds its log"
         )

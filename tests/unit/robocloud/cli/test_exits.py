@@ -46,6 +46,8 @@ def api(status: int, code: str = "some_code", **details: object) -> ApiError:
         (api(500), ExitCode.UNAVAILABLE, "request id"),
         (api(503), ExitCode.UNAVAILABLE, "request id"),
         (api(507, "insufficient_storage"), ExitCode.UNAVAILABLE, "operator frees space"),
+        (api(507, "quota_exceeded"), ExitCode.REFUSED, "robocloud unpin CID"),
+        (api(429, "write_rate_exceeded", retry_after=600), ExitCode.UNAVAILABLE, "in 600 s"),
         (
             RpcError("eth_sendRawTransaction", -32000, "insufficient funds"),
             ExitCode.REFUSED,
