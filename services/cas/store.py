@@ -150,8 +150,41 @@ class WalkedDag:
     missing: CID | None
     """The first block that neither the store nor its peers have; None when the DAG is whole."""
     size: int
-    """Bytes of the blocks the walk read first under this root: the roots of one request
-    share a walk, so a block under several roots counts once, under the first."""
+    """The DAG's cumulative size (kubo's ``CumulativeSize``, what ``add`` answers as
+    ``Size``): its blocks' bytes, a sub-DAG linked twice counted twice; 0 when not whole."""
+
+
+class DagSizes:
+    """The cumulative sizes of the DAGs one request walks, each root's on its own.
+
+    The roots of a request share one walk, which reads a block under several of them once.
+    Charging a pin only what the shared walk read first under its root let a robot pin a DAG
+    and a part of it together, unpin the DAG and keep the part pinned for nothing. A root's
+    size is rather its own DAG's, computed from every block's size and links recorded as the
+    walk passes, each sub-DAG's once (``_sizes``): the work stays linear in the blocks.
+    """
+
+    def __init__(self) -> None:
+        self._blocks: dict[CID, tuple[int, list[CID]]] = {}
+        self._sizes: dict[CID, int] = {}
+
+    def record(self, block: Block) -> None:
+        self._blocks[block.cid] = (_stored_size(block), links_of(block.cid, block.data))
+
+    def of(self, root: CID) -> int:
+        """``root``'s cumulative size; every block under it must have been recorded."""
+        stack = [(root, False)]
+        while stack:
+            cid, children_done = stack.pop()
+            if cid in self._sizes:
+                continue
+            own, links = self._blocks[cid]
+            if children_done:
+                self._sizes[cid] = own + sum(self._sizes[link] for link in links)
+            else:
+                stack.append((cid, True))
+                stack.extend((link, False) for link in links if link not in self._sizes)
+        return self._sizes[root]
 
 
 @dataclass(frozen=True)
@@ -416,19 +449,14 @@ class ContentStore:
         return reader.roots
 
     def missing_block(
-        self,
-        root: CID,
-        staging: Staging | None = None,
-        *,
-        seen: set[CID] | None = None,
-        hold: Hold | None = None,
+        self, root: CID, staging: Staging | None = None, *, hold: Hold | None = None
     ) -> CID | None:
         """The first block of ``root``'s DAG that neither the store nor its peers have.
 
-        ``seen``: blocks whose DAGs earlier calls found complete, not read again. ``hold``
-        (the staging's by default) keeps every stored block read from garbage collection.
+        ``hold`` (the staging's by default) keeps every stored block read from garbage
+        collection.
         """
-        return self._walk(root, staging, seen=seen, hold=hold).missing
+        return self._walk(root, staging, hold=hold).missing
 
     def _walk(
         self,
@@ -437,29 +465,34 @@ class ContentStore:
         *,
         seen: set[CID] | None = None,
         hold: Hold | None = None,
+        sizes: DagSizes | None = None,
     ) -> WalkedDag:
+        """``root``'s DAG walked. ``seen``: blocks whose DAGs earlier walks of this request
+        found complete, not read again, each recorded in ``sizes``."""
         keeper = hold or (staging.hold if staging is not None else None)
         get = partial(self._staged_or_stored, staging=staging, hold=keeper)
-        size = 0
+        sizes = sizes or DagSizes()
         try:
             for block in walk_dag(root, get, "all", seen):
-                size += _stored_size(block)
+                sizes.record(block)
         except _Missing as missing:
-            return WalkedDag(root, missing.cid, size)
+            return WalkedDag(root, missing.cid, 0)
         except UnixfsError as exc:
             raise InvalidDag(root, str(exc)) from exc
-        return WalkedDag(root, None, size)
+        return WalkedDag(root, None, sizes.of(root))
 
     def _stored_dag_bytes(self, root: CID) -> int:
-        """The bytes of ``root``'s DAG stored here, asking no peer: the charge of a pin read
-        from a journal written before pins were charged (a pinned DAG is whole here)."""
-        size = 0
+        """The cumulative size of ``root``'s DAG stored here, asking no peer: the charge of a
+        pin read from a journal written before pins were charged (a pinned DAG is whole
+        here; one that is not is charged nothing, and said)."""
+        sizes = DagSizes()
         try:
             for block in walk_dag(root, partial(self.get_block, use_peers=False)):
-                size += _stored_size(block)
+                sizes.record(block)
         except (BlockUnavailable, UnixfsError) as exc:
             log.warning("pinned DAG not whole here", extra={"cid": str(root), "error": str(exc)})
-        return size
+            return 0
+        return sizes.of(root)
 
     def _staged_or_stored(self, cid: CID, staging: Staging | None, hold: Hold | None) -> bytes:
         if staging is not None and cid in staging:
@@ -504,29 +537,17 @@ class ContentStore:
     def walked_dags(
         self, roots: list[CID], staging: Staging | None = None, *, hold: Hold | None = None
     ) -> Iterator[WalkedDag]:
-        """Each distinct root's DAG walked, as it is asked for.
+        """Each distinct root's DAG walked, as it is asked for, with its cumulative size.
 
         One ``seen`` set for all roots: a sub-DAG that several roots share (every block of a
         ``block/put`` is a root; a CAR may name one DAG under its 1,024 header roots) is
-        walked once, so the work stays linear in the blocks.
+        walked once, so the work stays linear in the blocks; ``DagSizes`` still gives each
+        root its whole DAG's size.
         """
         seen: set[CID] = set()
+        sizes = DagSizes()
         for root in dict.fromkeys(roots):
-            yield self._walk(root, staging, seen=seen, hold=hold)
-
-    def pin_charges(
-        self, walked: list[WalkedDag], staging: Staging | None = None
-    ) -> dict[CID, int]:
-        """The whole DAGs of ``walked`` with what pinning each is charged.
-
-        A DAG not whole may have read blocks that a later root shares, and that root's walk
-        then skipped them: the whole ones are walked again on their own, or a CAR whose
-        first root lacks a block would have its second root, the same DAG, pinned for free.
-        """
-        whole = [dag.root for dag in walked if dag.missing is None]
-        if len(whole) == len(walked):
-            return {dag.root: dag.size for dag in walked}
-        return {dag.root: dag.size for dag in self.walked_dags(whole, staging)}
+            yield self._walk(root, staging, seen=seen, hold=hold, sizes=sizes)
 
     def unpin(self, roots: list[CID], owner: str) -> None:
         """Remove ``owner``'s pins on every root, or none (see ``PinSet.remove``)."""

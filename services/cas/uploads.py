@@ -376,7 +376,8 @@ class CarImport:
         The roots share one walk (``ContentStore.walked_dags``): a CAR naming one large
         DAG under many roots costs one pass over its blocks."""
         walked = list(self.store.walked_dags(list(self.roots), self.staging))
-        charges = self.store.pin_charges(walked, self.staging) if self.pin_roots else {}
+        whole = [dag for dag in walked if dag.missing is None]
+        charges = {dag.root: dag.size for dag in whole} if self.pin_roots else {}
         self.store.commit_within(self.staging, charges, owner, share)
         if not self.pin_roots:
             return [ImportedRoot(root, "") for root in self.roots]

@@ -77,16 +77,41 @@ def test_pins_of_a_journal_without_charges_are_charged_their_stored_dag_once(
     assert json.loads(line)["bytes"] == [len(node) + len(leaf.data)]
 
 
-def test_pin_add_charges_each_block_of_a_request_once(store: ContentStore) -> None:
-    """Two roots over one leaf: the leaf is charged under the first only."""
+def test_each_root_is_charged_its_whole_dag_even_when_a_request_shares_blocks(
+    store: ContentStore,
+) -> None:
+    """Two roots over one leaf, pinned together: the shared walk reads the leaf once, and
+    each root is still charged it. Charged to the first alone, unpinning the first left the
+    second pinned and the leaf kept for nothing."""
     leaf = raw(b"s" * 1000)
     first, second = node_over([leaf.cid], b"first"), node_over([leaf.cid], b"second")
     put(store, leaf, first, second)
     store.pin([first.cid, second.cid], ALICE, share=Share(10_000))
-    size = len(leaf.data) + len(first.data) + len(second.data)
-    assert store.pins.pinned_bytes(ALICE) == size
-    store.pin([leaf.cid], ALICE)
-    assert store.pins.pinned_bytes(ALICE) == size + len(leaf.data)
+    assert store.pins.pinned_bytes(ALICE) == 2 * len(leaf.data) + len(first.data) + len(second.data)
+    store.unpin([first.cid], ALICE)
+    assert store.pins.pinned_bytes(ALICE) == len(leaf.data) + len(second.data)
+
+
+def test_a_part_of_a_dag_pinned_beside_it_is_charged_on_its_own(store: ContentStore) -> None:
+    """Pin a DAG, then the DAG again with a part of it, then unpin the DAG: the part stays
+    charged. Walked after the DAG the robot already pinned, the part was read as seen."""
+    leaf = raw(b"p" * 3000)
+    whole = node_over([leaf.cid], b"whole")
+    put(store, leaf, whole)
+    store.pin([whole.cid], ALICE)
+    store.pin([whole.cid, leaf.cid], ALICE, share=Share(10_000))
+    store.unpin([whole.cid], ALICE)
+    assert store.pins.pinned_bytes(ALICE) == len(leaf.data)
+
+
+def test_a_sub_dag_linked_twice_counts_twice_as_in_kubos_cumulative_size(
+    store: ContentStore,
+) -> None:
+    leaf = raw(b"twice" * 100)
+    node = node_over([leaf.cid, leaf.cid], b"node")
+    put(store, leaf, node)
+    store.pin([node.cid], ALICE)
+    assert store.pins.pinned_bytes(ALICE) == len(node.data) + 2 * len(leaf.data)
 
 
 def test_pin_add_past_the_share_pins_nothing(store: ContentStore) -> None:
@@ -158,3 +183,20 @@ def test_a_car_whose_first_root_is_incomplete_has_the_shared_dag_charged_to_the_
         car_import.discard()
     assert [bool(root.pin_error) for root in roots] == [True, False]
     assert store.pins.pinned_bytes(ALICE) == len(shared.data) + 5000
+
+
+def test_a_dag_that_doubles_at_every_level_is_sized_in_linear_time_and_refused(
+    store: ContentStore,
+) -> None:
+    """300 levels, each linking the one below twice: 300 blocks, a cumulative size past
+    2**300. Walked once and summed once per block, then refused like any pin too large."""
+    below = raw(b"bottom")
+    blocks = [below]
+    for level in range(300):
+        below = node_over([below.cid, below.cid], str(level).encode())
+        blocks.append(below)
+    put(store, *blocks)
+    with pytest.raises(PinQuotaExceeded) as refused:
+        store.pin([below.cid], ALICE, share=Share(16 * 1024**3))
+    assert refused.value.size > 2**300
+    assert store.pinned() == {}
