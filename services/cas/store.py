@@ -42,7 +42,7 @@ from services.cas.blockstore import (
     remove_temporaries,
 )
 from services.cas.peers import OutcomeHook, PeerFetcher
-from services.cas.pins import PinSet
+from services.cas.pins import PinQuotaExceeded, PinSet
 from services.cas.shares import UNBOUNDED, RecentWrites, Share
 
 log = logging.getLogger("robocloud.cas.store")
@@ -154,6 +154,12 @@ class WalkedDag:
     ``Size``): its blocks' bytes, a sub-DAG linked twice counted twice; 0 when not whole."""
 
 
+class WalkOverBudget(Exception):
+    def __init__(self, walked: int) -> None:
+        super().__init__(f"walked {walked} bytes, past the budget")
+        self.walked = walked
+
+
 class DagSizes:
     """The cumulative sizes of the DAGs one request walks, each root's on its own.
 
@@ -162,14 +168,25 @@ class DagSizes:
     and a part of it together, unpin the DAG and keep the part pinned for nothing. A root's
     size is rather its own DAG's, computed from every block's size and links recorded as the
     walk passes, each sub-DAG's once (``_sizes``): the work stays linear in the blocks.
+
+    ``budget``: the bytes the walk may read before :class:`WalkOverBudget` stops it. The
+    distinct bytes read are at most the sizes of the DAGs, so a walk past the room left in a
+    robot's share is refused for certain: ``pin/add`` stops there rather than fetch the rest
+    of a DAG of any size from the peers first.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, budget: int | None = None) -> None:
+        self.budget = budget
+        self.walked = 0
         self._blocks: dict[CID, tuple[int, list[CID]]] = {}
         self._sizes: dict[CID, int] = {}
 
     def record(self, block: Block) -> None:
-        self._blocks[block.cid] = (_stored_size(block), links_of(block.cid, block.data))
+        own = _stored_size(block)
+        self.walked += own
+        if self.budget is not None and self.walked > self.budget:
+            raise WalkOverBudget(self.walked)
+        self._blocks[block.cid] = (own, links_of(block.cid, block.data))
 
     def of(self, root: CID) -> int:
         """``root``'s cumulative size; every block under it must have been recorded."""
@@ -516,26 +533,45 @@ class ContentStore:
     def pin(self, roots: list[CID], owner: str, *, share: Share = UNBOUNDED) -> None:
         """Pin DAGs for ``owner``, all or none, once every block of each is here (fetched from
         peers if need be) and they fit its ``share`` of pins: a request refused for one root
-        leaves no pin behind, as ``unpin``."""
+        leaves no pin behind, as ``unpin``. Roots ``owner`` already pins are left as they
+        are; the walk of the others stops once it has read more than the room left."""
+        limit = share.max_pinned_bytes
+        new = [root for root in dict.fromkeys(roots) if owner not in self.pins.owners(root)]
+        used = self.pins.pinned_bytes(owner)
+        sizes = DagSizes(None if limit is None else limit - used)
         with self.blocks.hold() as hold:
-            charges = self._require_complete(roots, hold)
-            self.pins.add_all(charges, owner, max_bytes=share.max_pinned_bytes)
+            try:
+                charges = self._require_complete(new, hold, sizes=sizes)
+            except WalkOverBudget as over:
+                assert limit is not None, "only a bounded walk has a budget"
+                raise PinQuotaExceeded(owner, over.walked, used, limit) from None
+            self.pins.add_all(charges, owner, max_bytes=limit)
 
     def _require_complete(
-        self, roots: list[CID], hold: Hold, staging: Staging | None = None
+        self,
+        roots: list[CID],
+        hold: Hold,
+        staging: Staging | None = None,
+        *,
+        sizes: DagSizes | None = None,
     ) -> dict[CID, int]:
         """Each root with the bytes its pin is charged; ``DagIncomplete`` for the first root
         whose DAG lacks a block. Every stored block read stays in ``hold`` until the caller's
         pin is made."""
         charges = {}
-        for walked in self.walked_dags(roots, staging, hold=hold):
+        for walked in self.walked_dags(roots, staging, hold=hold, sizes=sizes):
             if walked.missing is not None:
                 raise DagIncomplete(walked.root, walked.missing)
             charges[walked.root] = walked.size
         return charges
 
     def walked_dags(
-        self, roots: list[CID], staging: Staging | None = None, *, hold: Hold | None = None
+        self,
+        roots: list[CID],
+        staging: Staging | None = None,
+        *,
+        hold: Hold | None = None,
+        sizes: DagSizes | None = None,
     ) -> Iterator[WalkedDag]:
         """Each distinct root's DAG walked, as it is asked for, with its cumulative size.
 
@@ -545,7 +581,7 @@ class ContentStore:
         root its whole DAG's size.
         """
         seen: set[CID] = set()
-        sizes = DagSizes()
+        sizes = sizes or DagSizes()
         for root in dict.fromkeys(roots):
             yield self._walk(root, staging, seen=seen, hold=hold, sizes=sizes)
 

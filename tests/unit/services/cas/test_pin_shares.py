@@ -200,3 +200,28 @@ def test_a_dag_that_doubles_at_every_level_is_sized_in_linear_time_and_refused(
         store.pin([below.cid], ALICE, share=Share(16 * 1024**3))
     assert refused.value.size > 2**300
     assert store.pinned() == {}
+
+
+def test_a_pin_too_large_stops_reading_once_it_passes_the_room_left(
+    store: ContentStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With peers, every block a pin reads may be fetched and stored: a DAG of any size was
+    read whole before its size was known to be too large for the robot's share."""
+    leaves = [raw(bytes([n]) * 1000) for n in range(10)]
+    root = node_over([leaf.cid for leaf in leaves], b"ten leaves")
+    put(store, root, *leaves)
+    store.pin([leaves[0].cid], ALICE)
+    reads = []
+    get = store.blocks.get
+
+    def counted(cid: CID) -> bytes:
+        reads.append(cid)
+        return get(cid)
+
+    monkeypatch.setattr(store.blocks, "get", counted)
+    with pytest.raises(PinQuotaExceeded) as refused:
+        store.pin([leaves[0].cid, root.cid], ALICE, share=Share(3500))
+    assert len(reads) <= 4
+    assert (refused.value.used, refused.value.limit) == (1000, 3500)
+    assert refused.value.size > 2500
+    assert store.pinned() == {leaves[0].cid: frozenset({ALICE})}
