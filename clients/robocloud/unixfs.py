@@ -736,7 +736,11 @@ def list_directory(root: CID, get_block: GetBlock) -> list[Link]:
 
 
 def walk_dag(
-    root: CID, get_block: GetBlock, scope: str = "all", seen: set[CID] | None = None
+    root: CID,
+    get_block: GetBlock,
+    scope: str = "all",
+    seen: set[CID] | None = None,
+    on_links: Callable[[CID, list[CID]], None] | None = None,
 ) -> Iterator[Block]:
     """Blocks in CAR order (depth first, links in order, each block once).
 
@@ -752,6 +756,9 @@ def walk_dag(
     under them: shared by the walks of several roots, it reads a common sub-DAG once. A walk
     cut short (a block missing or malformed, the caller gone) takes back the blocks it had
     not finished, the path down to where it stopped, so ``seen`` stays true for the next.
+
+    ``on_links`` (scope ``all``) hears each block's links once the walk has decoded them, so
+    that a caller needing them (the cas, sizing a DAG) does not decode every block again.
     """
     if scope not in ("block", "entity", "all"):
         raise UnixfsError(f"unknown dag-scope {scope!r}: expected block, entity or all")
@@ -791,7 +798,9 @@ def walk_dag(
                         width = hamt_prefix_width(cid, unixfs)
                         children = [link.cid for link in node.links if len(link.name) == width]
             else:
-                continue
+                children = []
+            if on_links is not None and scope == "all":
+                on_links(cid, children)
             if children:
                 frames.append(iter(children))
                 path.append(cid)

@@ -186,7 +186,12 @@ class DagSizes:
         self.walked += own
         if self.budget is not None and self.walked > self.budget:
             raise WalkOverBudget(self.walked)
-        self._blocks[block.cid] = (own, links_of(block.cid, block.data))
+        self._blocks[block.cid] = (own, [])
+
+    def links(self, cid: CID, links: list[CID]) -> None:
+        """``cid``'s links, as the walk that recorded it decoded them (``walk_dag``'s
+        ``on_links``)."""
+        self._blocks[cid] = (self._blocks[cid][0], links)
 
     def of(self, root: CID) -> int:
         """``root``'s cumulative size; every block under it must have been recorded."""
@@ -490,7 +495,7 @@ class ContentStore:
         get = partial(self._staged_or_stored, staging=staging, hold=keeper)
         sizes = sizes or DagSizes()
         try:
-            for block in walk_dag(root, get, "all", seen):
+            for block in walk_dag(root, get, "all", seen, sizes.links):
                 sizes.record(block)
         except _Missing as missing:
             return WalkedDag(root, missing.cid, 0)
@@ -504,7 +509,9 @@ class ContentStore:
         here; one that is not is charged nothing, and said)."""
         sizes = DagSizes()
         try:
-            for block in walk_dag(root, partial(self.get_block, use_peers=False)):
+            for block in walk_dag(
+                root, partial(self.get_block, use_peers=False), on_links=sizes.links
+            ):
                 sizes.record(block)
         except (BlockUnavailable, UnixfsError) as exc:
             log.warning("pinned DAG not whole here", extra={"cid": str(root), "error": str(exc)})
