@@ -2,8 +2,8 @@
 
 A pin is a (root CID, owner address) pair: several robots may pin the same content, and
 each may remove only its own pin, so one robot can never make another's data collectable.
-Each pin carries the bytes its owner was charged for it, the blocks of its DAG that the
-request pinning it walked, and a robot's pins together may hold at most its share
+Each pin carries the bytes its owner was charged for it, its DAG's cumulative size (kubo's
+``CumulativeSize``), and a robot's pins together may hold at most its share
 (``ROBOCLOUD_CAS_MAX_PINNED_BYTES_PER_ROBOT``): without one, a single registered robot
 could fill the disk that every robot's data lives on. Removing a pin gives its charge back.
 Two robots pinning the same DAG are each charged for it, as each alone keeps it alive.
@@ -145,7 +145,7 @@ class PinSet:
         so a request either pins all its roots or none.
         """
         with self._lock:
-            new = {cid: charge for cid, charge in charges.items() if not self._owns(cid, owner)}
+            new = self._new(charges, owner)
             self._check_share(new, owner, max_bytes)
             if new:
                 self._log.append(self._add_line(new, owner))
@@ -158,11 +158,16 @@ class PinSet:
         request's blocks are stored, so a refused request stores nothing. ``add_all`` asks
         again, for pins of the same robot made in between."""
         with self._lock:
-            new = {cid: charge for cid, charge in charges.items() if not self._owns(cid, owner)}
+            new = self._new(charges, owner)
             self._check_share(new, owner, max_bytes)
 
-    def _owns(self, cid: CID, owner: str) -> bool:
-        return owner in self._charges.get(cid, ())
+    def _new(self, charges: Mapping[CID, int], owner: str) -> dict[CID, int]:
+        """The roots of ``charges`` that ``owner`` does not pin yet: only those are charged."""
+        return {
+            cid: charge
+            for cid, charge in charges.items()
+            if owner not in self._charges.get(cid, ())
+        }
 
     def _check_share(self, new: Mapping[CID, int], owner: str, max_bytes: int | None) -> None:
         size = sum(new.values())
