@@ -11,7 +11,7 @@ import itertools
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -293,15 +293,18 @@ class ContentStore:
         """Store raw blocks as one pack (one fsync, all or none), then pin them if asked.
 
         A pin keeps a whole DAG, so with ``pin`` every block's DAG must be complete, as for
-        ``pin/add``: the blocks of this request count, and a block that neither they, the
-        store nor a peer has refuses the request (``DagIncomplete``) with nothing stored, as
-        does ``owner``'s ``share`` (``commit_within``).
+        ``pin/add``, but from this request's blocks and the store's alone, as kubo's import
+        asks no peer: a block neither has refuses the request (``DagIncomplete``) with
+        nothing stored, as does ``owner``'s ``share`` (``commit_within``).
         """
         cids = [CID.from_block(data, codec, 1) for data in blocks]
         with self.blocks.stage() as staging:
             for cid, data in zip(cids, blocks, strict=True):
                 staging.add(cid, data)
-            charges = self._require_complete(cids, staging.hold, staging) if pin else {}
+            charges = {}
+            if pin:
+                walked = self.walked_to_pin(cids, owner, share, staging, use_peers=False)
+                charges = _whole(walked)
             self.commit_within(staging, charges, owner, share)
         return cids
 
@@ -488,11 +491,12 @@ class ContentStore:
         seen: set[CID] | None = None,
         hold: Hold | None = None,
         sizes: DagSizes | None = None,
+        use_peers: bool = True,
     ) -> WalkedDag:
         """``root``'s DAG walked. ``seen``: blocks whose DAGs earlier walks of this request
         found complete, not read again, each recorded in ``sizes``."""
         keeper = hold or (staging.hold if staging is not None else None)
-        get = partial(self._staged_or_stored, staging=staging, hold=keeper)
+        get = partial(self._staged_or_stored, staging=staging, hold=keeper, use_peers=use_peers)
         sizes = sizes or DagSizes()
         try:
             for block in walk_dag(root, get, "all", seen, sizes.links):
@@ -518,20 +522,22 @@ class ContentStore:
             return 0
         return sizes.of(root)
 
-    def _staged_or_stored(self, cid: CID, staging: Staging | None, hold: Hold | None) -> bytes:
+    def _staged_or_stored(
+        self, cid: CID, staging: Staging | None, hold: Hold | None, use_peers: bool
+    ) -> bytes:
         if staging is not None and cid in staging:
             return staging.get(cid)
         if hold is None or cid.hash_code == IDENTITY:
-            return self._stored(cid)
+            return self._stored(cid, use_peers)
         held = hold.keep(cid)  # before the read: no collection between the two
-        data = self._stored(cid)
+        data = self._stored(cid, use_peers)
         if not held and not hold.keep(cid):
             raise _Missing(cid)  # fetched from a peer, then collected before it was held
         return data
 
-    def _stored(self, cid: CID) -> bytes:
+    def _stored(self, cid: CID, use_peers: bool) -> bytes:
         try:
-            return self.get_block(cid)
+            return self.get_block(cid, use_peers=use_peers)
         except BlockUnavailable:
             raise _Missing(cid) from None
 
@@ -540,45 +546,48 @@ class ContentStore:
     def pin(self, roots: list[CID], owner: str, *, share: Share = UNBOUNDED) -> None:
         """Pin DAGs for ``owner``, all or none, once every block of each is here (fetched from
         peers if need be) and they fit its ``share`` of pins: a request refused for one root
-        leaves no pin behind, as ``unpin``. Roots ``owner`` already pins are left as they
-        are; the walk of the others stops once it has read more than the room left."""
+        leaves no pin behind, as ``unpin``."""
+        with self.blocks.hold() as hold:
+            charges = _whole(self.walked_to_pin(roots, owner, share, hold=hold))
+            self.pins.add_all(charges, owner, max_bytes=share.max_pinned_bytes)
+
+    def walked_to_pin(
+        self,
+        roots: list[CID],
+        owner: str,
+        share: Share,
+        staging: Staging | None = None,
+        *,
+        hold: Hold | None = None,
+        use_peers: bool = True,
+    ) -> Iterator[WalkedDag]:
+        """The DAGs of the roots ``owner`` does not pin yet, walked as they are asked for
+        (its pins need no walk: their DAGs were whole and valid when pinned), within the
+        room left in its ``share``: the walk stops once it has read more than that
+        (``PinQuotaExceeded``), rather than read a stored DAG of any size, or fetch one
+        from the peers, first.
+
+        The stop counts every distinct block read, also under a root found incomplete, which
+        is charged nothing: an import of many partial DAGs may be refused a little early.
+        """
         limit = share.max_pinned_bytes
         new = [root for root in dict.fromkeys(roots) if owner not in self.pins.owners(root)]
         used = self.pins.pinned_bytes(owner)
         sizes = DagSizes(None if limit is None else limit - used)
-        with self.blocks.hold() as hold:
-            try:
-                charges = self._require_complete(new, hold, sizes=sizes)
-            except WalkOverBudget as over:
-                assert limit is not None, "only a bounded walk has a budget"
-                raise PinQuotaExceeded(owner, over.walked, used, limit) from None
-            self.pins.add_all(charges, owner, max_bytes=limit)
+        try:
+            yield from self._walked_dags(new, staging, hold=hold, sizes=sizes, use_peers=use_peers)
+        except WalkOverBudget as over:
+            assert limit is not None, "only a bounded walk has a budget"
+            raise PinQuotaExceeded(owner, over.walked, used, limit) from None
 
-    def _require_complete(
-        self,
-        roots: list[CID],
-        hold: Hold,
-        staging: Staging | None = None,
-        *,
-        sizes: DagSizes | None = None,
-    ) -> dict[CID, int]:
-        """Each root with the bytes its pin is charged; ``DagIncomplete`` for the first root
-        whose DAG lacks a block. Every stored block read stays in ``hold`` until the caller's
-        pin is made."""
-        charges = {}
-        for walked in self.walked_dags(roots, staging, hold=hold, sizes=sizes):
-            if walked.missing is not None:
-                raise DagIncomplete(walked.root, walked.missing)
-            charges[walked.root] = walked.size
-        return charges
-
-    def walked_dags(
+    def _walked_dags(
         self,
         roots: list[CID],
         staging: Staging | None = None,
         *,
         hold: Hold | None = None,
         sizes: DagSizes | None = None,
+        use_peers: bool = True,
     ) -> Iterator[WalkedDag]:
         """Each distinct root's DAG walked, as it is asked for, with its cumulative size.
 
@@ -590,7 +599,7 @@ class ContentStore:
         seen: set[CID] = set()
         sizes = sizes or DagSizes()
         for root in dict.fromkeys(roots):
-            yield self._walk(root, staging, seen=seen, hold=hold, sizes=sizes)
+            yield self._walk(root, staging, seen=seen, hold=hold, sizes=sizes, use_peers=use_peers)
 
     def unpin(self, roots: list[CID], owner: str) -> None:
         """Remove ``owner``'s pins on every root, or none (see ``PinSet.remove``)."""
@@ -679,6 +688,17 @@ class ContentStore:
         self.pins.close()
         if self.peers is not None:
             self.peers.close()
+
+
+def _whole(walked: Iterable[WalkedDag]) -> dict[CID, int]:
+    """Each root with the bytes its pin is charged; ``DagIncomplete`` for the first root
+    whose DAG lacks a block, before the walk of the next."""
+    charges = {}
+    for dag in walked:
+        if dag.missing is not None:
+            raise DagIncomplete(dag.root, dag.missing)
+        charges[dag.root] = dag.size
+    return charges
 
 
 def _stored_size(block: Block) -> int:

@@ -369,20 +369,25 @@ class CarImport:
             raise TooManyRoots(len(self.roots), MAX_ROOTS)
 
     def commit(self, owner: str, share: Share = UNBOUNDED) -> list[ImportedRoot]:
-        """Walk every root's DAG first (one too deep or malformed rejects the whole import),
-        then pin the complete ones in one journal line; past ``owner``'s ``share`` the
-        import is refused with nothing stored.
+        """Store the blocks; with ``pin_roots``, first walk the DAG of every root ``owner``
+        does not pin yet (one too deep or malformed rejects the whole import), then pin the
+        complete ones in one journal line; past ``owner``'s ``share`` the import is refused
+        with nothing stored. Without ``pin_roots`` no root is walked or answered, as kubo.
 
-        The roots share one walk (``ContentStore.walked_dags``): a CAR naming one large
-        DAG under many roots costs one pass over its blocks."""
-        walked = list(self.store.walked_dags(list(self.roots), self.staging))
-        whole = [dag for dag in walked if dag.missing is None]
-        charges = {dag.root: dag.size for dag in whole} if self.pin_roots else {}
-        self.store.commit_within(self.staging, charges, owner, share)
+        The walk reads this import's blocks and the store's, never a peer's (kubo's import
+        is offline too): a CAR of one block linking to a DAG of any size at the peers had
+        the cas fetch it all. The roots share one walk (``ContentStore.walked_to_pin``): a
+        CAR naming one large DAG under many roots costs one pass over its blocks."""
         if not self.pin_roots:
-            return [ImportedRoot(root, "") for root in self.roots]
+            self.store.commit_within(self.staging, {}, owner, share)
+            return []
+        walked = list(
+            self.store.walked_to_pin(list(self.roots), owner, share, self.staging, use_peers=False)
+        )
         missing = {dag.root: dag.missing for dag in walked}
-        return [ImportedRoot(root, _pin_error(root, missing[root])) for root in self.roots]
+        charges = {dag.root: dag.size for dag in walked if dag.missing is None}
+        self.store.commit_within(self.staging, charges, owner, share)
+        return [ImportedRoot(root, _pin_error(root, missing.get(root))) for root in self.roots]
 
     def discard(self) -> None:
         self.staging.discard()

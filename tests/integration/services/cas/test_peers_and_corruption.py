@@ -8,12 +8,23 @@ from http.server import BaseHTTPRequestHandler
 import httpx
 import pytest
 
+from robocloud.car import write_car
 from robocloud.cas import Cas
-from robocloud.cid import CID
+from robocloud.cid import CID, DAG_PB, Block
+from robocloud.client import ServiceClient
+from robocloud.dagpb import Link, PBNode
+from robocloud.errors import ApiError
 from robocloud.identity import Identity
 from robocloud.unixfs import import_bytes
 from tests.conftest import ServiceFactory
-from tests.integration.services.cas.conftest import QUIET_GC, corrupt_block
+from tests.integration.services.cas.conftest import (
+    QUIET_GC,
+    corrupt_block,
+    error_of,
+    multipart,
+    repo_stat,
+    store_unchanged,
+)
 from tests.procs import ServiceProcess
 from tests.scripted_http import serving
 
@@ -144,3 +155,43 @@ def test_peers_asking_each_other_do_not_loop(service_factory: ServiceFactory) ->
     second = peer_of(service_factory, first.url)
     missing = CID.from_block(b"nobody has this")
     assert httpx.get(f"{second.url}/ipfs/{missing}", timeout=10).status_code == 404
+
+
+def test_uploads_ask_no_peer_for_what_they_link_to_and_pin_add_does(
+    cas: Cas, cas_service: ServiceProcess, service_factory: ServiceFactory, identity: Identity
+) -> None:
+    """kubo's ``dag import`` is offline, and so are ``dag/import`` and ``block/put?pin=true``
+    here: a CAR of one small node linking to a DAG of any size at the peers had the cas
+    fetch all of it before the pin, past any bound an upload has. ``pin/add`` asks the
+    peers, within the robot's share."""
+    far = cas.add_bytes(DATA)
+    edge = peer_of(service_factory, cas_service.url)
+    data = PBNode([Link(far, "far", len(DATA))], b"").encode()
+    near = Block(CID.from_block(data, DAG_PB, 1), data)
+    with ServiceClient(edge.url, identity, retries=0) as signed, Cas(edge.url, identity) as robot:
+        body, content_type = multipart(("near.car", b"".join(write_car([near.cid], [near]))))
+        response = signed.request(
+            "POST", "/api/v0/dag/import", content=body, headers={"Content-Type": content_type}
+        )
+        answer = response.json()
+        assert answer["Root"]["Cid"] == {"/": str(near.cid)}
+        assert answer["Root"]["PinErrorMsg"] == (
+            f"block {far} of the DAG is missing; {near.cid} was not pinned"
+        )
+        assert repo_stat(edge.url)["NumObjects"] == 1
+        body, content_type = multipart(("block", near.data))
+        with store_unchanged(edge), pytest.raises(ApiError) as exc:
+            signed.request(
+                "POST",
+                "/api/v0/block/put?pin=true&cid-codec=dag-pb",
+                content=body,
+                headers={"Content-Type": content_type},
+            )
+        assert error_of(exc, 404, "block_not_found").details == {
+            "cid": str(near.cid),
+            "missing": str(far),
+        }
+        assert metric(edge, "robocloud_cas_peer_fetches_total") == 0
+        robot.pin(near.cid)
+    assert metric(edge, "robocloud_cas_peer_fetches_total", outcome="ok") == 4
+    assert repo_stat(edge.url)["NumObjects"] == 5

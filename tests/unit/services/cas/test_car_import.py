@@ -13,21 +13,43 @@ from robocloud.car import write_car
 from robocloud.cid import CID, DAG_PB, RAW, Block
 from robocloud.dagpb import Link, PBNode
 from robocloud.unixfs import ImportParams, import_bytes
+from services.cas.shares import UNBOUNDED, Share
 from services.cas.store import ContentStore, ImportedRoot
 from services.cas.uploads import CarImport
 from tests.unit.services.cas.test_reachability import ALICE
 
 
-def imported(store: ContentStore, roots: list[CID], blocks: list[Block]) -> list[ImportedRoot]:
-    car_import = CarImport(store, pin_roots=True)
+def imported(
+    store: ContentStore,
+    roots: list[CID],
+    blocks: list[Block],
+    share: Share = UNBOUNDED,
+    *,
+    pin_roots: bool = True,
+) -> list[ImportedRoot]:
+    """``dag/import`` of one CAR for ALICE, as the route runs it."""
+    car_import = CarImport(store, pin_roots=pin_roots)
     try:
         car_import.begin("import.car")
         for part in write_car(roots, blocks):
             car_import.write(part)
         car_import.end()
-        return car_import.commit(ALICE)
+        return car_import.commit(ALICE, share)
     finally:
         car_import.discard()
+
+
+def counting_walk_reads(store: ContentStore, monkeypatch: pytest.MonkeyPatch) -> Counter[CID]:
+    """The blocks a walk reads from now on, staged or stored, with the times each is read."""
+    reads: Counter[CID] = Counter()
+    staged_or_stored = store._staged_or_stored
+
+    def counted(cid: CID, **where: object) -> bytes:
+        reads[cid] += 1
+        return staged_or_stored(cid, **where)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(store, "_staged_or_stored", counted)
+    return reads
 
 
 def node_over(children: list[CID], label: bytes) -> Block:
@@ -44,14 +66,7 @@ def test_a_dag_named_under_many_roots_is_walked_once_and_pinned_in_one_line(
     blocks, file_root = import_bytes(os.urandom(40_000), ImportParams(chunk_size=1000))
     shared = [node_over([file_root], str(n).encode()) for n in range(500)]
     roots = [file_root] * 500 + [block.cid for block in shared]
-    reads: Counter[CID] = Counter()
-    staged_or_stored = store._staged_or_stored
-
-    def counted(cid: CID, **where: object) -> bytes:
-        reads[cid] += 1
-        return staged_or_stored(cid, **where)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(store, "_staged_or_stored", counted)
+    reads = counting_walk_reads(store, monkeypatch)
     journal = tmp_path / "pins.log"
     before = journal.read_bytes().count(b"\n") if journal.exists() else 0
     answers = imported(store, roots, [*blocks, *shared])
@@ -77,3 +92,19 @@ def test_a_root_over_a_block_another_root_stopped_at_is_not_pinned(
         "",
     ]
     assert set(store.pins.snapshot()) == {whole.cid}
+
+
+def test_without_pin_roots_no_root_is_walked_or_answered(
+    store: ContentStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """kubo answers no root when it pins none. Walking them read a DAG of any size stored
+    under a root the CAR names (or fetched it from the peers) for a pin nobody asked for."""
+    stored = [node_over([], str(n).encode()) for n in range(100)]
+    for block in stored:
+        store.put_blocks([block.data], DAG_PB, ALICE, pin=False)
+    over_them = node_over([block.cid for block in stored], b"over them")
+    reads = counting_walk_reads(store, monkeypatch)
+    assert imported(store, [over_them.cid], [over_them], pin_roots=False) == []
+    assert not reads
+    assert store.usage()[0] == 101
+    assert store.pinned() == {}

@@ -11,14 +11,13 @@ from pathlib import Path
 
 import pytest
 
-from robocloud.car import write_car
 from robocloud.cid import CID, DAG_PB, RAW, Block
 from robocloud.unixfs import ImportParams
 from services.cas.pins import PinQuotaExceeded, PinSet
 from services.cas.shares import Share
 from services.cas.store import ContentStore
-from services.cas.uploads import BlockCollector, CarImport, FileAdder
-from tests.unit.services.cas.test_car_import import node_over
+from services.cas.uploads import BlockCollector, FileAdder
+from tests.unit.services.cas.test_car_import import counting_walk_reads, imported, node_over
 from tests.unit.services.cas.test_pins import ALICE, BOB, ONE, TWO
 from tests.unit.services.cas.test_reachability import file_node, put, raw
 
@@ -172,15 +171,7 @@ def test_a_car_whose_first_root_is_incomplete_has_the_shared_dag_charged_to_the_
     absent = raw(b"never sent")
     first = node_over([shared.cid, absent.cid], b"first")
     blocks = [first, shared, raw(b"x" * 5000)]
-    car_import = CarImport(store, pin_roots=True)
-    try:
-        car_import.begin("import.car")
-        for part in write_car([first.cid, shared.cid], blocks):
-            car_import.write(part)
-        car_import.end()
-        roots = car_import.commit(ALICE, Share(100_000))
-    finally:
-        car_import.discard()
+    roots = imported(store, [first.cid, shared.cid], blocks, Share(100_000))
     assert [bool(root.pin_error) for root in roots] == [True, False]
     assert store.pins.pinned_bytes(ALICE) == len(shared.data) + 5000
 
@@ -225,3 +216,38 @@ def test_a_pin_too_large_stops_reading_once_it_passes_the_room_left(
     assert (refused.value.used, refused.value.limit) == (1000, 3500)
     assert refused.value.size > 2500
     assert store.pinned() == {leaves[0].cid: frozenset({ALICE})}
+
+
+def test_an_import_stops_reading_a_stored_dag_once_it_passes_the_room_left(
+    store: ContentStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A CAR of one small node linking to a large DAG another robot stored: the import read
+    all of it before the pin was found too large for the robot's share."""
+    leaves = [raw(bytes([n]) * 1000) for n in range(10)]
+    stored = node_over([leaf.cid for leaf in leaves], b"ten leaves")
+    put(store, stored, *leaves)
+    near = node_over([stored.cid], b"near")
+    reads = counting_walk_reads(store, monkeypatch)
+    with pytest.raises(PinQuotaExceeded) as refused:
+        imported(store, [near.cid], [near], Share(3500))
+    assert sum(reads.values()) <= 5
+    assert (refused.value.used, refused.value.limit) == (0, 3500)
+    assert refused.value.size > 3500
+    assert store.usage()[0] == 11
+    assert store.pinned() == {}
+
+
+def test_importing_a_dag_the_robot_pins_again_neither_walks_nor_charges_it(
+    store: ContentStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A robot sending its CAR again (a retry) with its share nearly used: the DAG it pins
+    needs no walk, and its bytes must not count against the room left."""
+    leaves = [raw(bytes([n]) * 1000) for n in range(8)]
+    root = node_over([leaf.cid for leaf in leaves], b"eight leaves")
+    assert imported(store, [root.cid], [root, *leaves], Share(9000))[0].pin_error == ""
+    used = store.pins.pinned_bytes(ALICE)
+    reads = counting_walk_reads(store, monkeypatch)
+    again = imported(store, [root.cid], [root, *leaves], Share(9000))
+    assert [(answer.cid, answer.pin_error) for answer in again] == [(root.cid, "")]
+    assert not reads
+    assert store.pins.pinned_bytes(ALICE) == used
