@@ -55,6 +55,7 @@ def _open_store(settings: CasSettings, app: FastAPI) -> ContentStore:
         settings.resolved_data_dir(),
         settings.cas_peers,
         peer_timeout_s=settings.cas_peer_timeout_s,
+        max_cached_bytes_per_hour=settings.cas_max_cached_bytes_per_hour,
         on_corrupt=on_corrupt,
         on_peer_outcome=on_outcome,
     )

@@ -29,6 +29,12 @@ class CasSettings(ServiceSettings):
         "nodes and ROBOCLOUD_ALLOWED_ADDRESSES are not bounded): past it an upload is 429 "
         "write_rate_exceeded",
     )
+    cas_max_cached_bytes_per_hour: int = Field(
+        default=8 * 1024**3,
+        gt=0,
+        description="bytes reads may fetch from peers and keep in a rolling hour; past it a "
+        "block fetched for a read is served without being kept",
+    )
     cas_gc_grace_s: float = Field(default=3600.0, ge=0)
     cas_max_streams: int = Field(
         default=64,

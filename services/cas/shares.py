@@ -75,6 +75,12 @@ class RecentWrites:
             self._give_back(robot, minute, size)
             raise
 
+    def add(self, robot: str, size: int, limit: int | None) -> None:
+        """Count ``size`` bytes written for good (a block fetched from a peer is stored as it
+        comes, with nothing to take back); :class:`WriteRateExceeded`, counting nothing, when
+        they do not fit ``limit``."""
+        self._take(robot, size, limit)
+
     def written(self, robot: str) -> int:
         with self._lock:
             return sum(count for _, count in self._current(robot))

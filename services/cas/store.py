@@ -43,7 +43,7 @@ from services.cas.blockstore import (
 )
 from services.cas.peers import OutcomeHook, PeerFetcher
 from services.cas.pins import PinQuotaExceeded, PinSet
-from services.cas.shares import UNBOUNDED, RecentWrites, Share
+from services.cas.shares import UNBOUNDED, RecentWrites, Share, WriteRateExceeded
 
 log = logging.getLogger("robocloud.cas.store")
 
@@ -60,6 +60,8 @@ hundred bytes, again at every request. The file reader's budget covers only the 
 kubo's directories and shards are at most a few hundred KiB: 256 MiB (about half a second
 of hashing) passes a path of 256 of the largest, or any directory of ``MAX_LISTED_ENTRIES``.
 """
+READS = "reads"
+"""The key under which ``ContentStore.read_fetches`` counts what reads fetched from peers."""
 MAX_LISTED_ENTRIES = 100_000
 """Entries one directory listing (``ls``, the gateway's page, ``format=dag-json`` of a
 shard) answers with: about 30 MB of HTML or 15 MB of JSON."""
@@ -218,12 +220,24 @@ class ImportedRoot:
 
 
 class ContentStore:
-    def __init__(self, root: Path, blocks: Blockstore, peers: PeerFetcher | None = None) -> None:
+    def __init__(
+        self,
+        root: Path,
+        blocks: Blockstore,
+        peers: PeerFetcher | None = None,
+        *,
+        max_cached_bytes_per_hour: int | None = None,
+    ) -> None:
         remove_temporaries(root)
         self.blocks = blocks
         self.peers = peers
         self.pins = PinSet(root / "pins.log", dag_bytes=self._stored_dag_bytes)
         self.writes = RecentWrites()
+        self.read_fetches = RecentWrites()
+        """The bytes reads fetched from peers and kept, in a rolling hour (one count,
+        :data:`READS`): at most ``max_cached_bytes_per_hour``, past which a block fetched
+        for a read is served without being kept."""
+        self.max_cached_bytes_per_hour = max_cached_bytes_per_hour
         self.collecting = threading.Lock()
         """Held by a whole collection, compaction included: the periodic one and ``repo/gc``
         ran at once, both rewrote the same pack, and the one that found it gone failed."""
@@ -235,6 +249,7 @@ class ContentStore:
         peers: list[str],
         *,
         peer_timeout_s: float = 10.0,
+        max_cached_bytes_per_hour: int | None = None,
         on_corrupt: CorruptionHook | None = None,
         on_peer_outcome: OutcomeHook | None = None,
     ) -> ContentStore:
@@ -242,7 +257,12 @@ class ContentStore:
         fetcher = None
         if peers:
             fetcher = PeerFetcher(peers, timeout_s=peer_timeout_s, on_outcome=on_peer_outcome)
-        return cls(root, Blockstore(root, on_corrupt=on_corrupt), fetcher)
+        return cls(
+            root,
+            Blockstore(root, on_corrupt=on_corrupt),
+            fetcher,
+            max_cached_bytes_per_hour=max_cached_bytes_per_hour,
+        )
 
     def check_writable(self) -> None:
         """Raise ``OSError`` unless the pack directory is there (a readiness check)."""
@@ -254,8 +274,15 @@ class ContentStore:
 
     # ---- blocks ----
 
-    def get_block(self, cid: CID, *, use_peers: bool = True) -> bytes:
-        """A verified block: inline in an identity CID, local, else from a peer (then cached).
+    def get_block(
+        self,
+        cid: CID,
+        *,
+        use_peers: bool = True,
+        charge_fetched: Callable[[int], None] | None = None,
+    ) -> bytes:
+        """A verified block: inline in an identity CID, local, else from a peer (then kept,
+        see :meth:`_keep_fetched`).
 
         An identity CID carries its block in its multihash (at most 128 bytes, bounded when the
         CID is parsed): it is answered from the CID itself, never looked up or stored.
@@ -269,10 +296,26 @@ class ContentStore:
         if use_peers and self.peers is not None:
             data = self.peers.fetch(cid)
             if data is not None:
-                self.blocks.put(cid, data)
+                self._keep_fetched(cid, data, charge_fetched)
                 return data
             reason += "; no peer has it"
         raise BlockUnavailable(cid, reason)
+
+    def _keep_fetched(self, cid: CID, data: bytes, charge: Callable[[int], None] | None) -> None:
+        """Store a block fetched from a peer. A pin's walk charges it to the robot's new
+        bytes of the hour first (``charge``, which raises past them: a robot pinning and
+        unpinning DAGs at the peers wrote without bound). A read keeps it while what reads
+        fetched in the hour fits ``max_cached_bytes_per_hour``, and past that serves it
+        without keeping it: any stranger chooses what a read fetches, and every read kept
+        until the next collection let one fill the disk with the peers' content."""
+        if charge is not None:
+            charge(len(data))
+        else:
+            try:
+                self.read_fetches.add(READS, len(data), self.max_cached_bytes_per_hour)
+            except WriteRateExceeded:
+                return
+        self.blocks.put(cid, data)
 
     def block_size(self, cid: CID, *, use_peers: bool = True) -> int:
         if cid.hash_code == IDENTITY:
@@ -491,12 +534,15 @@ class ContentStore:
         seen: set[CID] | None = None,
         hold: Hold | None = None,
         sizes: DagSizes | None = None,
-        use_peers: bool = True,
+        get: GetBlock | None = None,
     ) -> WalkedDag:
         """``root``'s DAG walked. ``seen``: blocks whose DAGs earlier walks of this request
-        found complete, not read again, each recorded in ``sizes``."""
+        found complete, not read again, each recorded in ``sizes``. ``get`` reads a block
+        that is not staged (by default the store's or a peer's, as a read)."""
         keeper = hold or (staging.hold if staging is not None else None)
-        get = partial(self._staged_or_stored, staging=staging, hold=keeper, use_peers=use_peers)
+        get = partial(
+            self._staged_or_stored, staging=staging, hold=keeper, get=get or self.get_block
+        )
         sizes = sizes or DagSizes()
         try:
             for block in walk_dag(root, get, "all", seen, sizes.links):
@@ -522,24 +568,19 @@ class ContentStore:
             return 0
         return sizes.of(root)
 
+    @staticmethod
     def _staged_or_stored(
-        self, cid: CID, staging: Staging | None, hold: Hold | None, use_peers: bool
+        cid: CID, staging: Staging | None, hold: Hold | None, get: GetBlock
     ) -> bytes:
         if staging is not None and cid in staging:
             return staging.get(cid)
         if hold is None or cid.hash_code == IDENTITY:
-            return self._stored(cid, use_peers)
+            return _stored(cid, get)
         held = hold.keep(cid)  # before the read: no collection between the two
-        data = self._stored(cid, use_peers)
+        data = _stored(cid, get)
         if not held and not hold.keep(cid):
             raise _Missing(cid)  # fetched from a peer, then collected before it was held
         return data
-
-    def _stored(self, cid: CID, use_peers: bool) -> bytes:
-        try:
-            return self.get_block(cid, use_peers=use_peers)
-        except BlockUnavailable:
-            raise _Missing(cid) from None
 
     # ---- pins and garbage collection ----
 
@@ -565,7 +606,8 @@ class ContentStore:
         (its pins need no walk: their DAGs were whole and valid when pinned), within the
         room left in its ``share``: the walk stops once it has read more than that
         (``PinQuotaExceeded``), rather than read a stored DAG of any size, or fetch one
-        from the peers, first.
+        from the peers, first. With ``use_peers``, every block fetched is charged to the
+        robot's new bytes of the hour (``WriteRateExceeded`` past them).
 
         The stop counts every distinct block read, also under a root found incomplete, which
         is charged nothing: an import of many partial DAGs may be refused a little early.
@@ -574,8 +616,12 @@ class ContentStore:
         new = [root for root in dict.fromkeys(roots) if owner not in self.pins.owners(root)]
         used = self.pins.pinned_bytes(owner)
         sizes = DagSizes(None if limit is None else limit - used)
+        get = partial(self.get_block, use_peers=False)
+        if use_peers:
+            charge = partial(self.writes.add, owner, limit=share.max_written_bytes_per_hour)
+            get = partial(self.get_block, charge_fetched=charge)
         try:
-            yield from self._walked_dags(new, staging, hold=hold, sizes=sizes, use_peers=use_peers)
+            yield from self._walked_dags(new, staging, hold=hold, sizes=sizes, get=get)
         except WalkOverBudget as over:
             assert limit is not None, "only a bounded walk has a budget"
             raise PinQuotaExceeded(owner, over.walked, used, limit) from None
@@ -587,7 +633,7 @@ class ContentStore:
         *,
         hold: Hold | None = None,
         sizes: DagSizes | None = None,
-        use_peers: bool = True,
+        get: GetBlock | None = None,
     ) -> Iterator[WalkedDag]:
         """Each distinct root's DAG walked, as it is asked for, with its cumulative size.
 
@@ -599,7 +645,7 @@ class ContentStore:
         seen: set[CID] = set()
         sizes = sizes or DagSizes()
         for root in dict.fromkeys(roots):
-            yield self._walk(root, staging, seen=seen, hold=hold, sizes=sizes, use_peers=use_peers)
+            yield self._walk(root, staging, seen=seen, hold=hold, sizes=sizes, get=get)
 
     def unpin(self, roots: list[CID], owner: str) -> None:
         """Remove ``owner``'s pins on every root, or none (see ``PinSet.remove``)."""
@@ -688,6 +734,13 @@ class ContentStore:
         self.pins.close()
         if self.peers is not None:
             self.peers.close()
+
+
+def _stored(cid: CID, get: GetBlock) -> bytes:
+    try:
+        return get(cid)
+    except BlockUnavailable:
+        raise _Missing(cid) from None
 
 
 def _whole(walked: Iterable[WalkedDag]) -> dict[CID, int]:

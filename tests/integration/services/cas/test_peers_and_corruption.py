@@ -13,7 +13,7 @@ from robocloud.cas import Cas
 from robocloud.cid import CID, DAG_PB, Block
 from robocloud.client import ServiceClient
 from robocloud.dagpb import Link, PBNode
-from robocloud.errors import ApiError
+from robocloud.errors import ApiError, RateLimitedError
 from robocloud.identity import Identity
 from robocloud.unixfs import import_bytes
 from tests.conftest import ServiceFactory
@@ -195,3 +195,68 @@ def test_uploads_ask_no_peer_for_what_they_link_to_and_pin_add_does(
         robot.pin(near.cid)
     assert metric(edge, "robocloud_cas_peer_fetches_total", outcome="ok") == 4
     assert repo_stat(edge.url)["NumObjects"] == 5
+
+
+def test_reads_keep_what_they_fetch_from_peers_within_the_hours_bound(
+    cas: Cas, cas_service: ServiceProcess, service_factory: ServiceFactory
+) -> None:
+    """Nobody signs a read, and every block a read fetched was kept until a collection past
+    the grace period: one stranger reading the peers' content filled the disk. Past the
+    hour's bound a fetched block is served, verified, and not kept."""
+    cid = cas.add_bytes(DATA)
+    blocks, _ = import_bytes(DATA)
+    root, first_leaf = blocks[-1], blocks[0]
+    edge = service_factory(
+        "cas",
+        {
+            **QUIET_GC,
+            "ROBOCLOUD_CAS_PEERS": cas_service.url,
+            "ROBOCLOUD_CAS_MAX_CACHED_BYTES_PER_HOUR": str(len(root.data) + len(first_leaf.data)),
+        },
+    )
+    for _ in range(2):
+        assert httpx.get(f"{edge.url}/ipfs/{cid}", timeout=30).content == DATA
+    assert repo_stat(edge.url)["NumObjects"] == 2
+    cached = {"Cache-Control": "only-if-cached"}
+    assert httpx.get(f"{edge.url}/ipfs/{first_leaf.cid}?format=raw", headers=cached).content == (
+        first_leaf.data
+    )
+    assert (
+        httpx.get(f"{edge.url}/ipfs/{blocks[1].cid}?format=raw", headers=cached).status_code == 412
+    )
+    assert metric(edge, "robocloud_cas_peer_fetches_total", outcome="ok") == 6
+
+
+def test_pin_add_charges_what_it_fetches_to_the_robots_new_bytes(
+    cas: Cas, cas_service: ServiceProcess, service_factory: ServiceFactory, identity: Identity
+) -> None:
+    """``pin/add`` keeps what it fetches; uncharged, a robot pinning and unpinning DAGs at
+    the peers wrote without bound. Past its new bytes of the hour the walk stops."""
+    cid = cas.add_bytes(DATA)
+    small = cas.add_bytes(b"small enough")
+    blocks, _ = import_bytes(DATA)
+    fetched = len(blocks[-1].data) + len(blocks[0].data)
+    edge = service_factory(
+        "cas",
+        {
+            **QUIET_GC,
+            "ROBOCLOUD_CAS_PEERS": cas_service.url,
+            "ROBOCLOUD_CAS_MAX_WRITTEN_BYTES_PER_ROBOT_PER_HOUR": str(fetched + 1000),
+        },
+    )
+    with Cas(edge.url, identity, retries=0) as robot:
+        with pytest.raises(ApiError) as exc:
+            robot.pin(cid)
+        error = error_of(exc, 429, "write_rate_exceeded")
+        assert isinstance(exc.value, RateLimitedError)
+        error.details.pop("retry_after")
+        assert error.details == {
+            "robot": identity.address,
+            "size": len(blocks[1].data),
+            "written": fetched,
+            "limit": fetched + 1000,
+        }
+        assert robot.pins() == {}
+        robot.pin(small)
+        assert robot.pin_share().written_bytes_last_hour == fetched + len(b"small enough")
+    assert metric(edge, "robocloud_cas_peer_fetches_total", outcome="ok") == 4

@@ -63,3 +63,16 @@ def test_robots_are_forgotten_once_their_writes_leave_the_window() -> None:
     with writes.charge(ALICE, 1, 10):
         pass
     assert writes.robots() == 1
+
+
+def test_bytes_added_for_good_count_and_a_refused_addition_counts_nothing() -> None:
+    """A block fetched from a peer for a pin is stored as it comes: counted with no block
+    to give it back from, and, refused, not counted."""
+    writes = RecentWrites(Clock())
+    writes.add(ALICE, 700, 1000)
+    with pytest.raises(WriteRateExceeded) as refused:
+        writes.add(ALICE, 400, 1000)
+    assert (refused.value.written, refused.value.size) == (700, 400)
+    assert writes.written(ALICE) == 700
+    writes.add(ALICE, 300, 1000)
+    assert writes.written(ALICE) == 1000
