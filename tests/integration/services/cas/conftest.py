@@ -84,6 +84,12 @@ def multipart(*files: tuple[str, bytes], boundary: str | None = None) -> tuple[b
     return body, f"multipart/form-data; boundary={boundary}"
 
 
+def post_files(signed: ServiceClient, path: str, *files: tuple[str, bytes]) -> httpx.Response:
+    """A signed kubo RPC call with ``files`` as its multipart body."""
+    body, content_type = multipart(*files)
+    return signed.request("POST", path, content=body, headers={"Content-Type": content_type})
+
+
 def tree_multipart(root: Path, name: str | None = None) -> tuple[bytes, str]:
     """A directory as ``ipfs add -r`` sends it: each directory part before its entries.
 

@@ -21,7 +21,7 @@ from tests.integration.services.cas.conftest import (
     QUIET_GC,
     corrupt_block,
     error_of,
-    multipart,
+    post_files,
     repo_stat,
     store_unchanged,
 )
@@ -169,24 +169,15 @@ def test_uploads_ask_no_peer_for_what_they_link_to_and_pin_add_does(
     data = PBNode([Link(far, "far", len(DATA))], b"").encode()
     near = Block(CID.from_block(data, DAG_PB, 1), data)
     with ServiceClient(edge.url, identity, retries=0) as signed, Cas(edge.url, identity) as robot:
-        body, content_type = multipart(("near.car", b"".join(write_car([near.cid], [near]))))
-        response = signed.request(
-            "POST", "/api/v0/dag/import", content=body, headers={"Content-Type": content_type}
-        )
-        answer = response.json()
+        car = b"".join(write_car([near.cid], [near]))
+        answer = post_files(signed, "/api/v0/dag/import", ("near.car", car)).json()
         assert answer["Root"]["Cid"] == {"/": str(near.cid)}
         assert answer["Root"]["PinErrorMsg"] == (
             f"block {far} of the DAG is missing; {near.cid} was not pinned"
         )
         assert repo_stat(edge.url)["NumObjects"] == 1
-        body, content_type = multipart(("block", near.data))
         with store_unchanged(edge), pytest.raises(ApiError) as exc:
-            signed.request(
-                "POST",
-                "/api/v0/block/put?pin=true&cid-codec=dag-pb",
-                content=body,
-                headers={"Content-Type": content_type},
-            )
+            post_files(signed, "/api/v0/block/put?pin=true&cid-codec=dag-pb", ("block", near.data))
         assert error_of(exc, 404, "block_not_found").details == {
             "cid": str(near.cid),
             "missing": str(far),

@@ -17,7 +17,7 @@ from tests.conftest import ServiceFactory
 from tests.integration.services.cas.conftest import (
     QUIET_GC,
     error_of,
-    multipart,
+    post_files,
     store_unchanged,
 )
 from tests.procs import ServiceProcess
@@ -58,21 +58,13 @@ def test_every_path_that_pins_is_refused_past_the_share_with_nothing_stored(
         refused(exc, identity, 5_000, used)
 
         blocks, root = import_bytes(b"c" * 5_000, ImportParams())
-        body, content_type = multipart(("more.car", b"".join(write_car([root], blocks))))
+        car = b"".join(write_car([root], blocks))
         with store_unchanged(cas_service), pytest.raises(ApiError) as exc:
-            signed.request(
-                "POST", "/api/v0/dag/import", content=body, headers={"Content-Type": content_type}
-            )
+            post_files(signed, "/api/v0/dag/import", ("more.car", car))
         refused(exc, identity, 5_000, used)
 
-        body, content_type = multipart(("block", b"b" * 5_000))
         with store_unchanged(cas_service), pytest.raises(ApiError) as exc:
-            signed.request(
-                "POST",
-                "/api/v0/block/put?pin=true",
-                content=body,
-                headers={"Content-Type": content_type},
-            )
+            post_files(signed, "/api/v0/block/put?pin=true", ("block", b"b" * 5_000))
         refused(exc, identity, 5_000, used)
 
         unpinned = cas.add_bytes(b"u" * 5_000, pin=False)
