@@ -216,6 +216,7 @@ def _open_ingest(
         publish=publish if settings.storage_publish_datasets else None,
         publish_attempts=settings.storage_publish_attempts,
         publish_retry_s=settings.storage_publish_retry_s,
+        keep_resumable_s=settings.storage_keep_resumable_s,
         disk_reserve=app.state.disk_reserve,
     )
 

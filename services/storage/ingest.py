@@ -65,6 +65,7 @@ from services.storage.staging import (
 log = logging.getLogger("robocloud.storage.ingest")
 
 Status = Literal["queued", "staging", "committing", "succeeded", "failed"]
+Due = Literal["publish", "expire"]
 JOB_ID_BYTES = 12
 PUBLISH_ATTEMPTS = 8
 """Attempts to publish a job's dataset before the node gives up and removes the bag."""
@@ -72,6 +73,8 @@ PUBLISH_RETRY_S = 5.0
 """The wait after the first failed attempt; it doubles after each, up to
 :data:`PUBLISH_RETRY_MAX_S`: the eight attempts span about ten minutes of an outage."""
 PUBLISH_RETRY_MAX_S = 600.0
+KEEP_RESUMABLE_S = 7 * 24 * 3600.0
+"""How long a job that failed while committing keeps its bag and spool for a resume."""
 INCOMING = "incoming"
 """Under the jobs' root: bags on their way in, each in a directory of its own
 (:meth:`IngestJobs.incoming`)."""
@@ -249,6 +252,7 @@ class IngestJobs:
         publish: Publish | None = None,
         publish_attempts: int = PUBLISH_ATTEMPTS,
         publish_retry_s: float = PUBLISH_RETRY_S,
+        keep_resumable_s: float = KEEP_RESUMABLE_S,
         disk_reserve: DiskReserve | None = None,
     ) -> None:
         self.root = root
@@ -273,6 +277,10 @@ class IngestJobs:
         """Describes and advertises what a job ingested, once its records are committed."""
         self.publish_attempts = publish_attempts
         self.publish_retry_s = publish_retry_s
+        self.keep_resumable_s = keep_resumable_s
+        """How long a job failed while committing keeps its inputs for a resume: nobody may
+        ever resume it, and each kept a bag of up to 16 GiB and its spool until a thousand
+        later jobs had finished."""
         self.disk_reserve = disk_reserve or DiskReserve(root, 0)
         """Kept free between the job's writes: a bag of a few hundred kB that passed the
         request's check stages and commits records, indexes and logs of several times its
@@ -280,9 +288,10 @@ class IngestJobs:
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._lock = threading.Lock()
         self._queue: queue.Queue[str | None] = queue.Queue()
-        self._retries: list[tuple[int, str]] = []
-        """Succeeded jobs whose dataset is to be published again: (due, job id), a heap the
-        worker thread alone uses once it runs."""
+        self._due: list[tuple[int, str, Due]] = []
+        """What the worker thread does to a finished job at a time: publish a succeeded
+        job's dataset again, or drop the inputs of a failed job nobody resumed: (when, job
+        id, what), a heap the worker thread alone uses once it runs."""
         root.mkdir(parents=True, exist_ok=True)
         # A bag on its way in when the service stopped (kill -9 during an upload) is no job's.
         shutil.rmtree(self.root / INCOMING, ignore_errors=True)
@@ -294,8 +303,10 @@ class IngestJobs:
                 self._queue.put(job.id)
             elif job.status == "failed" and not (job.error or {}).get("resumable"):
                 self._drop_inputs(job)
+            elif job.status == "failed":
+                self._expire_later(job)
             elif job.publish_retry_ns is not None:
-                heapq.heappush(self._retries, (job.publish_retry_ns, job.id))
+                heapq.heappush(self._due, (job.publish_retry_ns, job.id, "publish"))
         self._worker = threading.Thread(target=self._work, name="storage-ingest", daemon=True)
         self._worker.start()
 
@@ -408,31 +419,37 @@ class IngestJobs:
         cannot be saved either (a full disk) is logged and left failed in memory, to be
         resumed from its last saved state at the next start: raising out of here killed
         the only ingest thread, and every later job stayed queued."""
-        while (job_id := self._next_job()) is not None:
+        while (next_job := self._next_job()) is not None:
+            job_id, due = next_job
             job = self._jobs.get(job_id)
             if job is None:
                 continue
             try:
-                if job.status == "succeeded":
+                if due == "publish":
                     self._publish_again(job)
+                elif due == "expire":
+                    self._expire(job)
                 else:
                     self._attempt(job)
             except Exception:
                 log.exception("ingest job's failure not saved", extra={"job": job.id})
 
-    def _next_job(self) -> str | None:
-        """The next job queued, or else, once it is due, the next whose dataset is to be
-        published again; None when the jobs close. Queued jobs (and the close) come first,
-        so retries due while a cas outage lasts hold up neither."""
+    def _next_job(self) -> tuple[str, Due | None] | None:
+        """The next job queued, or else, once it is due, the next finished job with
+        something due (:attr:`_due`); None when the jobs close. Queued jobs (and the close)
+        come first, so retries due while a cas outage lasts hold up neither."""
         while True:
             timeout = None
-            if self._retries:
-                timeout = max(0.0, (self._retries[0][0] - time.time_ns()) / 1e9)
+            if self._due:
+                timeout = max(0.0, (self._due[0][0] - time.time_ns()) / 1e9)
             try:
-                return self._queue.get(timeout=timeout)
+                job_id = self._queue.get(timeout=timeout)
             except queue.Empty:
-                if self._retries[0][0] <= time.time_ns():
-                    return heapq.heappop(self._retries)[1]
+                if self._due[0][0] <= time.time_ns():
+                    _, job_id, due = heapq.heappop(self._due)
+                    return job_id, due
+                continue
+            return None if job_id is None else (job_id, None)
 
     def _attempt(self, job: Job) -> None:
         try:
@@ -453,11 +470,41 @@ class IngestJobs:
             log.error("ingest job failed: %s", message, extra={"job": job.id})
         resumable = job.status == "committing"
         error = {"code": code, "message": message, "details": details, "resumable": resumable}
-        if not resumable:
+        if resumable:
+            error["resumable_until_ns"] = time.time_ns() + int(self.keep_resumable_s * 1e9)
+        else:
             shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         self._update(job, status="failed", error=error)
-        if not resumable:
+        if resumable:
+            self._expire_later(job)
+        else:
             _remove(_bag_in(self.root / job.id))
+
+    def _expire_later(self, job: Job) -> None:
+        """Have the worker drop a resumable job's inputs once its time to be resumed is out
+        (a job saved before that time was recorded has it from its last save)."""
+        error = job.error or {}
+        until = error.get("resumable_until_ns", job.updated_ns + int(self.keep_resumable_s * 1e9))
+        heapq.heappush(self._due, (until, job.id, "expire"))
+
+    def _expire(self, job: Job) -> None:
+        """Drop the bag and spool of a job nobody resumed in time; it is then failed for
+        good, its committed records kept. A job resumed since (and failed again, with a
+        later time) is left alone. Under the lock, so that no resume starts between the
+        check and the drop."""
+        with self._lock:
+            error = job.error or {}
+            until = error.get("resumable_until_ns", 0)
+            if job.status != "failed" or not error.get("resumable") or until > time.time_ns():
+                return
+            job.error = {
+                **error,
+                "resumable": False,
+                "message": f"{error['message']}; not resumed within "
+                f"{self.keep_resumable_s:g} s, its bag was removed",
+            }
+            self._save(job)
+        self._drop_inputs(job)
 
     def _drop_inputs(self, job: Job) -> None:
         """What a failed job that cannot be resumed left, its failure saved: a robot sends the
@@ -523,7 +570,7 @@ class IngestJobs:
             )
         self._update(job, dataset=dataset, publish_retry_ns=retry_ns)
         if retry_ns is not None:
-            heapq.heappush(self._retries, (retry_ns, job.id))
+            heapq.heappush(self._due, (retry_ns, job.id, "publish"))
 
     def _publish_retry_ns(self, job: Job) -> int | None:
         """When to try publishing again after ``job``'s latest attempt failed; None once its

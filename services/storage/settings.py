@@ -11,7 +11,12 @@ from typing import Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 
 from services.common.settings import ServiceSettings
-from services.storage.ingest import PUBLISH_ATTEMPTS, PUBLISH_RETRY_MAX_S, PUBLISH_RETRY_S
+from services.storage.ingest import (
+    KEEP_RESUMABLE_S,
+    PUBLISH_ATTEMPTS,
+    PUBLISH_RETRY_MAX_S,
+    PUBLISH_RETRY_S,
+)
 
 SMALLEST_STAGING_MEMORY_BYTES = 320 * 1024**2
 """Below it every job failed as ``ingest_failed`` with a bare ``MemoryError``: 256 MiB could
@@ -192,6 +197,12 @@ class StorageSettings(ServiceSettings):
         ge=1,
         description="ingest jobs one robot may have queued or running at once, so that one "
         "robot's bags never hold every place in the queue",
+    )
+    storage_keep_resumable_s: float = Field(
+        default=KEEP_RESUMABLE_S,
+        gt=0,
+        description="how long a job that failed while committing keeps its bag and spool for "
+        "a resume; then they are removed and the job is failed for good",
     )
     storage_publish_datasets: bool = Field(
         default=True,

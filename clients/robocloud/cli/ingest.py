@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -116,8 +117,13 @@ def _fail_if_failed(job: dict[str, Any]) -> None:
     if job["status"] != "failed":
         return
     error = job.get("error") or {}
-    resumable = error.get("resumable") is True
-    hint = f"run it again with robocloud job {job['id']} --resume" if resumable else None
+    hint = None
+    if error.get("resumable") is True:
+        hint = f"run it again with robocloud job {job['id']} --resume"
+        until = error.get("resumable_until_ns")
+        if isinstance(until, int) and not isinstance(until, bool):
+            when = datetime.fromtimestamp(until / 1e9, tz=UTC)
+            hint += f" before {when:%Y-%m-%d %H:%M} UTC, when the node removes its bag"
     fail(f"ingest failed: {error.get('message')}", hint=hint)
 
 

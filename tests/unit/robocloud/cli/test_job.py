@@ -97,6 +97,22 @@ def test_a_job_failed_while_committing_is_shown_with_how_to_run_it_again() -> No
     )
 
 
+def test_a_resumable_job_says_until_when_it_can_be_resumed() -> None:
+    error = {
+        "code": "ingest_failed",
+        "message": "OSError: disk full",
+        "resumable": True,
+        "resumable_until_ns": 1_796_169_600_000_000_000,
+    }
+    with scripted_server(serving(job("failed", error=error))) as node:
+        shown = runner.invoke(app, ["job", "j1", "--storage", node.url])
+    assert shown.exit_code == 1
+    assert shown.stderr == (
+        "error: ingest failed: OSError: disk full (hint: run it again with robocloud job j1 "
+        "--resume before 2026-12-02 00:00 UTC, when the node removes its bag)\n"
+    )
+
+
 def test_resume_posts_a_signed_resume_and_waits_for_the_job(keystore: Path) -> None:
     states = (job("committing"), job("succeeded"))
     with scripted_server(serving(*states)) as node:

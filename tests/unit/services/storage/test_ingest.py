@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import json
 import shutil
+import time
 import tracemalloc
 from collections.abc import Iterator
 from dataclasses import asdict
@@ -694,16 +695,7 @@ def test_a_job_failed_while_committing_resumes_with_each_record_once(
     committing anything, does not resume."""
     imu = node.approve("sensor_msgs/msg/Imu")
     node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
-    append = RecordStore.append_prepared
-    appended: list[int] = []
-
-    def filling(self: RecordStore, *args: Any, **kwargs: Any) -> int:
-        if appended:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        appended.append(append(self, *args, **kwargs))
-        return appended[-1]
-
-    monkeypatch.setattr(RecordStore, "append_prepared", filling)
+    fail_after_first_batch(monkeypatch)
     submitted = node.jobs.submit(bag(tmp_path, "b", 200), "upload:b", authorship())
     failed = node.jobs.wait(submitted.id, 60)
     assert failed.status == "failed"
@@ -725,3 +717,79 @@ def test_a_job_failed_while_committing_resumes_with_each_record_once(
     assert len({entry.record for entry in node.logs.entries(imu, 0, 160)}) == 160
     with pytest.raises(ingest.JobNotResumable, match="is succeeded"):
         node.jobs.resume(failed.id)
+
+
+def fail_after_first_batch(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The disk fills once the first batch is appended: the job fails while committing."""
+    append = RecordStore.append_prepared
+    appended: list[int] = []
+
+    def filling(self: RecordStore, *args: Any, **kwargs: Any) -> int:
+        if appended:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        appended.append(append(self, *args, **kwargs))
+        return appended[-1]
+
+    monkeypatch.setattr(RecordStore, "append_prepared", filling)
+
+
+def until_not_resumable(node: Node, job_id: str, timeout_s: float = 10.0) -> ingest.Job:
+    deadline = time.monotonic() + timeout_s
+    while (job := node.jobs.get(job_id)).error and job.error["resumable"]:
+        assert time.monotonic() < deadline, "the job stayed resumable"
+        time.sleep(0.05)
+    return job
+
+
+def test_a_job_nobody_resumes_in_time_drops_its_bag_and_spool(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A job failed while committing kept its bag (16 GiB at most) and spool for a resume
+    that may never come, until a thousand later jobs had finished."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    node.jobs.close()
+    node.jobs = node.open_jobs(keep_resumable_s=0.5)
+    fail_after_first_batch(monkeypatch)
+    before = time.time_ns()
+    failed = node.jobs.wait(
+        node.jobs.submit(bag(tmp_path, "b", 200), "upload:b", authorship()).id, 60
+    )
+    assert failed.error is not None
+    assert failed.error["resumable"]
+    assert before + 5e8 <= failed.error["resumable_until_ns"] <= time.time_ns() + 5e8
+    assert kept_files(node, failed.id) == ["bag", "job.json", "staged"]
+    expired = until_not_resumable(node, failed.id)
+    assert expired.status == "failed"
+    assert expired.error is not None
+    assert expired.error["message"].endswith("; not resumed within 0.5 s, its bag was removed")
+    assert "No space left on device" in expired.error["message"]
+    assert kept_files(node, failed.id) == ["job.json"]
+    assert (expired.records_committed, node.logs.size(imu)) == (50, 50), "committed records stay"
+    with pytest.raises(ingest.JobNotResumable):
+        node.jobs.resume(failed.id)
+
+
+def test_a_resumable_job_saved_before_its_time_was_recorded_expires_after_a_restart(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A job.json written before ``resumable_until_ns`` existed counts from its last save."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    fail_after_first_batch(monkeypatch)
+    failed = node.jobs.wait(
+        node.jobs.submit(bag(tmp_path, "b", 200), "upload:b", authorship()).id, 60
+    )
+    assert failed.error is not None
+    assert failed.error["resumable"]
+    node.jobs.close()
+    saved = node.root / "jobs" / failed.id / "job.json"
+    document = json.loads(saved.read_text())
+    del document["error"]["resumable_until_ns"]
+    saved.write_text(json.dumps(document))
+    node.jobs = node.open_jobs(keep_resumable_s=0.5)
+    assert node.jobs.get(failed.id).error["resumable"]  # type: ignore[index]
+    expired = until_not_resumable(node, failed.id)
+    assert kept_files(node, failed.id) == ["job.json"]
+    assert expired.error is not None
+    assert "not resumed within 0.5 s" in expired.error["message"]
