@@ -481,11 +481,14 @@ class IngestJobs:
             _remove(_bag_in(self.root / job.id))
 
     def _expire_later(self, job: Job) -> None:
-        """Have the worker drop a resumable job's inputs once its time to be resumed is out
-        (a job saved before that time was recorded has it from its last save)."""
-        error = job.error or {}
-        until = error.get("resumable_until_ns", job.updated_ns + int(self.keep_resumable_s * 1e9))
-        heapq.heappush(self._due, (until, job.id, "expire"))
+        """Have the worker drop a resumable job's inputs once its time to be resumed is out."""
+        heapq.heappush(self._due, (self._resumable_until(job), job.id, "expire"))
+
+    def _resumable_until(self, job: Job) -> int:
+        """When a failed job's time to be resumed is out; a job saved before that time was
+        recorded has it from its last save."""
+        fallback = job.updated_ns + int(self.keep_resumable_s * 1e9)
+        return int((job.error or {}).get("resumable_until_ns", fallback))
 
     def _expire(self, job: Job) -> None:
         """Drop the bag and spool of a job nobody resumed in time; it is then failed for
@@ -494,8 +497,9 @@ class IngestJobs:
         check and the drop."""
         with self._lock:
             error = job.error or {}
-            until = error.get("resumable_until_ns", 0)
-            if job.status != "failed" or not error.get("resumable") or until > time.time_ns():
+            if job.status != "failed" or not error.get("resumable"):
+                return
+            if self._resumable_until(job) > time.time_ns():
                 return
             job.error = {
                 **error,
