@@ -733,10 +733,14 @@ def fail_after_first_batch(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(RecordStore, "append_prepared", filling)
 
 
-def until_not_resumable(node: Node, job_id: str, timeout_s: float = 10.0) -> ingest.Job:
+def until_expired(node: Node, job_id: str, timeout_s: float = 10.0) -> ingest.Job:
+    """The job once the worker saved it as not resumable and then dropped its inputs."""
     deadline = time.monotonic() + timeout_s
-    while (job := node.jobs.get(job_id)).error and job.error["resumable"]:
+    while (job := node.jobs.get(job_id)).error is None or job.error["resumable"]:
         assert time.monotonic() < deadline, "the job stayed resumable"
+        time.sleep(0.05)
+    while kept_files(node, job_id) != ["job.json"]:
+        assert time.monotonic() < deadline, f"the job kept {kept_files(node, job_id)}"
         time.sleep(0.05)
     return job
 
@@ -759,12 +763,11 @@ def test_a_job_nobody_resumes_in_time_drops_its_bag_and_spool(
     assert failed.error["resumable"]
     assert before + 5e8 <= failed.error["resumable_until_ns"] <= time.time_ns() + 5e8
     assert kept_files(node, failed.id) == ["bag", "job.json", "staged"]
-    expired = until_not_resumable(node, failed.id)
+    expired = until_expired(node, failed.id)
     assert expired.status == "failed"
     assert expired.error is not None
     assert expired.error["message"].endswith("; not resumed within 0.5 s, its bag was removed")
     assert "No space left on device" in expired.error["message"]
-    assert kept_files(node, failed.id) == ["job.json"]
     assert (expired.records_committed, node.logs.size(imu)) == (50, 50), "committed records stay"
     with pytest.raises(ingest.JobNotResumable):
         node.jobs.resume(failed.id)
@@ -786,10 +789,10 @@ def test_a_resumable_job_saved_before_its_time_was_recorded_expires_after_a_rest
     saved = node.root / "jobs" / failed.id / "job.json"
     document = json.loads(saved.read_text())
     del document["error"]["resumable_until_ns"]
+    document["updated_ns"] = time.time_ns()
     saved.write_text(json.dumps(document))
     node.jobs = node.open_jobs(keep_resumable_s=0.5)
-    assert node.jobs.get(failed.id).error["resumable"]  # type: ignore[index]
-    expired = until_not_resumable(node, failed.id)
-    assert kept_files(node, failed.id) == ["job.json"]
+    expired = until_expired(node, failed.id)
+    assert expired.updated_ns >= document["updated_ns"] + 5e8, "expired before its time"
     assert expired.error is not None
     assert "not resumed within 0.5 s" in expired.error["message"]
