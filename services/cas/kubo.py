@@ -396,14 +396,20 @@ async def dag_import(
     address: SignedAddress,
     share: SignerShare,
     pin_roots: Annotated[bool, Query(alias="pin-roots")] = True,
+    stats: bool = False,
 ) -> Response:
-    """Import CARs: every block is verified, and one bad block rejects the whole upload."""
+    """Import CARs: every block is verified, and one bad block rejects the whole upload.
+    With ``stats``, a last line counts the blocks and bytes read, as kubo's."""
     car_import = CarImport(_store(request), pin_roots=pin_roots)
     content_type = request.headers.get("content-type")
     roots = await upload(request.stream(), content_type, car_import, address, share)
-    return await _lines(
+    lines: list[dict[str, Any]] = [
         {"Root": {"Cid": {"/": str(root.cid)}, "PinErrorMsg": root.pin_error}} for root in roots
-    )
+    ]
+    if stats:
+        counted = car_import.stats
+        lines.append({"Stats": {"BlockCount": counted.blocks, "BlockBytesCount": counted.bytes}})
+    return await _lines(lines)
 
 
 @router.post("/repo/gc")

@@ -500,17 +500,21 @@ class ContentStore:
         staging: Staging,
         source: ByteSource,
         check_roots: Callable[[list[CID]], None] | None = None,
+        on_block: Callable[[Block], None] | None = None,
     ) -> list[CID]:
         """Stage every block of a CAR; any bad block raises and the caller discards it all.
 
         ``check_roots`` sees the header's roots before any block is read, and may refuse them
         by raising: an import over many CARs bounds its roots before it hashes their blocks.
+        ``on_block`` sees each block section, verified, as it is staged.
         """
         try:
             reader = CarReader(source)
             if check_roots is not None:
                 check_roots(reader.roots)
             for block in reader:
+                if on_block is not None:
+                    on_block(block)
                 staging.add(block.cid, block.data)
         except CarError as exc:
             raise CarRejected(str(exc)) from exc

@@ -21,6 +21,7 @@ from tests.integration.services.cas.conftest import (
     error_of,
     multipart,
     pin_list,
+    post_files,
     repo_stat,
     store_unchanged,
 )
@@ -269,6 +270,25 @@ def test_dag_import_answers_a_root_named_by_two_cars_once(
         {"Cid": {"/": str(other.cid)}, "PinErrorMsg": ""},
     ]
     assert {str(root), str(other.cid)} <= pin_list(cas_service.url)["Keys"].keys()
+
+
+def test_dag_import_stats_count_every_block_section_read_as_kubo(
+    signed: ServiceClient, cas_service: ServiceProcess
+) -> None:
+    """kubo's ``dag import --stats`` adds a last line counting the block sections it read,
+    one sent twice counted twice; without pinning it answers that line alone."""
+    blocks, root = import_bytes(bytes(range(256)) * 2000, ImportParams(chunk_size=65536))
+    car = b"".join(write_car([root], blocks))
+    size = sum(len(block.data) for block in blocks)
+    response = post_files(signed, "/api/v0/dag/import?stats=true", ("0.car", car), ("1.car", car))
+    assert [json.loads(line) for line in response.text.splitlines()] == [
+        {"Root": {"Cid": {"/": str(root)}, "PinErrorMsg": ""}},
+        {"Stats": {"BlockCount": 2 * len(blocks), "BlockBytesCount": 2 * size}},
+    ]
+    response = post_files(signed, "/api/v0/dag/import?stats=true&pin-roots=false", ("0.car", car))
+    assert [json.loads(line) for line in response.text.splitlines()] == [
+        {"Stats": {"BlockCount": len(blocks), "BlockBytesCount": size}}
+    ]
 
 
 def test_dag_import_of_more_roots_than_a_header_holds_over_its_cars_stores_nothing(
