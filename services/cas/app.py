@@ -45,6 +45,13 @@ def _open_store(settings: CasSettings, app: FastAPI) -> ContentStore:
         registry=registry,
     )
 
+    not_kept = Counter(
+        "robocloud_cas_peer_blocks_not_kept",
+        "Blocks fetched from peers for reads and served without being kept, past "
+        "ROBOCLOUD_CAS_MAX_CACHED_BYTES_PER_HOUR.",
+        registry=registry,
+    )
+
     def on_corrupt(cid: CID, quarantined: Path) -> None:
         corrupt.inc()
 
@@ -58,6 +65,7 @@ def _open_store(settings: CasSettings, app: FastAPI) -> ContentStore:
         max_cached_bytes_per_hour=settings.cas_max_cached_bytes_per_hour,
         on_corrupt=on_corrupt,
         on_peer_outcome=on_outcome,
+        on_not_kept=lambda cid: not_kept.inc(),
     )
 
 

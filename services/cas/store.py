@@ -227,6 +227,7 @@ class ContentStore:
         peers: PeerFetcher | None = None,
         *,
         max_cached_bytes_per_hour: int | None = None,
+        on_not_kept: Callable[[CID], None] | None = None,
     ) -> None:
         remove_temporaries(root)
         self.blocks = blocks
@@ -238,6 +239,8 @@ class ContentStore:
         :data:`READS`): at most ``max_cached_bytes_per_hour``, past which a block fetched
         for a read is served without being kept."""
         self.max_cached_bytes_per_hour = max_cached_bytes_per_hour
+        self.on_not_kept = on_not_kept
+        """Told of each block a read fetched and served without keeping it (a metric)."""
         self.collecting = threading.Lock()
         """Held by a whole collection, compaction included: the periodic one and ``repo/gc``
         ran at once, both rewrote the same pack, and the one that found it gone failed."""
@@ -252,6 +255,7 @@ class ContentStore:
         max_cached_bytes_per_hour: int | None = None,
         on_corrupt: CorruptionHook | None = None,
         on_peer_outcome: OutcomeHook | None = None,
+        on_not_kept: Callable[[CID], None] | None = None,
     ) -> ContentStore:
         """The store under ``root``, fetching missing blocks from ``peers`` (gateway URLs)."""
         fetcher = None
@@ -262,6 +266,7 @@ class ContentStore:
             Blockstore(root, on_corrupt=on_corrupt),
             fetcher,
             max_cached_bytes_per_hour=max_cached_bytes_per_hour,
+            on_not_kept=on_not_kept,
         )
 
     def check_writable(self) -> None:
@@ -314,6 +319,8 @@ class ContentStore:
             try:
                 self.read_fetches.add(READS, len(data), self.max_cached_bytes_per_hour)
             except WriteRateExceeded:
+                if self.on_not_kept is not None:
+                    self.on_not_kept(cid)
                 return
         self.blocks.put(cid, data)
 

@@ -216,6 +216,7 @@ def test_reads_keep_what_they_fetch_from_peers_within_the_hours_bound(
         httpx.get(f"{edge.url}/ipfs/{blocks[1].cid}?format=raw", headers=cached).status_code == 412
     )
     assert metric(edge, "robocloud_cas_peer_fetches_total", outcome="ok") == 6
+    assert metric(edge, "robocloud_cas_peer_blocks_not_kept_total") == 4
 
 
 def test_pin_add_charges_what_it_fetches_to_the_robots_new_bytes(
