@@ -173,8 +173,8 @@ class DagSizes:
 
     ``budget``: the bytes the walk may read before :class:`WalkOverBudget` stops it. The
     distinct bytes read are at most the sizes of the DAGs, so a walk past the room left in a
-    robot's share is refused for certain: ``pin/add`` stops there rather than fetch the rest
-    of a DAG of any size from the peers first.
+    robot's share is refused for certain: a pin's walk stops there rather than read the rest
+    of a stored DAG of any size, or fetch it from the peers, first.
     """
 
     def __init__(self, budget: int | None = None) -> None:
@@ -568,16 +568,17 @@ class ContentStore:
         """The cumulative size of ``root``'s DAG stored here, asking no peer: the charge of a
         pin read from a journal written before pins were charged (a pinned DAG is whole
         here; one that is not is charged nothing, and said)."""
-        sizes = DagSizes()
         try:
-            for block in walk_dag(
-                root, partial(self.get_block, use_peers=False), on_links=sizes.links
-            ):
-                sizes.record(block)
-        except (BlockUnavailable, UnixfsError) as exc:
-            log.warning("pinned DAG not whole here", extra={"cid": str(root), "error": str(exc)})
+            walked = self._walk(root, get=partial(self.get_block, use_peers=False))
+        except InvalidDag as exc:
+            log.warning("pinned DAG not valid", extra={"cid": str(root), "error": str(exc)})
             return 0
-        return sizes.of(root)
+        if walked.missing is not None:
+            log.warning(
+                "pinned DAG not whole here",
+                extra={"cid": str(root), "missing": str(walked.missing)},
+            )
+        return walked.size
 
     @staticmethod
     def _staged_or_stored(

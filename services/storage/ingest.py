@@ -471,7 +471,7 @@ class IngestJobs:
         resumable = job.status == "committing"
         error = {"code": code, "message": message, "details": details, "resumable": resumable}
         if resumable:
-            error["resumable_until_ns"] = time.time_ns() + int(self.keep_resumable_s * 1e9)
+            error["resumable_until_ns"] = time.time_ns() + self._keep_resumable_ns
         else:
             shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
         self._update(job, status="failed", error=error)
@@ -487,14 +487,18 @@ class IngestJobs:
     def _resumable_until(self, job: Job) -> int:
         """When a failed job's time to be resumed is out; a job saved before that time was
         recorded has it from its last save."""
-        fallback = job.updated_ns + int(self.keep_resumable_s * 1e9)
+        fallback = job.updated_ns + self._keep_resumable_ns
         return int((job.error or {}).get("resumable_until_ns", fallback))
+
+    @property
+    def _keep_resumable_ns(self) -> int:
+        return int(self.keep_resumable_s * 1e9)
 
     def _expire(self, job: Job) -> None:
         """Drop the bag and spool of a job nobody resumed in time; it is then failed for
         good, its committed records kept. A job resumed since (and failed again, with a
-        later time) is left alone. Under the lock, so that no resume starts between the
-        check and the drop."""
+        later time) is left alone. Checked and saved under the lock, so that no resume
+        starts in between; once saved, none starts at all."""
         with self._lock:
             error = job.error or {}
             if job.status != "failed" or not error.get("resumable"):
