@@ -7,6 +7,8 @@ process has py_ecc's raised recursion limit, so an unbounded parse would kill it
 
 from __future__ import annotations
 
+import hashlib
+import os
 import threading
 
 import httpx
@@ -14,7 +16,7 @@ import pytest
 import zstandard
 
 from robocloud.bounded_json import JsonDepthError
-from robocloud.client import BaseClient, RetryPolicy, ServiceClient
+from robocloud.client import BODY_SLICE_BYTES, BaseClient, RetryPolicy, ServiceClient
 from robocloud.errors import (
     AuthenticationError,
     ConfigurationError,
@@ -30,7 +32,7 @@ from robocloud.errors import (
     UnavailableError,
 )
 from robocloud.identity import Identity
-from robocloud.signing import HEADER_NONCE
+from robocloud.signing import HEADER_CONTENT_SHA256, HEADER_NONCE
 from tests.procs import free_port
 from tests.scripted_http import (
     Exchange,
@@ -122,6 +124,22 @@ def test_a_post_that_only_reads_may_say_so_and_is_retried() -> None:
         response = client.request("POST", "/api/v0/pin/ls", signed=False, idempotent=True)
     assert response.json() == {"ok": True}
     assert server.count() == 2
+
+
+def test_a_large_body_is_sent_whole_with_its_length_on_every_attempt() -> None:
+    """A bytes body over ``BODY_SLICE_BYTES`` goes out in slices (httpcore copies what is
+    left of a whole one after each send): still one ``Content-Length`` body, never chunked,
+    signed for its digest, and resent whole, its slices made again, after a 503."""
+    robot = Identity.generate()
+    body = os.urandom(3 * BODY_SLICE_BYTES + 5)
+    answers = iter([json_reply("{}", 503), json_reply('{"ok":true}')])
+    with scripted_client(lambda _: next(answers), identity=robot, **FAST) as (server, client):
+        assert client.request("POST", "/upload", content=body).json() == {"ok": True}
+    assert [exchange.body == body for exchange in server.exchanges] == [True, True]
+    for exchange in server.exchanges:
+        assert exchange.headers["content-length"] == str(len(body))
+        assert "transfer-encoding" not in exchange.headers
+        assert exchange.headers[HEADER_CONTENT_SHA256.lower()] == hashlib.sha256(body).hexdigest()
 
 
 def test_a_streamed_body_is_sent_once() -> None:
