@@ -402,20 +402,20 @@ class BytePipe(io.RawIOBase):
             return size
 
     def close_writing(self) -> None:
-        self._set("_written")
+        with self._changed:
+            self._written = True
+            self._changed.notify_all()
 
     def stop_reading(self) -> None:
-        self._set("_reading_stopped")
         with self._changed:
+            self._reading_stopped = True
             self._chunks.clear()
             self._held = 0
+            self._changed.notify_all()
 
     def abort(self) -> None:
-        self._set("_aborted")
-
-    def _set(self, flag: str) -> None:
         with self._changed:
-            setattr(self, flag, True)
+            self._aborted = True
             self._changed.notify_all()
 
 
@@ -448,7 +448,9 @@ class CarImport:
 
     def begin(self, name: str) -> None:
         pipe = BytePipe()
-        reader = threading.Thread(target=self._read_part, args=(pipe,), name="dag-import")
+        reader = threading.Thread(
+            target=self._read_part, args=(pipe,), name="dag-import", daemon=True
+        )
         self._part = (pipe, reader)
         reader.start()
 
