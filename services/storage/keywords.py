@@ -11,7 +11,10 @@ every record of a batch with the same text: its ``records`` field lists their in
 (``0-1999`` for a constant frame id). A batch starts at the template's mark, so after a crash
 between a commit and its mark the same batch is indexed again from the same start; its key
 (template, start, digest of the text) replaces the documents of the first attempt, which the
-new batch covers, since a log only grows.
+new batch covers, since a log only grows. Replacing costs a key lookup a document, a fifth of
+a commit's time, so only a batch that may repeat one is indexed that way: a template's first
+batch since the index was opened, and one after an attempt that failed; the others start at a
+mark this process moved past everything it committed, and are only added.
 
 Whoosh never fsyncs. A mark names records as indexed, so the files of a commit are fsynced
 before the mark moves past it: a mark ahead of a commit lost in a power cut would hide its
@@ -118,6 +121,9 @@ class KeywordIndex:
             self._remove()
             self.index, self.marks = self.storage.create_index(schema), {}
         self._lock = threading.Lock()
+        self._marked_here: set[str] = set()
+        """Templates whose every batch since the index was opened was committed and marked:
+        no document holds the keys of a batch starting at their mark."""
 
     def _open(self, schema: fields.Schema) -> tuple[index.Index, dict[str, int]]:
         """The index and its marks, checked enough to trust the marks: a torn TOC or segment
@@ -158,11 +164,14 @@ class KeywordIndex:
         grouped: dict[str, list[int]] = {}
         for index_, text in enumerate(texts, start):
             grouped.setdefault(text, []).append(index_)
+        fresh = template_id in self._marked_here and start == self.mark(template_id)
+        self._marked_here.discard(template_id)
         writer = self.index.writer(limitmb=WRITER_POOL_MB, compound=False)
+        put = writer.add_document if fresh else writer.update_document
         try:
             for text, indexes in grouped.items():
                 digest = hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:32]
-                writer.update_document(
+                put(
                     key=f"{template_id}/{start}/{digest}",
                     template=template_id,
                     records=runs(indexes),
@@ -177,6 +186,7 @@ class KeywordIndex:
             self.marks[template_id] = upto
             marks = dict(self.marks)
         atomic_write(self.directory / MARKS, json.dumps(marks).encode())
+        self._marked_here.add(template_id)
 
     def _sync(self) -> None:
         """Fsync what the last commit wrote and the directory naming it. Whoosh never writes a

@@ -10,6 +10,7 @@ from itertools import pairwise
 from pathlib import Path
 
 import pytest
+import whoosh.writing
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -59,6 +60,42 @@ def test_a_batch_indexed_again_after_a_crash_replaces_its_documents(tmp_path: Pa
     assert reopened.mark("state@1") == 3
     assert reopened.search(["idle"], None) == {"state@1": {0, 1, 2}}
     reopened.close()
+
+
+def test_only_a_batch_that_may_repeat_an_attempt_replaces_by_key(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A key lookup a document is a fifth of a commit: a template's first batch since the
+    index was opened may repeat a commit whose mark was lost, and so may a batch retried
+    after its commit's fsync failed; a batch past a mark this process wrote may not."""
+    index = KeywordIndex(tmp_path)
+    replaced: list[str] = []
+    update_document = whoosh.writing.SegmentWriter.update_document
+
+    def counted(writer: whoosh.writing.SegmentWriter, **fields: str) -> None:
+        replaced.append(fields["key"])
+        update_document(writer, **fields)
+
+    monkeypatch.setattr(whoosh.writing.SegmentWriter, "update_document", counted)
+    index.add("state@1", 0, ["idle", "docked"], 2)
+    index.add("state@1", 2, ["idle"], 3)
+    assert [key.split("/")[1] for key in replaced] == ["0", "0"]
+    fsync = os.fsync
+
+    def failing(fd: int) -> None:
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(os, "fsync", failing)
+    with pytest.raises(OSError, match="Input/output error"):
+        index.add("state@1", 3, ["moving"], 4)
+    monkeypatch.setattr(os, "fsync", fsync)
+    index.add("state@1", 3, ["moving"], 4)
+    assert [key.split("/")[1] for key in replaced] == ["0", "0", "3"]
+    with index.index.searcher() as searcher:
+        assert searcher.doc_count() == 4
+    assert index.search(["moving"], None) == {"state@1": {3}}
+    assert index.mark("state@1") == 4
+    index.close()
 
 
 def test_a_query_matching_too_many_records_is_refused(
