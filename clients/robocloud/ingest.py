@@ -84,7 +84,9 @@ class Ingest(ServiceClient):
     default_service = "storage"
 
     def upload(self, bag: Path) -> dict[str, Any]:
-        """Send a bag file (ROS 1 ``.bag``, ``.mcap``, ``.db3``) and return its new job."""
+        """Send a bag file (ROS 1 ``.bag``, ``.mcap``, ``.db3``) and return its job: a new
+        one, or this robot's job of the same bag while that one is still running. Sent
+        again later, the bag gives no record twice (topics ingested before are skipped)."""
         digest = hashlib.sha256()
         for chunk in _file_chunks(bag):
             digest.update(chunk)
@@ -94,13 +96,14 @@ class Ingest(ServiceClient):
             content=_file_chunks(bag),
             content_sha256=digest.hexdigest(),
             headers={"Content-Type": "application/octet-stream"},
-            idempotent=False,
         )
         return _job(self.json_of(response))
 
     def from_cas(self, cid: CID | str) -> dict[str, Any]:
-        """Ingest a bag already in cas: a file, or a ROS 2 bag directory."""
-        return _job(self.post_json("/v1/ingest", {"cid": str(cid)}))
+        """Ingest a bag already in cas: a file, or a ROS 2 bag directory. Resent after a
+        broken exchange or a proxy's 502 or 504: the node answers a resend with the job the
+        first request made, and ingests no topic of a bag twice for one robot."""
+        return _job(self.post_json("/v1/ingest", {"cid": str(cid)}, idempotent=True))
 
     def ingest(self, bag: Path, cas: Cas | None = None) -> dict[str, Any]:
         """A bag file is uploaded; a ROS 2 bag directory goes through ``cas`` (required then)."""

@@ -26,7 +26,7 @@ from services.storage.catalog import (
     TemplateNotApproved,
 )
 from services.storage.catalog import TemplateNotFound as CatalogTemplateNotFound
-from services.storage.ingest import JobNotFound, JobNotResumable, TooManyJobs
+from services.storage.ingest import BagAwaitsResume, JobNotFound, JobNotResumable, TooManyJobs
 from services.storage.keywords import TooManyKeywordHits
 from services.storage.knowledge import (
     CasUnavailable,
@@ -159,6 +159,9 @@ ERRORS = ErrorMap(
         JobNotFound: ErrorRule(404, "job_not_found", lambda exc: {"job": exc.job_id[:64]}),
         JobNotResumable: ErrorRule(
             409, "job_not_resumable", lambda exc: {"job": exc.job_id, "status": exc.status}
+        ),
+        BagAwaitsResume: ErrorRule(
+            409, "job_resumable", lambda exc: {"job": exc.job_id, "bag": exc.bag}
         ),
         TooManyJobs: ErrorRule(
             429,

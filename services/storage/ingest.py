@@ -20,7 +20,9 @@ written; it is therefore built so that it either writes nothing or can always be
    (its records are checked against the staged count and each other) is staged again from the
    bag, and the commit goes on past the records already committed.
 
-Topics whose type no approved template binds are reported, not ingested.
+Topics whose type no approved template binds are reported, not ingested; so are topics the
+same robot has ingested from the same bag before (:mod:`services.storage.ingested`), and a
+bag sent again while its job is still running gets that job.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from services.common.disk import DiskReserve
 from services.common.durable import atomic_write, fsync_dir
 from services.storage.bags import Bag, BagConnection
 from services.storage.catalog import CatalogError
+from services.storage.ingested import IngestedBags, IngestedRow, IngestedTopic
 from services.storage.matcher import Bindings, BlobSink, DraftError, draft_template
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore, record_id
@@ -95,6 +98,19 @@ class JobNotResumable(Exception):
         self.status = status
 
 
+class BagAwaitsResume(Exception):
+    """The robot's earlier job of this bag failed while committing: some of its records are
+    in, and only resuming that job adds the rest exactly once."""
+
+    def __init__(self, job_id: str, bag: str) -> None:
+        super().__init__(
+            f"ingest job {job_id} of this bag ({bag}) failed while committing and can be "
+            "resumed: resume it rather than ingest the bag again"
+        )
+        self.job_id = job_id
+        self.bag = bag
+
+
 class TooManyJobs(Exception):
     """No place for one more job: the service holds ``limit`` queued or running (``per``
     ``service``), or the robot holds its share of them (``per`` ``robot``)."""
@@ -118,7 +134,11 @@ class TopicReport:
     messages: int
     template: str | None = None
     skipped: str | None = None
-    """Why this topic is not ingested (no approved template bound, no definition)."""
+    """Why this topic is not ingested (no approved template bound, no definition, ingested
+    from this bag before)."""
+    ingested_by: str | None = None
+    """The earlier job of the same robot that ingested this topic of this bag into
+    ``template``: this job skipped it."""
     draft: dict[str, Any] | None = None
     """For a topic bound to no template, one generated from its message definition: the
     designer edits and submits it (``POST /v1/templates``) and binds it."""
@@ -190,6 +210,10 @@ class Job:
             view["next_attempt_ns"] = self.publish_retry_ns
         return view
 
+    def copy(self) -> Job:
+        """A deep copy, for a reader outside the jobs' lock."""
+        return Job.from_json(json.loads(json.dumps(asdict(self))))
+
     @classmethod
     def from_json(cls, document: dict[str, Any]) -> Job:
         topics = [TopicReport(**topic) for topic in document.pop("topics")]
@@ -220,6 +244,16 @@ def _bag_in(directory: Path) -> Path:
     """A job's bag: ``bag`` (a ROS 2 directory, a ROS 1 file) or ``bag.mcap``/``bag.db3``, as
     rosbags picks the storage plugin of a bare file by its suffix."""
     return next(directory.glob("bag*"), directory / "bag")
+
+
+def _ingested_rows(job: Job) -> list[IngestedRow]:
+    """The topics a job committed, for :class:`IngestedBags`."""
+    topics: list[IngestedTopic] = [
+        (report.topic, report.msgtype, report.template)
+        for report in job.topics
+        if report.template is not None and report.skipped is None
+    ]
+    return [(job.author["signer"], job.bag, topic, job.id) for topic in topics]
 
 
 def _remove(path: Path) -> None:
@@ -293,6 +327,7 @@ class IngestJobs:
         job's dataset again, or drop the inputs of a failed job nobody resumed: (when, job
         id, what), a heap the worker thread alone uses once it runs."""
         root.mkdir(parents=True, exist_ok=True)
+        self.ingested = IngestedBags(root / "ingested.sqlite")
         # A bag on its way in when the service stopped (kill -9 during an upload) is no job's.
         shutil.rmtree(self.root / INCOMING, ignore_errors=True)
         start_workers_server()
@@ -307,12 +342,20 @@ class IngestJobs:
                 self._expire_later(job)
             elif job.publish_retry_ns is not None:
                 heapq.heappush(self._due, (job.publish_retry_ns, job.id, "publish"))
+        if self.ingested.created:
+            self.ingested.add(
+                row
+                for job in self._jobs.values()
+                if job.status == "succeeded"
+                for row in _ingested_rows(job)
+            )
         self._worker = threading.Thread(target=self._work, name="storage-ingest", daemon=True)
         self._worker.start()
 
     def close(self) -> None:
         self._queue.put(None)
         self._worker.join()
+        self.ingested.close()
 
     @contextmanager
     def incoming(self) -> Iterator[Path]:
@@ -338,6 +381,19 @@ class IngestJobs:
         with self._lock:
             self._admit(signer)
 
+    def _unfinished(self, signer: str, source: str) -> Job | None:
+        """``signer``'s job of the bag ``source`` that is queued or running, if any;
+        :class:`BagAwaitsResume` where one failed while committing and may be resumed."""
+        robot = signer.lower()
+        for job in self._jobs.values():
+            if job.bag != source or job.author["signer"].lower() != robot:
+                continue
+            if job.status not in ("succeeded", "failed"):
+                return job
+            if job.status == "failed" and (job.error or {}).get("resumable"):
+                raise BagAwaitsResume(job.id, source)
+        return None
+
     def _admit(self, signer: str) -> None:
         pending = [j for j in self._jobs.values() if j.status not in ("succeeded", "failed")]
         if len(pending) >= self.max_pending:
@@ -347,8 +403,13 @@ class IngestJobs:
             raise TooManyJobs(self.max_pending_per_robot, "robot")
 
     def submit(self, bag: Path, source: str, author: Authorship) -> Job:
-        """Take ownership of ``bag`` (moved into the job's directory) and queue its ingest."""
+        """Take ownership of ``bag`` (moved into the job's directory) and queue its ingest;
+        or, when the robot's earlier job of the same bag is still queued or running, leave
+        ``bag`` and answer that job (:class:`BagAwaitsResume` where it failed resumable)."""
         with self._lock:
+            earlier = self._unfinished(author.signer, source)
+            if earlier is not None:
+                return earlier.copy()
             self._admit(author.signer)
             job = Job(id=secrets.token_hex(JOB_ID_BYTES), bag=source, author=asdict(author))
             directory = self.root / job.id
@@ -379,7 +440,7 @@ class IngestJobs:
             job = self._jobs.get(job_id)
             if job is None:
                 raise JobNotFound(job_id)
-            return Job.from_json(json.loads(json.dumps(asdict(job))))
+            return job.copy()
 
     def wait(self, job_id: str, timeout_s: float) -> Job:
         """The job once finished (for tests and the SDK's blocking call), or as it is then."""
@@ -525,6 +586,7 @@ class IngestJobs:
         if job.status in ("queued", "staging"):
             self._stage(job)
         self._commit(job)
+        self.ingested.add(_ingested_rows(job))
         if self.publish is not None and job.records_committed and job.dataset is None:
             self._publish(job, self.publish)
         shutil.rmtree(self.root / job.id / "staged", ignore_errors=True)
@@ -588,9 +650,12 @@ class IngestJobs:
         wait_s = min(self.publish_retry_s * 2 ** (job.publish_attempts - 1), PUBLISH_RETRY_MAX_S)
         return time.time_ns() + int(wait_s * 1e9)
 
-    def _plan(self, bag: Bag) -> tuple[list[TopicReport], Plans]:
+    def _plan(self, bag: Bag, job: Job) -> tuple[list[TopicReport], Plans]:
+        """Each topic's report, and the plans of those to ingest: bound to an approved
+        template, and not ingested from this bag by an earlier job of the same robot."""
         reports: list[TopicReport] = []
         plans: Plans = {}
+        earlier = self.ingested.ingested(job.author["signer"], job.bag)
         for connection in bag.connections:
             report = TopicReport(connection.topic, connection.msgtype, connection.count)
             reports.append(report)
@@ -604,8 +669,13 @@ class IngestJobs:
             except CatalogError as exc:
                 report.skipped = f"bound to {template_id}, which is not usable: {exc}"
                 continue
-            plans[connection.topic, connection.msgtype] = compile_plan(connection, template)
             report.template = template_id
+            ingested_by = earlier.get((connection.topic, connection.msgtype, template_id))
+            if ingested_by not in (None, job.id):
+                report.skipped = f"ingested from this bag into {template_id} by job {ingested_by}"
+                report.ingested_by = ingested_by
+                continue
+            plans[connection.topic, connection.msgtype] = compile_plan(connection, template)
         return reports, plans
 
     def _stage(self, job: Job) -> None:
@@ -641,8 +711,8 @@ class IngestJobs:
         here leaves it resumable, never counting its committed records as none."""
 
         def same_plan(reports: list[TopicReport], total: int) -> None:
-            if [(r.topic, r.template) for r in reports] != [
-                (t.topic, t.template) for t in job.topics
+            if [(r.topic, r.template, r.ingested_by) for r in reports] != [
+                (t.topic, t.template, t.ingested_by) for t in job.topics
             ]:
                 raise IngestFailed(
                     "ingest_inconsistent",
@@ -690,8 +760,8 @@ class IngestJobs:
         try:
             # The bag's files are checked while its messages stage.
             with bag_failures(), Bag.open(_bag_in(directory), check=False) as bag:
-                reports, plans = self._plan(bag)
-                total = sum(r.messages for r in reports if r.template is not None)
+                reports, plans = self._plan(bag, job)
+                total = sum(r.messages for r in reports if (r.topic, r.msgtype) in plans)
                 planned(reports, total)
                 parts = workers.count if total >= self.parallel_from_messages else 1
                 staged = workers.stage(

@@ -172,8 +172,8 @@ def _unpublished_line(dataset: dict[str, Any]) -> str:
 
 
 def _topic_line(topic: dict[str, Any]) -> str:
-    """What became of one topic (its template, or why it was skipped), escaped."""
-    outcome = topic.get("template") or topic.get("skipped")
+    """What became of one topic (why it was skipped, or else its template), escaped."""
+    outcome = topic.get("skipped") or topic.get("template")
     return (
         f"  {untrusted(topic.get('topic'))} ({untrusted(topic.get('msgtype'))}): "
         f"{untrusted(outcome)}"

@@ -454,6 +454,39 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
     ]
 
 
+def test_a_bag_sent_again_is_neither_stored_nor_advertised_twice(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """The robot sends its bag again (its answer lost, its script run twice): the second job
+    names the first for its topic and commits nothing, and the node advertises the bag once."""
+    ledger = service_factory("ledger")
+    storage = service_factory(
+        "storage",
+        {
+            "ROBOCLOUD_LEDGER_URL": ledger.url,
+            "ROBOCLOUD_CAS_URL": service_factory("cas").url,
+            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
+        },
+    )
+    bag, imu, dataset = _publish_an_imu_bag(storage, ledger, identity, tmp_path)
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        again = ingest.wait(ingest.upload(bag)["id"], timeout_s=180)
+        assert again["status"] == "succeeded", again["error"]
+        assert again["records"] == {"staged": 0, "committed": 0}
+        (imu_topic,) = [topic for topic in again["topics"] if topic["topic"] == "/imu"]
+        assert imu_topic["template"] == imu
+        first = ingest.job(imu_topic["ingested_by"])
+        assert first["id"] != again["id"]
+        assert (first["bag"], first["records"]["committed"]) == (again["bag"], 40)
+        assert imu_topic["skipped"] == f"ingested from this bag into {imu} by job {first['id']}"
+        assert again["dataset"] is None
+        assert len(records.query(template=imu, limit=100).records) == 40
+    with LedgerService(ledger.url) as service:
+        assert [ad.description for ad in service.advertisements(cid=dataset["cid"])] == [
+            dataset["description"]
+        ]
+
+
 def test_a_full_knowledge_base_does_not_hold_back_the_datasets_advertisement(
     service_factory: ServiceFactory, identity: Identity, tmp_path: Path
 ) -> None:
@@ -764,6 +797,8 @@ def test_one_robot_holds_its_share_of_the_ingest_queue_and_is_refused_before_its
             == "succeeded"
         )
     jobs = [
-        path.name for path in (storage.data_dir / "ingest").iterdir() if path.name != "incoming"
+        path.name
+        for path in (storage.data_dir / "ingest").iterdir()
+        if path.is_dir() and path.name != "incoming"
     ]
     assert len(jobs) == 3, "the refused bags left nothing behind"

@@ -124,7 +124,7 @@ class KillBeforeSecondAdvertise(LedgerProxy):
 def test_a_resumed_job_does_not_take_an_advertisement_of_another_description_for_its_own(
     service_factory: ServiceFactory, identity: Identity, tmp_path: Path
 ) -> None:
-    """The node ingests one bag twice; the second job, killed before its advertise was sent,
+    """Two robots ingest one bag; the second job, killed before its advertise was sent,
     is resumed. Its records are in a later epoch, so its description differs from the first
     job's: the node's earlier advertisement of the bag is not this job's, and the resumed job
     reported it as its own, its own description never advertised. (The node is registered
@@ -143,8 +143,9 @@ def test_a_resumed_job_does_not_take_an_advertisement_of_another_description_for
             bag = write_bag(tmp_path / "a.bag", "ros1", 50, start_ns=START_NS)
             first = ing.wait(ing.upload(bag)["id"], timeout_s=120)
             assert first["status"] == "succeeded", first["error"]
-            again = write_bag(tmp_path / "b.bag", "ros1", 50, start_ns=START_NS)
-            second_id: str = ing.upload(again)["id"]
+        again = write_bag(tmp_path / "b.bag", "ros1", 50, start_ns=START_NS)
+        with Ingest(storage.url, Identity.generate()) as other_robot:
+            second_id: str = other_robot.upload(again)["id"]
         proxy.wait_killed("the storage node to send its second advertise")
 
         storage.start()

@@ -120,6 +120,26 @@ def test_an_ingest_report_says_what_became_of_the_dataset(
     assert result.stdout.splitlines()[-1] == said
 
 
+def test_an_ingest_report_says_which_job_ingested_a_skipped_topic(
+    keystore: Path, tmp_path: Path
+) -> None:
+    """A topic skipped as ingested from the bag before keeps its template: the line showed
+    the template alone, as though the topic had been ingested again."""
+    skipped = "ingested from this bag into imu@1 by job j0"
+
+    def node(exchange: Exchange) -> Reply:
+        status, headers, body = storage_node(exchange) or (500, {}, b"")
+        if exchange.path.startswith("/v1/jobs/"):
+            topic = {"topic": "/imu", "msgtype": "sensor_msgs/msg/Imu", "template": "imu@1"}
+            topic |= {"skipped": skipped, "ingested_by": "j0"}
+            body = json.dumps({**json.loads(body), "topics": [topic]}).encode()
+        return status, headers, body
+
+    result = ingest_report(node, keystore, tmp_path)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines()[1] == f"  /imu (sensor_msgs/msg/Imu): {skipped}"
+
+
 def sparql_node(body: bytes, media_type: str) -> Any:
     def script(_: Exchange) -> Reply:
         return 200, {"Content-Type": media_type}, body

@@ -38,6 +38,7 @@ from tests.bagfactory import (
     write_messages,
 )
 from tests.blobs import MemoryBlobs
+from tests.waiting import wait_for
 
 
 class Node:
@@ -170,7 +171,11 @@ def test_a_bag_on_its_way_in_leaves_nothing_behind(node: Node, tmp_path: Path) -
         with pytest.raises(TooManyJobs):
             node.jobs.submit(refused, "upload:r", authorship("nonce-111111111111"))
     assert list(incoming.iterdir()) == []
-    assert sorted(path.name for path in (node.root / "jobs").iterdir()) == [job.id, "incoming"]
+    assert sorted(path.name for path in (node.root / "jobs").iterdir()) == [
+        job.id,
+        "incoming",
+        "ingested.sqlite",
+    ]
 
 
 def test_one_robot_holds_its_share_of_the_queue_and_the_rest_is_for_others(
@@ -183,7 +188,7 @@ def test_one_robot_holds_its_share_of_the_queue_and_the_rest_is_for_others(
     greedy, other = authorship(), authorship()
     source = bag(tmp_path, "b.bag", 20, kind="ros1")
     queued = [
-        node.jobs.submit(Path(shutil.copy(source, tmp_path / f"{n}.bag")), "upload:g", greedy)
+        node.jobs.submit(Path(shutil.copy(source, tmp_path / f"{n}.bag")), f"upload:g{n}", greedy)
         for n in range(2)
     ]
     with pytest.raises(TooManyJobs) as robot_full:
@@ -262,7 +267,8 @@ def test_ingested_views_are_those_live_appends_build(tmp_path: Path) -> None:
             folder = tmp_path / f"bag-{number}"
             folder.mkdir()
             path = write_bag(folder / "b.bag", "ros1", count, start_ns=START_NS + number)
-            job = ingested.jobs.wait(ingested.jobs.submit(path, "upload:v", author).id, 60)
+            source = f"upload:v{number}"
+            job = ingested.jobs.wait(ingested.jobs.submit(path, source, author).id, 60)
             assert job.status == "succeeded", job.error
         size = ingested.logs.size(imu)
         assert size == 500
@@ -363,7 +369,8 @@ def test_a_failing_bag_appends_nothing(
         assert job.error["details"]["topic"].startswith("/test_service")
     assert node.logs.size(imu) == 0
     assert node.logs.template_ids() == []
-    assert kept_files(node, job.id) == ["job.json"], "the robot sends the bag again"
+    # The bag goes just after the failure is saved, which ``wait`` sees.
+    wait_for(lambda: kept_files(node, job.id) == ["job.json"], "the failed job's bag removed", 10)
 
 
 def kept_files(node: Node, job_id: str) -> list[str]:

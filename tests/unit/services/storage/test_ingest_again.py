@@ -1,0 +1,165 @@
+"""A bag sent again: by the same robot, no topic is ingested twice; while its job runs, the
+resend gets that job; while its job awaits a resume, the resend is refused."""
+
+from __future__ import annotations
+
+import errno
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from services.storage.ingest import BagAwaitsResume, IngestJobs
+from services.storage.recordstore import RecordStore
+from tests.unit.services.storage.test_ingest import Node, authorship, bag
+
+
+@pytest.fixture
+def node(tmp_path: Path) -> Iterator[Node]:
+    created = Node(tmp_path / "node")
+    yield created
+    created.close()
+
+
+def job_dirs(node: Node) -> list[str]:
+    return sorted(path.parent.name for path in (node.root / "jobs").glob("*/job.json"))
+
+
+def test_the_same_robot_s_bag_sent_again_adds_no_record_and_publishes_nothing(
+    node: Node, tmp_path: Path
+) -> None:
+    """The second job of one robot's bag skips every topic the first ingested, naming it:
+    the logs keep 160 IMU records, not 320. A topic bound since is new data, ingested."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    robot = authorship("nonce-1111111111111111")
+    first = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b1", 200), "upload:b", robot).id, 60)
+    assert (first.status, first.records_committed, node.logs.size(imu)) == ("succeeded", 160, 160)
+
+    again = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b2", 200), "upload:b", robot).id, 60)
+    assert again.id != first.id
+    assert (again.status, again.records_committed, again.records_staged) == ("succeeded", 0, 0)
+    assert again.messages_total == 0
+    reports = {report.topic: report for report in again.topics}
+    assert reports["/imu"].template == imu
+    assert reports["/imu"].ingested_by == first.id
+    assert reports["/imu"].skipped == f"ingested from this bag into {imu} by job {first.id}"
+    assert again.to_json()["unbound_topics"] == ["/gps", "/camera/image_raw"]
+    assert again.record_ids == {}
+    assert node.logs.size(imu) == 160
+
+    gps = node.approve("sensor_msgs/msg/NavSatFix")
+    node.bindings.bind(template_id=gps, topic="/gps")
+    third = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b3", 200), "upload:b", robot).id, 60)
+    assert (third.status, third.records_committed) == ("succeeded", 20), third.error
+    assert {report.topic: report.ingested_by for report in third.topics} == {
+        "/imu": first.id,
+        "/gps": None,
+        "/camera/image_raw": None,
+    }
+    assert (node.logs.size(imu), node.logs.size(gps)) == (160, 20)
+
+
+def test_what_a_bag_gave_is_remembered_after_a_restart_and_its_jobs_forgotten(
+    node: Node, tmp_path: Path
+) -> None:
+    """The node keeps its last ``keep_finished`` jobs; what they ingested outlives them."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    robot = authorship()
+    node.jobs.close()
+    node.jobs = node.open_jobs(keep_finished=0)
+    first = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b1", 50), "upload:b", robot).id, 60)
+    other = node.jobs.submit(bag(tmp_path, "o", 50), "upload:other", authorship())
+    assert node.jobs.wait(other.id, 60).status == "succeeded"
+    assert job_dirs(node) == [other.id], "the first job is forgotten"
+    node.jobs.close()
+    node.jobs = node.open_jobs()
+    again = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b2", 50), "upload:b", robot).id, 60)
+    assert again.records_committed == 0
+    assert [report.ingested_by for report in again.topics if report.template] == [first.id]
+    assert node.logs.size(imu) == 2 * 40
+
+
+def test_another_robot_s_copy_or_another_bag_is_ingested(node: Node, tmp_path: Path) -> None:
+    """Records are each robot's own: a second robot's copy of the bag is its data; and the
+    same robot's different bag (another digest) is another bag."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    robot = authorship()
+    jobs = [
+        node.jobs.submit(bag(tmp_path, "b1", 50), "upload:b", robot),
+        node.jobs.submit(bag(tmp_path, "b2", 50), "upload:b", authorship()),
+        node.jobs.submit(bag(tmp_path, "b3", 50), "upload:c", robot),
+    ]
+    finished = [node.jobs.wait(job.id, 60) for job in jobs]
+    assert [job.records_committed for job in finished] == [40, 40, 40]
+    assert node.logs.size(imu) == 120
+
+
+def test_a_bag_sent_again_while_its_job_runs_gets_that_job(node: Node, tmp_path: Path) -> None:
+    """A robot whose answer was lost sends the bag again: it gets the job the first request
+    made, whose bag stays the only one kept; the resent file is not taken."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    robot = authorship()
+    ahead = node.jobs.submit(bag(tmp_path, "ahead", 4000), "upload:ahead", authorship())
+    queued = node.jobs.submit(bag(tmp_path, "b1", 50), "upload:b", robot)
+    resent = bag(tmp_path, "b2", 50)
+    answered = node.jobs.submit(resent, "upload:b", robot)
+    assert answered.id == queued.id
+    assert answered.status in ("queued", "staging", "committing")
+    assert resent.exists(), "the resent bag is the caller's to remove"
+    assert job_dirs(node) == sorted([ahead.id, queued.id])
+    assert node.jobs.wait(queued.id, 120).records_committed == 40
+    assert node.logs.size(imu) == 3200 + 40
+
+
+def test_a_bag_whose_job_awaits_a_resume_is_refused_again(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Part of its records are in: a second job would store them twice; the resume commits
+    the rest once. Refused before it is a job: nothing is taken, stored or queued."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    append = RecordStore.append_prepared
+    appended: list[int] = []
+
+    def filling(store: RecordStore, *args: Any, **kwargs: Any) -> int:
+        if appended:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        appended.append(append(store, *args, **kwargs))
+        return appended[-1]
+
+    monkeypatch.setattr(RecordStore, "append_prepared", filling)
+    robot = authorship()
+    failed = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b1", 200), "upload:b", robot).id, 60)
+    assert failed.error is not None
+    assert failed.error["resumable"]
+    monkeypatch.undo()
+    resent = bag(tmp_path, "b2", 200)
+    with pytest.raises(BagAwaitsResume, match=f"ingest job {failed.id} of this bag"):
+        node.jobs.submit(resent, "upload:b", robot)
+    assert resent.exists()
+    assert job_dirs(node) == [failed.id]
+    assert node.logs.size(imu) == 50
+    assert node.jobs.wait(node.jobs.resume(failed.id).id, 60).records_committed == 160
+    assert node.logs.size(imu) == 160
+
+
+def test_a_node_that_ingested_before_the_table_fills_it_from_its_jobs(
+    node: Node, tmp_path: Path
+) -> None:
+    """Upgrading a node: its succeeded jobs say what their bags gave."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    robot = authorship()
+    first = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b1", 50), "upload:b", robot).id, 60)
+    node.jobs.close()
+    (node.root / "jobs" / "ingested.sqlite").unlink()
+    node.jobs = node.open_jobs()
+    assert isinstance(node.jobs, IngestJobs)
+    again = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b2", 50), "upload:b", robot).id, 60)
+    assert [report.ingested_by for report in again.topics if report.template] == [first.id]
+    assert node.logs.size(imu) == 40
