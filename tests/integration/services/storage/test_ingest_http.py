@@ -416,9 +416,9 @@ def _publish_an_imu_bag(
     return bag, imu, dataset
 
 
-def test_an_ingested_bag_is_described_indexed_and_advertised(
-    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
-) -> None:
+def publishing_node(service_factory: ServiceFactory) -> tuple[ServiceProcess, ServiceProcess]:
+    """A ledger, and a storage node publishing its datasets to cas and the ledger (the
+    knowledge follower off)."""
     ledger = service_factory("ledger")
     storage = service_factory(
         "storage",
@@ -428,6 +428,13 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
             "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
         },
     )
+    return ledger, storage
+
+
+def test_an_ingested_bag_is_described_indexed_and_advertised(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    ledger, storage = publishing_node(service_factory)
     bag, imu, dataset = _publish_an_imu_bag(storage, ledger, identity, tmp_path)
     assert dataset["cid"] == str(import_bytes(bag.read_bytes())[1])
     query = f"""
@@ -459,15 +466,7 @@ def test_a_bag_sent_again_is_neither_stored_nor_advertised_twice(
 ) -> None:
     """The robot sends its bag again (its answer lost, its script run twice): the second job
     names the first for its topic and commits nothing, and the node advertises the bag once."""
-    ledger = service_factory("ledger")
-    storage = service_factory(
-        "storage",
-        {
-            "ROBOCLOUD_LEDGER_URL": ledger.url,
-            "ROBOCLOUD_CAS_URL": service_factory("cas").url,
-            "ROBOCLOUD_KNOWLEDGE_FOLLOW_LEDGER": "false",
-        },
-    )
+    ledger, storage = publishing_node(service_factory)
     bag, imu, dataset = _publish_an_imu_bag(storage, ledger, identity, tmp_path)
     with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
         again = ingest.wait(ingest.upload(bag)["id"], timeout_s=180)

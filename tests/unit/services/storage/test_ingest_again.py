@@ -3,16 +3,18 @@ resend gets that job; while its job awaits a resume, the resend is refused."""
 
 from __future__ import annotations
 
-import errno
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from services.storage.ingest import BagAwaitsResume, IngestJobs
-from services.storage.recordstore import RecordStore
-from tests.unit.services.storage.test_ingest import Node, authorship, bag
+from tests.unit.services.storage.test_ingest import (
+    Node,
+    authorship,
+    bag,
+    fail_after_first_batch,
+)
 
 
 @pytest.fixture
@@ -20,6 +22,13 @@ def node(tmp_path: Path) -> Iterator[Node]:
     created = Node(tmp_path / "node")
     yield created
     created.close()
+
+
+def imu_bound(node: Node) -> str:
+    """An approved IMU template, bound to the IMU message type: its id."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    return imu
 
 
 def job_dirs(node: Node) -> list[str]:
@@ -31,8 +40,7 @@ def test_the_same_robot_s_bag_sent_again_adds_no_record_and_publishes_nothing(
 ) -> None:
     """The second job of one robot's bag skips every topic the first ingested, naming it:
     the logs keep 160 IMU records, not 320. A topic bound since is new data, ingested."""
-    imu = node.approve("sensor_msgs/msg/Imu")
-    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    imu = imu_bound(node)
     robot = authorship("nonce-1111111111111111")
     first = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b1", 200), "upload:b", robot).id, 60)
     assert (first.status, first.records_committed, node.logs.size(imu)) == ("succeeded", 160, 160)
@@ -65,8 +73,7 @@ def test_what_a_bag_gave_is_remembered_after_a_restart_and_its_jobs_forgotten(
     node: Node, tmp_path: Path
 ) -> None:
     """The node keeps its last ``keep_finished`` jobs; what they ingested outlives them."""
-    imu = node.approve("sensor_msgs/msg/Imu")
-    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    imu = imu_bound(node)
     robot = authorship()
     node.jobs.close()
     node.jobs = node.open_jobs(keep_finished=0)
@@ -85,8 +92,7 @@ def test_what_a_bag_gave_is_remembered_after_a_restart_and_its_jobs_forgotten(
 def test_another_robot_s_copy_or_another_bag_is_ingested(node: Node, tmp_path: Path) -> None:
     """Records are each robot's own: a second robot's copy of the bag is its data; and the
     same robot's different bag (another digest) is another bag."""
-    imu = node.approve("sensor_msgs/msg/Imu")
-    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    imu = imu_bound(node)
     robot = authorship()
     jobs = [
         node.jobs.submit(bag(tmp_path, "b1", 50), "upload:b", robot),
@@ -101,8 +107,7 @@ def test_another_robot_s_copy_or_another_bag_is_ingested(node: Node, tmp_path: P
 def test_a_bag_sent_again_while_its_job_runs_gets_that_job(node: Node, tmp_path: Path) -> None:
     """A robot whose answer was lost sends the bag again: it gets the job the first request
     made, whose bag stays the only one kept; the resent file is not taken."""
-    imu = node.approve("sensor_msgs/msg/Imu")
-    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    imu = imu_bound(node)
     robot = authorship()
     ahead = node.jobs.submit(bag(tmp_path, "ahead", 4000), "upload:ahead", authorship())
     queued = node.jobs.submit(bag(tmp_path, "b1", 50), "upload:b", robot)
@@ -121,18 +126,8 @@ def test_a_bag_whose_job_awaits_a_resume_is_refused_again(
 ) -> None:
     """Part of its records are in: a second job would store them twice; the resume commits
     the rest once. Refused before it is a job: nothing is taken, stored or queued."""
-    imu = node.approve("sensor_msgs/msg/Imu")
-    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
-    append = RecordStore.append_prepared
-    appended: list[int] = []
-
-    def filling(store: RecordStore, *args: Any, **kwargs: Any) -> int:
-        if appended:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        appended.append(append(store, *args, **kwargs))
-        return appended[-1]
-
-    monkeypatch.setattr(RecordStore, "append_prepared", filling)
+    imu = imu_bound(node)
+    fail_after_first_batch(monkeypatch)
     robot = authorship()
     failed = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b1", 200), "upload:b", robot).id, 60)
     assert failed.error is not None
@@ -152,8 +147,7 @@ def test_a_node_that_ingested_before_the_table_fills_it_from_its_jobs(
     node: Node, tmp_path: Path
 ) -> None:
     """Upgrading a node: its succeeded jobs say what their bags gave."""
-    imu = node.approve("sensor_msgs/msg/Imu")
-    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    imu = imu_bound(node)
     robot = authorship()
     first = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b1", 50), "upload:b", robot).id, 60)
     node.jobs.close()
