@@ -26,9 +26,8 @@ def read_answer(sock: socket.socket, received: bytes = b"") -> tuple[int, dict[s
         assert chunk, "connection closed mid-answer"
         body += chunk
     answer: dict[str, Any] = json.loads(body)
-    assert (
-        answer.get("error", {}).get("request_id", headers["x-request-id"])
-        == (headers["x-request-id"])
+    assert (answer.get("error") or {}).get("request_id", headers["x-request-id"]) == (
+        headers["x-request-id"]
     )
     return int(lines[0].split()[1]), answer
 

@@ -12,9 +12,9 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
-from robocloud.cid import parse_cid
+from robocloud.cid import CID, parse_cid
 from robocloud.semantic import MCAP_MEDIA_TYPE
-from services.common.bodies import json_body, media_type
+from services.common.bodies import SMALL_JSON_BODY, json_body, media_type
 from services.common.errors import PayloadTooLarge, UnsupportedMediaType
 from services.common.responses import stream_in_turn
 from services.common.slots import Slots
@@ -27,6 +27,7 @@ from services.storage.queries import Page, QueryEngine
 from services.storage.records_api import RecordFilters, authorship_of, in_query_slot
 
 router = APIRouter(tags=["ingest"])
+JSON = "application/json"
 EXPORT_PAGE = 1000
 EXPORT_FORMATS = {
     "mcap": (MCAP_MEDIA_TYPE, "export.mcap"),
@@ -37,6 +38,10 @@ EXPORT_FORMATS = {
 
 class IngestFromCas(BaseModel):
     cid: str = Field(max_length=256, description="a bag file or a ROS 2 bag directory in cas")
+
+
+_named_bag = json_body(IngestFromCas, max_bytes=SMALL_JSON_BODY)
+"""``{"cid"}``, a few hundred bytes, not the route's limit of a bag upload."""
 
 
 class Binding(BaseModel):
@@ -73,29 +78,38 @@ async def _spool_upload(request: Request, spool: Path, limit: int) -> tuple[Path
 @router.post("/v1/ingest", status_code=202)
 async def ingest(request: Request) -> JSONResponse:
     """Ingest a bag: a JSON body ``{"cid"}`` names one in cas (a file, or a directory for a
-    split ROS 2 bag); any other body is the bag file itself, streamed. Answers the job."""
+    split ROS 2 bag); any other body is the bag file itself, streamed. Answers the job: a
+    resend while the robot's job of the bag runs gets that job before the bag is read (an
+    upload is named by the digest its signature covers)."""
     author = authorship_of(request)
-    settings = request.app.state.settings
     jobs = _jobs(request)
     kind = media_type(request)
-    if kind not in ("application/json", "application/octet-stream", ""):
+    if kind not in (JSON, "application/octet-stream", ""):
         raise UnsupportedMediaType(
             "send application/json with a cid, or the bag as application/octet-stream",
             details={"header": "Content-Type", "received": request.headers.get("content-type")},
         )
-    jobs.admit(author.signer)
-    with jobs.incoming() as spool:
-        if kind == "application/json":
-            body = await json_body(IngestFromCas)(request)
-            cid = parse_cid(body.cid, "cid")
-            cas = request.app.state.ingest_cas()
-            bounds = BagBounds(settings.storage_max_bag_bytes, settings.storage_max_bag_entries)
-            bag = await anyio.to_thread.run_sync(lambda: fetch_bag(cas, cid, spool, bounds))
-            source = f"cid:{cid}"
-        else:
-            bag, source = await _spool_upload(request, spool, settings.storage_max_bag_bytes)
-        job = await anyio.to_thread.run_sync(lambda: jobs.submit(bag, source, author))
+    cid = parse_cid((await _named_bag(request)).cid, "cid") if kind == JSON else None
+    source = f"cid:{cid}" if cid is not None else f"upload:{author.content_sha256}"
+    job = jobs.unfinished(author.signer, source)
+    if job is None:
+        jobs.admit(author.signer)
+        with jobs.incoming() as spool:
+            bag, source = await _received_bag(request, spool, cid)
+            job = await anyio.to_thread.run_sync(lambda: jobs.submit(bag, source, author))
     return JSONResponse(job.to_json(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
+
+
+async def _received_bag(request: Request, spool: Path, cid: CID | None) -> tuple[Path, str]:
+    """The bag in ``spool``, fetched from cas by ``cid`` or else streamed in, and its name
+    as its job keeps it (``cid:`` or ``upload:`` and the digest of what arrived)."""
+    settings = request.app.state.settings
+    if cid is None:
+        return await _spool_upload(request, spool, settings.storage_max_bag_bytes)
+    cas = request.app.state.ingest_cas()
+    bounds = BagBounds(settings.storage_max_bag_bytes, settings.storage_max_bag_entries)
+    bag = await anyio.to_thread.run_sync(lambda: fetch_bag(cas, cid, spool, bounds))
+    return bag, f"cid:{cid}"
 
 
 @router.get("/v1/jobs/{job_id}")

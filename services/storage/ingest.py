@@ -381,6 +381,13 @@ class IngestJobs:
         with self._lock:
             self._admit(signer)
 
+    def unfinished(self, signer: str, source: str) -> Job | None:
+        """:meth:`_unfinished`, asked before a bag is received, so that a robot resending a
+        bag whose job runs gets the job at once; :meth:`submit` asks again."""
+        with self._lock:
+            job = self._unfinished(signer, source)
+            return None if job is None else job.copy()
+
     def _unfinished(self, signer: str, source: str) -> Job | None:
         """``signer``'s job of the bag ``source`` that is queued or running, if any;
         :class:`BagAwaitsResume` where one failed while committing and may be resumed."""

@@ -4,6 +4,7 @@ back with the mcap library; bad bags, unsigned writes and unknown jobs."""
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import json
 import os
@@ -745,9 +746,70 @@ def test_kill_9_ends_staging_processes_in_the_midst_of_decoding(
         raise
 
 
+def test_a_json_body_past_a_few_fields_is_refused_before_it_is_held(
+    storage: ServiceProcess, identity: Identity
+) -> None:
+    """``/v1/ingest`` takes a bag of up to 16 GiB, or ``{"cid"}``: a JSON body under the
+    bag's limit was read whole into memory, so a robot could hand the node gigabytes of it.
+    Refused by its declared length before a byte is read, or while it streams in."""
+    declared = f"POST /v1/ingest HTTP/1.1\r\nHost: x\r\nContent-Length: {1 << 30}\r\n"
+    headers = signed_headers(identity, "/v1/ingest", b"never sent")
+    assert headers["Content-Type"] == "application/json"
+    head = declared + "".join(f"{name}: {value}\r\n" for name, value in headers.items())
+    with socket.create_connection(("127.0.0.1", storage.port)) as sock:
+        sock.sendall(head.encode() + b"\r\n")
+        status, answer = read_answer(sock)
+    assert (status, answer["error"]["code"]) == (413, "payload_too_large")
+    assert answer["error"]["details"] == {"header": "Content-Length", "limit": 64 * 1024}
+    body = b'{"cid": "' + b"b" * 100_000 + b'"}'
+    with ServiceClient(storage.url, identity, retries=0) as client, pytest.raises(ApiError) as big:
+        client.request(
+            "POST",
+            "/v1/ingest",
+            content=iter([body[:50_000], body[50_000:]]),
+            content_sha256=hashlib.sha256(body).hexdigest(),
+            headers={"Content-Type": "application/json"},
+        )
+    assert (big.value.status, big.value.code) == (413, "payload_too_large")
+    assert big.value.details == {"limit": 64 * 1024}
+    assert [p.name for p in (storage.data_dir / "ingest").iterdir() if p.name != "incoming"] == [
+        "ingested.sqlite"
+    ], "no job"
+
+
 def refused_for_jobs(refusal: ApiError, limit: int, per: str) -> None:
     assert (refusal.status, refusal.code) == (429, "too_many_jobs")
     assert refusal.details == {"limit": limit, "per": per, "retry_after": 5}
+
+
+def test_a_bag_resent_while_its_job_runs_gets_that_job_before_its_body(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    """The robot's answer was lost while its long bag staged: the resend is answered with the
+    running job before a byte of the bag is read again (it was received whole again, up to
+    16 GiB, and its records stored twice)."""
+    long_bag = write_bag(tmp_path / "long.bag", "ros1", 50_000, start_ns=START_NS)
+    body = long_bag.read_bytes()
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        ingest.bind(approve(client, "sensor_msgs/msg/Imu"), msgtype="sensor_msgs/msg/Imu")
+        running = ingest.upload(long_bag)
+        headers = signed_headers(identity, "/v1/ingest", body)
+        headers["Content-Type"] = "application/octet-stream"
+        head = f"POST /v1/ingest HTTP/1.1\r\nHost: x\r\nContent-Length: {len(body)}\r\n"
+        head += "".join(f"{name}: {value}\r\n" for name, value in headers.items())
+        with socket.create_connection(("127.0.0.1", storage.port)) as sock:
+            sock.sendall(head.encode() + b"\r\n")
+            status, answer = read_answer(sock)
+        assert (status, answer["id"]) == (202, running["id"])
+        assert answer["status"] in ("queued", "staging", "committing")
+        done = ingest.wait(running["id"], timeout_s=300)
+    assert (done["status"], done["records"]["committed"]) == ("succeeded", 40_000)
+    jobs = [
+        path.name
+        for path in (storage.data_dir / "ingest").iterdir()
+        if path.is_dir() and path.name != "incoming"
+    ]
+    assert jobs == [running["id"]]
 
 
 def test_one_robot_holds_its_share_of_the_ingest_queue_and_is_refused_before_its_body(
@@ -779,6 +841,7 @@ def test_one_robot_holds_its_share_of_the_ingest_queue_and_is_refused_before_its
         refused_for_jobs(refused.value, 1, "robot")
         declared = f"POST /v1/ingest HTTP/1.1\r\nHost: x\r\nContent-Length: {1 << 30}\r\n"
         headers = signed_headers(identity, "/v1/ingest", b"never sent")
+        headers["Content-Type"] = "application/octet-stream"
         head = declared + "".join(f"{name}: {value}\r\n" for name, value in headers.items())
         with socket.create_connection(("127.0.0.1", storage.port)) as sock:
             sock.sendall(head.encode() + b"\r\n")
