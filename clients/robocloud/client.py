@@ -26,6 +26,7 @@ import time
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar, Self, TypedDict
 
 import httpx
@@ -71,6 +72,28 @@ BODY_SLICE_BYTES = 1 << 20
 """A bytes body is handed to httpx in slices of this size: given whole, httpcore sends it by
 ``send`` and ``buffer = buffer[n:]``, copying what is left after each send, so a 256 MiB body
 took 6.6 s of copying to send over loopback (quadratic in its size)."""
+FILE_BODY_CHUNK = 1 << 20
+
+
+class FileBody:
+    """A file sent as a streamed body, read anew for each attempt: unlike an iterator, a
+    request sending it may be resent (``BaseClient.send``), for a route that takes the same
+    body twice as once (a bag's ingest). Sent with its ``Content-Length``, never chunked."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.size = path.stat().st_size
+
+    def __iter__(self) -> Iterator[bytes]:
+        with self.path.open("rb") as stream:
+            while chunk := stream.read(FILE_BODY_CHUNK):
+                yield chunk
+
+    def sha256(self) -> str:
+        digest = hashlib.sha256()
+        for chunk in self:
+            digest.update(chunk)
+        return digest.hexdigest()
 
 
 class AnswerDeadlineError(TransportTimeoutError):
@@ -147,7 +170,7 @@ class RequestOptions(TypedDict, total=False):
 
     params: Mapping[str, Any] | None
     json: Any
-    content: bytes | Iterable[bytes] | None
+    content: bytes | FileBody | Iterable[bytes] | None
     content_sha256: str | None
     headers: Mapping[str, str] | None
     signed: bool | None
@@ -160,7 +183,7 @@ class BaseClient(Closeable):
 
     ``send`` is the one place a request goes out. A retried signed request is signed again
     with a fresh nonce, since the service remembers nonces. Streaming bodies (iterables) are
-    sent once and never retried: they cannot be replayed.
+    sent once and never retried: they cannot be replayed; a :class:`FileBody` can.
     """
 
     default_service: ClassVar[str | None] = None
@@ -234,7 +257,7 @@ class BaseClient(Closeable):
         *,
         params: Mapping[str, Any] | None = None,
         json: Any = None,
-        content: bytes | Iterable[bytes] | None = None,
+        content: bytes | FileBody | Iterable[bytes] | None = None,
         content_sha256: str | None = None,
         headers: Mapping[str, str] | None = None,
         signed: bool | None = None,
@@ -252,11 +275,14 @@ class BaseClient(Closeable):
             send_headers.setdefault("Content-Type", "application/json")
         if isinstance(content, bytes):
             content_sha256 = hashlib.sha256(content).hexdigest()
+        elif isinstance(content, FileBody):
+            content_sha256 = content_sha256 or content.sha256()
+            send_headers["Content-Length"] = str(content.size)
         elif content is None:
             content_sha256 = EMPTY_SHA256
         elif must_sign and content_sha256 is None:
             raise ValueError("a streamed signed body needs its content_sha256 computed beforehand")
-        replayable = content is None or isinstance(content, bytes)
+        replayable = content is None or isinstance(content, bytes | FileBody)
         attempts = self.retry.retries + 1 if replayable else 1
         if isinstance(content, bytes) and len(content) > BODY_SLICE_BYTES:
             send_headers["Content-Length"] = str(len(content))
@@ -525,7 +551,9 @@ def _reason(exc: httpx.RequestError) -> str:
     return text or type(exc).__name__
 
 
-def _sliced(content: bytes | Iterable[bytes] | None) -> bytes | Iterable[bytes] | None:
+def _sliced(
+    content: bytes | FileBody | Iterable[bytes] | None,
+) -> bytes | Iterable[bytes] | None:
     """A large bytes body as slices (``BODY_SLICE_BYTES``), new ones for each attempt; its
     ``Content-Length`` is set by the caller, so it is not sent chunked."""
     if not isinstance(content, bytes) or len(content) <= BODY_SLICE_BYTES:

@@ -7,21 +7,19 @@ UnixFS directory, and the storage node fetches it by CID, verifying every block.
 
 from __future__ import annotations
 
-import hashlib
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
 from robocloud.cas import Cas
 from robocloud.cid import CID
-from robocloud.client import ServiceClient
+from robocloud.client import FileBody, ServiceClient
 from robocloud.errors import InvalidAnswerError, RobocloudError
 from robocloud.partial import written_whole
 
-UPLOAD_CHUNK = 1 << 20
 FINISHED = ("succeeded", "failed")
 WAIT_TIMEOUT_S = 3600.0
 """How long ``Ingest.wait`` follows a job by default: a storage node that answers "running"
@@ -34,12 +32,6 @@ class ExportTooLargeError(RobocloudError):
     def __init__(self, limit: int) -> None:
         super().__init__(f"the export holds more than the limit of {limit} bytes")
         self.limit = limit
-
-
-def _file_chunks(path: Path) -> Iterator[bytes]:
-    with path.open("rb") as stream:
-        while chunk := stream.read(UPLOAD_CHUNK):
-            yield chunk
 
 
 def _job(answer: Any) -> dict[str, Any]:
@@ -85,17 +77,15 @@ class Ingest(ServiceClient):
 
     def upload(self, bag: Path) -> dict[str, Any]:
         """Send a bag file (ROS 1 ``.bag``, ``.mcap``, ``.db3``) and return its job: a new
-        one, or this robot's job of the same bag while that one is still running. Sent
-        again later, the bag gives no record twice (topics ingested before are skipped)."""
-        digest = hashlib.sha256()
-        for chunk in _file_chunks(bag):
-            digest.update(chunk)
+        one, or this robot's job of the same bag while that one is still running. Resent
+        after a broken exchange or a proxy's 502 or 504, as the node answers a resend with
+        the running job and ingests no topic of a bag twice for one robot."""
         response = self.request(
             "POST",
             "/v1/ingest",
-            content=_file_chunks(bag),
-            content_sha256=digest.hexdigest(),
+            content=FileBody(bag),
             headers={"Content-Type": "application/octet-stream"},
+            idempotent=True,
         )
         return _job(self.json_of(response))
 

@@ -10,13 +10,21 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
+from pathlib import Path
 
 import httpx
 import pytest
 import zstandard
 
 from robocloud.bounded_json import JsonDepthError
-from robocloud.client import BODY_SLICE_BYTES, BaseClient, RetryPolicy, ServiceClient
+from robocloud.client import (
+    BODY_SLICE_BYTES,
+    FILE_BODY_CHUNK,
+    BaseClient,
+    FileBody,
+    RetryPolicy,
+    ServiceClient,
+)
 from robocloud.errors import (
     AuthenticationError,
     ConfigurationError,
@@ -140,6 +148,25 @@ def test_a_large_body_is_sent_whole_with_its_length_on_every_attempt() -> None:
         assert exchange.headers["content-length"] == str(len(body))
         assert "transfer-encoding" not in exchange.headers
         assert exchange.headers[HEADER_CONTENT_SHA256.lower()] == hashlib.sha256(body).hexdigest()
+
+
+def test_a_file_body_is_read_again_and_resent_whole(tmp_path: Path) -> None:
+    """A bag's upload was an iterator, sent once: a proxy's 502 lost it for good. A
+    ``FileBody`` is read anew for each attempt, with its length and digest each time."""
+    robot = Identity.generate()
+    body = os.urandom(2 * FILE_BODY_CHUNK + 7)
+    path = tmp_path / "run.bag"
+    path.write_bytes(body)
+    answers = iter([json_reply("{}", 502), json_reply('{"ok":true}')])
+    with scripted_client(lambda _: next(answers), identity=robot, **FAST) as (server, client):
+        answered = client.request("POST", "/upload", content=FileBody(path), idempotent=True)
+    assert answered.json() == {"ok": True}
+    assert [exchange.body == body for exchange in server.exchanges] == [True, True]
+    for exchange in server.exchanges:
+        assert exchange.headers["content-length"] == str(len(body))
+        assert "transfer-encoding" not in exchange.headers
+        assert exchange.headers[HEADER_CONTENT_SHA256.lower()] == hashlib.sha256(body).hexdigest()
+    assert len({exchange.headers[HEADER_NONCE.lower()] for exchange in server.exchanges}) == 2
 
 
 def test_a_streamed_body_is_sent_once() -> None:
