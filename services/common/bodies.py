@@ -7,7 +7,7 @@ crash. Not valid JSON is 400 ``invalid_json``.
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any, TypeVar
 
 import anyio
@@ -80,16 +80,20 @@ async def bounded_body(request: Request, max_bytes: int) -> bytes:
             f"Content-Length {declared} exceeds the limit of {max_bytes} bytes of a JSON body",
             details={"header": "Content-Length", "limit": max_bytes},
         )
-    chunks: list[bytes] = []
+    return b"".join([chunk async for chunk in bounded_stream(request, max_bytes, "a JSON body")])
+
+
+async def bounded_stream(request: Request, max_bytes: int, what: str) -> AsyncIterator[bytes]:
+    """The body's chunks as they arrive; 413 once more than ``max_bytes`` came, before the
+    chunk past them is kept ("``what`` holds at most ..." bytes)."""
     received = 0
     async for chunk in request.stream():
         received += len(chunk)
         if received > max_bytes:
             raise PayloadTooLarge(
-                f"a JSON body here holds at most {max_bytes} bytes", details={"limit": max_bytes}
+                f"{what} holds at most {max_bytes} bytes here", details={"limit": max_bytes}
             )
-        chunks.append(chunk)
-    return b"".join(chunks)
+        yield chunk
 
 
 def _validated(raw: bytes, model: type[M], max_depth: int) -> M:

@@ -14,8 +14,8 @@ from pydantic import BaseModel, Field
 
 from robocloud.cid import CID, parse_cid
 from robocloud.semantic import MCAP_MEDIA_TYPE
-from services.common.bodies import SMALL_JSON_BODY, json_body, media_type
-from services.common.errors import PayloadTooLarge, UnsupportedMediaType
+from services.common.bodies import SMALL_JSON_BODY, bounded_stream, json_body, media_type
+from services.common.errors import UnsupportedMediaType
 from services.common.responses import stream_in_turn
 from services.common.slots import Slots
 from services.storage.bags import SUFFIXES, detect_format
@@ -59,15 +59,9 @@ async def _spool_upload(request: Request, spool: Path, limit: int) -> tuple[Path
     """The streamed body in a file of ``spool`` named by its format (rosbags needs the
     suffix); whatever it leaves there on failure goes with ``spool``."""
     digest = hashlib.sha256()
-    received = 0
     path = spool / "upload"
     with path.open("wb") as handle:
-        async for chunk in request.stream():
-            received += len(chunk)
-            if received > limit:
-                raise PayloadTooLarge(
-                    f"a bag upload holds at most {limit} bytes", details={"limit": limit}
-                )
+        async for chunk in bounded_stream(request, limit, "a bag upload"):
             digest.update(chunk)
             handle.write(chunk)
     named = path.with_name(f"bag{SUFFIXES.get(detect_format(path), '')}")
