@@ -79,7 +79,7 @@ def test_a_bag_from_draft_to_verified_record_from_the_cli(
     service_factory: ServiceFactory, keystore: Path, tmp_path: Path
 ) -> None:
     """The README's flow: ingest, write the proposed drafts, create, submit, review, bind,
-    ingest again, query."""
+    ingest again, query; and the bag sent a third time, which stores nothing twice."""
     storage = service_factory("storage", {"ROBOCLOUD_STORAGE_PUBLISH_DATASETS": "false"})
     signed = ["--storage", storage.url, "--keystore", str(keystore)]
     bag = write_bag(tmp_path / "run.bag", "ros1", 60, start_ns=1_700_000_000_000_000_000)
@@ -106,6 +106,14 @@ def test_a_bag_from_draft_to_verified_record_from_the_cli(
     assert job["record_ids"] == {"imu@1": ["imu-1-0", "imu-1-47"]}
     both = runner.invoke(app, ["bind", "imu@1", "--topic", "/imu", "--msgtype", "x/msg/Y", *signed])
     assert both.exit_code == 2
+    third = runner.invoke(app, ["ingest", str(bag), *signed])
+    assert third.exit_code == 0, third.output
+    said = third.stdout.splitlines()
+    assert said[0].endswith(": succeeded, 0 records")
+    assert (
+        said[1]
+        == f"  /imu (sensor_msgs/msg/Imu): ingested from this bag into imu@1 by job {job['id']}"
+    )
     page = runner.invoke(app, ["query", "--template", "imu@1", "--storage", storage.url, "--json"])
     assert len(json.loads(page.stdout)["records"]) == 48
 
