@@ -85,9 +85,9 @@ async def ingest(request: Request) -> JSONResponse:
         )
     cid = parse_cid((await _named_bag(request)).cid, "cid") if kind == JSON else None
     source = f"cid:{cid}" if cid is not None else f"upload:{author.content_sha256}"
-    job = jobs.unfinished(author.signer, source)
+    job = await anyio.to_thread.run_sync(lambda: jobs.unfinished(author.signer, source))
     if job is None:
-        jobs.admit(author.signer)
+        await anyio.to_thread.run_sync(lambda: jobs.admit(author.signer))
         with jobs.incoming() as spool:
             bag, source = await _received_bag(request, spool, cid)
             job = await anyio.to_thread.run_sync(lambda: jobs.submit(bag, source, author))
@@ -109,7 +109,8 @@ async def _received_bag(request: Request, spool: Path, cid: CID | None) -> tuple
 @router.get("/v1/jobs/{job_id}")
 async def get_job(request: Request, job_id: str) -> dict[str, Any]:
     """An ingest job: status, messages done of total, topics and what became of them."""
-    return _jobs(request).get(job_id).to_json()
+    job = await anyio.to_thread.run_sync(lambda: _jobs(request).get(job_id))
+    return job.to_json()
 
 
 @router.post("/v1/jobs/{job_id}/resume", status_code=202)

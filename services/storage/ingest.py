@@ -246,6 +246,11 @@ def _bag_in(directory: Path) -> Path:
     return next(directory.glob("bag*"), directory / "bag")
 
 
+def _job_document(job: Job) -> bytes:
+    """What job.json holds of ``job``."""
+    return json.dumps(asdict(job)).encode()
+
+
 def _ingested_rows(job: Job) -> list[IngestedRow]:
     """The topics a job committed, for :class:`IngestedBags`."""
     topics: list[IngestedTopic] = [
@@ -321,6 +326,11 @@ class IngestJobs:
         size, which took the disk's last bytes and left the robots' deletions no room."""
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._lock = threading.Lock()
+        """Held to read or change jobs in memory, never while a job is written to disk: a
+        poll waited for the ingest thread's fsyncs, one batch of records each."""
+        self._saving = threading.Lock()
+        """Held, before :attr:`_lock`, from a change to its save, so that job.json is
+        written in the order its changes were made."""
         self._queue: queue.Queue[str | None] = queue.Queue()
         self._due: list[tuple[int, str, Due]] = []
         """What the worker thread does to a finished job at a time: publish a succeeded
@@ -413,7 +423,7 @@ class IngestJobs:
         """Take ownership of ``bag`` (moved into the job's directory) and queue its ingest;
         or, when the robot's earlier job of the same bag is still queued or running, leave
         ``bag`` and answer that job (:class:`BagAwaitsResume` where it failed resumable)."""
-        with self._lock:
+        with self._saving, self._lock:
             earlier = self._unfinished(author.signer, source)
             if earlier is not None:
                 return earlier.copy()
@@ -430,7 +440,7 @@ class IngestJobs:
 
     def resume(self, job_id: str) -> Job:
         """Queue again a job that failed while committing (cas or disk trouble, say)."""
-        with self._lock:
+        with self._saving, self._lock:
             job = self._jobs.get(job_id)
             if job is None:
                 raise JobNotFound(job_id)
@@ -470,17 +480,22 @@ class IngestJobs:
 
     def _save(self, job: Job) -> None:
         job.updated_ns = time.time_ns()
-        atomic_write(self.root / job.id / "job.json", json.dumps(asdict(job)).encode())
+        self._write(job, _job_document(job))
+
+    def _write(self, job: Job, document: bytes) -> None:
+        atomic_write(self.root / job.id / "job.json", document)
 
     def _update(self, job: Job, *, save: bool = True, **changes: Any) -> None:
-        """Change a job; readers see it at once, job.json (two fsyncs) only if ``save``."""
-        with self._lock:
-            for key, value in changes.items():
-                setattr(job, key, value)
-            if save:
-                self._save(job)
-            else:
+        """Change a job; readers see it at once, job.json (two fsyncs) only if ``save``,
+        written once readers may read again."""
+        with self._saving:
+            with self._lock:
+                for key, value in changes.items():
+                    setattr(job, key, value)
                 job.updated_ns = time.time_ns()
+                document = _job_document(job) if save else None
+            if document is not None:
+                self._write(job, document)
 
     def _work(self) -> None:
         """Run queued jobs one at a time, for the service's lifetime. A job whose failure
@@ -567,7 +582,7 @@ class IngestJobs:
         good, its committed records kept. A job resumed since (and failed again, with a
         later time) is left alone. Checked and saved under the lock, so that no resume
         starts in between; once saved, none starts at all."""
-        with self._lock:
+        with self._saving, self._lock:
             error = job.error or {}
             if job.status != "failed" or not error.get("resumable"):
                 return
