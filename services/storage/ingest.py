@@ -246,6 +246,19 @@ def _bag_in(directory: Path) -> Path:
     return next(directory.glob("bag*"), directory / "bag")
 
 
+def _awaits_bag(job: Job) -> bool:
+    """A job failed while committing and not resumed in time: part of its records are in,
+    its bag was removed, and only the bag sent again finishes it (a job failed before it
+    committed has staged nothing, and one failed while committing stays resumable until
+    then)."""
+    return job.status == "failed" and bool(job.staged) and not (job.error or {}).get("resumable")
+
+
+def _messages_in(bag: Bag, plans: Plans) -> int:
+    """The messages of ``bag`` that ``plans`` stage."""
+    return sum(c.count for c in bag.connections if (c.topic, c.msgtype) in plans)
+
+
 def _job_document(job: Job) -> bytes:
     """What job.json holds of ``job``."""
     return json.dumps(asdict(job)).encode()
@@ -401,15 +414,23 @@ class IngestJobs:
     def _unfinished(self, signer: str, source: str) -> Job | None:
         """``signer``'s job of the bag ``source`` that is queued or running, if any;
         :class:`BagAwaitsResume` where one failed while committing and may be resumed."""
-        robot = signer.lower()
-        for job in self._jobs.values():
-            if job.bag != source or job.author["signer"].lower() != robot:
-                continue
+        for job in self._jobs_of(signer, source):
             if job.status not in ("succeeded", "failed"):
                 return job
             if job.status == "failed" and (job.error or {}).get("resumable"):
                 raise BagAwaitsResume(job.id, source)
         return None
+
+    def _awaiting_bag(self, signer: str, source: str) -> Job | None:
+        """``signer``'s job of the bag ``source`` that awaits the bag (:func:`_awaits_bag`).
+        A new job of the bag appended again every record the old one had committed."""
+        return next((job for job in self._jobs_of(signer, source) if _awaits_bag(job)), None)
+
+    def _jobs_of(self, signer: str, source: str) -> Iterator[Job]:
+        robot = signer.lower()
+        for job in self._jobs.values():
+            if job.bag == source and job.author["signer"].lower() == robot:
+                yield job
 
     def _admit(self, signer: str) -> None:
         pending = [j for j in self._jobs.values() if j.status not in ("succeeded", "failed")]
@@ -422,21 +443,27 @@ class IngestJobs:
     def submit(self, bag: Path, source: str, author: Authorship) -> Job:
         """Take ownership of ``bag`` (moved into the job's directory) and queue its ingest;
         or, when the robot's earlier job of the same bag is still queued or running, leave
-        ``bag`` and answer that job (:class:`BagAwaitsResume` where it failed resumable)."""
+        ``bag`` and answer that job (:class:`BagAwaitsResume` where it failed resumable).
+        The robot's job of the bag that awaits it takes it and goes on committing."""
         with self._saving, self._lock:
             earlier = self._unfinished(author.signer, source)
             if earlier is not None:
                 return earlier.copy()
             self._admit(author.signer)
-            job = Job(id=secrets.token_hex(JOB_ID_BYTES), bag=source, author=asdict(author))
-            directory = self.root / job.id
-            directory.mkdir()
-            shutil.move(str(bag), directory / f"bag{bag.suffix}")
+            job = self._awaiting_bag(author.signer, source)
+            if job is None:
+                job = Job(id=secrets.token_hex(JOB_ID_BYTES), bag=source, author=asdict(author))
+                (self.root / job.id).mkdir()
+            else:
+                job.status, job.error = "committing", None
+                self._jobs.move_to_end(job.id)
+            shutil.move(str(bag), self.root / job.id / f"bag{bag.suffix}")
             self._save(job)
             self._jobs[job.id] = job
             self._forget_old()
+            queued = job.copy()
         self._queue.put(job.id)
-        return job
+        return queued
 
     def resume(self, job_id: str) -> Job:
         """Queue again a job that failed while committing (cas or disk trouble, say)."""
@@ -469,10 +496,14 @@ class IngestJobs:
             time.sleep(0.05)
 
     def _forget_old(self) -> None:
+        """Forget finished jobs past the last :attr:`keep_finished`, but those that retry
+        publishing or await their bag."""
         finished = [
             j.id
             for j in self._jobs.values()
-            if j.status in ("succeeded", "failed") and j.publish_retry_ns is None
+            if j.status in ("succeeded", "failed")
+            and j.publish_retry_ns is None
+            and not _awaits_bag(j)
         ]
         for job_id in finished[: max(0, len(finished) - self.keep_finished)]:
             del self._jobs[job_id]
@@ -592,7 +623,8 @@ class IngestJobs:
                 **error,
                 "resumable": False,
                 "message": f"{error['message']}; not resumed within "
-                f"{self.keep_resumable_s:g} s, its bag was removed",
+                f"{self.keep_resumable_s:g} s, its bag was removed: the bag sent again "
+                "finishes the job",
             }
             self._save(job)
         self._drop_inputs(job)
@@ -710,12 +742,15 @@ class IngestJobs:
             # Not saved: staging restarts from the first message after a crash.
             self._update(job, save=False, messages_done=done)
 
-        def planned(reports: list[TopicReport], total: int) -> None:
+        def plan(bag: Bag) -> Plans:
+            reports, plans = self._plan(bag, job)
+            total = _messages_in(bag, plans)
             self._update(
                 job, status="staging", topics=reports, messages_total=total, messages_done=0
             )
+            return plans
 
-        counts, parts = self._spool(job, planned, progress)
+        counts, parts = self._spool(job, plan, progress)
         self._update(
             job,
             status="committing",
@@ -727,22 +762,15 @@ class IngestJobs:
         )
 
     def _restage(self, job: Job) -> None:
-        """Spool the bag again for a job whose spool a power cut damaged, before a staging
-        that did not sync it was saved as done. It must give the records it gave the first
-        time, past which the commit goes on. The job stays committing: a crash or failure
-        here leaves it resumable, never counting its committed records as none."""
-
-        def same_plan(reports: list[TopicReport], total: int) -> None:
-            if [(r.topic, r.template, r.ingested_by) for r in reports] != [
-                (t.topic, t.template, t.ingested_by) for t in job.topics
-            ]:
-                raise IngestFailed(
-                    "ingest_inconsistent",
-                    "the bag's spool was lost and its topics are now bound otherwise",
-                    {},
-                )
-
-        counts, parts = self._spool(job, same_plan, lambda count: None)
+        """Spool the bag again for a job whose spool is lost: damaged by a power cut before a
+        staging that did not sync it was saved as done, or removed with the bag of a job not
+        resumed in time. It must give the records it gave the first time, past which the
+        commit goes on, so it follows the job's plan, whatever was bound since. The job stays
+        committing: a crash or failure here leaves it resumable, never counting its committed
+        records as none."""
+        counts, parts = self._spool(
+            job, lambda bag: self._recorded_plans(bag, job), lambda count: None
+        )
         if counts != job.staged:
             raise IngestFailed(
                 "ingest_inconsistent",
@@ -752,14 +780,23 @@ class IngestJobs:
             )
         self._update(job, spool_parts=parts)
 
+    def _recorded_plans(self, bag: Bag, job: Job) -> Plans:
+        """The plans the job staged ``bag`` by, from its topics' reports."""
+        connections = {(c.topic, c.msgtype): c for c in bag.connections}
+        return {
+            (report.topic, report.msgtype): compile_plan(
+                connections[report.topic, report.msgtype],
+                self.store.catalog.get(report.template).template,
+            )
+            for report in job.topics
+            if report.template is not None and report.skipped is None
+        }
+
     def _spool(
-        self,
-        job: Job,
-        planned: Callable[[list[TopicReport], int], None],
-        progress: Callable[[int], None],
+        self, job: Job, plan: Callable[[Bag], Plans], progress: Callable[[int], None]
     ) -> tuple[dict[str, int], int]:
-        """Stage the bag into a new spool, synced: its records per template, and its parts.
-        ``planned`` is told the topics and the messages to stage before any is."""
+        """Stage the bag into a new spool, synced, by the plans ``plan`` gives for it: its
+        records per template, and its parts."""
         directory = self.root / job.id
         staged_dir = directory / "staged"
         shutil.rmtree(staged_dir, ignore_errors=True)
@@ -782,10 +819,10 @@ class IngestJobs:
         try:
             # The bag's files are checked while its messages stage.
             with bag_failures(), Bag.open(_bag_in(directory), check=False) as bag:
-                reports, plans = self._plan(bag, job)
-                total = sum(r.messages for r in reports if (r.topic, r.msgtype) in plans)
-                planned(reports, total)
-                parts = workers.count if total >= self.parallel_from_messages else 1
+                plans = plan(bag)
+                parts = (
+                    workers.count if _messages_in(bag, plans) >= self.parallel_from_messages else 1
+                )
                 staged = workers.stage(
                     plans,
                     parts,

@@ -123,7 +123,7 @@ def _fail_if_failed(job: dict[str, Any]) -> None:
         until = error.get("resumable_until_ns")
         if isinstance(until, int) and not isinstance(until, bool):
             when = datetime.fromtimestamp(until / 1e9, tz=UTC)
-            hint += f" before {when:%Y-%m-%d %H:%M} UTC, when the node removes its bag"
+            hint += f" before {when:%Y-%m-%d %H:%M} UTC, or after that send the bag again"
     fail(f"ingest failed: {error.get('message')}", hint=hint)
 
 

@@ -109,7 +109,7 @@ def test_a_resumable_job_says_until_when_it_can_be_resumed() -> None:
     assert shown.exit_code == 1
     assert shown.stderr == (
         "error: ingest failed: OSError: disk full (hint: run it again with robocloud job j1 "
-        "--resume before 2026-12-02 00:00 UTC, when the node removes its bag)\n"
+        "--resume before 2026-12-02 00:00 UTC, or after that send the bag again)\n"
     )
 
 

@@ -773,7 +773,9 @@ def test_a_job_nobody_resumes_in_time_drops_its_bag_and_spool(
     expired = until_expired(node, failed.id)
     assert expired.status == "failed"
     assert expired.error is not None
-    assert expired.error["message"].endswith("; not resumed within 0.5 s, its bag was removed")
+    assert expired.error["message"].endswith(
+        "; not resumed within 0.5 s, its bag was removed: the bag sent again finishes the job"
+    )
     assert "No space left on device" in expired.error["message"]
     assert (expired.records_committed, node.logs.size(imu)) == (50, 50), "committed records stay"
     with pytest.raises(ingest.JobNotResumable):

@@ -9,11 +9,13 @@ from pathlib import Path
 import pytest
 
 from services.storage.ingest import BagAwaitsResume, IngestJobs
+from services.storage.recordstore import Authorship
 from tests.unit.services.storage.test_ingest import (
     Node,
     authorship,
     bag,
     fail_after_first_batch,
+    until_expired,
 )
 
 
@@ -141,6 +143,73 @@ def test_a_bag_whose_job_awaits_a_resume_is_refused_again(
     assert node.logs.size(imu) == 50
     assert node.jobs.wait(node.jobs.resume(failed.id).id, 60).records_committed == 160
     assert node.logs.size(imu) == 160
+
+
+def expired_after_first_batch(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, robot: Authorship
+) -> str:
+    """A job of ``robot``'s bag ``upload:b`` that committed 50 of its 160 IMU records, then
+    failed and was not resumed in time: its id."""
+    node.jobs.close()
+    node.jobs = node.open_jobs(keep_resumable_s=0.2, keep_finished=0)
+    fail_after_first_batch(monkeypatch)
+    failed = node.jobs.submit(bag(tmp_path, "b1", 200), "upload:b", robot)
+    expired = until_expired(node, node.jobs.wait(failed.id, 60).id)
+    monkeypatch.undo()
+    assert expired.error is not None
+    assert expired.error["message"].endswith("the bag sent again finishes the job")
+    return expired.id
+
+
+def test_a_bag_sent_again_after_its_job_expired_finishes_that_job(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A job failed while committing and not resumed in time kept its 50 records and lost
+    its bag: the robot's resend was a new job that appended all 160 again, and the anchored
+    logs held 210. The resend now goes to that job, which commits past its 50 records. The
+    job is kept meanwhile (``keep_finished=0``), or the node forgot that it ever ran."""
+    imu = imu_bound(node)
+    robot = authorship()
+    expired = expired_after_first_batch(node, tmp_path, monkeypatch, robot)
+    other = node.jobs.submit(bag(tmp_path, "o", 50), "upload:other", authorship())
+    assert node.jobs.wait(other.id, 60).status == "succeeded"
+    assert job_dirs(node) == sorted([expired, other.id])
+
+    resent = bag(tmp_path, "b2", 200)
+    answered = node.jobs.submit(resent, "upload:b", robot)
+    assert (answered.id, answered.status, answered.error) == (expired, "committing", None)
+    assert not resent.exists(), "the job took the bag"
+    finished = node.jobs.wait(expired, 60)
+    assert (finished.status, finished.records_committed) == ("succeeded", 160), finished.error
+    assert finished.record_ids == {imu: ["imu-1-0", "imu-1-199"]}
+    assert node.logs.size(imu) == 40 + 160
+    assert [path.name for path in (node.root / "jobs" / expired).iterdir()] == ["job.json"]
+
+    again = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b3", 200), "upload:b", robot).id, 60)
+    assert [report.ingested_by for report in again.topics if report.template] == [expired]
+    assert node.logs.size(imu) == 200
+
+
+def test_a_bag_sent_again_after_its_job_expired_follows_that_job_s_plan(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The bag is staged again by the topics the job began with: a topic bound since is
+    the next job's. Staging it by the new bindings gave other records than those staged,
+    and the job could only fail again."""
+    imu = imu_bound(node)
+    robot = authorship()
+    expired = expired_after_first_batch(node, tmp_path, monkeypatch, robot)
+    gps = node.approve("sensor_msgs/msg/NavSatFix")
+    node.bindings.bind(template_id=gps, topic="/gps")
+
+    finished = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b2", 200), "upload:b", robot).id, 60)
+    assert finished.id == expired
+    assert (finished.status, finished.records_committed) == ("succeeded", 160), finished.error
+    assert (node.logs.size(imu), node.logs.size(gps)) == (160, 0)
+
+    again = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b3", 200), "upload:b", robot).id, 60)
+    assert again.records_committed == 20
+    assert (node.logs.size(imu), node.logs.size(gps)) == (160, 20)
 
 
 def test_a_node_that_ingested_before_the_table_fills_it_from_its_jobs(
