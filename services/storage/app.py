@@ -19,6 +19,7 @@ from robocloud.cas import Cas
 from robocloud.ledger import Ledger
 from robocloud.proofs import RecordId
 from services.common.app import create_app
+from services.common.bodies import SMALL_JSON_BODY
 from services.common.errors import BadRequest
 from services.common.slots import Slots
 from services.storage import bags_api, identity, knowledge_api, records_api
@@ -255,6 +256,8 @@ def build_app(settings: StorageSettings) -> FastAPI:
             "/v1/templates": records_api.TEMPLATE_BODY_LIMIT,
             "/v1/records": settings.storage_max_batch_bytes,
             "/v1/ingest": settings.storage_max_bag_bytes,
+            "/v1/knowledge": SMALL_JSON_BODY,
+            knowledge_api.SPARQL_PATH: knowledge_api.sparql_body_limit(settings),
         },
         storing_paths=STORING_PATHS,
         errors=ERRORS,
