@@ -133,3 +133,41 @@ def test_a_large_batch_of_records_is_parsed_off_the_event_loop(
     assert stored.status_code == 201, stored.text
     assert stored.json()["count"] == 1000
     assert store.logs.size("state@1") == 1000
+
+
+def test_an_upload_is_hashed_and_written_off_the_event_loop(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A bag upload (16 GiB at most) was hashed and written chunk by chunk on the event
+    loop: a write the kernel throttled held every route. Its one batch is held here."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    body = bag(tmp_path, "b.bag", 200, "ros1").read_bytes()
+    digest = hashlib.sha256(body).hexdigest()
+    gate = Gate()
+    monkeypatch.setattr(bags_api, "_spooled", gate.wrap(bags_api._spooled))
+    app = FastAPI()
+    app.include_router(bags_api.router)
+    app.state.settings = StorageSettings()
+    app.state.ingest_jobs = node.jobs
+    app.state.bindings = node.bindings
+    robot = authorship()
+
+    async def requests() -> tuple[httpx.Response, dict[str, httpx.Response], dict[str, bool]]:
+        verified = VerifiedRequest(robot.signer, 1, "n" * 16, digest, "storage@local")
+        async with in_process(app, verified) as client:
+            held = client.post(
+                "/v1/ingest", content=body, headers={"Content-Type": "application/octet-stream"}
+            )
+            return await answered_while_held(
+                gate, held, {"bindings": lambda: client.get("/v1/bindings")}
+            )
+
+    sent, answers, answered_while_writing = asyncio.run(requests())
+
+    assert answered_while_writing == {"bindings": True}
+    assert answers["bindings"].json() == node.bindings.to_json()
+    assert sent.status_code == 202, sent.text
+    assert sent.json()["bag"] == f"upload:{digest}"
+    finished = node.jobs.wait(sent.json()["id"], 120)
+    assert (finished.status, finished.records_committed) == ("succeeded", 160), finished.error
