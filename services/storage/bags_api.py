@@ -146,8 +146,9 @@ async def resume_job(request: Request, job_id: str) -> dict[str, Any]:
 
 @router.get("/v1/bindings")
 async def list_bindings(request: Request) -> dict[str, Any]:
+    """Every binding. Read on a worker thread: a bind holds their lock across its write."""
     bindings: Bindings = request.app.state.bindings
-    return bindings.to_json()
+    return await anyio.to_thread.run_sync(bindings.to_json)
 
 
 @router.post("/v1/bindings")
@@ -161,7 +162,7 @@ async def bind(
     await anyio.to_thread.run_sync(
         lambda: bindings.bind(template_id=body.template, topic=body.topic, msgtype=body.msgtype)
     )
-    return bindings.to_json()
+    return await anyio.to_thread.run_sync(bindings.to_json)
 
 
 def _encoded_pages(

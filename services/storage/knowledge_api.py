@@ -102,17 +102,23 @@ def knowledge_router(settings: StorageSettings) -> APIRouter:
 
     @router.get("/v1/knowledge")
     async def knowledge_state(request: Request) -> dict[str, Any]:
-        """How many descriptions are indexed, and where the ledger follower is."""
+        """How many descriptions are indexed, and where the ledger follower is. Read on a
+        worker thread: the knowledge base's lock is held across the fsyncs of each
+        description stored."""
         knowledge = _knowledge(request)
-        return {
-            "descriptions": len(knowledge),
-            "bytes": knowledge.total_bytes,
-            "max_bytes": settings.knowledge_max_total_bytes,
-            "max_bytes_per_robot": settings.knowledge_max_bytes_per_robot,
-            "store": settings.knowledge_store,
-            "workers": knowledge.workers.describe(),
-            "ledger": knowledge.follow_state(),
-        }
+
+        def state() -> dict[str, Any]:
+            return {
+                "descriptions": len(knowledge),
+                "bytes": knowledge.total_bytes,
+                "max_bytes": settings.knowledge_max_total_bytes,
+                "max_bytes_per_robot": settings.knowledge_max_bytes_per_robot,
+                "store": settings.knowledge_store,
+                "workers": knowledge.workers.describe(),
+                "ledger": knowledge.follow_state(),
+            }
+
+        return await anyio.to_thread.run_sync(state)
 
     @router.get(SPARQL_PATH)
     async def sparql_get(request: Request) -> Response:

@@ -10,9 +10,10 @@ from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any, Literal, TypeVar
 
 import anyio
+import orjson
 from eth_utils.address import is_address, to_checksum_address
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from robocloud import bounded_json
@@ -151,7 +152,10 @@ async def list_templates(
 
 @router.get("/v1/templates/{template_id}")
 async def get_template(request: Request, template_id: str) -> JSONResponse:
-    return _version(_catalog(request).get(template_id))
+    """One template version. Read on a worker thread: the catalog's lock is held across the
+    fsync of each template written."""
+    version = await anyio.to_thread.run_sync(_catalog(request).get, template_id)
+    return _version(version)
 
 
 def authorship_of(request: Request) -> Authorship:
@@ -425,17 +429,23 @@ async def state_intervals(
     start: Annotated[int | None, Query(ge=0)] = None,
     end: Annotated[int | None, Query(ge=0)] = None,
 ) -> dict[str, Any]:
-    """When each robot entered and left the state ``field == value`` (exit null: still in)."""
+    """When each robot entered and left the state ``field == value`` (exit null: still in).
+
+    Rendered and encoded in the query's turn: a state that toggles often in a wide window
+    has up to a million intervals, seconds of the event loop's time."""
     engine: QueryEngine = request.app.state.queries
-    intervals = await in_query_slot(
-        request,
-        lambda: engine.intervals(
+
+    def answer() -> bytes:
+        intervals = engine.intervals(
             template, field, value, robot=robot_filter(robot), start=start, end=end
-        ),
-    )
-    return {
-        "template": template,
-        "field": field,
-        "value": value,
-        "intervals": [interval.to_json() for interval in intervals],
-    }
+        )
+        return orjson.dumps(
+            {
+                "template": template,
+                "field": field,
+                "value": value,
+                "intervals": [interval.to_json() for interval in intervals],
+            }
+        )
+
+    return Response(await in_query_slot(request, answer), media_type="application/json")

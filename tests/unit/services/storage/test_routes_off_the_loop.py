@@ -15,12 +15,15 @@ from fastapi import FastAPI
 
 from robocloud import bounded_json
 from robocloud.signing import VerifiedRequest
+from robocloud.storage import Interval
 from services.common.bodies import INLINE_JSON_BYTES
-from services.storage import bags_api, ingest, records_api
+from services.common.slots import Slots
+from services.storage import bags_api, ingest, knowledge_api, records_api
 from services.storage.matcher import Bindings
+from services.storage.queries import QueryEngine
 from services.storage.settings import StorageSettings
 from tests.held import Gate, answered_while_held, probed, signed_by
-from tests.unit.services.storage.conftest import ROBOT_A, StoreFactory, state_record
+from tests.unit.services.storage.conftest import AUTHOR, ROBOT_A, StoreFactory, state_record
 from tests.unit.services.storage.test_ingest import Node, authorship, bag
 
 
@@ -29,6 +32,10 @@ def node(tmp_path: Path) -> Iterator[Node]:
     created = Node(tmp_path / "node")
     yield created
     created.close()
+
+
+Request = tuple[str, str]
+"""A method and a path."""
 
 
 def in_process(app: FastAPI, verified: VerifiedRequest) -> httpx.AsyncClient:
@@ -97,11 +104,9 @@ def test_polls_and_resends_answer_while_a_job_is_saved(
     assert [path.parent.name for path in (node.root / "jobs").glob("*/job.json")] == [job.id]
 
 
-def test_a_large_batch_of_records_is_parsed_off_the_event_loop(
-    open_store: StoreFactory, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A JSON array of records (64 MiB at most) was parsed on the event loop, about 3 s
-    for the largest, every route of the service waiting; it is parsed on a thread now."""
+@pytest.fixture
+def records_app(open_store: StoreFactory, tmp_path: Path) -> FastAPI:
+    """The records, templates and bindings routes over a store whose catalog has state@1."""
     store = open_store()
     app = FastAPI()
     app.include_router(records_api.router)
@@ -109,30 +114,115 @@ def test_a_large_batch_of_records_is_parsed_off_the_event_loop(
     app.state.settings = StorageSettings()
     app.state.records = store
     app.state.catalog = store.catalog
+    app.state.queries = QueryEngine(store)
+    app.state.query_slots = Slots("query", 2, 5.0)
     app.state.bindings = Bindings(tmp_path / "bindings.json")
-    gate = Gate()
-    monkeypatch.setattr(bounded_json, "loads", gate.wrap(bounded_json.loads))
-    batch = [state_record(t) for t in range(1000)]
-    body = json.dumps(batch).encode()
-    assert len(body) > INLINE_JSON_BYTES
+    return app
+
+
+def held_then_probed(
+    app: FastAPI, gate: Gate, held: Request, probe: Request, body: bytes = b""
+) -> tuple[httpx.Response, httpx.Response]:
+    """Send ``held`` (a method and path), and ``probe`` while ``gate`` holds it: both answers,
+    once the probe was seen answered while the gate held."""
 
     async def requests() -> tuple[httpx.Response, dict[str, httpx.Response], dict[str, bool]]:
         verified = VerifiedRequest(ROBOT_A, 1, "n" * 16, hashlib.sha256(body).hexdigest(), "s")
         async with in_process(app, verified) as client:
-            held = client.post(
-                "/v1/records", content=body, headers={"Content-Type": "application/json"}
-            )
+            headers = {"Content-Type": "application/json"} if body else {}
             return await answered_while_held(
-                gate, held, {"bindings": lambda: client.get("/v1/bindings")}
+                gate,
+                client.request(*held, content=body, headers=headers),
+                {"probe": lambda: client.request(*probe)},
             )
 
-    stored, answers, answered_while_parsing = asyncio.run(requests())
+    answer, probes, answered_while = asyncio.run(requests())
+    assert answered_while == {"probe": True}
+    return answer, probes["probe"]
 
-    assert answered_while_parsing == {"bindings": True}
-    assert answers["bindings"].json() == {"topics": {}, "msgtypes": {}}
+
+def test_a_large_batch_of_records_is_parsed_off_the_event_loop(
+    records_app: FastAPI, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A JSON array of records (64 MiB at most) was parsed on the event loop, about 3 s
+    for the largest, every route of the service waiting; it is parsed on a thread now."""
+    gate = Gate()
+    monkeypatch.setattr(bounded_json, "loads", gate.wrap(bounded_json.loads))
+    body = json.dumps([state_record(t) for t in range(1000)]).encode()
+    assert len(body) > INLINE_JSON_BYTES
+
+    stored, bindings = held_then_probed(
+        records_app, gate, ("POST", "/v1/records"), ("GET", "/v1/bindings"), body
+    )
+
+    assert bindings.json() == {"topics": {}, "msgtypes": {}}
     assert stored.status_code == 201, stored.text
     assert stored.json()["count"] == 1000
-    assert store.logs.size("state@1") == 1000
+    assert records_app.state.records.logs.size("state@1") == 1000
+
+
+def test_a_template_is_read_off_the_event_loop(
+    records_app: FastAPI, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The catalog's lock is held across the fsync of each template written, and
+    ``GET /v1/templates/{id}`` took it on the event loop."""
+    catalog = records_app.state.catalog
+    gate = Gate()
+    monkeypatch.setattr(catalog, "get", gate.wrap(catalog.get))
+
+    template, bindings = held_then_probed(
+        records_app, gate, ("GET", "/v1/templates/state@1"), ("GET", "/v1/bindings")
+    )
+
+    assert (template.json()["id"], template.json()["status"]) == ("state@1", "approved")
+    assert bindings.json() == {"topics": {}, "msgtypes": {}}
+
+
+def test_bindings_are_read_off_the_event_loop(
+    records_app: FastAPI, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A bind holds the bindings' lock across its write (two fsyncs), and
+    ``GET /v1/bindings`` took it on the event loop."""
+    bindings: Bindings = records_app.state.bindings
+    bindings.bind(template_id="state@1", topic="/state")
+    gate = Gate()
+    monkeypatch.setattr(bindings, "to_json", gate.wrap(bindings.to_json))
+
+    listed, template = held_then_probed(
+        records_app, gate, ("GET", "/v1/bindings"), ("GET", "/v1/templates/state@1")
+    )
+
+    assert listed.json() == {"topics": {"/state": "state@1"}, "msgtypes": {}}
+    assert template.json()["id"] == "state@1"
+
+
+def test_intervals_are_rendered_off_the_event_loop(
+    records_app: FastAPI, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A state that toggles often in a wide window has up to a million intervals: their
+    rendering and encoding took seconds of the event loop. Both happen in the query's turn."""
+    records = [state_record(t, mode="docked" if t % 2 else "idle") for t in range(100)]
+    records_app.state.records.append(records, author=AUTHOR)
+    gate = Gate()
+    monkeypatch.setattr(Interval, "to_json", gate.wrap(Interval.to_json))
+
+    found, bindings = held_then_probed(
+        records_app,
+        gate,
+        ("GET", "/v1/intervals?template=state@1&field=mode&value=docked"),
+        ("GET", "/v1/bindings"),
+    )
+
+    assert found.status_code == 200, found.text
+    assert found.headers["content-type"] == "application/json"
+    answer = found.json()
+    assert (answer["template"], answer["field"], answer["value"]) == ("state@1", "mode", "docked")
+    assert [(i["enter"], i["exit"]) for i in answer["intervals"]] == [
+        *((t, t + 1) for t in range(1, 99, 2)),
+        (99, None),
+    ]
+    assert {i["robot"] for i in answer["intervals"]} == {ROBOT_A}
+    assert bindings.json() == {"topics": {}, "msgtypes": {}}
 
 
 def test_an_upload_is_hashed_and_written_off_the_event_loop(
@@ -171,3 +261,26 @@ def test_an_upload_is_hashed_and_written_off_the_event_loop(
     assert sent.json()["bag"] == f"upload:{digest}"
     finished = node.jobs.wait(sent.json()["id"], 120)
     assert (finished.status, finished.records_committed) == ("succeeded", 160), finished.error
+
+
+def test_the_knowledge_base_s_state_is_read_off_the_event_loop(
+    records_app: FastAPI, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The knowledge base's lock is held across the fsyncs of each description stored (by
+    robots, the ledger follower, the dataset publisher), and ``GET /v1/knowledge`` took it
+    on the event loop."""
+    settings = StorageSettings(data_dir=tmp_path / "node")
+    records_app.include_router(knowledge_api.knowledge_router(settings))
+    knowledge = records_app.state.knowledge = knowledge_api.open_knowledge(settings)
+    gate = Gate()
+    monkeypatch.setattr(knowledge, "follow_state", gate.wrap(knowledge.follow_state))
+    try:
+        state, bindings = held_then_probed(
+            records_app, gate, ("GET", "/v1/knowledge"), ("GET", "/v1/bindings")
+        )
+    finally:
+        knowledge.close()
+
+    assert state.status_code == 200, state.text
+    assert (state.json()["descriptions"], state.json()["bytes"]) == (0, 0)
+    assert bindings.json() == {"topics": {}, "msgtypes": {}}
