@@ -619,8 +619,10 @@ class EmbeddedMethods:
 
     def inline_table(self) -> dict[str, Method]:
         """What a client asks between transactions, answered without a worker thread: none
-        of these takes the chain's lock or reads the disk (a receipt only when its block is
-        among the last mined; otherwise ``NotInline``)."""
+        of these takes the chain's lock (a receipt only when its block is among the last
+        mined; otherwise ``NotInline``). Only ``eth_call`` reads the disk, the state at the
+        head through the calling thread's own read-only connection, which never waits for
+        the writer (WAL), within ``INLINE_CALL_BUDGET_S`` once that state is built."""
         table = self._methods()
         constant = (
             "web3_clientVersion",
