@@ -354,14 +354,20 @@ async def pin_share(request: Request, address: SignedAddress, share: SignerShare
     may keep and write (null: no bound), robocloud's addition to kubo's RPC: what a robot
     checks before an upload. Signed, so that a stranger cannot have the cas ask the ledger
     about address after address."""
-    store = _store(request)
+    pinned, written = await anyio.to_thread.run_sync(_usage, _store(request), address)
     return {
         "Robot": address,
-        "PinnedBytes": store.pins.pinned_bytes(address),
+        "PinnedBytes": pinned,
         "MaxBytes": share.max_pinned_bytes,
-        "WrittenBytesLastHour": store.writes.written(address),
+        "WrittenBytesLastHour": written,
         "MaxWrittenBytesPerHour": share.max_written_bytes_per_hour,
     }
+
+
+def _usage(store: ContentStore, address: str) -> tuple[int, int]:
+    """``address``'s pinned bytes and bytes written in the last hour, asked on a worker
+    thread: the pins' lock is held across the journal's fsync of every pin and unpin."""
+    return store.pins.pinned_bytes(address), store.writes.written(address)
 
 
 @router.post("/pin/ls")
@@ -369,17 +375,21 @@ async def pin_ls(
     request: Request,
     arg: Annotated[list[str] | None, Query(description="only these CIDs")] = None,
     type: Annotated[str, Query(description="all or recursive")] = "all",
-) -> dict[str, dict[str, dict[str, Any]]]:
+) -> Response:
     """Pinned roots with their owners (``Owners`` is robocloud's addition to kubo's answer)."""
     if type not in ("all", "recursive"):
-        return {"Keys": {}}
-    pins = _store(request).pinned([parse_cid(text, "arg") for text in arg or []])
-    return {
-        "Keys": {
-            str(cid): {"Type": "recursive", "Owners": sorted(owners)}
-            for cid, owners in pins.items()
-        }
-    }
+        return JSONResponse({"Keys": {}})
+    wanted = [parse_cid(text, "arg") for text in arg or []]
+    return await anyio.to_thread.run_sync(_pin_keys, _store(request), wanted)
+
+
+def _pin_keys(store: ContentStore, wanted: list[CID]) -> Response:
+    """``pin/ls``'s answer, made and encoded on a worker thread: the pins' snapshot waits for
+    their lock, held across the journal's fsync of every pin and unpin, and the answer is a
+    line per pinned root."""
+    pins = store.pinned(wanted)
+    keys = {str(cid): {"Type": "recursive", "Owners": sorted(pins[cid])} for cid in pins}
+    return JSONResponse({"Keys": keys})
 
 
 @router.post("/dag/export")

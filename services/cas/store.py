@@ -480,11 +480,14 @@ class ContentStore:
     ) -> Iterator[bytes]:
         """A CAR of a path: the blocks that verify each segment, then the target's scope.
 
-        With ``entity_bytes`` (``[start, end)``, already resolved against the file's size) a
-        file target contributes only the blocks covering those bytes.
+        ``entity_bytes`` (``[start, end)``, already resolved against the file's size) is given
+        for a target the caller found to be a file, which contributes only the blocks covering
+        those bytes. The caller worked out the target's kind on a worker thread: this call
+        runs on the event loop, where reading and hashing the target's block (or fetching it
+        from a peer) held every route.
         """
         get = partial(self.get_block, use_peers=use_peers)
-        if entity_bytes is not None and self.kind(resolved.cid, use_peers=use_peers).type == FILE:
+        if entity_bytes is not None:
             target: Iterator[Block] = self._range_blocks(resolved.cid, get, entity_bytes)
         else:
             target = self.blocks_of(resolved.cid, scope, use_peers=use_peers)

@@ -117,12 +117,20 @@ async def upload(
     owner: str,
     share: Share = UNBOUNDED,
 ) -> list[R]:
-    """Stream a multipart ``body`` into ``sink`` and commit it for ``owner``, or store nothing."""
+    """Stream a multipart ``body`` into ``sink`` and commit it for ``owner``, or store nothing.
+
+    The discard runs on a worker thread: it waits for garbage collection's ``sweeping`` lock
+    (held across fsyncs), unlinks a staged pack of up to the upload limit and joins a CAR
+    reader, which on the event loop held every route meanwhile. It is shielded, since it
+    must run in a cancelled request too (a cancel scope around it, a shutdown), or the pack
+    stays until a restart.
+    """
     try:
         await receive_parts(body, boundary_of(content_type), sink)
         return await anyio.to_thread.run_sync(sink.commit, owner, share)
     finally:
-        sink.discard()
+        with anyio.CancelScope(shield=True):
+            await anyio.to_thread.run_sync(sink.discard)
 
 
 def _apply(sink: PartSink, commands: list[Command]) -> None:

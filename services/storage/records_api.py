@@ -428,7 +428,7 @@ async def state_intervals(
     robot: str | None = None,
     start: Annotated[int | None, Query(ge=0)] = None,
     end: Annotated[int | None, Query(ge=0)] = None,
-) -> dict[str, Any]:
+) -> Response:
     """When each robot entered and left the state ``field == value`` (exit null: still in).
 
     Rendered and encoded in the query's turn: a state that toggles often in a wide window
