@@ -45,18 +45,3 @@ async def threaded_stream(chunks: Iterator[bytes]) -> AsyncGenerator[bytes, None
             batch = await anyio.to_thread.run_sync(_next_batch, chunks)
 
     return generate()
-
-
-def first_error(error: BaseException) -> BaseException:
-    """The first real exception inside (possibly nested) exception groups.
-
-    A ``BrokenResourceError`` is what one end of a pipeline gets when the other end failed:
-    it counts only when nothing else is there. Otherwise a worker's full disk, racing the
-    event loop's send into the closed stream, was a 500 instead of a 507 under load.
-    """
-    if isinstance(error, BaseExceptionGroup):
-        _, causes = error.split(anyio.BrokenResourceError)
-        error = causes or error
-    while isinstance(error, BaseExceptionGroup):
-        error = error.exceptions[0]
-    return error

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from typing import Generic, Protocol, TypeVar
 
 import anyio
-from anyio.streams.memory import MemoryObjectReceiveStream
 
 from robocloud.car import MAX_ROOTS
 from robocloud.cid import CID, DAG_PB, Block
@@ -31,7 +30,7 @@ from robocloud.unixfs import Importer, ImportParams, UnixfsError
 from services.cas.multipart import Event, MultipartParser, Part, PartData, boundary_of
 from services.cas.shares import UNBOUNDED, Share
 from services.cas.store import ContentStore, ImportedRoot
-from services.cas.streams import first_error
+from services.common.pipeline import in_worker_thread
 
 R = TypeVar("R")
 
@@ -145,12 +144,6 @@ def _apply(sink: PartSink, commands: list[Command]) -> None:
             (sink.begin if kind == "begin" else sink.directory)(value)
 
 
-async def _drain(receive: MemoryObjectReceiveStream[list[Command]], sink: PartSink) -> None:
-    async with receive:
-        async for commands in receive:
-            await anyio.to_thread.run_sync(_apply, sink, commands)
-
-
 class _Batcher:
     """Turns parser events into commands for the sink, handed over about 1 MiB at a time.
 
@@ -189,18 +182,16 @@ async def receive_parts(body: AsyncIterator[bytes], boundary: bytes, sink: PartS
     """Feed every part of a multipart body to ``sink``; returns how many there were."""
     parser = MultipartParser(boundary)
     batcher = _Batcher()
-    send, receive = anyio.create_memory_object_stream[list[Command]](max_buffer_size=1)
-    try:
-        async with anyio.create_task_group() as group, send:
-            group.start_soon(_drain, receive, sink)
-            async for chunk in body:
-                batcher.take(parser.feed(chunk))
-                if batcher.pending >= BATCH_BYTES:
-                    await send.send(batcher.flush())
-            parser.close()
-            await send.send(batcher.flush())
-    except BaseExceptionGroup as group_error:
-        raise first_error(group_error) from None
+
+    async def command_batches() -> AsyncIterator[list[Command]]:
+        async for chunk in body:
+            batcher.take(parser.feed(chunk))
+            if batcher.pending >= BATCH_BYTES:
+                yield batcher.flush()
+        parser.close()
+        yield batcher.flush()
+
+    await in_worker_thread(command_batches(), lambda commands: _apply(sink, commands))
     if batcher.parts == 0:
         raise NoFilePart()
     return batcher.parts
