@@ -27,13 +27,20 @@ from robocloud.car import MAX_SECTION_BYTES, CarError, CarReader
 from robocloud.cid import CID, DAG_PB, RAW, Block, CIDError, parse_cid
 from robocloud.client import ServiceClient
 from robocloud.dagpb import Link
-from robocloud.directory import BuiltDirectory, DirectoryBuilder
+from robocloud.directory import (
+    BuiltDirectory,
+    DirectoryBuilder,
+    NotADirectory,
+    check_name,
+    list_entries,
+)
 from robocloud.errors import BadRequestError, FormatError, InvalidAnswerError, RobocloudError
 from robocloud.partial import written_whole
 from robocloud.unixfs import (
     DEFAULT_MAX_LINKS,
     DIRECTORY,
     HAMT_SHARD,
+    MAX_DAG_DEPTH,
     METADATA,
     PROFILES,
     READ_ALLOWANCE,
@@ -99,8 +106,84 @@ _NOT_FILES = {
 }
 
 
+def is_directory(refused: NotAFileError) -> bool:
+    """Whether what :meth:`Cas.get_to_file` refused is a directory, plain or sharded."""
+    return refused.kind in (_NOT_FILES[DIRECTORY], _NOT_FILES[HAMT_SHARD])
+
+
 def _no_progress(_: int) -> None:
     return None
+
+
+MAX_TREE_ENTRIES = 100_000
+"""Entries (files and directories) :meth:`Cas.get_tree` writes at most: a directory is a
+stranger's word, and each entry is a file or directory made on this machine."""
+
+
+@dataclass(frozen=True)
+class Tree:
+    """What :meth:`Cas.get_tree` wrote."""
+
+    files: int
+    directories: int
+    size: int
+
+
+class _TreeWalk:
+    """A directory's entries fetched depth first into a local directory, within bounds."""
+
+    def __init__(self, cas: Cas, progress: Progress, max_size: int, max_entries: int) -> None:
+        self.cas = cas
+        self.progress = progress
+        self.max_size = max_size
+        self.max_entries = max_entries
+        self.tree = Tree(0, 0, 0)
+
+    def directory(self, cid: CID, into: Path, depth: int) -> None:
+        if depth > MAX_DAG_DEPTH:
+            raise CasError(f"{cid} is a directory deeper than {MAX_DAG_DEPTH} levels")
+        self._count(directories=1)
+        for link in self._entries(cid):
+            self.entry(cid, link, into, depth)
+
+    def _entries(self, cid: CID) -> Iterator[Link]:
+        """The directory's entries as its blocks arrive, so that the entry bound stops a
+        large sharded directory before all of it is read."""
+        not_a_directory = NotADirectoryError(f"{cid} is not a directory")
+        if cid.codec != DAG_PB:
+            raise not_a_directory
+        try:
+            yield from list_entries(cid, self.cas.block)
+        except NotADirectory:
+            raise not_a_directory from None
+        except (UnixfsError, FormatError) as exc:
+            raise CasError(f"refused the gateway's directory {cid}: {exc}") from exc
+
+    def entry(self, directory: CID, link: Link, into: Path, depth: int) -> None:
+        try:
+            target = into / check_name(link.name)
+        except UnixfsError as exc:
+            raise CasError(f"the directory {directory}: {exc}") from None
+        if target.exists():
+            raise CasError(f"the directory {directory} names {link.name!r} twice")
+        left = self.max_size - self.tree.size
+        try:
+            size = self.cas.get_to_file(
+                link.cid, target, self.progress, max_size=left, overwrite=False
+            )
+        except NotAFileError as exc:
+            if not is_directory(exc):
+                raise
+            target.mkdir()
+            self.directory(link.cid, target, depth + 1)
+        else:
+            self._count(files=1, size=size)
+
+    def _count(self, files: int = 0, directories: int = 0, size: int = 0) -> None:
+        tree = self.tree
+        self.tree = Tree(tree.files + files, tree.directories + directories, tree.size + size)
+        if self.tree.files + self.tree.directories > self.max_entries:
+            raise CasError(f"the directory holds more than {self.max_entries} entries")
 
 
 @dataclass(frozen=True)
@@ -328,6 +411,45 @@ class Cas(ServiceClient):
             self._check_declared_size(root, max_size)
         with written_whole(path, overwrite=overwrite) as out, self.translate_errors("GET", url):
             return self._download(root, _CappedWriter(out, root, max_size), progress)
+
+    def get_tree(
+        self,
+        cid: CID | str,
+        path: Path,
+        progress: Progress = _no_progress,
+        *,
+        max_size: int | None = None,
+        max_entries: int = MAX_TREE_ENTRIES,
+    ) -> Tree:
+        """A directory, plain or HAMT-sharded, written to the new directory ``path`` as
+        ``ipfs get`` writes one, every block verified.
+
+        Each entry's name is one path segment, never ``.`` or ``..``, so no directory makes
+        this write outside ``path``; it holds at most ``max_entries`` entries and
+        ``max_size`` bytes of files in all (by default the free space in ``path``'s
+        directory), each file checked against what is left. The tree is written under a
+        hidden name beside ``path`` and moved there once whole: a failure removes it. An
+        existing ``path`` is never replaced (``FileExistsError``). A symbolic link or a
+        metadata node in the tree is :class:`NotAFileError` (robocloud writes neither); a
+        ``cid`` that is not a directory, ``NotADirectoryError``.
+        """
+        root = _as_cid(cid)
+        if path.exists() or path.is_symlink():
+            raise FileExistsError(f"{path} exists")
+        if max_size is None:
+            max_size = shutil.disk_usage(path.absolute().parent).free
+        partial = path.with_name(f".{path.name}.{secrets.token_hex(6)}.partial")
+        partial.mkdir()
+        try:
+            walk = _TreeWalk(self, progress, max_size, max_entries)
+            walk.directory(root, partial, 0)
+            if path.exists() or path.is_symlink():
+                raise FileExistsError(f"{path} appeared while downloading")
+            partial.rename(path)
+        except BaseException:
+            shutil.rmtree(partial, ignore_errors=True)
+            raise
+        return walk.tree
 
     def block(self, cid: CID | str, *, cached_only: bool = False) -> bytes:
         """One raw block from the gateway, verified against its CID.

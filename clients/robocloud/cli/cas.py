@@ -14,7 +14,8 @@ from pathlib import Path
 import typer
 from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
 
-from robocloud.cas import Cas, ContentTooLargeError
+from robocloud.cas import Cas, ContentTooLargeError, NotAFileError, is_directory
+from robocloud.cid import CID
 from robocloud.cli.context import (
     JsonOption,
     KeystoreOption,
@@ -102,11 +103,13 @@ def _tree_size(root: Path, hidden: bool) -> int:
 
 
 def get(
-    cid: str = typer.Argument(..., help="CID of the file.", metavar="CID", show_default=False),
-    output: Path = typer.Option(
-        ..., "--output", "-o", dir_okay=False, help="Where to write the verified content."
+    cid: str = typer.Argument(
+        ..., help="CID of a file or a directory.", metavar="CID", show_default=False
     ),
-    force: bool = typer.Option(False, "--force", "-f", help="Replace OUTPUT if it exists."),
+    output: Path = typer.Option(..., "--output", "-o", help="Where to write the verified content."),
+    force: bool = typer.Option(
+        False, "--force", "-f", help="Replace OUTPUT if it exists (a file, not a directory)."
+    ),
     max_size: int | None = typer.Option(
         None,
         "--max-size",
@@ -118,10 +121,11 @@ def get(
     cas: str | None = CasOption,
     as_json: bool = JsonOption,
 ) -> None:
-    """Fetch a file, verifying every block against its CID.
+    """Fetch a file, or a directory as ipfs get does, verifying every block against its CID.
 
     OUTPUT appears only once all of it is verified; a failed or refused download leaves
-    nothing behind.
+    nothing behind. A directory's entries are checked to be plain names, so none is written
+    outside OUTPUT, and --max-size bounds its files' bytes in all.
     """
     root = cid_argument(cid)
     if (output.exists() or output.is_symlink()) and not force:
@@ -133,7 +137,7 @@ def get(
         limit, why = max_size, "--max-size"
     with Cas(cas) as client, _progress("get", None) as advance:
         try:
-            size = client.get_to_file(root, output, advance, max_size=limit, overwrite=force)
+            size, files = _fetched(client, root, output, advance, limit, force)
         except ContentTooLargeError as exc:
             fail(
                 f"{exc}; nothing was written",
@@ -143,9 +147,33 @@ def get(
         except FileExistsError:
             fail(f"{output} appeared while downloading", hint="pass --force to replace it")
     if as_json:
-        show_json({"cid": str(root), "path": str(output), "size": size, "verified": True})
-    else:
+        answer = {"cid": str(root), "path": str(output), "size": size, "verified": True}
+        show_json(answer if files is None else answer | {"files": files})
+    elif files is None:
         show(f"{root} -> {output} ({size} bytes, verified)")
+    else:
+        show(f"{root} -> {output} ({files} files, {size} bytes, verified)")
+
+
+def _fetched(
+    client: Cas,
+    root: CID,
+    output: Path,
+    advance: Callable[[int], None],
+    limit: int,
+    force: bool,
+) -> tuple[int, int | None]:
+    """``root`` written to ``output``: a file's size and None, or a directory's size and
+    files. A file is asked for first, so that fetching one costs no more than before."""
+    try:
+        return client.get_to_file(root, output, advance, max_size=limit, overwrite=force), None
+    except NotAFileError as exc:
+        if not is_directory(exc):
+            raise
+    if output.exists() or output.is_symlink():
+        fail(f"{output} exists", hint="a directory replaces nothing: remove it first")
+    tree = client.get_tree(root, output, advance, max_size=limit)
+    return tree.size, tree.files
 
 
 def cat(

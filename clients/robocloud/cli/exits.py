@@ -132,7 +132,7 @@ def failure_of(exc: BaseException) -> Failure:
         return Failure(
             ExitCode.USAGE,
             str(exc),
-            "`robocloud get` fetches one file: give the CID of a file, such as an entry's",
+            "`robocloud get` writes files and directories only",
         )
     if isinstance(exc, LocalContentError):
         return Failure(ExitCode.ERROR, str(exc))

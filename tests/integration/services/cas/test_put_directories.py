@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from pathlib import Path
@@ -11,14 +12,25 @@ import httpx
 import pytest
 from typer.testing import CliRunner
 
-from robocloud.cas import Cas, LocalContentError, NotAFileError
+from robocloud.car import CarReader
+from robocloud.cas import Cas, CasError, ContentTooLargeError, LocalContentError, NotAFileError
+from robocloud.cid import CID, parse_cid
 from robocloud.cli import app
-from tests.integration.services.cas.conftest import pin_list, store_unchanged
+from robocloud.client import ServiceClient
+from robocloud.dagpb import Link, PBNode
+from robocloud.unixfs import DIRECTORY, UnixfsData
+from tests.integration.services.cas.conftest import (
+    multipart,
+    pin_list,
+    post_files,
+    store_unchanged,
+)
 from tests.procs import SHARED_DATA, ServiceProcess
 from tests.reference import reference_cid, write_tree
 
 runner = CliRunner()
-FIXTURE_DIR = SHARED_DATA / "ipfs" / "car" / "gateway-conformance" / "dag_car_input" / "dir"
+CAR_FIXTURES = SHARED_DATA / "ipfs" / "car" / "gateway-conformance"
+FIXTURE_DIR = CAR_FIXTURES / "dag_car_input" / "dir"
 EMPTY_DIRECTORY = "bafybeiczsscdsbs7ffqz55asqdf3smv6klcw3gofszvwlyarci47bgf354"
 NESTED = {
     "a b/ä ö/100%/d4/d5/deep.txt": b"five levels down\n",
@@ -116,19 +128,127 @@ def test_put_of_the_current_directory_stores_it_under_its_name(
     assert put.stdout.strip() == reference_cid(root)
 
 
-def test_get_of_a_directory_is_a_usage_error_and_writes_nothing(
+def tree_of(root: Path) -> dict[str, bytes | None]:
+    """Every path under ``root``: a file's bytes, None for a directory."""
+    return {
+        str(path.relative_to(root)): None if path.is_dir() else path.read_bytes()
+        for path in root.rglob("*")
+    }
+
+
+def test_get_writes_a_directory_back_as_it_was_put(
     cas: Cas, cas_service: ServiceProcess, tmp_path: Path
 ) -> None:
-    """The root is verified against its CID, so its type is a fact about what was asked
-    for: exit 2, not exit 6 blaming the service."""
-    directory = cas.add_directory(write_tree(tmp_path / "tree", {"a.txt": b"a"}))
-    target = tmp_path / "out"
+    """``robocloud put DIR`` took a folder as ``ipfs add -r`` does, and ``get`` refused its
+    CID ("a directory, not a file"): a robot could share a folder and nobody could fetch it.
+    It now writes the tree, five levels, odd names and an empty directory included."""
+    root = write_tree(tmp_path / "tree", NESTED)
+    (root / "empty").mkdir()
+    directory = cas.add_directory(root)
+    assert str(directory) == reference_cid(root)
     with pytest.raises(NotAFileError, match=f"{directory} is a directory, not a file"):
-        cas.get_to_file(directory, target)
-    got = runner.invoke(app, ["get", str(directory), "-o", str(target), "--cas", cas_service.url])
-    assert got.exit_code == 2, got.output
-    assert "is a directory, not a file" in got.stderr
+        cas.get_to_file(directory, tmp_path / "file")
+    with pytest.raises(NotADirectoryError, match="is not a directory"):
+        cas.get_tree(cas.add_bytes(b"a file"), tmp_path / "file")
+
+    got = runner.invoke(
+        app, ["get", str(directory), "-o", str(tmp_path / "out"), "--cas", cas_service.url]
+    )
+
+    assert got.exit_code == 0, got.output
+    size = sum(len(data) for data in NESTED.values())
+    assert got.stdout == f"{directory} -> {tmp_path / 'out'} (5 files, {size} bytes, verified)\n"
+    assert tree_of(tmp_path / "out") == tree_of(root)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["out", "tree"]
+    again = runner.invoke(
+        app, ["get", str(directory), "-o", str(tmp_path / "out"), "--cas", cas_service.url]
+    )
+    assert again.exit_code == 1
+    assert f"{tmp_path / 'out'} exists" in again.stderr
+    assert tree_of(tmp_path / "out") == tree_of(root)
+
+
+def imported_fixture(signed: ServiceClient, name: str) -> CID:
+    """A gateway-conformance CAR imported into cas: its root."""
+    data = (CAR_FIXTURES / name).read_bytes()
+    answer = post_files(signed, "/api/v0/dag/import", (name, data))
+    assert answer.status_code == 200, answer.text
+    (root,) = CarReader(io.BytesIO(data)).roots
+    return root
+
+
+def test_get_writes_a_sharded_directory_of_multi_block_files(
+    cas: Cas, cas_service: ServiceProcess, signed: ServiceClient, tmp_path: Path
+) -> None:
+    """gateway-conformance's HAMT-sharded directory: each file as the gateway serves it."""
+    root = imported_fixture(signed, "single-layer-hamt-with-multi-block-files.car")
+    tree = cas.get_tree(root, tmp_path / "out")
+    names = sorted(path.name for path in (tmp_path / "out").iterdir())
+    assert (tree.files, tree.directories, len(names)) == (len(names), 1, len(names))
+    assert len(names) > 1
+    for name in names:
+        served = httpx.get(f"{cas_service.url}/ipfs/{root}/{quote(name)}")
+        assert served.status_code == 200, served.text
+        assert (tmp_path / "out" / name).read_bytes() == served.content
+    assert tree.size == sum((tmp_path / "out" / name).stat().st_size for name in names)
+
+
+def put_directory_node(signed: ServiceClient, links: list[Link]) -> CID:
+    """A dag-pb directory over ``links`` exactly as given (any name), put as one block."""
+    node = PBNode(links, UnixfsData(DIRECTORY).encode()).encode()
+    body, content_type = multipart(("node", node))
+    answer = signed.request(
+        "POST",
+        "/api/v0/block/put",
+        params={"cid-codec": "dag-pb"},
+        content=body,
+        headers={"Content-Type": content_type},
+    )
+    return parse_cid(answer.json()["Key"])
+
+
+@pytest.mark.parametrize("name", ["..", "a/b", "."])
+def test_a_directory_naming_a_path_outside_is_refused_and_nothing_is_left(
+    cas: Cas, signed: ServiceClient, tmp_path: Path, name: str
+) -> None:
+    """A directory is a stranger's: an entry named ``..`` or ``a/b`` would write beside or
+    below the output. Refused naming the entry; the partial tree is removed."""
+    leaf = cas.add_bytes(b"escaped\n")
+    inner = put_directory_node(signed, [Link(leaf, "fine.txt", 8)])
+    hostile = put_directory_node(signed, [Link(inner, "sub", 100), Link(leaf, name, 8)])
+    target = tmp_path / "inside" / "out"
+    target.parent.mkdir()
+    with pytest.raises(CasError, match=f"{name!r} is not a valid directory entry name"):
+        cas.get_tree(hostile, target)
+    assert list(target.parent.iterdir()) == []
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["inside"]
+
+
+def test_a_directory_past_its_bounds_is_refused_and_nothing_is_left(
+    cas: Cas, tmp_path: Path
+) -> None:
+    """Sizes and counts are the DAG's word: the files' bytes in all, and the entries."""
+    root = write_tree(tmp_path / "tree", NESTED)
+    directory = cas.add_directory(root)
+    biggest = max(len(data) for data in NESTED.values())
+    with pytest.raises(ContentTooLargeError):
+        cas.get_tree(directory, tmp_path / "out", max_size=biggest + 10)
+    with pytest.raises(CasError, match="more than 6 entries"):
+        cas.get_tree(directory, tmp_path / "out", max_entries=6)
     assert sorted(path.name for path in tmp_path.iterdir()) == ["tree"]
+
+
+def test_a_directory_holding_a_symbolic_link_is_refused(
+    cas: Cas, cas_service: ServiceProcess, signed: ServiceClient, tmp_path: Path
+) -> None:
+    """robocloud writes no symbolic link (one could point anywhere): exit 2, nothing left."""
+    root = imported_fixture(signed, "symlink.car")
+    got = runner.invoke(
+        app, ["get", str(root), "-o", str(tmp_path / "out"), "--cas", cas_service.url]
+    )
+    assert got.exit_code == 2, got.output
+    assert "is a symbolic link, not a file" in got.stderr
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_cli_put_of_a_directory_prints_its_cid(

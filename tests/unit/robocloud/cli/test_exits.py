@@ -78,7 +78,7 @@ def api(status: int, code: str = "some_code", **details: object) -> ApiError:
         (FormatError("bad CAR"), ExitCode.INVALID_ANSWER, "nothing was written"),
         (ConfigurationError("bad url"), ExitCode.USAGE, "ROBOCLOUD_*_URL"),
         (KeystoreError("no keystore"), ExitCode.ERROR, None),
-        (NotAFileError(ROOT, "a directory"), ExitCode.USAGE, "the CID of a file"),
+        (NotAFileError(ROOT, "a symbolic link"), ExitCode.USAGE, "files and directories only"),
         (LocalContentError("d/link is a symbolic link"), ExitCode.ERROR, None),
         (PermissionError(13, "Permission denied"), ExitCode.ERROR, None),
         (KeyboardInterrupt(), ExitCode.INTERRUPTED, None),
