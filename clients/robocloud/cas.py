@@ -15,7 +15,7 @@ import os
 import secrets
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,8 +31,10 @@ from robocloud.directory import (
     BuiltDirectory,
     DirectoryBuilder,
     NotADirectory,
+    PathError,
     check_name,
     list_entries,
+    resolve,
 )
 from robocloud.errors import BadRequestError, FormatError, InvalidAnswerError, RobocloudError
 from robocloud.partial import written_whole
@@ -91,6 +93,17 @@ class NotAFileError(RobocloudError):
         super().__init__(f"{cid} is {kind}, not a file")
         self.cid = cid
         self.kind = kind
+
+
+class NoSuchPathError(RobocloudError):
+    """A path the verified directory ``cid`` does not hold (no such entry, or an entry on
+    the way that is not a directory): a fact about what was asked for, as
+    :class:`NotAFileError` is."""
+
+    def __init__(self, cid: CID, path: str, reason: str) -> None:
+        super().__init__(f"{cid}/{path}: {reason}")
+        self.cid = cid
+        self.path = path
 
 
 class LocalContentError(RobocloudError, ValueError):
@@ -450,6 +463,18 @@ class Cas(ServiceClient):
             shutil.rmtree(partial, ignore_errors=True)
             raise
         return walk.tree
+
+    def resolve(self, cid: CID | str, segments: Sequence[str]) -> CID:
+        """What the path ``segments`` name under the directory ``cid``, each directory block
+        on the way verified against its CID, so that no gateway can point the path
+        elsewhere. A path the verified DAG does not hold is :class:`NoSuchPathError`."""
+        root = _as_cid(cid)
+        try:
+            return resolve(root, list(segments), self.block).cid
+        except PathError as exc:
+            raise NoSuchPathError(root, "/".join(segments), str(exc)) from None
+        except (UnixfsError, FormatError) as exc:
+            raise CasError(f"refused the gateway's directory under {root}: {exc}") from exc
 
     def block(self, cid: CID | str, *, cached_only: bool = False) -> bytes:
         """One raw block from the gateway, verified against its CID.

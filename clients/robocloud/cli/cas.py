@@ -20,6 +20,7 @@ from robocloud.cli.context import (
     JsonOption,
     KeystoreOption,
     cid_argument,
+    content_argument,
     fail,
     load_identity,
     parse_size,
@@ -104,7 +105,10 @@ def _tree_size(root: Path, hidden: bool) -> int:
 
 def get(
     cid: str = typer.Argument(
-        ..., help="CID of a file or a directory.", metavar="CID", show_default=False
+        ...,
+        help="CID of a file or a directory, or CID/PATH of an entry of a directory.",
+        metavar="CID[/PATH]",
+        show_default=False,
     ),
     output: Path = typer.Option(..., "--output", "-o", help="Where to write the verified content."),
     force: bool = typer.Option(
@@ -127,7 +131,7 @@ def get(
     nothing behind. A directory's entries are checked to be plain names, so none is written
     outside OUTPUT, and --max-size bounds its files' bytes in all.
     """
-    root = cid_argument(cid)
+    directory_cid, path = content_argument(cid)
     if (output.exists() or output.is_symlink()) and not force:
         fail(f"{output} exists", hint="pass --force to replace it")
     if max_size is None:
@@ -136,6 +140,7 @@ def get(
     else:
         limit, why = max_size, "--max-size"
     with Cas(cas) as client, _progress("get", None) as advance:
+        root = client.resolve(directory_cid, path) if path else directory_cid
         try:
             size, files = _fetched(client, root, output, advance, limit, force)
         except ContentTooLargeError as exc:
@@ -177,7 +182,12 @@ def _fetched(
 
 
 def cat(
-    cid: str = typer.Argument(..., help="CID of the file.", metavar="CID", show_default=False),
+    cid: str = typer.Argument(
+        ...,
+        help="CID of the file, or CID/PATH of a file in a directory.",
+        metavar="CID[/PATH]",
+        show_default=False,
+    ),
     offset: int = typer.Option(0, "--offset", min=0, help="The first byte to print."),
     length: int | None = typer.Option(
         None, "--length", min=0, help="How many bytes to print.", show_default="to the end"
@@ -191,8 +201,9 @@ def cat(
     so at most 64 MiB; get writes a larger file. With --json the bytes are base64 in
     "content_base64".
     """
-    root = cid_argument(cid)
+    directory_cid, path = content_argument(cid)
     with Cas(cas) as client:
+        root = client.resolve(directory_cid, path) if path else directory_cid
         try:
             data = client.cat(root, offset, length)
         except ContentTooLargeError as exc:

@@ -12,8 +12,10 @@ import typer
 from robocloud.cid import CID, CIDError, parse_cid
 from robocloud.cli.exits import ExitCode, Failure, report
 from robocloud.cli.output import untrusted
+from robocloud.directory import split_path
 from robocloud.errors import KeystoreError
 from robocloud.identity import PASSPHRASE_ENV, Identity, default_keystore_path
+from robocloud.unixfs import UnixfsError
 
 JsonOption = typer.Option(False, "--json", help="Print one JSON document instead of text.")
 StorageOption = typer.Option(
@@ -86,3 +88,14 @@ def cid_argument(text: str) -> CID:
         return parse_cid(text, "CID")
     except CIDError as exc:
         raise typer.BadParameter(f"{untrusted(text, 80)!r} is not a CID: {exc}") from exc
+
+
+def content_argument(text: str) -> tuple[CID, tuple[str, ...]]:
+    """``CID`` or ``CID/PATH`` (as ``ipfs cat`` takes one): the CID and the path's segments;
+    bad text, or a segment that is empty, ``.`` or ``..``, is a usage error (exit 2)."""
+    cid_text, _, path = text.partition("/")
+    root = cid_argument(cid_text)
+    try:
+        return root, split_path(path.rstrip("/"))
+    except UnixfsError as exc:
+        raise typer.BadParameter(f"{untrusted(text, 80)!r}: {exc}") from exc

@@ -14,7 +14,7 @@ from enum import IntEnum
 
 from rich.text import Text
 
-from robocloud.cas import LocalContentError, NotAFileError
+from robocloud.cas import LocalContentError, NoSuchPathError, NotAFileError
 from robocloud.cli.output import console, untrusted
 from robocloud.client import RedirectError
 from robocloud.errors import (
@@ -128,6 +128,8 @@ def failure_of(exc: BaseException) -> Failure:
             str(exc),
             f"the transaction was sent and may be mined: look {exc.tx_hash} up on a node you trust",
         )
+    if isinstance(exc, NoSuchPathError):
+        return Failure(ExitCode.USAGE, str(exc), "name a path the directory holds")
     if isinstance(exc, NotAFileError):
         return Failure(
             ExitCode.USAGE,

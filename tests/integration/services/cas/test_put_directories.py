@@ -275,3 +275,41 @@ def test_cli_put_hidden_includes_dotfiles(
     put = runner.invoke(app, ["put", str(root), "--hidden", *common])
     assert put.exit_code == 0, put.output
     assert put.stdout.strip() == reference_cid(root)
+
+
+def test_cat_and_get_take_a_path_inside_a_directory(
+    cas: Cas, cas_service: ServiceProcess, tmp_path: Path
+) -> None:
+    """``CID/PATH`` as ``ipfs cat`` takes it, every directory block on the way verified: a
+    file's bytes or range, and a subdirectory written whole. A path the directory does not
+    hold is the asker's mistake (exit 2), named; so is one with ``..`` or an empty segment,
+    refused before anything is asked."""
+    root = write_tree(tmp_path / "tree", NESTED)
+    directory = cas.add_directory(root)
+    common = ["--cas", cas_service.url]
+
+    whole = runner.invoke(app, ["cat", f"{directory}/a b/space name.txt", *common])
+    assert (whole.exit_code, whole.stdout_bytes) == (0, NESTED["a b/space name.txt"])
+    part = runner.invoke(
+        app, ["cat", f"{directory}/top.txt", "--offset", "1", "--length", "2", *common]
+    )
+    assert part.stdout_bytes == b"op"
+    got = runner.invoke(app, ["get", f"{directory}/a b/ä ö", "-o", str(tmp_path / "out"), *common])
+    assert got.exit_code == 0, got.output
+    assert tree_of(tmp_path / "out") == tree_of(root / "a b" / "ä ö")
+
+    missing = runner.invoke(app, ["cat", f"{directory}/a b/nope.txt", *common])
+    assert missing.exit_code == 2
+    assert f"{directory}/a b/nope.txt: " in missing.stderr
+    assert "has no entry 'nope.txt'" in missing.stderr
+    through_a_file = runner.invoke(app, ["cat", f"{directory}/top.txt/x", *common])
+    assert through_a_file.exit_code == 2
+    assert "is not a directory" in through_a_file.stderr
+    for bad, why in (
+        ("../top.txt", "'..' is not a valid directory entry name"),
+        ("/top.txt", "'/top.txt' is not a relative path"),
+    ):
+        refused = runner.invoke(app, ["cat", f"{directory}/{bad}", "--cas", "http://127.0.0.1:9"])
+        assert refused.exit_code == 2, refused.output
+        assert why in " ".join(refused.output.replace("│", " ").split())
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["out", "tree"]

@@ -67,7 +67,7 @@ def test_every_command_prints_json_on_request_and_documents_its_parameters() -> 
 def test_help_shows_argument_names_and_defaults() -> None:
     result = runner.invoke(app, ["get", "--help"], env={"COLUMNS": "300"})
     text = " ".join(result.stdout.split())
-    assert "Usage: robocloud get [OPTIONS] {CID}" in text
+    assert "Usage: robocloud get [OPTIONS] {CID[/PATH]}" in text
     assert "[default: (the free space in OUTPUT's directory)]" in text
     assert "[default: ($ROBOCLOUD_CAS_URL, else http://127.0.0.1:8080)]" in text
 
