@@ -121,6 +121,11 @@ class KeywordIndex:
             self._remove()
             self.index, self.marks = self.storage.create_index(schema), {}
         self._lock = threading.Lock()
+        self._segments = threading.Lock()
+        """Held by a search while its searcher reads, and by a commit: a commit removes the
+        files of the segments it merged away, and a searcher opens a segment's files only
+        when a hit first needs them, so a search racing a merge read a file that was gone
+        (a 500, seen after a restart while the indexer caught up)."""
         self._marked_here: set[str] = set()
         """Templates whose every batch since the index was opened was committed and marked:
         no document holds the keys of a batch starting at their mark."""
@@ -180,7 +185,8 @@ class KeywordIndex:
         except BaseException:
             writer.cancel()
             raise
-        writer.commit()
+        with self._segments:
+            writer.commit()
         self._sync()
         with self._lock:
             self.marks[template_id] = upto
@@ -217,7 +223,7 @@ class KeywordIndex:
             clauses.append(Term("template", template_id))
         found: dict[str, set[int]] = {}
         count = 0
-        with self.index.searcher() as searcher:
+        with self._segments, self.index.searcher() as searcher:
             for hit in searcher.search(And(clauses), limit=MAX_HITS + 1):
                 spans = parse_runs(hit["records"])
                 count += sum(len(span) for span in spans)

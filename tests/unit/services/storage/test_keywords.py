@@ -5,11 +5,14 @@ from __future__ import annotations
 import contextlib
 import gc
 import os
+import threading
 from collections.abc import Callable
+from functools import partialmethod
 from itertools import pairwise
 from pathlib import Path
 
 import pytest
+import whoosh.searching
 import whoosh.writing
 from hypothesis import given
 from hypothesis import strategies as st
@@ -233,3 +236,36 @@ def test_a_store_over_a_torn_keyword_index_starts_and_finds_its_records_again(
     store.index_keywords()
     assert store.keywords.search(["docked"], None) == {"state@1": set(range(5))}
     assert store.keywords_pending() == 0
+
+
+def test_a_commit_waits_for_the_search_reading_the_segments_it_merges_away(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A searcher reads a segment's stored column only when its first hit needs it; the
+    indexer's commit that merged that segment away in between (catching up after a
+    restart) had removed the file, and the query was a 500 (seen in CI after kill -9). The
+    commit now waits for the search, and the next search finds what it indexed. (Every
+    commit merges everything here, so that this one surely removes the segments.)"""
+    index = KeywordIndex(tmp_path)
+    index.add("state@1", 0, ["alpha one", "beta two"], 2)
+    index.add("state@1", 2, ["alpha three"], 3)
+    opened = index.index.searcher
+    indexing: list[threading.Thread] = []
+
+    def searcher_while_indexing() -> whoosh.searching.Searcher:
+        searcher = opened()
+        if not indexing:
+            indexing.append(threading.Thread(target=index.add, args=("state@1", 3, ["alpha"], 4)))
+            indexing[0].start()
+            indexing[0].join(timeout=2)
+        return searcher
+
+    commit = whoosh.writing.SegmentWriter.commit
+    monkeypatch.setattr(
+        whoosh.writing.SegmentWriter, "commit", partialmethod(commit, optimize=True)
+    )
+    monkeypatch.setattr(index.index, "searcher", searcher_while_indexing)
+    assert index.search(["alpha"], "state@1") == {"state@1": {0, 2}}
+    indexing[0].join(timeout=10)
+    assert index.search(["alpha"], "state@1") == {"state@1": {0, 2, 3}}
+    index.close()
