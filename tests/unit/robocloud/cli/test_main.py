@@ -73,7 +73,16 @@ def test_help_shows_argument_names_and_defaults() -> None:
 
 
 def test_commands_run_under_a_sane_recursion_limit_which_is_then_restored() -> None:
-    """py_ecc (loaded in this process) raised the limit; a command runs under CPython's own."""
+    """py_ecc, once imported, raises the limit; a command runs under CPython's own."""
+    original = sys.getrecursionlimit()
+    sys.setrecursionlimit(100_000)
+    try:
+        run_a_command_under_a_raised_recursion_limit()
+    finally:
+        sys.setrecursionlimit(original)
+
+
+def run_a_command_under_a_raised_recursion_limit() -> None:
     seen: list[int] = []
     probe = typer.Typer(cls=RobocloudGroup)
 
