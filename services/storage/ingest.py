@@ -487,11 +487,16 @@ class IngestJobs:
             return job.copy()
 
     def wait(self, job_id: str, timeout_s: float) -> Job:
-        """The job once finished (for tests and the SDK's blocking call), or as it is then."""
+        """The job once finished and saved (for tests), or as it is at ``timeout_s``.
+        Readers see a change before job.json holds it (:meth:`_update`); taking
+        :attr:`_saving` once the job is seen finished waits for that save."""
         deadline = time.monotonic() + timeout_s
         while True:
             job = self.get(job_id)
-            if job.status in ("succeeded", "failed") or time.monotonic() > deadline:
+            if job.status in ("succeeded", "failed"):
+                with self._saving:
+                    return self.get(job_id)
+            if time.monotonic() > deadline:
                 return job
             time.sleep(0.05)
 
