@@ -16,7 +16,7 @@ from robocloud.cid import CID, parse_cid
 from robocloud.semantic import MCAP_MEDIA_TYPE
 from services.common.bodies import SMALL_JSON_BODY, bounded_stream, json_body, media_type
 from services.common.errors import UnsupportedMediaType
-from services.common.pipeline import batched, in_worker_thread
+from services.common.pipeline import batched, entered_in_worker_thread, in_worker_thread
 from services.common.responses import stream_in_turn
 from services.common.slots import Slots
 from services.storage.bags import SUFFIXES, detect_format
@@ -93,7 +93,9 @@ async def ingest(request: Request) -> JSONResponse:
     """Ingest a bag: a JSON body ``{"cid"}`` names one in cas (a file, or a directory for a
     split ROS 2 bag); any other body is the bag file itself, streamed. Answers the job: a
     resend while the robot's job of the bag runs gets that job before the bag is read (an
-    upload is named by the digest its signature covers)."""
+    upload is named by the digest its signature covers). The bag's spool is made and
+    removed on a worker thread: a bag refused (too large, too many jobs, a cas fetch failed)
+    is up to 16 GiB or a directory of many files to unlink."""
     author = authorship_of(request)
     jobs = _jobs(request)
     kind = media_type(request)
@@ -107,7 +109,7 @@ async def ingest(request: Request) -> JSONResponse:
     job = await anyio.to_thread.run_sync(lambda: jobs.unfinished(author.signer, source))
     if job is None:
         await anyio.to_thread.run_sync(lambda: jobs.admit(author.signer))
-        with jobs.incoming() as spool:
+        async with entered_in_worker_thread(jobs.incoming()) as spool:
             bag, source = await _received_bag(request, spool, cid)
             job = await anyio.to_thread.run_sync(lambda: jobs.submit(bag, source, author))
     return JSONResponse(job.to_json(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})

@@ -6,17 +6,21 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 from fastapi import FastAPI
+from fastapi.responses import JSONResponse
 
 from robocloud import bounded_json
 from robocloud.signing import VerifiedRequest
 from robocloud.storage import Interval
 from services.common.bodies import INLINE_JSON_BYTES
+from services.common.errors import PayloadTooLarge, ServiceError
 from services.common.slots import Slots
 from services.storage import bags_api, ingest, knowledge_api, records_api
 from services.storage.matcher import Bindings
@@ -261,6 +265,58 @@ def test_an_upload_is_hashed_and_written_off_the_event_loop(
     assert sent.json()["bag"] == f"upload:{digest}"
     finished = node.jobs.wait(sent.json()["id"], 120)
     assert (finished.status, finished.records_committed) == ("succeeded", 160), finished.error
+
+
+async def refused(_: Any, error: Exception) -> JSONResponse:
+    """The service's error handler, as much of it as a route's router served alone needs."""
+    assert isinstance(error, ServiceError)
+    return JSONResponse({"code": error.code, **error.details}, status_code=error.status)
+
+
+def test_a_refused_upload_is_removed_off_the_event_loop(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A bag refused after it arrived (here past the size limit; too many jobs, a cas fetch
+    failed) was unlinked on the event loop: up to 16 GiB, or a directory of many files,
+    holding every route. Its removal is held here; the spool is gone once it ends."""
+    body = bag(tmp_path, "b.bag", 200, "ros1").read_bytes()
+    digest = hashlib.sha256(body).hexdigest()
+    gate = Gate()
+    remove = shutil.rmtree
+    incoming = node.root / "jobs" / ingest.INCOMING
+
+    def held_remove(path: str | Path, *args: Any, **kwargs: Any) -> None:
+        if Path(path).parent == incoming:
+            gate.hold()
+        remove(path, *args, **kwargs)
+
+    monkeypatch.setattr(ingest.shutil, "rmtree", held_remove)
+    app = FastAPI()
+    app.include_router(bags_api.router)
+    app.state.settings = StorageSettings(storage_max_bag_bytes=len(body) // 2)
+    app.add_exception_handler(PayloadTooLarge, refused)
+    app.state.ingest_jobs = node.jobs
+    app.state.bindings = node.bindings
+    robot = authorship()
+
+    async def requests() -> tuple[httpx.Response, dict[str, httpx.Response], dict[str, bool]]:
+        verified = VerifiedRequest(robot.signer, 1, "n" * 16, digest, "storage@local")
+        async with in_process(app, verified) as client:
+            held = client.post(
+                "/v1/ingest", content=body, headers={"Content-Type": "application/octet-stream"}
+            )
+            return await answered_while_held(
+                gate, held, {"bindings": lambda: client.get("/v1/bindings")}
+            )
+
+    sent, answers, answered_while_removing = asyncio.run(requests())
+
+    assert answered_while_removing == {"bindings": True}
+    assert answers["bindings"].json() == node.bindings.to_json()
+    assert sent.status_code == 413, sent.text
+    assert sent.json() == {"code": "payload_too_large", "limit": len(body) // 2}
+    assert list(incoming.iterdir()) == []
+    assert [path.name for path in incoming.parent.iterdir() if path.is_dir()] == ["incoming"]
 
 
 def test_the_knowledge_base_s_state_is_read_off_the_event_loop(
