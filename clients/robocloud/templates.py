@@ -154,20 +154,19 @@ class Template:
                 else:
                     yield path, kind
 
-    def leaf(self, path: str) -> FieldType | None:
-        """The type of the leaf at dotted ``path``, None when there is none."""
-        fields: Mapping[str, FieldType] = self.fields
-        parts = path.split(".")
-        for depth, part in enumerate(parts):
+    def field_at(self, path: str) -> FieldType | None:
+        """The type of the field at dotted ``path`` (a leaf or a container), None when
+        there is none: an array's items have no path."""
+        kind: FieldType | None = None
+        fields: Mapping[str, FieldType] | None = self.fields
+        for part in path.split("."):
+            if fields is None:
+                return None
             kind = fields.get(part)
             if kind is None:
                 return None
-            if depth == len(parts) - 1:
-                return None if isinstance(kind, Container) else kind
-            if not isinstance(kind, Container):
-                return None
-            fields = kind.fields
-        return None
+            fields = kind.fields if isinstance(kind, Container) else None
+        return kind
 
 
 def type_to_json(kind: FieldType) -> Any:

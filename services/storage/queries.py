@@ -27,7 +27,7 @@ from typing import Any
 from robocloud import bounded_json
 from robocloud.cid import CIDError, parse_cid
 from robocloud.storage import Interval
-from robocloud.templates import TEMPLATE_ID, Scalar, Template
+from robocloud.templates import TEMPLATE_ID, Container, Scalar, Template
 from services.storage.keywords import KeywordIndex
 from services.storage.recordstore import RecordStore, StoredRecord
 from services.storage.segments import INDEXED_KINDS, Doc, SealedSegment, TemplateSegments
@@ -159,11 +159,13 @@ def build_comparison(
     ``parameter`` names the query parameter of the path (and of the value, unless
     ``value_parameter`` names another): ``GET /v1/intervals`` gives field and value apart.
     """
-    kind = template.leaf(path)
+    kind = template.field_at(path)
     if kind is None:
         raise QueryInvalid(
             parameter, f"{template.id} has no field {path[:80]}", code="unknown_field"
         )
+    if isinstance(kind, Container):
+        raise QueryInvalid(parameter, _not_a_value(path, kind), code="unknown_field")
     if not isinstance(kind, Scalar) or kind.kind.startswith("range"):
         raise QueryInvalid(parameter, f"{path} is not a scalar field", code="unknown_field")
     if op in ORDERING and kind.kind not in ("int", "float"):
@@ -176,6 +178,18 @@ def build_comparison(
     value = _value(kind.kind, value_text, value_parameter)
     indexed = kind.kind in INDEXED_KINDS and op != "!="
     return Comparison(path, op, value, indexed)
+
+
+def _not_a_value(path: str, group: Container) -> str:
+    """Why ``path`` cannot be compared, and which paths under it can."""
+    names = list(group.fields)
+    if not names:
+        return f"{path} is an empty group of fields, not a value"
+    listed = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "")
+    return (
+        f"{path} is a group of fields ({listed}), not a value:"
+        f" compare one of them, like {path}.{names[0]}"
+    )
 
 
 def _quoted(raw: str, parameter: str) -> str:

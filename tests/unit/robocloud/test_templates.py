@@ -98,10 +98,11 @@ def test_a_clean_template_evaluates_to_its_types() -> None:
     assert template.to_json() == POSE
     assert dict(template.leaves())["pose.position.x"] == Scalar("float")
     assert "pose" not in dict(template.leaves())
-    assert template.leaf("pose.position.y") == Scalar("float")
-    assert template.leaf("pose.position") is None
-    assert template.leaf("pose.nowhere") is None
-    assert template.leaf("frame.x") is None
+    assert template.field_at("pose.position.y") == Scalar("float")
+    assert template.field_at("pose.position") == template.fields["pose"].fields["position"]
+    assert template.field_at("pose.nowhere") is None
+    assert template.field_at("frame.x") is None
+    assert template.field_at("ranges.0") is None
 
 
 def test_every_problem_is_listed_with_its_path() -> None:

@@ -133,7 +133,7 @@ def test_a_draft_walks_no_more_fields_than_a_template_holds() -> None:
     widest = draft_template(flat_store(MAX_FIELDS), "fan_msgs/msg/Flat")
     assert len(parse_template(widest).fields) == MAX_FIELDS
     nested = draft_template(fanout_store(4, 3), "fan_msgs/msg/Level0")  # 4+16+64+256 fields
-    assert parse_template(nested).leaf("f3.f3.f3.x3") is not None
+    assert parse_template(nested).field_at("f3.f3.f3.x3") is not None
 
 
 def test_every_type_in_the_real_recordings_drafts_a_valid_template() -> None:

@@ -160,6 +160,29 @@ def test_a_segment_left_without_candidates_is_never_decoded(
 
 
 @pytest.mark.parametrize(
+    ("where", "message"),
+    [
+        ("nowhere=1", "state@1 has no field nowhere"),
+        ("pose.x.y=1", "state@1 has no field pose.x.y"),
+        (
+            "pose=1",
+            "pose is a group of fields (x, y), not a value: compare one of them, like pose.x",
+        ),
+        ("ranges=1", "ranges is not a scalar field"),
+    ],
+)
+def test_a_field_that_is_not_a_value_says_what_it_is(
+    open_store: StoreFactory, where: str, message: str
+) -> None:
+    """A group of fields was "state@1 has no field pose": it has, and the message now names
+    the values under it that a comparison may name."""
+    store = _filled(open_store)
+    with pytest.raises(QueryInvalid) as invalid:
+        QueryEngine(store).records(RecordQuery(template="state@1", where=(where,)))
+    assert (invalid.value.code, str(invalid.value)) == ("unknown_field", f"where[0]: {message}")
+
+
+@pytest.mark.parametrize(
     ("where", "code"),
     [
         ("nowhere=1", "unknown_field"),
