@@ -230,6 +230,23 @@ class Publish(Protocol):
     ) -> dict[str, Any]: ...
 
 
+def _name_drafts_apart(reports: list[TopicReport]) -> None:
+    """Give each distinct draft of a job its own name: a draft is named after its type's
+    last part, so ``sensor_msgs/msg/Imu`` and ``my_msgs/msg/Imu`` both drafted ``imu``, and
+    the second was lost to ``--drafts`` (one file a name). Topics of one type keep sharing
+    their one draft."""
+    named: dict[str, dict[str, Any]] = {}
+    for report in reports:
+        if report.draft is None:
+            continue
+        base = report.draft["name"]
+        name, suffix = base, 1
+        while name in named and named[name] != {**report.draft, "name": name}:
+            suffix += 1
+            name = f"{base[: 62 - len(str(suffix))]}_{suffix}"
+        report.draft = named.setdefault(name, {**report.draft, "name": name})
+
+
 def _draft(connection: BagConnection) -> dict[str, Any] | None:
     """The draft template a connection's definition gives, when it gives one."""
     if connection.typestore is None:
@@ -735,6 +752,7 @@ class IngestJobs:
                 report.ingested_by = ingested_by
                 continue
             plans[connection.topic, connection.msgtype] = compile_plan(connection, template)
+        _name_drafts_apart(reports)
         return reports, plans
 
     def _stage(self, job: Job) -> None:

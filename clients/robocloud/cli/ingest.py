@@ -184,15 +184,20 @@ def _write_drafts(job: dict[str, Any], directory: Path, *, overwrite: bool) -> l
     """One ``<name>.json`` per proposed draft, named by the service: never a path it chose.
 
     Each file appears whole or not at all (an interrupted write leaves no half a draft for
-    ``templates create`` to read). Without ``overwrite`` a file that exists, perhaps the
+    ``templates create`` to read). Topics of one type share a draft, written once (the node
+    names distinct drafts apart). Without ``overwrite`` a file that exists, perhaps the
     operator's edit of an earlier draft, is kept: the paths kept are returned.
     """
     directory.mkdir(parents=True, exist_ok=True)
     kept: list[Path] = []
+    written: set[str] = set()
     for topic in job["topics"]:
         draft = topic.get("draft")
         if not isinstance(draft, dict) or not TEMPLATE_NAME.fullmatch(str(draft.get("name"))):
             continue
+        if draft["name"] in written:
+            continue
+        written.add(draft["name"])
         target = directory / f"{draft['name']}.json"
         try:
             with written_whole(target, overwrite=overwrite) as handle:

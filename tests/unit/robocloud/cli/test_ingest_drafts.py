@@ -25,13 +25,13 @@ def draft(name: str) -> dict[str, Any]:
     return {"name": name, "version": 1, "fields": {"x": "float"}, "description": f"{name} draft"}
 
 
-def storage_node(**fields: Any) -> Script:
-    """A node whose ingest job succeeded, proposing a draft (with ``fields``) for two unbound
-    topics."""
+def storage_node(drafted: tuple[str, ...] = ("imu", "gps"), **fields: Any) -> Script:
+    """A node whose ingest job succeeded, proposing a draft (with ``fields``) for each unbound
+    topic, of ``drafted`` names: topics of one type share theirs."""
     topics = [
-        {"topic": f"/{name}", "msgtype": "m", "template": None, "skipped": "unbound"}
+        {"topic": f"/{name}_{index}", "msgtype": "m", "template": None, "skipped": "unbound"}
         | {"draft": draft(name) | fields}
-        for name in ("imu", "gps")
+        for index, name in enumerate(drafted)
     ]
     job = {
         "id": "j1",
@@ -44,10 +44,12 @@ def storage_node(**fields: Any) -> Script:
     return lambda _: json_reply(json.dumps(job))
 
 
-def ingest(keystore: Path, tmp_path: Path, *options: str) -> Any:
+def ingest(
+    keystore: Path, tmp_path: Path, *options: str, drafted: tuple[str, ...] = ("imu", "gps")
+) -> Any:
     bag = tmp_path / "x.mcap"
     bag.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
-    with scripted_server(storage_node()) as node:
+    with scripted_server(storage_node(drafted)) as node:
         return runner.invoke(
             app,
             ["ingest", str(bag), "--storage", node.url, "--keystore", str(keystore), *options],
@@ -60,6 +62,16 @@ def test_drafts_are_written_whole_under_their_names(keystore: Path, tmp_path: Pa
     assert result.exit_code == 0, result.output
     assert sorted(path.name for path in drafts.iterdir()) == ["gps.json", "imu.json"]
     assert json.loads((drafts / "imu.json").read_text()) == draft("imu")
+
+
+def test_a_draft_two_topics_share_is_written_once(keystore: Path, tmp_path: Path) -> None:
+    """``/tf`` and ``/tf_static`` share their type's draft: the second write found the first's
+    file and the ingest failed, "these files exist and were kept", in a new directory."""
+    drafts = tmp_path / "drafts"
+    result = ingest(keystore, tmp_path, "--drafts", str(drafts), drafted=("tf", "tf", "gps"))
+    assert result.exit_code == 0, result.output
+    assert sorted(path.name for path in drafts.iterdir()) == ["gps.json", "tf.json"]
+    assert json.loads((drafts / "tf.json").read_text()) == draft("tf")
 
 
 def test_a_draft_file_that_exists_is_kept_and_named(keystore: Path, tmp_path: Path) -> None:

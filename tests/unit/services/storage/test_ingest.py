@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rosbags.rosbag1 import Writer as Rosbag1Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from robocloud.identity import Identity
 from robocloud.templates import parse_template
@@ -37,6 +39,7 @@ from tests.bagfactory import (
     write_flags_bag,
     write_messages,
 )
+from tests.bagfactory import imu as imu_message
 from tests.blobs import MemoryBlobs
 from tests.waiting import wait_for
 
@@ -153,6 +156,41 @@ def test_ingest_writes_bound_topics_and_reports_the_rest(node: Node, tmp_path: P
     assert node.blobs.files[frame][:3] == bytes([9, 10, 11])
     assert job.record_ids == {imu: ["imu-1-0", "imu-1-159"], image: ["image-1-0", "image-1-19"]}
     assert [path.name for path in (node.root / "jobs" / job.id).iterdir()] == ["job.json"]
+
+
+def test_distinct_drafts_of_one_name_are_named_apart(node: Node, tmp_path: Path) -> None:
+    """A draft is named after its type's last part: ``sensor_msgs/msg/Imu`` and
+    ``my_msgs/msg/Imu`` both drafted ``imu``, and ``--drafts`` (one file a name) kept one.
+    Two topics of one type still share one draft."""
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg("float64 level", "my_msgs/msg/Imu"))
+    path = tmp_path / "imus.bag"
+    with Rosbag1Writer(path) as writer:
+        for topic, msgtype in [
+            ("/imu", "sensor_msgs/msg/Imu"),
+            ("/my_imu", "my_msgs/msg/Imu"),
+            ("/imu_back", "sensor_msgs/msg/Imu"),
+        ]:
+            connection = writer.add_connection(topic, msgtype, typestore=store)
+            message = (
+                store.types[msgtype](level=0.5)
+                if msgtype.startswith("my")
+                else imu_message(store, 0, START_NS)
+            )
+            writer.write(connection, START_NS, store.serialize_ros1(message, msgtype))
+    job = node.jobs.wait(node.jobs.submit(path, "upload:imus", authorship()).id, 60)
+    assert job.status == "succeeded", job.error
+    drafts = {report.topic: report.draft for report in job.topics}
+    assert {topic: draft and draft["name"] for topic, draft in drafts.items()} == {
+        "/imu": "imu",
+        "/my_imu": "imu_2",
+        "/imu_back": "imu",
+    }
+    assert drafts["/imu"] == drafts["/imu_back"] == draft_template(store, "sensor_msgs/msg/Imu")
+    my_imu = drafts["/my_imu"]
+    assert my_imu is not None
+    assert my_imu["fields"] == {"level": "float"}
+    assert parse_template(my_imu).id == "imu_2@1"
 
 
 def test_a_bag_on_its_way_in_leaves_nothing_behind(node: Node, tmp_path: Path) -> None:
