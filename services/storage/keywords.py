@@ -34,6 +34,7 @@ import shutil
 import threading
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 from whoosh import fields, index
 from whoosh.analysis import StandardAnalyzer
@@ -45,6 +46,9 @@ from services.common.durable import atomic_write, fsync_dir
 log = logging.getLogger(__name__)
 
 MARKS = "marks.json"
+TEXTS = 2
+"""What a record's keyword text holds (``segments.keyword_text``), saved with the marks: an
+index of other texts is indexed again from the logs. 2: the strings inside arrays too."""
 MAX_TERMS = 16
 MAX_HITS = 100_000
 """Records one keyword query may match before it must be narrowed (a document stands for at
@@ -59,6 +63,10 @@ class TooManyKeywordHits(Exception):
     def __init__(self, limit: int) -> None:
         super().__init__(f"the keywords match more than {limit} records; narrow the query")
         self.limit = limit
+
+
+class KeywordTextsChanged(Exception):
+    """The index holds texts of another :data:`TEXTS`: its records are indexed again."""
 
 
 class KeywordIndexLost(Exception):
@@ -112,6 +120,10 @@ class KeywordIndex:
         the others in the page cache only."""
         try:
             self.index, self.marks = self._open(schema)
+        except KeywordTextsChanged as changed:
+            log.info("%s; indexing the logs again", changed)
+            self._remove()
+            self.index, self.marks = self.storage.create_index(schema), {}
         except Exception:
             log.warning(
                 "the keyword index under %s cannot be read; indexing the logs again",
@@ -135,7 +147,15 @@ class KeywordIndex:
         raises almost anything (unpickling, ``struct``, ``ord()`` of an empty read), and an
         index without the documents its marks name would hide their records for good."""
         path = self.directory / MARKS
-        marks: dict[str, int] = json.loads(path.read_bytes()) if path.exists() else {}
+        saved: dict[str, Any] = (
+            json.loads(path.read_bytes()) if path.exists() else {"texts": TEXTS, "marks": {}}
+        )
+        if saved.get("texts") != TEXTS:
+            raise KeywordTextsChanged(
+                f"the keyword index under {self.directory} holds texts of version"
+                f" {saved.get('texts', 1)}, not {TEXTS}"
+            )
+        marks: dict[str, int] = saved["marks"]
         if not self.storage.index_exists():
             if marks:
                 raise KeywordIndexLost(f"{path} names records of a Whoosh index not there")
@@ -191,7 +211,7 @@ class KeywordIndex:
         with self._lock:
             self.marks[template_id] = upto
             marks = dict(self.marks)
-        atomic_write(self.directory / MARKS, json.dumps(marks).encode())
+        atomic_write(self.directory / MARKS, json.dumps({"texts": TEXTS, "marks": marks}).encode())
         self._marked_here.add(template_id)
 
     def _sync(self) -> None:

@@ -37,7 +37,7 @@ import orjson
 from tinydb import TinyDB
 from tinydb.storages import Storage
 
-from robocloud.templates import Container, Scalar, Template
+from robocloud.templates import ArrayOf, Container, FieldType, Scalar, Template
 from services.common.durable import atomic_write, fsync_dir, write_synced
 
 Doc = dict[str, Any]
@@ -96,15 +96,54 @@ def flattener(template: Template) -> Callable[[dict[str, Any], int], Doc]:
 
 
 def keyword_text(template: Template) -> Callable[[Doc], str] | None:
-    """What the keyword index reads of a document: its string leaves, space-separated (None
-    for a template without one)."""
-    strings = [path for path, kind in template.leaves() if kind == Scalar("string")]
-    if not strings:
-        return None
-    if len(strings) == 1:
-        return itemgetter(strings[0])
-    read = itemgetter(*strings)
-    return lambda doc: " ".join(read(doc))
+    """What the keyword index reads of a document: its strings, space-separated (None for a
+    template without one). Strings inside arrays count too: a TF message's frame ids, a
+    joint state's names, a diagnostic's status messages are all in arrays."""
+    plain = [path for path, kind in template.leaves() if kind == STRING]
+    nested = [
+        (path, strings)
+        for path, kind in template.leaves()
+        if isinstance(kind, ArrayOf) and (strings := _strings_of(kind)) is not None
+    ]
+    if not nested:
+        if not plain:
+            return None
+        if len(plain) == 1:
+            return itemgetter(plain[0])
+        read = itemgetter(*plain)
+        return lambda doc: " ".join(read(doc))
+
+    def text(doc: Doc) -> str:
+        words = [doc[path] for path in plain]
+        for path, strings in nested:
+            words.extend(strings(doc[path]))
+        return " ".join(words)
+
+    return text
+
+
+STRING = Scalar("string")
+
+
+def _strings_of(kind: FieldType) -> Callable[[Any], Iterator[str]] | None:
+    """The strings of a value of ``kind``, in order (None when it can hold none)."""
+    if kind == STRING:
+        return lambda value: iter((value,))
+    if isinstance(kind, ArrayOf):
+        item = _strings_of(kind.item)
+        if item is None:
+            return None
+        return lambda values: (string for value in values for string in item(value))
+    if isinstance(kind, Container):
+        fields = [
+            (name, strings)
+            for name, inner in kind.fields.items()
+            if (strings := _strings_of(inner))
+        ]
+        if not fields:
+            return None
+        return lambda value: (string for name, strings in fields for string in strings(value[name]))
+    return None
 
 
 def reassemble(template: Template, doc: Doc) -> dict[str, Any]:

@@ -141,11 +141,17 @@ class Staged:
             self.messages[key] = self.messages.get(key, 0) + count
 
 
+SPOOL_FORMAT = 2
+"""In a spool's names: a spool of another format (staged before an upgrade, by a job resumed
+after it) is missing to this one, which stages the bag again rather than misread its lines.
+2: a template whose strings are all inside arrays has a keyword text line."""
+
+
 def spool_path(directory: Path, template_id: str, part: int, kind: str = "lines") -> Path:
     """One of a spool part's two files: ``lines`` holds, for each record, its canonical bytes,
     its document as :class:`DocumentForm` prepares it and, for a template with strings, its
     keyword text (a JSON string), a line each; ``rows`` its indexed values, fixed width."""
-    return directory / f"{template_id}.{part}.{kind}"
+    return directory / f"{template_id}.{part}.{kind}.v{SPOOL_FORMAT}"
 
 
 class SpoolWriter:

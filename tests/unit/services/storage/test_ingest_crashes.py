@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from services.storage.ingest import Job
+from services.storage.staging import SPOOL_FORMAT
 from tests.bagfactory import START_NS
 from tests.unit.services.ledger.crash import output_of_killed
 from tests.unit.services.storage.synced_files import synced
@@ -88,13 +89,20 @@ def assert_imu_records_once(node: Node, template_id: str) -> None:
     assert times[0] == START_NS
 
 
-@pytest.mark.parametrize("loss", ["unsynced", "last_page"])
+def named_as_format_1(directory: Path) -> None:
+    """Name the spool's files as the node staged them before :data:`SPOOL_FORMAT` 2."""
+    for file in directory.iterdir():
+        file.rename(file.with_name(file.name.removesuffix(f".v{SPOOL_FORMAT}")))
+
+
+@pytest.mark.parametrize("loss", ["unsynced", "last_page", "older_format"])
 def test_a_power_cut_while_committing_resumes_with_each_record_once(
     tmp_path: Path, loss: str, caplog: pytest.LogCaptureFixture
 ) -> None:
     """The spool is synced before job.json says its records are staged, so a power cut after
     two batches leaves it whole ("unsynced": job.json once lived beside a spool that came
-    back empty, and every resume failed). And a spool damaged all the same ("last_page") is
+    back empty, and every resume failed). And a spool damaged all the same ("last_page"), or
+    staged by a node of an older spool format ("older_format", resumed after an upgrade), is
     staged again from the bag, the commit going on past the records already committed."""
     job_id = run_killed(KILLED_COMMITTING, tmp_path)
     staged = tmp_path / "node" / "jobs" / job_id / "staged"
@@ -102,15 +110,17 @@ def test_a_power_cut_while_committing_resumes_with_each_record_once(
     assert (state["status"], state["staged"]) == ("committing", {"imu@1": IMU_RECORDS})
     if loss == "unsynced":
         cut_to_synced(staged, synced(tmp_path / "synced.jsonl"))
-    else:
+    elif loss == "last_page":
         lose_last_page(staged)
+    else:
+        named_as_format_1(staged)
     node = Node(tmp_path / "node")
     try:
         job = node.jobs.wait(job_id, 60)
         assert job.status == "succeeded", job.error
         assert job.records_committed == IMU_RECORDS
         assert_imu_records_once(node, "imu@1")
-        assert ("staging again" in caplog.text) == (loss == "last_page")
+        assert ("staging again" in caplog.text) == (loss != "unsynced")
     finally:
         node.close()
 

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import json
+import logging
 import os
 import threading
 from collections.abc import Callable
 from functools import partialmethod
 from itertools import pairwise
 from pathlib import Path
+from typing import Any
 
 import pytest
 import whoosh.searching
@@ -17,9 +20,11 @@ import whoosh.writing
 from hypothesis import given
 from hypothesis import strategies as st
 
+from robocloud.templates import parse_template
 from services.storage import keywords
 from services.storage.keywords import KeywordIndex, TooManyKeywordHits, parse_runs, runs
-from tests.unit.services.storage.conftest import AUTHOR, StoreFactory, state_record
+from services.storage.segments import keyword_text
+from tests.unit.services.storage.conftest import AUTHOR, StoreFactory, approve, state_record
 
 
 @given(st.sets(st.integers(0, 5_000), min_size=1))
@@ -269,3 +274,81 @@ def test_a_commit_waits_for_the_search_reading_the_segments_it_merges_away(
     indexing[0].join(timeout=10)
     assert index.search(["alpha"], "state@1") == {"state@1": {0, 2, 3}}
     index.close()
+
+
+TF = {
+    "name": "tf",
+    "fields": {
+        "transforms": {
+            "array": {
+                "container": {
+                    "child_frame_id": "string",
+                    "header": {"container": {"frame_id": "string", "seq": "int"}},
+                    "x": "float",
+                }
+            }
+        },
+        "names": {"array": {"array": "string"}},
+        "ranges": {"array": "float"},
+    },
+}
+
+
+def tf_record(t: int, *frames: tuple[str, str], names: list[list[str]]) -> dict[str, Any]:
+    transforms = [
+        {"child_frame_id": child, "header": {"frame_id": parent, "seq": t}, "x": 0.5}
+        for parent, child in frames
+    ]
+    data = {"transforms": transforms, "names": names, "ranges": [1.0]}
+    return {"template": "tf@1", "topic": "/tf", "robot": AUTHOR.signer, "t": t, "data": data}
+
+
+def test_the_strings_inside_arrays_are_keywords_too(open_store: StoreFactory) -> None:
+    """Only strings outside arrays were indexed: a TF message's frame ids, a joint state's
+    names, a diagnostic's messages (all in arrays) were never found by keyword."""
+    store = open_store()
+    approve(store.catalog, TF)
+    store.append(
+        [
+            tf_record(0, ("odom", "base_link"), names=[["wheel_left", "wheel_right"]]),
+            tf_record(1, ("map", "odom"), ("base_link", "laser"), names=[]),
+            tf_record(2, names=[["arm"], ["wheel_left"]]),
+        ],
+        author=AUTHOR,
+    )
+    store.index_keywords()
+    assert store.keywords.search(["base_link"], None) == {"tf@1": {0, 1}}
+    assert store.keywords.search(["laser"], "tf@1") == {"tf@1": {1}}
+    assert store.keywords.search(["wheel_left"], None) == {"tf@1": {0, 2}}
+    assert store.keywords.search(["map", "odom"], None) == {"tf@1": {1}}
+    assert store.keywords_pending() == 0
+    text = keyword_text(parse_template({**TF, "version": 1}))
+    assert text is not None
+    assert text(store.views("tf@1").docs_between(1, 2)[0]) == "odom map laser base_link"
+
+
+def test_a_template_without_strings_has_no_keyword_text() -> None:
+    no_strings = {"name": "n", "version": 1, "fields": {"v": {"array": {"array": "float"}}}}
+    assert keyword_text(parse_template(no_strings)) is None
+
+
+def test_an_index_of_older_texts_is_indexed_again(
+    open_store: StoreFactory, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Marks saved before texts held the strings inside arrays (no ``texts`` version): the
+    records they name were indexed without them, so the index starts again from the logs."""
+    caplog.set_level(logging.INFO, logger=keywords.__name__)
+    store = open_store()
+    approve(store.catalog, TF)
+    store.append([tf_record(0, ("odom", "base_link"), names=[])], author=AUTHOR)
+    store.append([state_record(t, mode="docked") for t in range(3)], author=AUTHOR)
+    store.index_keywords()
+    marks = store.keywords.directory / keywords.MARKS
+    assert json.loads(marks.read_bytes()) == {"texts": 2, "marks": {"state@1": 3, "tf@1": 1}}
+    marks.write_text(json.dumps({"state@1": 3, "tf@1": 1}))
+    store = open_store()
+    assert "holds texts of version 1, not 2; indexing the logs again" in caplog.text
+    assert store.keywords_pending() == 4
+    store.index_keywords()
+    assert store.keywords.search(["base_link"], None) == {"tf@1": {0}}
+    assert store.keywords.search(["docked"], None) == {"state@1": {0, 1, 2}}
