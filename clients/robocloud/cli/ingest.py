@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -186,7 +188,8 @@ def _write_drafts(job: dict[str, Any], directory: Path, *, overwrite: bool) -> l
     Each file appears whole or not at all (an interrupted write leaves no half a draft for
     ``templates create`` to read). Topics of one type share a draft, written once (the node
     names distinct drafts apart). Without ``overwrite`` a file that exists, perhaps the
-    operator's edit of an earlier draft, is kept: the paths kept are returned.
+    operator's edit of an earlier draft, is kept: the paths kept are returned, but those
+    holding the draft already.
     """
     directory.mkdir(parents=True, exist_ok=True)
     kept: list[Path] = []
@@ -199,12 +202,30 @@ def _write_drafts(job: dict[str, Any], directory: Path, *, overwrite: bool) -> l
             continue
         written.add(draft["name"])
         target = directory / f"{draft['name']}.json"
+        text = json.dumps(draft, indent=2, sort_keys=True).encode() + b"\n"
         try:
             with written_whole(target, overwrite=overwrite) as handle:
-                handle.write(json.dumps(draft, indent=2, sort_keys=True).encode() + b"\n")
+                handle.write(text)
         except FileExistsError:
-            kept.append(target)
+            if not _holds(target, text):
+                kept.append(target)
     return kept
+
+
+def _holds(path: Path, data: bytes) -> bool:
+    """Whether ``path`` is a file holding ``data`` exactly: a draft written by an earlier
+    ingest and left as it was is no edit kept. A link is not followed, nor a FIFO waited on."""
+    try:
+        descriptor = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError:
+        return False
+    with os.fdopen(descriptor, "rb") as file:
+        status = os.fstat(descriptor)
+        return (
+            stat.S_ISREG(status.st_mode)
+            and status.st_size == len(data)
+            and file.read(len(data) + 1) == data
+        )
 
 
 def bind(

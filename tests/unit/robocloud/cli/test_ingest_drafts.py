@@ -74,6 +74,30 @@ def test_a_draft_two_topics_share_is_written_once(keystore: Path, tmp_path: Path
     assert json.loads((drafts / "tf.json").read_text()) == draft("tf")
 
 
+def test_a_draft_file_holding_the_draft_already_is_no_edit_kept(
+    keystore: Path, tmp_path: Path
+) -> None:
+    """The same bag ingested twice, or two bags of one type, into one --drafts directory:
+    the second run exited 1, "these files exist and were kept", for files it wrote itself."""
+    drafts = tmp_path / "drafts"
+    assert ingest(keystore, tmp_path, "--drafts", str(drafts)).exit_code == 0
+    again = ingest(keystore, tmp_path, "--drafts", str(drafts))
+    assert again.exit_code == 0, again.output
+    assert json.loads((drafts / "imu.json").read_text()) == draft("imu")
+
+
+def test_a_fifo_under_a_drafts_name_is_kept_and_never_waited_on(
+    keystore: Path, tmp_path: Path
+) -> None:
+    drafts = tmp_path / "drafts"
+    drafts.mkdir()
+    os.mkfifo(drafts / "imu.json")
+    result = ingest(keystore, tmp_path, "--drafts", str(drafts))
+    assert result.exit_code == 1, result.output
+    assert str(drafts / "imu.json") in result.stderr
+    assert (drafts / "imu.json").is_fifo()
+
+
 def test_a_draft_file_that_exists_is_kept_and_named(keystore: Path, tmp_path: Path) -> None:
     """It was replaced, an operator's edit of an earlier draft lost to the next ingest."""
     drafts = tmp_path / "drafts"
