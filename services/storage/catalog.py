@@ -14,6 +14,7 @@ fsynced line of a journal, compacted at each start, so a change acknowledged sur
 
 from __future__ import annotations
 
+import hashlib
 import json
 import threading
 import time
@@ -22,6 +23,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
+from robocloud.jcs import canonical
 from robocloud.templates import (
     MAX_VERSION,
     Problem,
@@ -173,6 +175,12 @@ def _evaluated(document: Any, name: str, version: int) -> Template:
     return template
 
 
+def fields_key(template: Template) -> bytes:
+    """A digest of ``template``'s fields alone (not its name, version or description)."""
+    fields = canonical(template.to_json()["fields"])
+    return hashlib.sha256(fields).digest()
+
+
 class Catalog:
     """Template versions by id, persisted in ``root/catalog.log``."""
 
@@ -194,6 +202,9 @@ class Catalog:
         """Each version's journal line, in bytes; their sum is what ``max_bytes`` bounds."""
         self._bytes = 0
         self._latest: dict[str, int] = {}
+        self._approved_by_fields: dict[bytes, set[str]] = {}
+        """Approved versions by :func:`fields_key`, for an unbound topic's draft to find
+        one it fits among up to ``max_versions``."""
         self._journal = AppendLog(root / "catalog.log")
         lines = self._journal.read_lines()
         for line in lines:
@@ -206,6 +217,11 @@ class Catalog:
     def _remember(self, version: TemplateVersion, size: int) -> None:
         self._bytes += size - self._sizes.get(version.id, 0)
         self._sizes[version.id] = size
+        earlier = self._versions.get(version.id)
+        if earlier is not None and earlier.status == "approved":
+            self._approved_by_fields[fields_key(earlier.template)].discard(version.id)
+        if version.status == "approved":
+            self._approved_by_fields.setdefault(fields_key(version.template), set()).add(version.id)
         self._versions[version.id] = version
         name = version.template.name
         self._latest[name] = max(self._latest.get(name, 0), version.template.version)
@@ -316,6 +332,14 @@ class Catalog:
         if version.status != "approved":
             raise TemplateNotApproved(template_id, version.status)
         return version.template
+
+    def approved_like(self, template: Template) -> list[str]:
+        """Approved versions with ``template``'s fields, oldest first: an unbound topic
+        whose draft has them is bound to one rather than a template made again (its name
+        taken, the draft's ``templates create`` is a 409)."""
+        with self._lock:
+            fitting = list(self._approved_by_fields.get(fields_key(template), ()))
+        return sorted(fitting, key=parse_template_id)
 
     def list(
         self,

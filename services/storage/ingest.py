@@ -43,6 +43,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
+from robocloud.templates import parse_template
 from services.common.disk import DiskReserve
 from services.common.durable import atomic_write, fsync_dir
 from services.storage.bags import Bag, BagConnection
@@ -142,6 +143,9 @@ class TopicReport:
     draft: dict[str, Any] | None = None
     """For a topic bound to no template, one generated from its message definition: the
     designer edits and submits it (``POST /v1/templates``) and binds it."""
+    fits: list[str] = field(default_factory=list)
+    """Approved templates with the draft's fields, oldest first: the topic can be bound to
+    one of them as it is."""
 
 
 @dataclass
@@ -739,6 +743,8 @@ class IngestJobs:
             if template_id is None:
                 report.skipped = "no template is bound to this topic or message type"
                 report.draft = _draft(connection)
+                if report.draft is not None:
+                    report.fits = self.store.catalog.approved_like(parse_template(report.draft))
                 continue
             try:
                 template = self.store.catalog.approved(template_id)

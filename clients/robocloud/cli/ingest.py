@@ -174,12 +174,18 @@ def _unpublished_line(dataset: dict[str, Any]) -> str:
 
 
 def _topic_line(topic: dict[str, Any]) -> str:
-    """What became of one topic (why it was skipped, or else its template), escaped."""
+    """What became of one topic (why it was skipped, or else its template), escaped; for
+    one bound to no template, the approved template that fits it, if one does."""
     outcome = topic.get("skipped") or topic.get("template")
-    return (
+    line = (
         f"  {untrusted(topic.get('topic'))} ({untrusted(topic.get('msgtype'))}): "
         f"{untrusted(outcome)}"
     )
+    fits = topic.get("fits")
+    if topic.get("template") is None and isinstance(fits, list) and fits:
+        fitting = untrusted(fits[-1])
+        line += f"; {fitting} fits it: robocloud bind {fitting} --topic {untrusted(topic['topic'])}"
+    return line
 
 
 def _write_drafts(job: dict[str, Any], directory: Path, *, overwrite: bool) -> list[Path]:

@@ -25,12 +25,15 @@ def draft(name: str) -> dict[str, Any]:
     return {"name": name, "version": 1, "fields": {"x": "float"}, "description": f"{name} draft"}
 
 
-def storage_node(drafted: tuple[str, ...] = ("imu", "gps"), **fields: Any) -> Script:
+def storage_node(
+    drafted: tuple[str, ...] = ("imu", "gps"), fits: list[str] | None = None, **fields: Any
+) -> Script:
     """A node whose ingest job succeeded, proposing a draft (with ``fields``) for each unbound
-    topic, of ``drafted`` names: topics of one type share theirs."""
+    topic, of ``drafted`` names: topics of one type share theirs. The first one's draft has
+    the fields of the approved templates ``fits``."""
     topics = [
         {"topic": f"/{name}_{index}", "msgtype": "m", "template": None, "skipped": "unbound"}
-        | {"draft": draft(name) | fields}
+        | {"draft": draft(name) | fields, "fits": (fits or []) if index == 0 else []}
         for index, name in enumerate(drafted)
     ]
     job = {
@@ -45,11 +48,15 @@ def storage_node(drafted: tuple[str, ...] = ("imu", "gps"), **fields: Any) -> Sc
 
 
 def ingest(
-    keystore: Path, tmp_path: Path, *options: str, drafted: tuple[str, ...] = ("imu", "gps")
+    keystore: Path,
+    tmp_path: Path,
+    *options: str,
+    drafted: tuple[str, ...] = ("imu", "gps"),
+    fits: list[str] | None = None,
 ) -> Any:
     bag = tmp_path / "x.mcap"
     bag.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
-    with scripted_server(storage_node(drafted)) as node:
+    with scripted_server(storage_node(drafted, fits)) as node:
         return runner.invoke(
             app,
             ["ingest", str(bag), "--storage", node.url, "--keystore", str(keystore), *options],
@@ -62,6 +69,16 @@ def test_drafts_are_written_whole_under_their_names(keystore: Path, tmp_path: Pa
     assert result.exit_code == 0, result.output
     assert sorted(path.name for path in drafts.iterdir()) == ["gps.json", "imu.json"]
     assert json.loads((drafts / "imu.json").read_text()) == draft("imu")
+
+
+def test_an_unbound_topic_names_the_approved_template_it_fits(
+    keystore: Path, tmp_path: Path
+) -> None:
+    result = ingest(keystore, tmp_path, fits=["imu@1", "imu@3"])
+    assert result.exit_code == 0, result.output
+    lines = result.stdout.splitlines()
+    assert lines[1] == "  /imu_0 (m): unbound; imu@3 fits it: robocloud bind imu@3 --topic /imu_0"
+    assert lines[2] == "  /gps_1 (m): unbound"
 
 
 def test_a_draft_two_topics_share_is_written_once(keystore: Path, tmp_path: Path) -> None:

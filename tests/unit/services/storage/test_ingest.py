@@ -158,6 +158,29 @@ def test_ingest_writes_bound_topics_and_reports_the_rest(node: Node, tmp_path: P
     assert [path.name for path in (node.root / "jobs" / job.id).iterdir()] == ["job.json"]
 
 
+def test_an_unbound_topic_names_the_approved_templates_its_draft_fits(
+    node: Node, tmp_path: Path
+) -> None:
+    """A topic bound to no template (an IMU on a second topic, bound by topic only) had its
+    draft alone, whose ``templates create`` is a 409 since the name is taken: the approved
+    template with the same fields, which it can be bound to as it is, went unsaid."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    gps = node.approve("sensor_msgs/msg/NavSatFix")
+    node.bindings.bind(template_id=gps, topic="/gps")
+    same_fields = draft_template(typestore_for("sqlite3"), "sensor_msgs/msg/Imu")
+    node.catalog.create({**same_fields, "name": "imu_draft"}, author=node.author)
+    job = node.jobs.wait(node.jobs.submit(bag(tmp_path, "b", 200), "upload:x", authorship()).id, 60)
+    assert job.status == "succeeded", job.error
+    fits = {report.topic: report.fits for report in job.topics}
+    assert fits == {"/imu": [imu], "/gps": [], "/camera/image_raw": []}
+    assert job.to_json()["topics"][0]["fits"] == [imu]
+    reopened = Catalog(Path(shutil.copytree(node.root / "catalog", tmp_path / "catalog")))
+    try:
+        assert reopened.approved_like(node.catalog.get(imu).template) == [imu]
+    finally:
+        reopened.close()
+
+
 def test_distinct_drafts_of_one_name_are_named_apart(node: Node, tmp_path: Path) -> None:
     """A draft is named after its type's last part: ``sensor_msgs/msg/Imu`` and
     ``my_msgs/msg/Imu`` both drafted ``imu``, and ``--drafts`` (one file a name) kept one.
