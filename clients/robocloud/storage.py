@@ -9,6 +9,7 @@ bound and checked for the shape this client relies on.
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeGuard
@@ -16,7 +17,7 @@ from urllib.parse import quote
 
 from robocloud import jcs
 from robocloud.client import ServiceClient
-from robocloud.errors import InvalidAnswerError
+from robocloud.errors import ConflictError, InvalidAnswerError
 from robocloud.proofs import EthCall, RecordId, RecordProof, rpc_chain_id, verify_record_proof
 from robocloud.templates import Template, parse_template, parse_template_id, validate_record
 
@@ -88,6 +89,10 @@ class Interval:
                 f"an interval's exit must be an integer time or null, not {exit_ns!r:.80}"
             )
         return cls(robot, enter, exit_ns)
+
+
+ANCHOR_POLL_S = 0.1
+"""The first pause before asking again for a proof not anchored yet; it doubles up to 1 s."""
 
 
 class Storage(ServiceClient):
@@ -243,19 +248,23 @@ class Storage(ServiceClient):
         anchor_log: str,
         chain_id: int | None = None,
         node: str | None = None,
+        wait_s: float = 0.0,
     ) -> RecordProof:
         """``record_id``'s record (``.record``), proved by this node and checked against the
         chain, so a robot trusts only ``rpc`` and ``anchor_log``, never the node.
 
         ``rpc`` is a JSON-RPC request function the robot trusts (``JsonRpcClient.request``);
         the anchor must be on ``chain_id``, by default the chain ``rpc`` reads, and by
-        ``node`` when given. Raises ``RecordIdError`` for an id that is not one (nothing
-        sent), ``ProofFormatError`` for a malformed proof, ``ProofVerificationError`` for one
-        that does not hold, ``NotFoundError``/``ConflictError`` (409 ``not_anchored``) when the
-        node has none yet.
+        ``node`` when given. A record not anchored yet is asked for again until ``wait_s``
+        has passed: a node anchors an epoch seconds after its records arrive, so a robot
+        that has just written or ingested one waits rather than retries. Raises
+        ``RecordIdError`` for an id that is not one (nothing sent), ``ProofFormatError`` for
+        a malformed proof, ``ProofVerificationError`` for one that does not hold,
+        ``NotFoundError``/``ConflictError`` (409 ``not_anchored``) when the node has none
+        (yet, after ``wait_s``).
         """
         wanted = str(RecordId.parse(record_id))
-        body = self.get_json(f"/v1/records/{wanted}/proof")
+        body = self._anchored_proof(wanted, wait_s)
         return verify_record_proof(
             body,
             rpc,
@@ -264,6 +273,21 @@ class Storage(ServiceClient):
             chain_id=rpc_chain_id(rpc) if chain_id is None else chain_id,
             node=node,
         )
+
+    def _anchored_proof(self, record_id: str, wait_s: float) -> Any:
+        """The node's proof of ``record_id``, asked for again while its epoch is not
+        anchored, until ``wait_s`` has passed."""
+        deadline = time.monotonic() + wait_s
+        pause_s = ANCHOR_POLL_S
+        while True:
+            try:
+                return self.get_json(f"/v1/records/{record_id}/proof")
+            except ConflictError as exc:
+                left_s = deadline - time.monotonic()
+                if exc.code != "not_anchored" or left_s <= 0:
+                    raise
+            time.sleep(min(pause_s, left_s))
+            pause_s = min(pause_s * 2, 1.0)
 
     def query(
         self,

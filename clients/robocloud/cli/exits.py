@@ -65,8 +65,8 @@ MEANINGS: dict[ExitCode, str] = {
         "the same request will not succeed"
     ),
     ExitCode.UNAVAILABLE: (
-        "the service failed or is busy (5xx, 429), or a transaction was not mined in time; "
-        "retry later"
+        "the service failed or is busy (5xx, 429), has not caught up (409 not_anchored), or "
+        "a transaction was not mined in time; retry later"
     ),
     ExitCode.INVALID_ANSWER: (
         "the answer is malformed or failed verification (a CID mismatch, JSON nested too "
@@ -180,9 +180,15 @@ _API_HINTS = {
         "this robot's share is used up, and waiting does not free it: remove some of its data "
         "(in the cas `robocloud pinned` shows the share, `robocloud unpin CID` frees part)"
     ),
+    "not_anchored": (
+        "the node anchors a record's epoch seconds after it arrives, unless its anchoring is "
+        "stalled (GET /v1/node says why): retry, or `robocloud verify ID --wait 30`"
+    ),
 }
 _OWN_SHARE = frozenset({"quota_exceeded"})
 """5xx codes that only the robot itself can mend: refused, not a service to retry later."""
+_NOT_YET = frozenset({"not_anchored"})
+"""4xx codes that the same request gets past once the service has caught up: retry later."""
 
 
 def _api(exc: ApiError) -> Failure:
@@ -193,7 +199,7 @@ def _api(exc: ApiError) -> Failure:
         after = exc.details.get("retry_after")
         wait = f"in {after} s" if after is not None else "later"
         return Failure(ExitCode.UNAVAILABLE, message, f"try again {wait}")
-    if isinstance(exc, ServerError) and exc.code not in _OWN_SHARE:
+    if (isinstance(exc, ServerError) and exc.code not in _OWN_SHARE) or exc.code in _NOT_YET:
         return Failure(
             ExitCode.UNAVAILABLE, message, hint or "retry later; the request id finds its log"
         )

@@ -40,6 +40,13 @@ def verify(
     node: str | None = typer.Option(
         None, "--node", help="Accept only anchors of this storage node's address."
     ),
+    wait: float = typer.Option(
+        0.0,
+        "--wait",
+        min=0,
+        metavar="SECONDS",
+        help="Wait this long for a record not anchored yet (a node anchors within seconds).",
+    ),
     as_json: bool = JsonOption,
 ) -> None:
     """Verify a record: its inclusion proofs with SHA-256, its anchor and tx on the chain."""
@@ -57,6 +64,7 @@ def verify(
             rpc.request,
             anchor_log=checksum(anchor_log),
             node=checksum(node) if node else None,
+            wait_s=wait,
         )
     if as_json:
         show_json({"id": str(parsed), "verified": True, **proof.to_json()})

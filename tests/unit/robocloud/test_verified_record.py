@@ -5,6 +5,7 @@ the SDK's documented error naming what is wrong, never a record handed on."""
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -12,10 +13,17 @@ import pytest
 from typer.testing import CliRunner
 
 from robocloud.cli import app
-from robocloud.errors import InvalidAnswerError
+from robocloud.errors import ConflictError, InvalidAnswerError
 from robocloud.proofs import ProofFormatError, ProofVerificationError, RecordIdError
 from robocloud.storage import Storage
-from tests.scripted_http import Exchange, Reply, ScriptedServer, json_reply, scripted_server
+from tests.scripted_http import (
+    Exchange,
+    Reply,
+    Script,
+    ScriptedServer,
+    json_reply,
+    scripted_server,
+)
 from tests.unit.robocloud.test_proofs import (
     CONTRACT,
     NODE,
@@ -186,3 +194,83 @@ def test_robocloud_verify_says_what_the_sdk_found(
         result = runner.invoke(app, ["verify", "imu-1-3", *urls, *trusted])
     assert result.exit_code == code, result.output
     assert said in result.output
+
+
+NOT_ANCHORED = json_reply(
+    json.dumps(
+        {
+            "error": {
+                "code": "not_anchored",
+                "message": "imu-1-3 is in epoch 4, not anchored yet",
+                "details": {"id": "imu-1-3", "epoch": 4},
+                "request_id": "r1",
+            }
+        }
+    ),
+    status=409,
+)
+
+
+def anchored_after(refusals: int) -> Script:
+    """A node whose record is anchored after it refused ``refusals`` asks for its proof."""
+    asked = 0
+
+    def answer(_: Exchange) -> Reply:
+        nonlocal asked
+        asked += 1
+        return NOT_ANCHORED if asked <= refusals else json_reply(json.dumps(SOUND))
+
+    return answer
+
+
+def test_a_record_not_anchored_yet_is_waited_for() -> None:
+    """A robot that had just written a record and asked for its proof before the node's
+    epoch was anchored (seconds) got 409 not_anchored, and retried by hand."""
+    rpc, _ = scripted_chain(SOUND)
+    with scripted_server(anchored_after(2)) as node, Storage(node.url) as storage:
+        proof = storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, node=NODE, wait_s=30)
+    assert proof.record == SOUND["record"]
+    assert node.count("GET") == 3
+
+
+@pytest.mark.parametrize("wait_s", [0.0, 0.5])
+def test_a_record_still_not_anchored_is_the_conflict(wait_s: float) -> None:
+    rpc, calls = scripted_chain(SOUND)
+    with scripted_server(anchored_after(1_000)) as node, Storage(node.url) as storage:
+        started = time.monotonic()
+        with pytest.raises(ConflictError) as refused:
+            storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, wait_s=wait_s)
+        waited_s = time.monotonic() - started
+    assert refused.value.code == "not_anchored"
+    assert (node.count("GET") == 1) == (wait_s == 0)
+    assert wait_s <= waited_s < wait_s + 5
+    assert calls == []
+
+
+def test_another_conflict_is_not_waited_for() -> None:
+    conflict = json.loads(NOT_ANCHORED[2])
+    conflict["error"]["code"] = "other_conflict"
+    rpc, _ = scripted_chain(SOUND)
+    reply = json_reply(json.dumps(conflict), status=409)
+    with scripted_server(lambda _: reply) as node, Storage(node.url) as storage:
+        with pytest.raises(ConflictError):
+            storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, wait_s=30)
+    assert node.count("GET") == 1
+
+
+@pytest.mark.parametrize(("options", "code"), [([], 5), (["--wait", "30"], 0)])
+def test_robocloud_verify_waits_or_says_to_retry(options: list[str], code: int) -> None:
+    """Exit 4 said "the same request will not succeed" of a record anchored seconds later."""
+    with (
+        scripted_server(anchored_after(2)) as node,
+        scripted_server(json_rpc({})) as rpc,
+    ):
+        urls = ["--storage", node.url, "--rpc", rpc.url]
+        trusted = ["--anchor-log", CONTRACT, "--node", NODE]
+        result = runner.invoke(app, ["verify", "imu-1-3", *urls, *trusted, *options])
+    assert result.exit_code == code, result.output
+    if code:
+        assert "409 not_anchored" in result.stderr
+        assert "--wait 30" in result.stderr
+    else:
+        assert "imu-1-3 verified" in result.stdout
