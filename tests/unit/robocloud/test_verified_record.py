@@ -252,9 +252,12 @@ def test_another_conflict_is_not_waited_for() -> None:
     conflict["error"]["code"] = "other_conflict"
     rpc, _ = scripted_chain(SOUND)
     reply = json_reply(json.dumps(conflict), status=409)
-    with scripted_server(lambda _: reply) as node, Storage(node.url) as storage:
-        with pytest.raises(ConflictError):
-            storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, wait_s=30)
+    with (
+        scripted_server(lambda _: reply) as node,
+        Storage(node.url) as storage,
+        pytest.raises(ConflictError),
+    ):
+        storage.verified_record("imu-1-3", rpc, anchor_log=CONTRACT, wait_s=30)
     assert node.count("GET") == 1
 
 
