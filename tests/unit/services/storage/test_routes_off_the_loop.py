@@ -20,7 +20,7 @@ from robocloud import bounded_json
 from robocloud.signing import VerifiedRequest
 from robocloud.storage import Interval
 from services.common.bodies import INLINE_JSON_BYTES
-from services.common.errors import PayloadTooLarge, ServiceError
+from services.common.errors import ServiceError
 from services.common.slots import Slots
 from services.storage import bags_api, ingest, knowledge_api, records_api
 from services.storage.matcher import Bindings
@@ -229,26 +229,28 @@ def test_intervals_are_rendered_off_the_event_loop(
     assert bindings.json() == {"topics": {}, "msgtypes": {}}
 
 
-def test_an_upload_is_hashed_and_written_off_the_event_loop(
-    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A bag upload (16 GiB at most) was hashed and written chunk by chunk on the event
-    loop: a write the kernel throttled held every route. Its one batch is held here."""
-    imu = node.approve("sensor_msgs/msg/Imu")
-    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
-    body = bag(tmp_path, "b.bag", 200, "ros1").read_bytes()
-    digest = hashlib.sha256(body).hexdigest()
-    gate = Gate()
-    monkeypatch.setattr(bags_api, "_spooled", gate.wrap(bags_api._spooled))
+async def refused(_: Any, error: Exception) -> JSONResponse:
+    """The service's error handler, as much of it as a route's router served alone needs."""
+    assert isinstance(error, ServiceError)
+    return JSONResponse({"code": error.code, **error.details}, status_code=error.status)
+
+
+def upload_while_held(
+    node: Node, body: bytes, gate: Gate, settings: StorageSettings
+) -> tuple[httpx.Response, httpx.Response, bool]:
+    """``body`` sent to ``POST /v1/ingest`` of ``node`` until ``gate`` holds it, then
+    ``GET /v1/bindings``: the upload's answer, the bindings' and whether they came while
+    the gate held."""
     app = FastAPI()
     app.include_router(bags_api.router)
-    app.state.settings = StorageSettings()
+    app.add_exception_handler(ServiceError, refused)
+    app.state.settings = settings
     app.state.ingest_jobs = node.jobs
     app.state.bindings = node.bindings
-    robot = authorship()
+    digest = hashlib.sha256(body).hexdigest()
+    verified = VerifiedRequest(authorship().signer, 1, "n" * 16, digest, "storage@local")
 
     async def requests() -> tuple[httpx.Response, dict[str, httpx.Response], dict[str, bool]]:
-        verified = VerifiedRequest(robot.signer, 1, "n" * 16, digest, "storage@local")
         async with in_process(app, verified) as client:
             held = client.post(
                 "/v1/ingest", content=body, headers={"Content-Type": "application/octet-stream"}
@@ -257,20 +259,29 @@ def test_an_upload_is_hashed_and_written_off_the_event_loop(
                 gate, held, {"bindings": lambda: client.get("/v1/bindings")}
             )
 
-    sent, answers, answered_while_writing = asyncio.run(requests())
+    sent, answers, answered_while = asyncio.run(requests())
+    return sent, answers["bindings"], answered_while["bindings"]
 
-    assert answered_while_writing == {"bindings": True}
-    assert answers["bindings"].json() == node.bindings.to_json()
+
+def test_an_upload_is_hashed_and_written_off_the_event_loop(
+    node: Node, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A bag upload (16 GiB at most) was hashed and written chunk by chunk on the event
+    loop: a write the kernel throttled held every route. Its one batch is held here."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    body = bag(tmp_path, "b.bag", 200, "ros1").read_bytes()
+    gate = Gate()
+    monkeypatch.setattr(bags_api, "_spooled", gate.wrap(bags_api._spooled))
+
+    sent, bindings, answered_while_writing = upload_while_held(node, body, gate, StorageSettings())
+
+    assert answered_while_writing
+    assert bindings.json() == node.bindings.to_json()
     assert sent.status_code == 202, sent.text
-    assert sent.json()["bag"] == f"upload:{digest}"
+    assert sent.json()["bag"] == f"upload:{hashlib.sha256(body).hexdigest()}"
     finished = node.jobs.wait(sent.json()["id"], 120)
     assert (finished.status, finished.records_committed) == ("succeeded", 160), finished.error
-
-
-async def refused(_: Any, error: Exception) -> JSONResponse:
-    """The service's error handler, as much of it as a route's router served alone needs."""
-    assert isinstance(error, ServiceError)
-    return JSONResponse({"code": error.code, **error.details}, status_code=error.status)
 
 
 def test_a_refused_upload_is_removed_off_the_event_loop(
@@ -280,7 +291,6 @@ def test_a_refused_upload_is_removed_off_the_event_loop(
     failed) was unlinked on the event loop: up to 16 GiB, or a directory of many files,
     holding every route. Its removal is held here; the spool is gone once it ends."""
     body = bag(tmp_path, "b.bag", 200, "ros1").read_bytes()
-    digest = hashlib.sha256(body).hexdigest()
     gate = Gate()
     remove = shutil.rmtree
     incoming = node.root / "jobs" / ingest.INCOMING
@@ -291,30 +301,16 @@ def test_a_refused_upload_is_removed_off_the_event_loop(
         remove(path, *args, **kwargs)
 
     monkeypatch.setattr(ingest.shutil, "rmtree", held_remove)
-    app = FastAPI()
-    app.include_router(bags_api.router)
-    app.state.settings = StorageSettings(storage_max_bag_bytes=len(body) // 2)
-    app.add_exception_handler(PayloadTooLarge, refused)
-    app.state.ingest_jobs = node.jobs
-    app.state.bindings = node.bindings
-    robot = authorship()
+    limit = len(body) // 2
 
-    async def requests() -> tuple[httpx.Response, dict[str, httpx.Response], dict[str, bool]]:
-        verified = VerifiedRequest(robot.signer, 1, "n" * 16, digest, "storage@local")
-        async with in_process(app, verified) as client:
-            held = client.post(
-                "/v1/ingest", content=body, headers={"Content-Type": "application/octet-stream"}
-            )
-            return await answered_while_held(
-                gate, held, {"bindings": lambda: client.get("/v1/bindings")}
-            )
+    sent, bindings, answered_while_removing = upload_while_held(
+        node, body, gate, StorageSettings(storage_max_bag_bytes=limit)
+    )
 
-    sent, answers, answered_while_removing = asyncio.run(requests())
-
-    assert answered_while_removing == {"bindings": True}
-    assert answers["bindings"].json() == node.bindings.to_json()
+    assert answered_while_removing
+    assert bindings.json() == node.bindings.to_json()
     assert sent.status_code == 413, sent.text
-    assert sent.json() == {"code": "payload_too_large", "limit": len(body) // 2}
+    assert sent.json() == {"code": "payload_too_large", "limit": limit}
     assert list(incoming.iterdir()) == []
     assert [path.name for path in incoming.parent.iterdir() if path.is_dir()] == ["incoming"]
 
