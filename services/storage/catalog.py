@@ -181,6 +181,11 @@ def fields_key(template: Template) -> bytes:
     return hashlib.sha256(fields).digest()
 
 
+def _index_approved(by_fields: dict[bytes, set[str]], version: TemplateVersion) -> None:
+    if version.status == "approved":
+        by_fields.setdefault(fields_key(version.template), set()).add(version.id)
+
+
 class Catalog:
     """Template versions by id, persisted in ``root/catalog.log``."""
 
@@ -202,9 +207,10 @@ class Catalog:
         """Each version's journal line, in bytes; their sum is what ``max_bytes`` bounds."""
         self._bytes = 0
         self._latest: dict[str, int] = {}
-        self._approved_by_fields: dict[bytes, set[str]] = {}
+        self._approved_by_fields: dict[bytes, set[str]] | None = None
         """Approved versions by :func:`fields_key`, for an unbound topic's draft to find
-        one it fits among up to ``max_versions``."""
+        one it fits among up to ``max_versions``; built at the first such search (17 µs a
+        version, which a start need not spend), then kept up to date."""
         self._journal = AppendLog(root / "catalog.log")
         lines = self._journal.read_lines()
         for line in lines:
@@ -218,11 +224,12 @@ class Catalog:
         self._bytes += size - self._sizes.get(version.id, 0)
         self._sizes[version.id] = size
         earlier = self._versions.get(version.id)
-        if earlier is not None and earlier.status == "approved":
-            self._approved_by_fields[fields_key(earlier.template)].discard(version.id)
-        if version.status == "approved":
-            self._approved_by_fields.setdefault(fields_key(version.template), set()).add(version.id)
         self._versions[version.id] = version
+        by_fields = self._approved_by_fields
+        if by_fields is not None:
+            if earlier is not None and earlier.status == "approved":
+                by_fields[fields_key(earlier.template)].discard(version.id)
+            _index_approved(by_fields, version)
         name = version.template.name
         self._latest[name] = max(self._latest.get(name, 0), version.template.version)
 
@@ -338,6 +345,10 @@ class Catalog:
         whose draft has them is bound to one rather than a template made again (its name
         taken, the draft's ``templates create`` is a 409)."""
         with self._lock:
+            if self._approved_by_fields is None:
+                self._approved_by_fields = {}
+                for version in self._versions.values():
+                    _index_approved(self._approved_by_fields, version)
             fitting = list(self._approved_by_fields.get(fields_key(template), ()))
         return sorted(fitting, key=parse_template_id)
 

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from robocloud.templates import TemplateIdInvalid, TemplateInvalid
+from robocloud.templates import TemplateIdInvalid, TemplateInvalid, parse_template
 from services.common import durable
 from services.storage.catalog import (
     Catalog,
@@ -192,3 +192,30 @@ def test_a_page_stops_at_its_byte_budget_but_holds_at_least_one_version(tmp_path
     assert ([v.id for v in versions], more) == (["a@1", "b@1", "c@1"], False)
     versions, more = catalog.page(limit=2, max_bytes=10 * size)
     assert ([v.id for v in versions], more) == (["a@1", "b@1"], True)
+
+
+def test_approved_like_finds_the_approved_versions_of_the_same_fields(tmp_path: Path) -> None:
+    """Those approved before its first search (the index is built then) and after it, in
+    version order; never a draft, nor a template of other fields."""
+    catalog = Catalog(tmp_path)
+    fields = {"x": "float", "pose": {"container": {"y": "int"}}}
+
+    def approved(version: int) -> None:
+        if version == 1:
+            catalog.create({"name": "b", "fields": fields}, author=AUTHOR)
+        else:
+            catalog.new_version("b", {"fields": fields}, author=AUTHOR)
+        catalog.submit(f"b@{version}", author=AUTHOR)
+        catalog.review(f"b@{version}", "approve", reviewer=REVIEWER)
+
+    approved(1)
+    catalog.create({"name": "a", "fields": {"x": "float"}}, author=AUTHOR)
+    probe = parse_template({"name": "probe", "version": 1, "fields": fields})
+    assert catalog.approved_like(probe) == ["b@1"]
+    for version in range(2, 11):
+        approved(version)
+    catalog.new_version("b", {"fields": fields}, author=AUTHOR)
+    assert catalog.approved_like(probe) == [f"b@{version}" for version in range(1, 11)]
+    other = parse_template({"name": "probe", "version": 1, "fields": {"x": "int"}})
+    assert catalog.approved_like(other) == []
+    catalog.close()
