@@ -238,17 +238,25 @@ def _name_drafts_apart(reports: list[TopicReport]) -> None:
     """Give each distinct draft of a job its own name: a draft is named after its type's
     last part, so ``sensor_msgs/msg/Imu`` and ``my_msgs/msg/Imu`` both drafted ``imu``, and
     the second was lost to ``--drafts`` (one file a name). Topics of one type keep sharing
-    their one draft."""
-    named: dict[str, dict[str, Any]] = {}
+    their one draft. Linear in the drafts, however many share a name."""
+    taken: set[str] = set()
+    named: dict[str, str] = {}
+    """Each distinct draft (its JSON) and the name it got."""
+    suffixes: dict[str, int] = {}
     for report in reports:
         if report.draft is None:
             continue
         base = report.draft["name"]
-        name, suffix = base, 1
-        while name in named and named[name] != {**report.draft, "name": name}:
-            suffix += 1
-            name = f"{base[: 62 - len(str(suffix))]}_{suffix}"
-        report.draft = named.setdefault(name, {**report.draft, "name": name})
+        content = json.dumps(report.draft, sort_keys=True)
+        name = named.get(content)
+        if name is None:
+            name = base
+            while name in taken:
+                suffixes[base] = suffixes.get(base, 1) + 1
+                name = f"{base[: 62 - len(str(suffixes[base]))]}_{suffixes[base]}"
+            taken.add(name)
+            named[content] = name
+        report.draft = {**report.draft, "name": name}
 
 
 def _draft(connection: BagConnection) -> dict[str, Any] | None:
