@@ -43,7 +43,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
-from robocloud.templates import parse_template
+from robocloud.templates import TemplateInvalid, parse_template
 from services.common.disk import DiskReserve
 from services.common.durable import atomic_write, fsync_dir
 from services.storage.bags import Bag, BagConnection
@@ -751,8 +751,7 @@ class IngestJobs:
             if template_id is None:
                 report.skipped = "no template is bound to this topic or message type"
                 report.draft = _draft(connection)
-                if report.draft is not None:
-                    report.fits = self.store.catalog.approved_like(parse_template(report.draft))
+                report.fits = self._approved_like(report.draft)
                 continue
             try:
                 template = self.store.catalog.approved(template_id)
@@ -768,6 +767,17 @@ class IngestJobs:
             plans[connection.topic, connection.msgtype] = compile_plan(connection, template)
         _name_drafts_apart(reports)
         return reports, plans
+
+    def _approved_like(self, draft: dict[str, Any] | None) -> list[str]:
+        """The approved templates ``draft`` fits. A draft is meant to be a valid template
+        (a type's name of 5,000 characters once drafted a description past the bound); one
+        that is not anyway costs its topic this hint, never the job."""
+        if draft is None:
+            return []
+        try:
+            return self.store.catalog.approved_like(parse_template(draft))
+        except TemplateInvalid:
+            return []
 
     def _stage(self, job: Job) -> None:
         """Spool the bag's records; the job then commits them, none committed yet."""

@@ -35,6 +35,7 @@ from rosbags.typesys.store import Typestore
 
 from robocloud.jcs import MAX_SAFE_INTEGER
 from robocloud.templates import (
+    MAX_DESCRIPTION,
     MAX_FIELDS,
     MAX_NESTING,
     TOPIC,
@@ -159,8 +160,16 @@ def draft_template(store: Typestore, msgtype: str, *, name: str | None = None) -
         "name": name or draft_name(msgtype),
         "version": 1,
         "fields": fields,
-        "description": f"Drafted from {msgtype}.",
+        "description": f"Drafted from {_shown_type(msgtype)}.",
     }
+
+
+def _shown_type(msgtype: str) -> str:
+    """``msgtype`` as a draft's description names it: a bag's type names are unbounded, and a
+    description of more than ``MAX_DESCRIPTION`` characters made a draft no template could be
+    created from."""
+    limit = MAX_DESCRIPTION - 64
+    return msgtype if len(msgtype) <= limit else f"{msgtype[:limit]}..."
 
 
 def _draft_type(

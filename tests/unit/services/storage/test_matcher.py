@@ -13,7 +13,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from robocloud.templates import MAX_FIELDS, Template, parse_template, validate_data
+from robocloud.templates import MAX_DESCRIPTION, MAX_FIELDS, Template, parse_template, validate_data
 from robocloud.unixfs import import_bytes
 from services.storage.bags import Bag
 from services.storage.matcher import (
@@ -134,6 +134,19 @@ def test_a_draft_walks_no_more_fields_than_a_template_holds() -> None:
     assert len(parse_template(widest).fields) == MAX_FIELDS
     nested = draft_template(fanout_store(4, 3), "fan_msgs/msg/Level0")  # 4+16+64+256 fields
     assert parse_template(nested).field_at("f3.f3.f3.x3") is not None
+
+
+def test_a_type_of_a_long_name_drafts_a_valid_template() -> None:
+    """The description named the type whole: a bag's type of 5,000 characters drafted a
+    description past ``MAX_DESCRIPTION``, which no ``templates create`` accepted."""
+    store = get_typestore(Stores.ROS1_NOETIC)
+    msgtype = "long_msgs/msg/" + "L" * 5000
+    store.register(get_types_from_msg("float64 x", msgtype))
+    template = parse_template(draft_template(store, msgtype))
+    assert template.name == "l" * 63
+    assert template.description.startswith("Drafted from long_msgs/msg/LLL")
+    assert template.description.endswith("LLL....")
+    assert len(template.description) <= MAX_DESCRIPTION
 
 
 def test_every_type_in_the_real_recordings_drafts_a_valid_template() -> None:
