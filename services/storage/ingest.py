@@ -49,7 +49,13 @@ from services.common.durable import atomic_write, fsync_dir
 from services.storage.bags import Bag, BagConnection
 from services.storage.catalog import CatalogError
 from services.storage.ingested import IngestedBags, IngestedRow, IngestedTopic
-from services.storage.matcher import Bindings, BlobSink, DraftError, draft_template
+from services.storage.matcher import (
+    Bindings,
+    BlobSink,
+    DraftError,
+    draft_template,
+    recordable_topic,
+)
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore, record_id
 from services.storage.staging import (
@@ -232,6 +238,13 @@ class Publish(Protocol):
     def __call__(
         self, job: Job, bag: Path, save_advertise_tx: Callable[[dict[str, Any]], None]
     ) -> dict[str, Any]: ...
+
+
+UNRECORDABLE_TOPIC = (
+    "its name is not one a record holds: / and at most 256 of A-Z a-z 0-9 _ / ~ . -"
+)
+"""Why a topic is skipped whose name no record may hold (a space, a letter outside ASCII, a
+thousand characters): its records failed the whole job, every other topic's with them."""
 
 
 def _name_drafts_apart(reports: list[TopicReport]) -> None:
@@ -747,6 +760,9 @@ class IngestJobs:
         for connection in bag.connections:
             report = TopicReport(connection.topic, connection.msgtype, connection.count)
             reports.append(report)
+            if not recordable_topic(connection.topic):
+                report.skipped = UNRECORDABLE_TOPIC
+                continue
             template_id = self.bindings.resolve(connection.topic, connection.msgtype)
             if template_id is None:
                 report.skipped = "no template is bound to this topic or message type"

@@ -515,7 +515,7 @@ def check_binding(*, template_id: str, topic: str | None, msgtype: str | None) -
         raise BindingRefused(
             "template", f"{template_id[:300]!r} is not a template id name@version"
         ) from None
-    if topic is not None and not TOPIC.fullmatch(record_topic(topic)):
+    if topic is not None and not recordable_topic(topic):
         raise BindingRefused("topic", f"{topic[:300]!r} is not a ROS topic name")
     if msgtype is not None and not MSGTYPE.fullmatch(msgtype):
         raise BindingRefused("msgtype", f"{msgtype[:300]!r} is not a ROS message type")
@@ -524,3 +524,8 @@ def check_binding(*, template_id: str, topic: str | None, msgtype: str | None) -
 def record_topic(topic: str) -> str:
     """The topic as records hold it: ROS 1 bags may name topics without the leading ``/``."""
     return topic if topic.startswith("/") else f"/{topic}"
+
+
+def recordable_topic(topic: str) -> bool:
+    """Whether a record can hold ``topic``: a ROS name of at most 256 characters."""
+    return TOPIC.fullmatch(record_topic(topic)) is not None

@@ -181,6 +181,29 @@ def test_an_unbound_topic_names_the_approved_templates_its_draft_fits(
         reopened.close()
 
 
+def test_a_topic_whose_name_no_record_holds_is_skipped_alone(node: Node, tmp_path: Path) -> None:
+    """A topic named with a space, a letter outside ASCII or past 256 characters, bound by
+    its type, failed the whole job (record_invalid "at t=0"), every other topic with it."""
+    imu = node.approve("sensor_msgs/msg/Imu")
+    node.bindings.bind(template_id=imu, msgtype="sensor_msgs/msg/Imu")
+    store = get_typestore(Stores.ROS1_NOETIC)
+    topics = ["/ok", "/with space", "/\u00fcn\u00ef", "/" + "a" * 300]
+    path = tmp_path / "names.bag"
+    with Rosbag1Writer(path) as writer:
+        for index, topic in enumerate(topics):
+            connection = writer.add_connection(topic, "sensor_msgs/msg/Imu", typestore=store)
+            raw = store.serialize_ros1(imu_message(store, index, START_NS), "sensor_msgs/msg/Imu")
+            writer.write(connection, START_NS + index, raw)
+    job = node.jobs.wait(node.jobs.submit(path, "upload:names", authorship()).id, 60)
+    assert job.status == "succeeded", job.error
+    assert {report.topic: report.skipped or report.template for report in job.topics} == {
+        "/ok": imu,
+        **{topic: ingest.UNRECORDABLE_TOPIC for topic in topics[1:]},
+    }
+    assert job.records_committed == 1
+    assert node.store.get("imu-1-0").record["topic"] == "/ok"
+
+
 def test_distinct_drafts_of_one_name_are_named_apart(node: Node, tmp_path: Path) -> None:
     """A draft is named after its type's last part: ``sensor_msgs/msg/Imu`` and
     ``my_msgs/msg/Imu`` both drafted ``imu``, and ``--drafts`` (one file a name) kept one.
