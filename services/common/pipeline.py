@@ -1,8 +1,8 @@
 """A request's blocking work handed to worker threads. A body goes batch by batch, while the
 event loop receives the next batch: blocking work (hashing, writing, importing) never runs on
-the loop, and an upload is as fast as when it did. Storage's bag upload of 256 MiB, over loopback on
-this 2-core machine: 214-275 MiB/s pipelined, 173-211 MiB/s with the loop waiting for each
-batch's thread, 211-258 MiB/s all on the loop."""
+the loop, and an upload is as fast as when it did. Storage's bag upload of 256 MiB, over
+loopback on this 2-core machine: 214-275 MiB/s pipelined, 173-211 MiB/s with the loop
+waiting for each batch's thread, 211-258 MiB/s all on the loop."""
 
 from __future__ import annotations
 
