@@ -63,12 +63,20 @@ def ingest(
         )
 
 
-def test_drafts_are_written_whole_under_their_names(keystore: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("drafted", "files"),
+    [(("imu", "gps"), ["gps.json", "imu.json"]), (("tf", "tf", "gps"), ["gps.json", "tf.json"])],
+)
+def test_drafts_are_written_whole_under_their_names_once_each(
+    keystore: Path, tmp_path: Path, drafted: tuple[str, ...], files: list[str]
+) -> None:
+    """``/tf`` and ``/tf_static`` share their type's draft: the second write found the first's
+    file and the ingest failed, "these files exist and were kept", in a new directory."""
     drafts = tmp_path / "drafts"
-    result = ingest(keystore, tmp_path, "--drafts", str(drafts))
+    result = ingest(keystore, tmp_path, "--drafts", str(drafts), drafted=drafted)
     assert result.exit_code == 0, result.output
-    assert sorted(path.name for path in drafts.iterdir()) == ["gps.json", "imu.json"]
-    assert json.loads((drafts / "imu.json").read_text()) == draft("imu")
+    assert sorted(path.name for path in drafts.iterdir()) == files
+    assert json.loads((drafts / files[1]).read_text()) == draft(drafted[0])
 
 
 def test_an_unbound_topic_names_the_approved_template_it_fits(
@@ -79,16 +87,6 @@ def test_an_unbound_topic_names_the_approved_template_it_fits(
     lines = result.stdout.splitlines()
     assert lines[1] == "  /imu_0 (m): unbound; imu@3 fits it: robocloud bind imu@3 --topic /imu_0"
     assert lines[2] == "  /gps_1 (m): unbound"
-
-
-def test_a_draft_two_topics_share_is_written_once(keystore: Path, tmp_path: Path) -> None:
-    """``/tf`` and ``/tf_static`` share their type's draft: the second write found the first's
-    file and the ingest failed, "these files exist and were kept", in a new directory."""
-    drafts = tmp_path / "drafts"
-    result = ingest(keystore, tmp_path, "--drafts", str(drafts), drafted=("tf", "tf", "gps"))
-    assert result.exit_code == 0, result.output
-    assert sorted(path.name for path in drafts.iterdir()) == ["gps.json", "tf.json"]
-    assert json.loads((drafts / "tf.json").read_text()) == draft("tf")
 
 
 def test_a_draft_file_holding_the_draft_already_is_no_edit_kept(
