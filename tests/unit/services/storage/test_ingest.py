@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Rosbag1Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -41,6 +42,7 @@ from tests.bagfactory import (
 )
 from tests.bagfactory import imu as imu_message
 from tests.blobs import MemoryBlobs
+from tests.procs import SHARED_DATA
 from tests.waiting import wait_for
 
 
@@ -202,6 +204,39 @@ def test_a_topic_whose_name_no_record_holds_is_skipped_alone(node: Node, tmp_pat
     }
     assert job.records_committed == 1
     assert node.store.get("imu-1-0").record["topic"] == "/ok"
+
+
+def test_a_tf_bag_s_frame_ids_are_found_by_keyword(node: Node, tmp_path: Path) -> None:
+    """A TF message's strings are all inside its array of transforms, and keyword search
+    found none of them. Its template's spool now has a keyword line a record, and the
+    commit hands those texts to the index (evo's TF recording of shared/data)."""
+    recording = SHARED_DATA / "rosbag1" / "evo_tf_example.bag"
+    holding: dict[str, int] = {}
+    with AnyReader([recording]) as reader:
+        for connection, _, raw in reader.messages():
+            message = reader.deserialize(raw, connection.msgtype)
+            for frame in {t.header.frame_id for t in message.transforms} | {
+                t.child_frame_id for t in message.transforms
+            }:
+                holding[frame] = holding.get(frame, 0) + 1
+    with Bag.open(recording) as bag:
+        [typestore] = {connection.typestore for connection in bag.connections}
+    tfm = "tf2_msgs/msg/TFMessage"
+    version = node.catalog.create(draft_template(typestore, tfm), author=node.author)
+    node.catalog.submit(version.id, author=node.author)
+    node.catalog.review(version.id, "approve", reviewer=node.author)
+    node.bindings.bind(template_id=version.id, msgtype=tfm)
+    bag_copy = Path(shutil.copy(recording, tmp_path / "tf.bag"))
+    job = node.jobs.wait(node.jobs.submit(bag_copy, "upload:tf", authorship()).id, 60)
+    assert (job.status, job.records_committed) == ("succeeded", 518), job.error
+    node.store.index_keywords()
+    assert {"base_link", "odom"} <= holding.keys()
+    for frame, count in holding.items():
+        found = node.store.keywords.search([frame.lower()], version.id)[version.id]
+        assert len(found) == count, frame
+        record = node.store.get(f"tf_message-1-{min(found)}").record["data"]
+        frames = {t["child_frame_id"] for t in record["transforms"]}
+        assert frame in frames | {t["header"]["frame_id"] for t in record["transforms"]}, frame
 
 
 def test_distinct_drafts_of_one_name_are_named_apart(node: Node, tmp_path: Path) -> None:
