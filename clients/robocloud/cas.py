@@ -37,7 +37,7 @@ from robocloud.directory import (
     resolve,
 )
 from robocloud.errors import BadRequestError, FormatError, InvalidAnswerError, RobocloudError
-from robocloud.partial import written_whole
+from robocloud.partial import free_space_beside, written_whole
 from robocloud.unixfs import (
     DEFAULT_MAX_LINKS,
     DIRECTORY,
@@ -419,7 +419,7 @@ class Cas(ServiceClient):
             raise FileExistsError(f"{path} exists")
         url = f"{self.base_url}/ipfs/{root}"
         if max_size is None:
-            max_size = shutil.disk_usage(path.absolute().parent).free
+            max_size = free_space_beside(path)
         with self.translate_errors("GET", url):
             self._check_declared_size(root, max_size)
         with written_whole(path, overwrite=overwrite) as out, self.translate_errors("GET", url):
@@ -450,7 +450,7 @@ class Cas(ServiceClient):
         if path.exists() or path.is_symlink():
             raise FileExistsError(f"{path} exists")
         if max_size is None:
-            max_size = shutil.disk_usage(path.absolute().parent).free
+            max_size = free_space_beside(path)
         partial = path.with_name(f".{path.name}.{secrets.token_hex(6)}.partial")
         partial.mkdir()
         try:

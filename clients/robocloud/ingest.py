@@ -7,7 +7,6 @@ UnixFS directory, and the storage node fetches it by CID, verifying every block.
 
 from __future__ import annotations
 
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,7 +17,7 @@ from robocloud.cas import Cas
 from robocloud.cid import CID
 from robocloud.client import FileBody, ServiceClient
 from robocloud.errors import InvalidAnswerError, RobocloudError
-from robocloud.partial import written_whole
+from robocloud.partial import free_space_beside, written_whole
 
 FINISHED = ("succeeded", "failed")
 WAIT_TIMEOUT_S = 3600.0
@@ -158,7 +157,7 @@ class Ingest(ServiceClient):
         declares no size and a node may stream one without end, so at most ``max_size``
         bytes are written (``ExportTooLargeError`` past it), by default the free space in
         ``out``'s directory when the export starts."""
-        limit = shutil.disk_usage(out.absolute().parent).free if max_size is None else max_size
+        limit = free_space_beside(out) if max_size is None else max_size
         size = 0
         with (
             written_whole(out, overwrite=overwrite) as handle,

@@ -9,12 +9,19 @@ from __future__ import annotations
 
 import os
 import secrets
+import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO
 
 PARTIAL_ATTEMPTS = 16
+
+
+def free_space_beside(path: Path) -> int:
+    """Bytes free in the directory ``path`` is written to: what a download writes at most
+    unless told otherwise, since a stranger's DAG or export may expand without end."""
+    return shutil.disk_usage(path.absolute().parent).free
 
 
 @contextmanager

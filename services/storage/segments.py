@@ -95,6 +95,9 @@ def flattener(template: Template) -> Callable[[dict[str, Any], int], Doc]:
     return flatten
 
 
+STRING = Scalar("string")
+
+
 def keyword_text(template: Template) -> Callable[[Doc], str] | None:
     """What the keyword index reads of a document: its strings, space-separated (None for a
     template without one). Strings inside arrays count too: a TF message's frame ids, a
@@ -120,9 +123,6 @@ def keyword_text(template: Template) -> Callable[[Doc], str] | None:
         return " ".join(words)
 
     return text
-
-
-STRING = Scalar("string")
 
 
 def _strings_of(kind: FieldType) -> Callable[[Any], Iterator[str]] | None:

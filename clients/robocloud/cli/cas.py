@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import base64
 import dataclasses
-import shutil
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -27,6 +26,7 @@ from robocloud.cli.context import (
 )
 from robocloud.cli.exits import ExitCode
 from robocloud.cli.output import console, show, show_json, size_text, untrusted
+from robocloud.partial import free_space_beside
 from robocloud.unixfs import ImportParams, UnixfsError
 
 CasOption = typer.Option(
@@ -135,8 +135,7 @@ def get(
     if (output.exists() or output.is_symlink()) and not force:
         fail(f"{output} exists", hint="pass --force to replace it")
     if max_size is None:
-        directory = output.absolute().parent
-        limit, why = shutil.disk_usage(directory).free, f"the free space in {directory}"
+        limit, why = free_space_beside(output), f"the free space in {output.absolute().parent}"
     else:
         limit, why = max_size, "--max-size"
     with Cas(cas) as client, _progress("get", None) as advance:

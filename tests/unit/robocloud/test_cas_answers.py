@@ -114,7 +114,7 @@ def test_get_to_file_writes_no_more_than_the_free_space_by_default(
     disk was full."""
     root, node, car = expanding_file(1 << 16, 64)
     free = shutil.disk_usage(tmp_path)._replace(free=1 << 20)
-    monkeypatch.setattr("robocloud.cas.shutil.disk_usage", lambda _: free)
+    monkeypatch.setattr("robocloud.partial.shutil.disk_usage", lambda _: free)
 
     def script(exchange: Exchange) -> Reply:
         if "format=raw" in exchange.path:

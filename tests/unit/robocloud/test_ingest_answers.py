@@ -139,7 +139,7 @@ def test_an_export_that_never_ends_is_cut_at_its_bound(
 ) -> None:
     """An export declares no size: a node streaming one without end filled the disk."""
     free = shutil.disk_usage(tmp_path)._replace(free=1 << 20)
-    monkeypatch.setattr("robocloud.ingest.shutil.disk_usage", lambda _: free)
+    monkeypatch.setattr("robocloud.partial.shutil.disk_usage", lambda _: free)
     out = tmp_path / "imu.jsonl"
     out.write_bytes(b"the previous export\n")
     with (
