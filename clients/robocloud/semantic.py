@@ -63,7 +63,8 @@ MAX_DESCRIPTION_TRIPLES: Final = 10_000
 MAX_DESCRIBED_THINGS: Final = 100
 """Typed subjects in one description. SHACL validation costs about 5 ms per described thing
 (its SPARQL constraints run once each), so this bounds what validating a stranger's
-description can cost; a dataset with 99 templates still fits."""
+description can cost; a dataset, its ingestion and the record counts of 98 templates still
+fit."""
 MAX_PROPERTY_VALUES: Final = 256
 """Values of one property of one node: ``sh:lessThanOrEquals`` compares every pair."""
 
@@ -92,6 +93,7 @@ ATTRIBUTES: Final[dict[str, tuple[URIRef, type]]] = {
 """Attributes a file carries and a port requires, by their Python name."""
 
 NAME = re.compile(r"[a-z][a-z0-9_]{0,62}")
+JOB_ID = re.compile(r"[0-9a-z]{1,64}")
 MEDIA_TYPE = re.compile(r"[a-z]+/[A-Za-z0-9][A-Za-z0-9!#$&_.+-]*")
 """RFC 6838's restricted-name characters but ``^``, which no IRI may hold (N-Triples' and
 SPARQL's IRIREF refuse it): a type with one could never be a description's, and its IRI broke
@@ -506,6 +508,14 @@ def computation_iri(task: CID | str) -> str:
     return f"{content_iri(task)}#computation"
 
 
+def ingestion_iri(dataset: CID | str, job: str) -> str:
+    """``<dataset>#ingestion-<job id>``: one per ingest job, so that each job's counts, epoch
+    and storage node stay its own where two jobs or two nodes ingested one bag."""
+    if not isinstance(job, str) or not JOB_ID.fullmatch(job):
+        raise SemanticError(f"job id {str(job)[:100]!r} does not match [0-9a-z]{{1,64}}")
+    return f"{content_iri(dataset)}#ingestion-{job}"
+
+
 def guess_media_type(name: str) -> str | None:
     """The media type a file's name says, a recording's first (:data:`RECORDING_MEDIA_TYPES`),
     else Python's table, which also reads the host's ``mime.types``; None when neither knows."""
@@ -691,30 +701,46 @@ def file_description(
 
 @dataclass(frozen=True)
 class TemplateCount:
-    """How many records of one template version a dataset holds."""
+    """How many records of one template version an ingestion made."""
 
     template_id: str
     template_cid: CID | str
     count: int
 
 
+@dataclass(frozen=True)
+class Ingestion:
+    """One ingest job's records of a dataset, on the storage node that made and anchors them."""
+
+    job: str
+    """The job's id on its node; with the dataset's CID it names the ingestion."""
+    storage_node: str
+    start: datetime
+    """The time of the first record, as ``end`` is of the last, over all its templates."""
+    end: datetime
+    record_counts: Sequence[TemplateCount]
+    epoch: int | None = None
+    """The node's first epoch holding every record; None while none is cut (or none will be:
+    a node that does not anchor)."""
+    tmt_root: str | None = None
+
+
 def dataset_description(
     cid: CID | str,
     *,
     producer: str,
-    start: datetime,
-    end: datetime,
-    record_counts: Sequence[TemplateCount],
+    ingestion: Ingestion,
     sensors: Sequence[str] = (),
     topics: Sequence[str] = (),
     files: Sequence[CID | str] = (),
-    epoch: int | None = None,
-    tmt_root: str | None = None,
-    storage_node: str | None = None,
     title: str | None = None,
 ) -> Description:
-    """An ingested bag (``cid``): its robot, sensors, templates, time range and record counts,
-    and the epoch and TMT root that prove its records (what ingestion advertises)."""
+    """A bag (``cid``): its robot, sensors, topics and templates, and one ingestion of it.
+
+    The ingestion's facts (counts, epoch, TMT root, storage node, time range) are on its own
+    node, not on the dataset: a bag ingested by two jobs, or by two nodes, has two
+    descriptions, and in the knowledge base's one graph facts on the dataset would merge into
+    two counts and two epochs no query could pair."""
     iri = content_iri(cid)
     build = _Builder()
     build.add(iri, RDF.type, RC.Dataset)
@@ -724,30 +750,40 @@ def dataset_description(
     build.iris(iri, RC.sensor, sensors)
     for topic in topics:
         build.add(iri, RC.topic, topic)
-    build.time_range(iri, start, end)
+    for entry in ingestion.record_counts:
+        build.add(iri, RC.template, _content(entry.template_cid))
+    for file in files:
+        build.add(iri, DCAT.distribution, _content(file))
+    node = ingestion_iri(cid, ingestion.job)
+    build.add(iri, RC.ingestion, URIRef(node))
+    _ingestion(build, node, ingestion)
+    return build.done()
+
+
+def _ingestion(build: _Builder, node: str, ingestion: Ingestion) -> None:
+    build.add(node, RDF.type, RC.Ingestion)
+    build.add(node, DCTERMS.identifier, ingestion.job)
+    build.add(node, RC.storageNode, URIRef(_robot(ingestion.storage_node)))
+    build.time_range(node, ingestion.start, ingestion.end)
     total = 0
-    for entry in record_counts:
+    for entry in ingestion.record_counts:
         name, _, version = entry.template_id.partition("@")
         if not version.isdigit() or version.startswith("0"):
             raise SemanticError(f"template id {entry.template_id!r} is not name@version")
-        node = f"{iri}#records-{_name(name, 'template name')}-{version}"
-        template = _content(entry.template_cid)
-        build.add(iri, RC.template, template)
-        build.add(iri, RC.records, URIRef(node))
-        build.add(node, RDF.type, RC.RecordCount)
-        build.add(node, RC.template, template)
-        build.add(node, DCTERMS.identifier, entry.template_id)
-        build.add(node, RC.recordCount, _count(entry.count, "record count"))
+        counted = f"{node}-records-{_name(name, 'template name')}-{version}"
+        build.add(node, RC.records, URIRef(counted))
+        build.add(counted, RDF.type, RC.RecordCount)
+        build.add(counted, RC.template, _content(entry.template_cid))
+        build.add(counted, DCTERMS.identifier, entry.template_id)
+        build.add(counted, RC.recordCount, _count(entry.count, "record count"))
         total += entry.count
-    build.add(iri, RC.recordCount, Literal(total))
-    build.add(iri, RC.epoch, _count(epoch, "epoch") if epoch is not None else None)
+    build.add(node, RC.recordCount, Literal(total))
+    epoch = ingestion.epoch
+    build.add(node, RC.epoch, _count(epoch, "epoch") if epoch is not None else None)
+    tmt_root = ingestion.tmt_root
     if tmt_root is not None and not re.fullmatch(r"[0-9a-f]{64}", tmt_root):
         raise SemanticError(f"TMT root {tmt_root[:100]!r} is not 64 lowercase hex digits")
-    build.add(iri, RC.tmtRoot, tmt_root)
-    build.add(iri, RC.storageNode, URIRef(_robot(storage_node)) if storage_node else None)
-    for file in files:
-        build.add(iri, DCAT.distribution, _content(file))
-    return build.done()
+    build.add(node, RC.tmtRoot, tmt_root)
 
 
 def template_description(

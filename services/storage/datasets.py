@@ -22,7 +22,7 @@ from robocloud.cas import Cas
 from robocloud.cid import CID, parse_cid
 from robocloud.ledger import Advertised, Ledger, SignedTransaction
 from robocloud.proofs import RecordId
-from robocloud.semantic import TemplateCount, dataset_description, robot_iri
+from robocloud.semantic import Ingestion, TemplateCount, dataset_description, robot_iri
 from services.storage.anchoring import EpochStore
 from services.storage.identity import NodeIdentity
 from services.storage.ingest import Job
@@ -71,16 +71,20 @@ class DatasetPublisher:
             start, end = self._time_range(job)
             epoch, tmt_root = self._epoch(job)
             chain_id = chain.chain_id
+            ingestion = Ingestion(
+                job.id,
+                robot_iri(chain_id, self.node.address),
+                start,
+                end,
+                counts,
+                epoch=epoch,
+                tmt_root=tmt_root,
+            )
             description = dataset_description(
                 bag_cid,
                 producer=robot_iri(chain_id, str(job.author["signer"])),
-                storage_node=robot_iri(chain_id, self.node.address),
+                ingestion=ingestion,
                 topics=sorted({t.topic for t in job.topics if t.template is not None}),
-                record_counts=counts,
-                start=start,
-                end=end,
-                epoch=epoch,
-                tmt_root=tmt_root,
                 title=f"ROS bag {bag_cid}",
             )
             description_cid = self.cas().add_bytes(description.canonical())

@@ -37,6 +37,8 @@ JPEG = "https://www.iana.org/assignments/media-types/image/jpeg"
 TASK = "ipfs://bafkreida5gq3v6rabjib2uiqzefbdra2cxrzx2sctf56h2igs73ndf2ouu"
 DATASET = "ipfs://bafkreigadaazw2ulagvvq2gpjpunwmt2ove24azaevelt76nezy4jqvweq"
 TEMPLATE = "ipfs://bafkreigyfykq6j7zji5odgbwfjasn6pbbpx5a4irvf74j62376sqyl3kbm"
+JOB = "5c0e9a7d3b1f4e2a8c6d0b19"
+INGESTION = f"{DATASET}#ingestion-{JOB}"
 
 
 def load(path: Path) -> Graph:
@@ -111,6 +113,7 @@ def test_the_ontology_is_aligned_with_sosa_prov_and_dcat(ontology: Graph) -> Non
         (RC.Dataset, dcat.Dataset),
         (RC.Application, prov.Plan),
         (RC.Computation, prov.Activity),
+        (RC.Ingestion, prov.Activity),
     ]:
         assert (child, sub, parent) in ontology
 
@@ -154,6 +157,52 @@ def test_a_sensor_mounted_on_a_file_is_inconsistent(ontology: Graph) -> None:
     broken.add((URIRef(ROBOT + "#sensor-camera_front"), RC.mountedOn, URIRef(FILE)))
     found = inconsistencies(closure(ontology, broken))
     assert any(FILE in line and "Robot" in line for line in found), found
+
+
+def ingested_again(job: str, node: str, epoch: int, count: int) -> Graph:
+    """The example dataset as a second job (on ``node``) describes it: its own ingestion."""
+    text = (ONTOLOGY / "examples" / "dataset.ttl").read_text()
+    for old, new in [
+        (JOB, job),
+        ("0x5050A4F4b3f9338C3472dcC01A87C76A144b3c9c", node),
+        ("rc:epoch 42", f"rc:epoch {epoch}"),
+        ("rc:recordCount 30000", f"rc:recordCount {count}"),
+    ]:
+        assert old in text, old
+        text = text.replace(old, new)
+    return Graph().parse(data=text, format="turtle")
+
+
+def test_one_bag_ingested_by_two_jobs_and_two_nodes_still_conforms_and_is_consistent(
+    ontology: Graph, shapes: Graph
+) -> None:
+    """The knowledge base holds every description in one graph: each ingestion's count, epoch
+    and node stay on its own node, so the merged graph has one of each per ingestion (when they
+    were on the dataset, two jobs gave it two counts and two epochs, a SHACL violation and no
+    way to pair them)."""
+    merged = load(ONTOLOGY / "examples" / "dataset.ttl")
+    merged += ingested_again(
+        "a1b2c3d4e5f60718293a4b5c", "0x5050A4F4b3f9338C3472dcC01A87C76A144b3c9c", 43, 7
+    )
+    merged += ingested_again(
+        "0f1e2d3c4b5a69788796a5b4", "0x3325a78425F17a7E487Eb5666b2bFd93aBb06c70", 5, 30000
+    )
+    assert violations(merged, shapes) == []
+    assert inconsistencies(closure(ontology, merged)) == []
+    rows = merged.query(
+        """PREFIX rc: <https://w3id.org/robocloud#>
+        SELECT ?node ?epoch ?count WHERE {
+            ?dataset rc:ingestion ?ingestion .
+            ?ingestion rc:storageNode ?node ; rc:epoch ?epoch ; rc:recordCount ?count .
+        } ORDER BY ?epoch"""
+    )
+    node = "did:pkh:eip155:1337:0x5050A4F4b3f9338C3472dcC01A87C76A144b3c9c"
+    prover = "did:pkh:eip155:1337:0x3325a78425F17a7E487Eb5666b2bFd93aBb06c70"
+    assert [(str(n), int(e), int(c)) for n, e, c in rows] == [  # type: ignore[misc]
+        (prover, 5, 30000),
+        (node, 42, 30000),
+        (node, 43, 7),
+    ]
 
 
 @pytest.mark.parametrize("path", EXAMPLES, ids=lambda path: path.stem)
@@ -318,12 +367,64 @@ BROKEN = [
         'rc:tmtRoot "not-a-root"',
         [
             (
-                DATASET,
+                INGESTION,
                 str(RC.tmtRoot),
                 "rc:tmtRoot is at most one SHA-256 root in 64 lowercase hex digits",
             )
         ],
         id="dataset-bad-tmt-root",
+    ),
+    pytest.param(
+        "dataset",
+        f'dcterms:identifier "{JOB}"',
+        'dcterms:identifier "0123abcd"',
+        [
+            (
+                INGESTION,
+                "",
+                f"the IRI {INGESTION} is not <dataset>#ingestion-<its dcterms:identifier> of a"
+                " dataset naming it by rc:ingestion",
+            )
+        ],
+        id="ingestion-named-apart-from-its-job",
+    ),
+    pytest.param(
+        "dataset",
+        f"    rc:ingestion <{INGESTION}> ;\n",
+        "",
+        [
+            (
+                DATASET,
+                str(RC.ingestion),
+                "needs at least one rc:ingestion, an rc:Ingestion described beside the dataset",
+            ),
+            (
+                INGESTION,
+                "",
+                f"the IRI {INGESTION} is not <dataset>#ingestion-<its dcterms:identifier> of a"
+                " dataset naming it by rc:ingestion",
+            ),
+        ],
+        id="ingestion-no-dataset-names",
+    ),
+    pytest.param(
+        "dataset",
+        f"rc:records <{INGESTION}-records-imu-1>",
+        f"rc:records <{DATASET}#ingestion-0123abcd-records-imu-1>",
+        [
+            (
+                INGESTION,
+                "",
+                f"record count {DATASET}#ingestion-0123abcd-records-imu-1 is not named"
+                f" {INGESTION}-records-<template name>-<version>",
+            ),
+            (
+                INGESTION,
+                str(RC.records),
+                "rc:records names rc:RecordCount nodes described beside the ingestion",
+            ),
+        ],
+        id="record-count-of-another-ingestion",
     ),
     pytest.param(
         "template",

@@ -18,6 +18,7 @@ from robocloud.semantic import (
     DescriptionInvalidError,
     DescriptionSyntaxError,
     DescriptionTooLargeError,
+    Ingestion,
     NotADescriptionError,
     Port,
     SemanticError,
@@ -42,6 +43,7 @@ TASK = "bafkreida5gq3v6rabjib2uiqzefbdra2cxrzx2sctf56h2igs73ndf2ouu"
 RESULT = "bafkreidhfizs4zqkyoxf64w63iepb5a7ntywamlqe3khpqifviktk4ohi4"
 IMU_TEMPLATE = "bafkreigyfykq6j7zji5odgbwfjasn6pbbpx5a4irvf74j62376sqyl3kbm"
 T0 = datetime(2026, 3, 1, 10, 0, tzinfo=UTC)
+JOB = "5c0e9a7d3b1f4e2a8c6d0b19"
 
 BUILT: dict[str, Callable[[], Description]] = {
     "robot": lambda: semantic.robot_description(
@@ -78,12 +80,15 @@ BUILT: dict[str, Callable[[], Description]] = {
         producer=ROBOT,
         sensors=[CAMERA, IMU],
         topics=["/imu", "/camera/front/image_raw"],
-        start=T0,
-        end=T0 + timedelta(minutes=5),
-        record_counts=[TemplateCount("imu@1", IMU_TEMPLATE, 30000)],
-        epoch=42,
-        tmt_root="6e340b9cffb37a989ca544e6bb780a2c78901d3fb33738768511a30617afa01d",
-        storage_node=semantic.robot_iri(1337, NODE),
+        ingestion=Ingestion(
+            JOB,
+            semantic.robot_iri(1337, NODE),
+            start=T0,
+            end=T0 + timedelta(minutes=5),
+            record_counts=[TemplateCount("imu@1", IMU_TEMPLATE, 30000)],
+            epoch=42,
+            tmt_root="6e340b9cffb37a989ca544e6bb780a2c78901d3fb33738768511a30617afa01d",
+        ),
         files=[JPEG],
     ),
     "application": lambda: semantic.application_description(
@@ -423,17 +428,23 @@ def test_a_document_that_is_not_rdf_is_a_syntax_error() -> None:
             lambda: semantic.dataset_description(
                 BAG,
                 producer=ROBOT,
-                start=T0,
-                end=T0,
-                record_counts=[TemplateCount("imu", IMU_TEMPLATE, 1)],
+                ingestion=Ingestion(
+                    JOB, ROBOT, T0, T0, record_counts=[TemplateCount("imu", IMU_TEMPLATE, 1)]
+                ),
             ),
             "'imu' is not name@version",
         ),
         (
             lambda: semantic.dataset_description(
-                BAG, producer=ROBOT, start=T0, end=T0, record_counts=[], tmt_root="AB"
+                BAG, producer=ROBOT, ingestion=Ingestion(JOB, ROBOT, T0, T0, [], tmt_root="AB")
             ),
             "TMT root 'AB'",
+        ),
+        (
+            lambda: semantic.dataset_description(
+                BAG, producer=ROBOT, ingestion=Ingestion("Job 1", ROBOT, T0, T0, [])
+            ),
+            "job id 'Job 1' does not match",
         ),
     ],
 )

@@ -438,11 +438,26 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
     ledger, storage = publishing_node(service_factory)
     bag, imu, dataset = _publish_an_imu_bag(storage, ledger, identity, tmp_path)
     assert dataset["cid"] == str(import_bytes(bag.read_bytes())[1])
+    ((_, count, epoch, root),) = ingestions(storage, dataset["cid"])
+    assert count == 40
+    manifest = httpx.get(f"{storage.url}/v1/epochs/{epoch}", timeout=10).json()
+    assert manifest["tmt_root"] == root
+    assert manifest["heads"] == [
+        {"template": imu, "size": 40, "root": manifest["heads"][0]["root"]}
+    ]
+
+
+def ingestions(storage: ServiceProcess, bag_cid: str) -> list[tuple[str, int, int, str]]:
+    """Each ingestion of the bag the knowledge base holds: its job, record count, epoch and
+    TMT root, by job."""
     query = f"""
         PREFIX rc: <https://w3id.org/robocloud#>
-        SELECT ?count ?epoch ?root WHERE {{
-            <ipfs://{dataset["cid"]}> rc:recordCount ?count ; rc:epoch ?epoch ; rc:tmtRoot ?root
-        }}
+        PREFIX dcterms: <http://purl.org/dc/terms/>
+        SELECT ?job ?count ?epoch ?root WHERE {{
+            <ipfs://{bag_cid}> rc:ingestion ?ingestion .
+            ?ingestion dcterms:identifier ?job ; rc:recordCount ?count ; rc:epoch ?epoch ;
+                rc:tmtRoot ?root
+        }} ORDER BY ?job
     """
     answer = httpx.get(
         f"{storage.url}/v1/knowledge/sparql",
@@ -450,15 +465,47 @@ def test_an_ingested_bag_is_described_indexed_and_advertised(
         headers={"Accept": "application/sparql-results+json"},
         timeout=30,
     ).json()
-    ((count, epoch, root),) = [
-        (row["count"]["value"], int(row["epoch"]["value"]), row["root"]["value"])
+    return [
+        (
+            row["job"]["value"],
+            int(row["count"]["value"]),
+            int(row["epoch"]["value"]),
+            row["root"]["value"],
+        )
         for row in answer["results"]["bindings"]
     ]
-    assert count == "40"
-    manifest = httpx.get(f"{storage.url}/v1/epochs/{epoch}", timeout=10).json()
-    assert manifest["tmt_root"] == root
-    assert manifest["heads"] == [
-        {"template": imu, "size": 40, "root": manifest["heads"][0]["root"]}
+
+
+def test_a_bag_ingested_again_for_a_topic_bound_since_keeps_each_jobs_counts_and_epoch(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """The second job publishes a second description of the same bag: each job's record count,
+    epoch and TMT root stay paired in the knowledge base (on the dataset itself they merged into
+    two counts and two epochs that no query could tell apart)."""
+    ledger, storage = publishing_node(service_factory)
+    bag, _, dataset = _publish_an_imu_bag(storage, ledger, identity, tmp_path)
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        gps = approve(records, "sensor_msgs/msg/NavSatFix")
+        ingest.bind(gps, topic="/gps")
+        again = ingest.wait(ingest.upload(bag)["id"], timeout_s=180)
+        assert again["status"] == "succeeded", again["error"]
+        (imu_topic,) = [topic for topic in again["topics"] if topic["topic"] == "/imu"]
+        gps_count = len(records.query(template=gps, limit=100).records)
+    first = imu_topic["ingested_by"]
+    assert again["dataset"]["cid"] == dataset["cid"]
+    assert again["dataset"]["description"] != dataset["description"]
+    found = ingestions(storage, dataset["cid"])
+    assert sorted((job, count) for job, count, _, _ in found) == sorted(
+        [(first, 40), (again["id"], gps_count)]
+    )
+    for _, _, epoch, root in found:
+        manifest = httpx.get(f"{storage.url}/v1/epochs/{epoch}", timeout=10).json()
+        assert manifest["tmt_root"] == root
+    with LedgerService(ledger.url) as service:
+        advertised = service.advertisements(cid=dataset["cid"])
+    assert [ad.description for ad in advertised] == [
+        dataset["description"],
+        again["dataset"]["description"],
     ]
 
 
