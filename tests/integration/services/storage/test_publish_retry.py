@@ -61,8 +61,8 @@ def test_a_dataset_ingested_while_cas_is_out_is_published_once_cas_is_back(
         assert sorted(path.name for path in job_dir.iterdir()) == ["bag.bag", "job.json"]
         retrying = shown_job(storage, job_id)[-1]
         assert retrying.startswith("dataset not published yet: "), retrying
-        # A loaded machine may start the CLI after the second attempt (1 s later) failed too.
-        assert re.search(r"\(attempt [12]; the node tries again in about ", retrying), retrying
+        # A loaded machine may start the CLI after a later attempt (1 s, then 2 s) failed too.
+        assert re.search(r"\(attempt [0-9]+; the node tries again in about ", retrying), retrying
 
         cas = service_factory("cas", port=cas_port)
         dataset = wait_for(
