@@ -170,6 +170,8 @@ class ErrorRule:
     code: str
     details: Callable[[Any], dict[str, Any]] = no_details
     headers: Callable[[Any], dict[str, str]] = field(default=lambda _: {})
+    message: Callable[[Any], str] = str
+    """The error's message; the exception's text unless the client is to be told otherwise."""
 
 
 class ErrorMap:
@@ -189,7 +191,10 @@ class ErrorMap:
             rule = self.rules.get(cls)
             if rule is not None:
                 error = ServiceError(
-                    str(exc), code=rule.code, details=rule.details(exc), headers=rule.headers(exc)
+                    rule.message(exc),
+                    code=rule.code,
+                    details=rule.details(exc),
+                    headers=rule.headers(exc),
                 )
                 error.status = rule.status
                 return error

@@ -87,16 +87,32 @@ class BagFormat(Enum):
 class BagError(Exception):
     """A bag cannot be read; ``path`` names the file, ``offset`` the byte where known.
 
-    The message names the file alone: it reaches the robot that sent the bag, and the
-    service's own directories are none of its business (logs keep ``path``).
+    Its text names the file as this node has it, for logs. The robot that sent the bag is
+    told :meth:`shown` instead: a file of a ROS 2 bag directory by its path there, and the
+    bag itself as "the bag", since the names a node gives what it receives (``upload``,
+    ``bag.mcap``) were never the robot's (a failed upload said ``bag.bag: ...`` of the
+    robot's ``run.bag``).
     """
 
     def __init__(self, message: str, *, path: Path, offset: int | None = None) -> None:
-        where = path.name if offset is None else f"{path.name} at byte {offset}"
-        super().__init__(f"{where}: {message}")
+        super().__init__(_located(path.name, offset, message))
         self.reason = message
         self.path = path
         self.offset = offset
+
+    def file_in(self, bag: Path) -> str | None:
+        """The damaged file's path within ``bag``; None when it is ``bag`` itself."""
+        if self.path == bag or not self.path.is_relative_to(bag):
+            return None
+        return self.path.relative_to(bag).as_posix()
+
+    def shown(self, bag: Path) -> str:
+        """What the robot that sent ``bag`` is told."""
+        return _located(self.file_in(bag) or "the bag", self.offset, self.reason)
+
+
+def _located(where: str, offset: int | None, reason: str) -> str:
+    return f"{where}: {reason}" if offset is None else f"{where} at byte {offset}: {reason}"
 
 
 class BagUnreadable(BagError):

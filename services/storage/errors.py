@@ -141,7 +141,10 @@ ERRORS = ErrorMap(
         ),
         # ----- bag ingestion and export (engineer bags) -----
         BagError: ErrorRule(
-            400, "invalid_bag", lambda exc: {"file": exc.path.name, "offset": exc.offset}
+            400,
+            "invalid_bag",
+            lambda exc: {"file": None, "offset": exc.offset},
+            message=lambda exc: exc.shown(exc.path),
         ),
         BagNotFetchable: ErrorRule(
             400,

@@ -871,8 +871,9 @@ class IngestJobs:
             self.disk_reserve.require_room()
             progress(count)
 
+        bag_path = _bag_in(directory)
         workers = StagingProcesses.start(
-            _bag_in(directory),
+            bag_path,
             self.staging_workers,
             staged_dir,
             robot,
@@ -881,7 +882,7 @@ class IngestJobs:
         )
         try:
             # The bag's files are checked while its messages stage.
-            with bag_failures(), Bag.open(_bag_in(directory), check=False) as bag:
+            with bag_failures(bag_path), Bag.open(bag_path, check=False) as bag:
                 plans = plan(bag)
                 parts = (
                     workers.count if _messages_in(bag, plans) >= self.parallel_from_messages else 1

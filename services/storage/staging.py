@@ -295,15 +295,15 @@ def compile_plan(connection: BagConnection, template: Template) -> tuple[Templat
 
 
 @contextmanager
-def bag_failures() -> Iterator[None]:
-    """What reading or decoding the bag raises, as the job's error."""
+def bag_failures(bag: Path) -> Iterator[None]:
+    """What reading or decoding ``bag`` raises, as the job's error."""
     try:
         yield
     except BagError as exc:
         raise IngestFailed(
             "bag_corrupt" if isinstance(exc, BagCorrupt) else "bag_unreadable",
-            str(exc),
-            {"file": exc.path.name, "offset": exc.offset},
+            exc.shown(bag),
+            {"file": exc.file_in(bag), "offset": exc.offset},
         ) from exc
     except MissingDefinition as exc:
         raise IngestFailed(
@@ -525,7 +525,7 @@ def _stage_task(task: WindowTask, parent: Connection) -> None:
     limit_memory(task.memory_bytes)
     try:
         # The job's own open checks the bag; it sends no plan unless the bag passed.
-        with bag_failures(), Bag.open(task.bag, check=False) as bag:
+        with bag_failures(task.bag), Bag.open(task.bag, check=False) as bag:
             order = parent.recv()
             if order[0] != "plan":
                 return

@@ -128,7 +128,11 @@ def test_bad_bags_fail_without_records(
             ingest.upload(text)
         assert not_a_bag.value.status == 400
         assert not_a_bag.value.code == "invalid_bag"
-        assert not_a_bag.value.details["file"] == "upload"
+        # The node's name for the upload ("upload", "bag.bag") was never the robot's.
+        assert not_a_bag.value.details == {"file": None, "offset": None}
+        assert not_a_bag.value.message == (
+            "the bag: not a ROS 1 bag, an MCAP file or a rosbag2 sqlite3 file"
+        )
         assert list(incoming.iterdir()) == []
         failed = ingest.wait(ingest.upload(truncated)["id"], timeout_s=120)
         # Each accepted upload left its spool directory behind, empty.
@@ -171,11 +175,11 @@ def test_an_mcap_cut_after_its_magic_fails_as_a_corrupt_bag(
     error = failed["error"]
     assert (error["code"], error["details"], error["resumable"]) == (
         "bag_corrupt",
-        {"file": "bag.mcap", "offset": None},
+        {"file": None, "offset": None},
         False,
     )
-    assert error["message"].endswith(
-        "bag.mcap: damaged or truncated "
+    assert error["message"] == (
+        "the bag: damaged or truncated "
         "(TypeError: ord() expected a character, but string of length 0 found)"
     )
     assert failed["records"] == {"staged": 0, "committed": 0}
@@ -190,18 +194,18 @@ def test_a_decompression_bomb_fails_its_job_naming_the_chunk_and_stores_nothing(
     if kind == "mcap":
         bag = tmp_path / "bomb.mcap"
         offset = write_mcap_bomb(bag)
-        name, reason = "bag.mcap", f"chunk declares {1 << 30} bytes decompressed, more than the"
+        reason = f"chunk declares {1 << 30} bytes decompressed, more than the"
     else:
         bag = write_ros1_big_chunk(tmp_path / "big.bag", MAX_CHUNK_BYTES)
-        offset, name = 13 + 4096, "bag.bag"
+        offset = 13 + 4096
         reason = f"chunk decompresses to more than {MAX_CHUNK_BYTES} bytes (lz4)"
     with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
         text = approve(client, "std_msgs/msg/String")
         ingest.bind(text, msgtype="std_msgs/msg/String")
         failed = ingest.wait(ingest.upload(bag)["id"], timeout_s=120)
         error = failed["error"]
-        assert failure(failed) == ("bag_unreadable", {"file": name, "offset": offset})
-        assert f"{name} at byte {offset}: {reason}" in error["message"]
+        assert failure(failed) == ("bag_unreadable", {"file": None, "offset": offset})
+        assert error["message"].startswith(f"the bag at byte {offset}: {reason}")
         assert failed["records"] == {"staged": 0, "committed": 0}
         assert client.get_json("/v1/records", params={"template": text})["records"] == []
 
