@@ -27,6 +27,7 @@ bag sent again while its job is still running gets that job.
 
 from __future__ import annotations
 
+import hashlib
 import heapq
 import json
 import logging
@@ -167,6 +168,10 @@ class Job:
     records_committed: int = 0
     topics: list[TopicReport] = field(default_factory=list)
     error: dict[str, Any] | None = None
+    content: str | None = None
+    """``sha256:<hex>`` of a bag that is one file, once known: what the node remembers this
+    robot ingested (:func:`_bag_key`), so that a file sent once uploaded and once by a CID, or
+    by two CIDs of two imports, is one bag."""
     record_ids: dict[str, list[str]] = field(default_factory=dict)
     """Per template, the first and last record id committed."""
     staged: dict[str, int] = field(default_factory=dict)
@@ -313,7 +318,27 @@ def _ingested_rows(job: Job) -> list[IngestedRow]:
         for report in job.topics
         if report.template is not None and report.skipped is None
     ]
-    return [(job.author["signer"], job.bag, topic, job.id) for topic in topics]
+    return [(job.author["signer"], _bag_key(job), topic, job.id) for topic in topics]
+
+
+def _bag_key(job: Job) -> str:
+    """The bag a job ingests, as :class:`IngestedBags` remembers it: a file by its bytes
+    (``sha256:<hex>``) however it came, a ROS 2 directory by its CID."""
+    if job.content is not None:
+        return job.content
+    kind, _, value = job.bag.partition(":")
+    return f"sha256:{value}" if kind == "upload" else job.bag
+
+
+def _content_of(job: Job, bag: Path) -> str | None:
+    """``sha256:<hex>`` of a bag that is one file; an upload's was taken as it arrived."""
+    kind, _, value = job.bag.partition(":")
+    if kind == "upload":
+        return f"sha256:{value}"
+    if not bag.is_file():
+        return None
+    with bag.open("rb") as handle:
+        return f"sha256:{hashlib.file_digest(handle, 'sha256').hexdigest()}"
 
 
 def _remove(path: Path) -> None:
@@ -756,7 +781,7 @@ class IngestJobs:
         template, and not ingested from this bag by an earlier job of the same robot."""
         reports: list[TopicReport] = []
         plans: Plans = {}
-        earlier = self.ingested.ingested(job.author["signer"], job.bag)
+        earlier = self.ingested.ingested(job.author["signer"], _bag_key(job))
         for connection in bag.connections:
             report = TopicReport(connection.topic, connection.msgtype, connection.count)
             reports.append(report)
@@ -813,6 +838,8 @@ class IngestJobs:
             )
             return plans
 
+        if job.content is None:
+            self._update(job, content=_content_of(job, _bag_in(self.root / job.id)))
         counts, parts = self._spool(job, plan, progress)
         self._update(
             job,

@@ -8,10 +8,12 @@ which topics went into which template and by which job; a later job of that robo
 skips those topics and reports the job that ingested them. A topic bound since, or bound
 to another template (a new version), is ingested: that is new data.
 
-A bag is what :class:`~services.storage.ingest.Job` calls it: ``upload:<sha256>`` of the
-uploaded file or ``cid:<cid>`` of a bag in cas, so the same bytes sent once each way are two
-bags. The table outlives the jobs (a node keeps the last thousand): one row a topic of an
-ingested bag, in SQLite, read one bag at a time.
+A bag that is one file is named by its bytes, ``sha256:<hex>``, however it came (uploaded, or
+by the CID of any import of it): when an upload was ``upload:<sha256>`` and a bag in cas
+``cid:<cid>``, the same file sent once each way was two bags and its records were stored
+twice. A ROS 2 bag directory, which only comes by CID, is ``cid:<cid>``. The table outlives
+the jobs (a node keeps the last thousand): one row a topic of an ingested bag, in SQLite,
+read one bag at a time.
 """
 
 from __future__ import annotations
@@ -49,7 +51,20 @@ class IngestedBags:
         self._connection = sqlite3.connect(path, check_same_thread=False)
         self._connection.execute("PRAGMA synchronous = FULL")
         self._connection.execute(_SCHEMA)
+        self._name_uploads_by_content()
         self._lock = threading.Lock()
+
+    def _name_uploads_by_content(self) -> None:
+        """Rename the rows of a table an older node kept, once: an upload's ``upload:<hex>``
+        is the ``sha256:<hex>`` of its bytes (``user_version`` 1 says it is done)."""
+        (version,) = self._connection.execute("PRAGMA user_version").fetchone()
+        if version >= 1:
+            return
+        with self._connection:
+            self._connection.execute(
+                "UPDATE ingested SET bag = 'sha256:' || substr(bag, 8) WHERE bag LIKE 'upload:%'"
+            )
+            self._connection.execute("PRAGMA user_version = 1")
 
     def close(self) -> None:
         with self._lock:

@@ -3,12 +3,17 @@ resend gets that job; while its job awaits a resume, the resend is refused."""
 
 from __future__ import annotations
 
+import hashlib
+import shutil
+import sqlite3
 from collections.abc import Iterator
+from contextlib import closing
 from pathlib import Path
 
 import pytest
 
 from services.storage.ingest import BagAwaitsResume, IngestJobs
+from services.storage.ingested import IngestedBags
 from services.storage.recordstore import Authorship
 from tests.unit.services.storage.test_ingest import (
     Node,
@@ -104,6 +109,86 @@ def test_another_robot_s_copy_or_another_bag_is_ingested(node: Node, tmp_path: P
     finished = [node.jobs.wait(job.id, 60) for job in jobs]
     assert [job.records_committed for job in finished] == [40, 40, 40]
     assert node.logs.size(imu) == 120
+
+
+def copies(path: Path, count: int) -> list[Path]:
+    """``count`` copies of the file ``path`` (a job takes the file it is given)."""
+    made = []
+    for index in range(count):
+        copy = path.with_name(f"{path.name}-copy{index}")
+        shutil.copyfile(path, copy)
+        made.append(copy)
+    return made
+
+
+def test_one_file_sent_uploaded_and_by_two_cids_is_one_bag(node: Node, tmp_path: Path) -> None:
+    """A bag file is the same bag however it comes: uploaded, by its CID, by the CID of
+    another import of it. Each way was a bag of its own, and the same IMU messages were
+    stored three times (120 records for 40)."""
+    imu = imu_bound(node)
+    robot = authorship()
+    original = bag(tmp_path, "run.bag", 50, kind="ros1")
+    digest = hashlib.sha256(original.read_bytes()).hexdigest()
+    first_copy, second_copy, third_copy = copies(original, 3)
+    first = node.jobs.wait(node.jobs.submit(first_copy, f"upload:{digest}", robot).id, 60)
+    assert first.records_committed == 40
+    for cid, copy in [("bafybeiaone", second_copy), ("bafkreitwo", third_copy)]:
+        again = node.jobs.wait(node.jobs.submit(copy, f"cid:{cid}", robot).id, 60)
+        assert (again.status, again.records_committed) == ("succeeded", 0), again.error
+        (imu_report,) = [report for report in again.topics if report.template]
+        assert imu_report.ingested_by == first.id
+        assert again.content == f"sha256:{digest}"
+    assert node.logs.size(imu) == 40
+
+
+def test_a_different_file_by_cid_is_another_bag(node: Node, tmp_path: Path) -> None:
+    imu = imu_bound(node)
+    robot = authorship()
+    node.jobs.wait(
+        node.jobs.submit(bag(tmp_path, "a.bag", 50, "ros1"), "cid:bafkreia", robot).id, 60
+    )
+    other = bag(tmp_path, "b.bag", 60, "ros1")
+    done = node.jobs.wait(node.jobs.submit(other, "cid:bafkreib", robot).id, 60)
+    assert done.records_committed == 48
+    assert node.logs.size(imu) == 88
+
+
+OLDER_SCHEMA = """
+CREATE TABLE ingested (
+    signer TEXT NOT NULL,
+    bag TEXT NOT NULL,
+    topic TEXT NOT NULL,
+    msgtype TEXT NOT NULL,
+    template TEXT NOT NULL,
+    job TEXT NOT NULL,
+    PRIMARY KEY (signer, bag, topic, msgtype, template)
+) WITHOUT ROWID
+"""
+
+
+def test_an_older_node_s_uploads_are_named_by_their_content_once(tmp_path: Path) -> None:
+    """Its table named uploads ``upload:<hex>``: they are ``sha256:<hex>`` after the next
+    start, so a CID of the same file finds them; a CID bag's row is left as it was."""
+    path = tmp_path / "ingested.sqlite"
+    with closing(sqlite3.connect(path)) as older, older:
+        older.execute(OLDER_SCHEMA)
+        older.executemany(
+            "INSERT INTO ingested VALUES (?, ?, ?, ?, ?, ?)",
+            [
+                ("0xab", "upload:00ff", "/imu", "sensor_msgs/msg/Imu", "imu@1", "job1"),
+                ("0xab", "cid:bafkreia", "/gps", "sensor_msgs/msg/NavSatFix", "gps@1", "job2"),
+            ],
+        )
+    for _ in range(2):
+        table = IngestedBags(path)
+        assert table.ingested("0xAB", "sha256:00ff") == {
+            ("/imu", "sensor_msgs/msg/Imu", "imu@1"): "job1"
+        }
+        assert table.ingested("0xab", "upload:00ff") == {}
+        assert table.ingested("0xab", "cid:bafkreia") == {
+            ("/gps", "sensor_msgs/msg/NavSatFix", "gps@1"): "job2"
+        }
+        table.close()
 
 
 def test_a_bag_sent_again_while_its_job_runs_gets_that_job(node: Node, tmp_path: Path) -> None:
