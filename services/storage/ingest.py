@@ -324,19 +324,20 @@ def _ingested_rows(job: Job) -> list[IngestedRow]:
 def _bag_key(job: Job) -> str:
     """The bag a job ingests, as :class:`IngestedBags` remembers it: a file by its bytes
     (``sha256:<hex>``) however it came, a ROS 2 directory by its CID."""
-    if job.content is not None:
-        return job.content
+    return job.content or _uploaded_content(job) or job.bag
+
+
+def _uploaded_content(job: Job) -> str | None:
+    """An upload's ``sha256:<hex>``, taken as it arrived (``upload:<hex>``)."""
     kind, _, value = job.bag.partition(":")
-    return f"sha256:{value}" if kind == "upload" else job.bag
+    return f"sha256:{value}" if kind == "upload" else None
 
 
 def _content_of(job: Job, bag: Path) -> str | None:
-    """``sha256:<hex>`` of a bag that is one file; an upload's was taken as it arrived."""
-    kind, _, value = job.bag.partition(":")
-    if kind == "upload":
-        return f"sha256:{value}"
-    if not bag.is_file():
-        return None
+    """``sha256:<hex>`` of a bag that is one file; None for a ROS 2 directory."""
+    uploaded = _uploaded_content(job)
+    if uploaded is not None or not bag.is_file():
+        return uploaded
     with bag.open("rb") as handle:
         return f"sha256:{hashlib.file_digest(handle, 'sha256').hexdigest()}"
 

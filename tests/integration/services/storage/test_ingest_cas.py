@@ -22,7 +22,7 @@ from robocloud.identity import Identity
 from robocloud.ingest import Ingest
 from robocloud.storage import Storage
 from robocloud.templates import canonical_record
-from robocloud.unixfs import import_bytes
+from robocloud.unixfs import ImportParams, import_bytes
 from services.storage.matcher import draft_template
 from tests.bagfactory import TOPICS, typestore_for, write_bag, write_split_bag
 from tests.conftest import ServiceFactory
@@ -140,6 +140,30 @@ def refused(node: Node, cid: CID | str) -> ApiError:
     assert kept <= {"incoming", "ingested.sqlite"}, "no job"
     assert node.records.query(topic="/AAA").records == []
     return caught.value
+
+
+def test_a_bag_file_uploaded_then_sent_by_its_cids_is_ingested_once(
+    node: Node, tmp_path: Path
+) -> None:
+    """The robot uploads run.bag, then ingests it again by the CID ``robocloud put`` gave
+    it and by a CIDv0 of it: one bag, so its IMU records are stored once (they were three
+    times: each way was a bag of its own)."""
+    imu = approve_and_bind(node, "sensor_msgs/msg/Imu")
+    bag = write_bag(tmp_path / "run.bag", "ros1", 50)
+    first = node.ingest.wait(node.ingest.upload(bag)["id"], timeout_s=120)
+    assert first["records"]["committed"] == 40, first["error"]
+    cids = [
+        node.cas.add_file(bag),
+        node.cas.add_file(bag, params=ImportParams(cid_version=0, raw_leaves=False)),
+    ]
+    assert len({str(cid) for cid in cids}) == 2
+    for cid in cids:
+        again = node.ingest.wait(node.ingest.from_cas(cid)["id"], timeout_s=120)
+        assert (again["status"], again["bag"]) == ("succeeded", f"cid:{cid}"), again["error"]
+        assert again["records"]["committed"] == 0
+        (imu_topic,) = [topic for topic in again["topics"] if topic["template"] == imu]
+        assert imu_topic["ingested_by"] == first["id"]
+    assert len(node.records.query(template=imu, limit=100).records) == 40
 
 
 def test_directories_that_are_not_bags_are_refused(node: Node, tmp_path: Path) -> None:
