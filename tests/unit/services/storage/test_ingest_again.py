@@ -153,25 +153,13 @@ def test_a_different_file_by_cid_is_another_bag(node: Node, tmp_path: Path) -> N
     assert node.logs.size(imu) == 88
 
 
-OLDER_SCHEMA = """
-CREATE TABLE ingested (
-    signer TEXT NOT NULL,
-    bag TEXT NOT NULL,
-    topic TEXT NOT NULL,
-    msgtype TEXT NOT NULL,
-    template TEXT NOT NULL,
-    job TEXT NOT NULL,
-    PRIMARY KEY (signer, bag, topic, msgtype, template)
-) WITHOUT ROWID
-"""
-
-
 def test_an_older_node_s_uploads_are_named_by_their_content_once(tmp_path: Path) -> None:
     """Its table named uploads ``upload:<hex>``: they are ``sha256:<hex>`` after the next
     start, so a CID of the same file finds them; a CID bag's row is left as it was."""
     path = tmp_path / "ingested.sqlite"
+    IngestedBags(path).close()
     with closing(sqlite3.connect(path)) as older, older:
-        older.execute(OLDER_SCHEMA)
+        older.execute("PRAGMA user_version = 0")
         older.executemany(
             "INSERT INTO ingested VALUES (?, ?, ?, ?, ?, ?)",
             [
