@@ -22,6 +22,8 @@ from fastapi.responses import JSONResponse, Response
 from fastapi_offline import FastAPIOffline
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import BaseRoute, Match
+from starlette.types import Scope
 
 import robocloud
 from robocloud import bounded_json
@@ -286,6 +288,7 @@ def create_app(
         authorizer=authorizer,
         max_clock_skew_s=settings.max_clock_skew_s,
         unsigned_paths=unsigned_paths,
+        routed=partial(_routed, app.router.routes),
     )
     app.add_middleware(
         BodyLimitLayer,
@@ -295,6 +298,11 @@ def create_app(
     app.add_middleware(AccessLogLayer, metrics=metrics)
     app.add_middleware(RequestIdLayer)
     return app
+
+
+def _routed(routes: Sequence[BaseRoute], scope: Scope) -> bool:
+    """Whether one of ``routes`` takes the request's method at its path."""
+    return any(route.matches(scope)[0] is Match.FULL for route in routes)
 
 
 def _service_audience(settings: ServiceSettings, source: DeploymentSource) -> ServiceAudience:

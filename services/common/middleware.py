@@ -28,7 +28,7 @@ import math
 import re
 import time
 import uuid
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import anyio
@@ -323,7 +323,10 @@ class SignatureLayer:
     headers valid for this audience (401, see ``robocloud.signing``), the signer authorized
     (403, or 503 when the ledger cannot say), and the nonce unused (401 ``replayed_nonce``).
     While the body streams its SHA-256 is checked against the signed one (400). Paths in
-    ``unsigned_paths`` carry their own authentication (the chain's JSON-RPC).
+    ``unsigned_paths`` carry their own authentication (the chain's JSON-RPC). A request no
+    route takes (``routed`` says which do) goes on unsigned to its 404 or 405, which writes
+    nothing: an IPFS client calling a kubo method cas does not offer (``ipfs id``) was told
+    "header X-Robocloud-Address is required", as if signing would have made it work.
 
     The nonce is recorded after the authorizer answered, so that a stranger (a self-made key
     the registry has no record of, 403 ``address_not_allowed``) leaves nothing behind: free
@@ -347,8 +350,10 @@ class SignatureLayer:
         authorizer: Authorizer,
         max_clock_skew_s: int,
         unsigned_paths: Iterable[str] = (),
+        routed: Callable[[Scope], bool] = lambda _: True,
     ) -> None:
         self.app = app
+        self.routed = routed
         self.audience = audience
         self.nonces = nonces
         self.authorizer = authorizer
@@ -364,6 +369,7 @@ class SignatureLayer:
             scope["type"] != "http"
             or scope["method"] in UNSIGNED_METHODS
             or scope["path"] in self.unsigned_paths
+            or not self.routed(scope)
         ):
             await self.app(scope, receive, send)
             return

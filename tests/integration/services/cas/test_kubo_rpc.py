@@ -311,3 +311,29 @@ def test_version_answers_like_kubo(cas_service: ServiceProcess) -> None:
     answer = httpx.post(f"{cas_service.url}/api/v0/version").json()
     assert answer["System"] == "robocloud-cas"
     assert answer["Version"] == robocloud.__version__
+
+
+def test_a_kubo_method_cas_does_not_offer_is_not_found_not_a_missing_signature(
+    cas_service: ServiceProcess,
+) -> None:
+    """``ipfs id`` against cas was told "header X-Robocloud-Address is required", as if a
+    signature would make it work: a request no route takes is answered for what it is."""
+    for method, path, status, code in [
+        ("POST", "/api/v0/id", 404, "not_found"),
+        ("POST", "/api/v0/swarm/peers", 404, "not_found"),
+        ("DELETE", "/api/v0/add", 405, "method_not_allowed"),
+        (
+            "PUT",
+            "/ipfs/bafkreicysg23kiwv34eg2d7qweipxwosdo2py4ldv42nbauguluen5v6am",
+            405,
+            "method_not_allowed",
+        ),
+    ]:
+        answer = httpx.request(method, f"{cas_service.url}{path}")
+        error = answer.json()["error"]
+        assert (answer.status_code, error["code"]) == (status, code), path
+        if status == 404:
+            assert error["message"] == f"no route {method} {path}"
+    refused = httpx.post(f"{cas_service.url}/api/v0/add", files={"file": b"hello"})
+    assert refused.status_code == 401
+    assert refused.json()["error"]["code"] == "missing_signature_header"

@@ -366,6 +366,14 @@ def test_reads_and_unsigned_paths_pass_without_a_signature(tmp_path: Path) -> No
     assert call(app, "POST", "/rpc", content=b"{}").json()["body_bytes"] == 2
 
 
+def test_a_write_no_route_takes_goes_on_unsigned_to_the_app_s_answer(tmp_path: Path) -> None:
+    """The app answers it 404 or 405 and writes nothing; a signature would change neither."""
+    layer = signature_layer(tmp_path, echo)
+    layer.routed = lambda scope: scope["path"] != "/nowhere"
+    assert call(layer, "POST", "/nowhere", content=b"{}").json()["signer"] is None
+    error_of(call(layer, "POST", "/w", content=b"{}"), 401, "missing_signature_header")
+
+
 def test_unsigned_write_is_401_before_the_app_runs(tmp_path: Path) -> None:
     response = call(signature_layer(tmp_path, never_called), "POST", "/w", content=b"{}")
     error = error_of(response, 401, "missing_signature_header")
