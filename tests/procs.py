@@ -82,6 +82,14 @@ class ServiceProcess:
             "PYTHONUNBUFFERED": "1",
             **(env or {}),
         }
+        if name == "ledger" and not {"ROBOCLOUD_STORAGE_URL", "ROBOCLOUD_LEDGER_GRANT_ROLES"} & set(
+            env or {}
+        ):
+            # It grants the storage role to the node a test names, else to none: by default it
+            # asked 127.0.0.1:8082 at every poll, where a `make up` beside the tests answered
+            # (800 requests in one run) and its node was granted the role on the test's chain,
+            # a transaction the test never sent.
+            self.env["ROBOCLOUD_LEDGER_GRANT_ROLES"] = ""
         self.process: subprocess.Popen[bytes] | None = None
         self.log_path = data_dir.parent / f"{name}-{self.port}.log"
 
