@@ -401,7 +401,9 @@ class Transactor:
         for the same call made both be mined. One still pending after ``receipt_timeout_s``
         (its gas price fell behind the chain's base fee) is replaced, when ``before_send`` is
         given to save the replacement: the same call and nonce at a higher price
-        (:meth:`repriced`), so that at most one of them is mined. A caller that saves only
+        (:meth:`repriced`), so that at most one of them is mined; when the original is mined
+        while the replacement is being saved, the node refuses the replacement and the
+        original's receipt is the answer. A caller that saves only
         the replacement must look on chain for the call's effect before resuming, since the
         transaction it replaced may still be the one mined (the storage node's anchorer and
         publisher read ``anchorAt`` and the advertisements first).
@@ -426,7 +428,14 @@ class Transactor:
                 raise
         replacement = self.repriced(signed)
         before_send(replacement)
-        self.submit(replacement.raw)
+        try:
+            self.submit(replacement.raw)
+        except RpcError:
+            # "nonce too low": the original was mined after its wait ended, and is the answer.
+            receipt = self.receipt(signed.tx_hash)
+            if receipt is None:
+                raise
+            return receipt
         return self.wait_for_receipt(replacement.tx_hash)
 
     def repriced(self, signed: SignedTransaction) -> SignedTransaction:

@@ -48,11 +48,19 @@ def stuck(
 
 
 def mine_once_replaced(rpc: JsonRpcClient, saved: list[SignedTransaction]) -> threading.Thread:
-    """Mine one block as soon as a replacement was saved (so that either may be in it)."""
+    """Mine one block as soon as the node holds the replacement. Mined once it was saved, the
+    block took the original on a loaded machine, the replacement not yet sent (the race
+    ``test_the_original_mined_between_saving_and_sending_its_replacement_is_the_answer``
+    makes on purpose)."""
+
+    def sent() -> bool:
+        return len(saved) > 1 and (
+            rpc.request("eth_getTransactionByHash", [saved[1].tx_hash]) is not None
+        )
 
     def mine() -> None:
         deadline = time.monotonic() + 30
-        while len(saved) < 2 and time.monotonic() < deadline:
+        while not sent() and time.monotonic() < deadline:
             time.sleep(0.05)
         rpc.request("evm_mine", [])
 
@@ -83,6 +91,25 @@ def test_a_stuck_transaction_is_replaced_and_the_replacement_mined(
     sender = transactor.identity.address
     assert quantity(unmined.request("eth_getTransactionCount", [sender, "latest"])) == 1
     assert transactor.resume(original) is None  # its nonce went to the replacement
+
+
+def test_the_original_mined_between_saving_and_sending_its_replacement_is_the_answer(
+    unmined: JsonRpcClient,
+) -> None:
+    """The original is mined while its replacement is saved: the node refuses the replacement
+    ("nonce too low"), and the call did happen, by the original. That refusal was raised to
+    the caller as a failed call."""
+    transactor, saved = stuck(unmined)
+
+    def save_while_a_block_is_mined(replacement: SignedTransaction) -> None:
+        saved.append(replacement)
+        unmined.request("evm_mine", [])
+
+    receipt = transactor.resume(saved[0], before_send=save_while_a_block_is_mined)
+    original, replacement = saved
+    assert receipt is not None
+    assert (receipt.tx_hash, receipt.status) == (original.tx_hash, 1)
+    assert unmined.request("eth_getTransactionByHash", [replacement.tx_hash]) is None
 
 
 def test_without_a_place_to_save_it_no_replacement_is_signed(unmined: JsonRpcClient) -> None:
