@@ -22,11 +22,18 @@ from robocloud.cas import Cas
 from robocloud.cid import CID, parse_cid
 from robocloud.ledger import Advertised, Ledger, SignedTransaction
 from robocloud.proofs import RecordId
-from robocloud.semantic import Ingestion, TemplateCount, dataset_description, robot_iri
+from robocloud.semantic import (
+    Ingestion,
+    SemanticError,
+    TemplateCount,
+    check_bounds,
+    dataset_description,
+    robot_iri,
+)
 from services.storage.anchoring import EpochStore
 from services.storage.identity import NodeIdentity
-from services.storage.ingest import Job
-from services.storage.knowledge import KnowledgeBase, KnowledgeBaseFull
+from services.storage.ingest import DatasetUnpublishable, Job
+from services.storage.knowledge import DescriptionRefused, KnowledgeBase, KnowledgeBaseFull
 from services.storage.recordstore import RecordStore
 
 log = logging.getLogger("robocloud.storage.datasets")
@@ -80,13 +87,17 @@ class DatasetPublisher:
                 epoch=epoch,
                 tmt_root=tmt_root,
             )
-            description = dataset_description(
-                bag_cid,
-                producer=robot_iri(chain_id, str(job.author["signer"])),
-                ingestion=ingestion,
-                topics=sorted({t.topic for t in job.topics if t.template is not None}),
-                title=f"ROS bag {bag_cid}",
-            )
+            try:
+                description = dataset_description(
+                    bag_cid,
+                    producer=robot_iri(chain_id, str(job.author["signer"])),
+                    ingestion=ingestion,
+                    topics=sorted({t.topic for t in job.topics if t.template is not None}),
+                    title=f"ROS bag {bag_cid}",
+                )
+                check_bounds(description)
+            except SemanticError as exc:
+                raise DatasetUnpublishable(f"the dataset cannot be described: {exc}") from exc
             description_cid = self.cas().add_bytes(description.canonical())
             self._index(description_cid, job)
             earlier = self._advertised_before(
@@ -111,6 +122,10 @@ class DatasetPublisher:
         keeps the description pending until there is room."""
         try:
             self.knowledge.add(str(description_cid))
+        except DescriptionRefused as exc:
+            raise DatasetUnpublishable(
+                f"the knowledge base refuses the dataset's description: {exc}"
+            ) from exc
         except KnowledgeBaseFull as exc:
             log.warning(
                 "dataset description not indexed here: the knowledge base is full",

@@ -235,6 +235,12 @@ class Job:
         return cls(topics=topics, **document)
 
 
+class DatasetUnpublishable(Exception):
+    """A dataset no later attempt can publish: the node's own rules refuse its description
+    (past a bound, invalid), and they refuse it the same way each time. Its job gives up at
+    once rather than keep the bag through every retry of an outage."""
+
+
 class Publish(Protocol):
     """Describes and advertises a job's dataset once its records are committed; what it
     published, for the job's report. ``save_advertise_tx`` durably saves the advertise
@@ -753,6 +759,9 @@ class IngestJobs:
         retry_ns = None
         try:
             dataset = publish(job, _bag_in(self.root / job.id), save_advertise_tx)
+        except DatasetUnpublishable as exc:
+            dataset = {"error": str(exc)[:500]}
+            log.warning("dataset cannot be published", extra={"job": job.id, "error": str(exc)})
         except Exception as exc:
             dataset = {"error": str(exc)[:500]}
             retry_ns = self._publish_retry_ns(job)

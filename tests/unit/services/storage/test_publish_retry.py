@@ -3,13 +3,14 @@ kept until then: before, one failure left it unpublished for good and removed th
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from services.storage.ingest import Job
+from services.storage.ingest import DatasetUnpublishable, Job, Publish
 from tests.unit.services.storage.test_ingest import Node, authorship, bag
 from tests.waiting import wait_for
 
@@ -38,7 +39,7 @@ def open_node(tmp_path: Path) -> Iterator[Callable[..., Node]]:
     """A node whose jobs retry publishing as ``options`` say; closed at the end."""
     opened: list[Node] = []
 
-    def start(publisher: OutageThenUp, **options: Any) -> Node:
+    def start(publisher: Publish, **options: Any) -> Node:
         node = Node(tmp_path / "node", publish=publisher)
         node.jobs.close()
         node.jobs = node.open_jobs(**options)
@@ -100,6 +101,38 @@ def test_publishing_gives_up_after_its_attempts_and_removes_the_bag(
     assert final.to_json()["dataset"] == {"error": "cas is out (call 3)", "attempts": 3}
     assert final.status == "succeeded"
     assert publisher.calls == [(1, True), (2, True), (3, True)]
+
+
+class Refused:
+    """A publisher whose description the node's own rules refuse, as one of 257 templates."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(
+        self, job: Job, bag: Path, save_advertise_tx: Callable[[dict[str, Any]], None]
+    ) -> dict[str, Any]:
+        self.calls += 1
+        raise DatasetUnpublishable("the description has 257 record counts, more than 256")
+
+
+def test_a_description_the_node_refuses_is_not_tried_again(
+    open_node: Callable[..., Node], tmp_path: Path
+) -> None:
+    """No attempt can change the refusal: the job gives up at once and drops its bag, where it
+    kept it through eight attempts and ten minutes."""
+    publisher = Refused()
+    node = open_node(publisher, publish_retry_s=0.1)
+    job = ingest(node, tmp_path)
+    assert job.status == "succeeded"
+    assert job.to_json()["dataset"] == {
+        "error": "the description has 257 record counts, more than 256",
+        "attempts": 1,
+    }
+    assert job.publish_retry_ns is None
+    assert job_files(node, job.id) == ["job.json"]
+    time.sleep(0.5)
+    assert publisher.calls == 1
 
 
 def test_a_retry_pending_when_the_node_stopped_is_made_after_the_next_start(
