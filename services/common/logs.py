@@ -60,7 +60,11 @@ STOP_WAIT_S = 5.0
 
 
 class _LineWriter:
-    """A thread writing queued lines to ``stream`` in order; ``None`` stops it."""
+    """A thread writing queued lines to ``stream`` in order; ``None`` stops it.
+
+    Not ``logging.handlers.QueueListener``: its ``stop`` puts its sentinel without waiting
+    (``queue.Full`` on a full queue) and then joins the thread without a bound, so a process
+    whose stderr takes nothing could not exit."""
 
     def __init__(self, stream: TextIO) -> None:
         self.lines: queue.Queue[str | None] = queue.Queue(MAX_QUEUED_LINES)
