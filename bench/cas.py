@@ -2,9 +2,10 @@
 
 Prints ratios (sha256sum's time over ours: 1.0x means as fast as hashing the file once);
 the issue asks for add >= 0.5x and cat >= 1.0x. Also prints the gateway's peak RSS while it
-adds a larger file (the issue: under 300 MB for 1 GiB), ``put DIR`` of many small files:
-files per second and its ratio to adding the same bytes as one file, and ``dag/import`` of a
-CAR of new content, its root pinned and not (``pin-roots=false`` walks no DAG).
+adds a larger file (the issue: under 300 MB for 1 GiB), ``put DIR`` and ``get DIR`` of many
+small files: files per second and the ratio to the same bytes as one file, and
+``dag/import`` of a CAR of new content, its root pinned and not (``pin-roots=false`` walks no
+DAG).
 
     python bench/cas.py [--size-mib 256] [--rss-mib 1024] [--rounds 3] [--dir-files 10000]
 """
@@ -100,15 +101,26 @@ def small_files(root: Path, count: int, size: int) -> Path:
 
 def bench_directory(cas: Cas, work: Path, count: int, rounds: int) -> None:
     """``put DIR`` of ``count`` 4 KiB files against one file of the same bytes, new content
-    each round (content already stored would cost the gateway nothing)."""
-    trees = iter([small_files(work / f"tree-{n}", count, 4096) for n in range(rounds)])
-    as_directory = best_of(rounds, lambda: cas.add_directory(next(trees)))
+    each round (content already stored would cost the gateway nothing); then ``get DIR`` of
+    such a tree against ``get`` of that file."""
+    trees = [small_files(work / f"tree-{n}", count, 4096) for n in range(rounds)]
+    directories = iter(trees)
+    as_directory = best_of(rounds, lambda: cas.add_directory(next(directories)))
     singles = iter([random_file(work / f"same-{n}.bin", count * 4096) for n in range(rounds)])
     as_file = best_of(rounds, lambda: cas.add_file(next(singles)))
     print(
         f"put DIR of {count} x 4 KiB files       {as_directory:7.3f} s "
         f"{count / as_directory:8.0f} files/s   {as_file / as_directory:5.2f}x "
         f"one file of the same bytes ({as_file:.3f} s)"
+    )
+    directory, single = cas.add_directory(trees[0]), cas.add_file(work / "same-0.bin")
+    targets = iter([work / f"got-{n}" for n in range(rounds)])
+    got_directory = best_of(rounds, lambda: cas.get_tree(directory, next(targets)))
+    got_file = best_of(rounds, lambda: cas.get_to_file(single, work / "got.bin"))
+    print(
+        f"get DIR of {count} x 4 KiB files       {got_directory:7.3f} s "
+        f"{count / got_directory:8.0f} files/s   {got_file / got_directory:5.2f}x "
+        f"one file of the same bytes ({got_file:.3f} s)"
     )
 
 

@@ -30,6 +30,7 @@ from robocloud.dagpb import Link
 from robocloud.directory import (
     BuiltDirectory,
     DirectoryBuilder,
+    GetBlock,
     NotADirectory,
     PathError,
     check_name,
@@ -54,6 +55,7 @@ from robocloud.unixfs import (
     decode_node,
     file_node,
     read_car_range,
+    write_file,
 )
 
 READ_SIZE = 1 << 20
@@ -142,15 +144,52 @@ class Tree:
     size: int
 
 
-class _TreeWalk:
-    """A directory's entries fetched depth first into a local directory, within bounds."""
+class _BlocksAsWalked:
+    """A directory's CAR (``dag-scope=all``, depth first) read by a walk of the same tree.
 
-    def __init__(self, cas: Cas, progress: Progress, max_size: int, max_entries: int) -> None:
-        self.cas = cas
+    Each block the walk takes is the CAR's next one when the gateway ordered the CAR as the
+    walk goes, which it does: one request for the whole tree. A block the CAR does not hold
+    next comes from the gateway alone, verified against its CID: a block the CAR carried
+    once and a second file needs again, or every block from where a gateway orders its CAR
+    otherwise (or repeats blocks), so such a gateway costs requests, never correctness. The
+    last block taken is kept: the walk looks at an entry's root before it reads the entry.
+    """
+
+    def __init__(self, blocks: Iterator[Block], fetch: GetBlock) -> None:
+        self._blocks = blocks
+        self._fetch = fetch
+        self._head: Block | None = None
+        self._last: Block | None = None
+
+    def take(self, cid: CID) -> bytes:
+        if self._last is not None and self._last.cid == cid:
+            return self._last.data
+        if self._head is None:
+            self._head = next(self._blocks, None)
+        if self._head is not None and self._head.cid == cid:
+            block, self._head = self._head, None
+        else:
+            block = Block(cid, self._fetch(cid))
+        self._last = block
+        return block.data
+
+
+class _TreeWalk:
+    """A directory's entries written depth first into a local directory, within bounds.
+
+    A file whose CID the walk wrote before is copied from there: a CAR carries its blocks
+    once.
+    """
+
+    def __init__(
+        self, blocks: _BlocksAsWalked, progress: Progress, max_size: int, max_entries: int
+    ) -> None:
+        self.blocks = blocks
         self.progress = progress
         self.max_size = max_size
         self.max_entries = max_entries
         self.tree = Tree(0, 0, 0)
+        self._files: dict[CID, Path] = {}
 
     def directory(self, cid: CID, into: Path, depth: int) -> None:
         if depth > MAX_DAG_DEPTH:
@@ -166,7 +205,7 @@ class _TreeWalk:
         if cid.codec != DAG_PB:
             raise not_a_directory
         try:
-            yield from list_entries(cid, self.cas.block)
+            yield from list_entries(cid, self.blocks.take)
         except NotADirectory:
             raise not_a_directory from None
         except (UnixfsError, FormatError) as exc:
@@ -179,18 +218,44 @@ class _TreeWalk:
             raise CasError(f"the directory {directory}: {exc}") from None
         if target.exists():
             raise CasError(f"the directory {directory} names {link.name!r} twice")
-        left = self.max_size - self.tree.size
+        written = self._files.get(link.cid)
+        if written is not None:
+            self._copy(link.cid, written, target)
+            return
+        root = Block(link.cid, self.blocks.take(link.cid))
         try:
-            size = self.cas.get_to_file(
-                link.cid, target, self.progress, max_size=left, overwrite=False
-            )
+            _refuse_what_is_not_a_file(root)
         except NotAFileError as exc:
             if not is_directory(exc):
                 raise
             target.mkdir()
             self.directory(link.cid, target, depth + 1)
         else:
-            self._count(files=1, size=size)
+            self._file(root, target)
+
+    def _file(self, root: Block, target: Path) -> None:
+        left = self.max_size - self.tree.size
+        try:
+            declared = file_node(root.cid, root.data).size
+        except UnixfsError as exc:
+            raise CasError(f"refused the gateway's root block {root.cid}: {exc}") from exc
+        if declared > left:
+            raise ContentTooLargeError(root.cid, left, declared)
+        with written_whole(target, overwrite=False) as out:
+            capped = _CappedWriter(out, root.cid, left)
+            size = write_file(root.cid, self.blocks.take, capped, self.progress)
+        self._files[root.cid] = target
+        self._count(files=1, size=size)
+
+    def _copy(self, cid: CID, written: Path, target: Path) -> None:
+        size = written.stat().st_size
+        left = self.max_size - self.tree.size
+        if size > left:
+            raise ContentTooLargeError(cid, left, size)
+        with written.open("rb") as source, written_whole(target, overwrite=False) as out:
+            shutil.copyfileobj(source, out)
+        self.progress(size)
+        self._count(files=1, size=size)
 
     def _count(self, files: int = 0, directories: int = 0, size: int = 0) -> None:
         tree = self.tree
@@ -453,9 +518,16 @@ class Cas(ServiceClient):
             max_size = free_space_beside(path)
         partial = path.with_name(f".{path.name}.{secrets.token_hex(6)}.partial")
         partial.mkdir()
+        url = f"{self.base_url}/ipfs/{root}"
         try:
-            walk = _TreeWalk(self, progress, max_size, max_entries)
-            walk.directory(root, partial, 0)
+            with (
+                self.translate_errors("GET", url),
+                self._car_blocks(root, str(root), **{"dag-scope": "all"}) as blocks,
+            ):
+                walk = _TreeWalk(
+                    _BlocksAsWalked(blocks, self.block), progress, max_size, max_entries
+                )
+                walk.directory(root, partial, 0)
             if path.exists() or path.is_symlink():
                 raise FileExistsError(f"{path} appeared while downloading")
             partial.rename(path)
@@ -543,7 +615,7 @@ class Cas(ServiceClient):
             "GET",
             f"/ipfs/{root}",
             params={"format": "car", "dag-scope": "entity", **params},
-            headers={"Accept": CAR_MEDIA_TYPE},
+            headers={"Accept": f"{CAR_MEDIA_TYPE}; version=1; order=dfs; dups=n"},
             stream=True,
         )
         try:

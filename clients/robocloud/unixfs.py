@@ -8,12 +8,12 @@ pending link list per tree level.
 There is one reader, :func:`read_nodes`, over a source of nodes: :func:`read_file` gives it a
 block store (random access: a byte range touches only the blocks it needs, UnixFS
 ``blocksizes`` saying where each child starts), :func:`file_range_blocks` the same store
-while keeping the blocks it visits (a CAR of a byte range), :func:`assemble_file` a CAR's
-stream of blocks (the SDK's verified download) and :func:`read_car_range` a CAR of a range
-(the SDK's verified ``cat``). All therefore keep the same rules: file
-nodes only, every child the size its parent declares, no path deeper than
-:data:`MAX_DAG_DEPTH`, no more blocks visited than :func:`visit_budget` allows and no
-more bytes of blocks read than :func:`read_budget` allows.
+while keeping the blocks it visits (a CAR of a byte range), :func:`write_file` blocks taken
+in a CAR's order (the SDK's verified download, :func:`assemble_file` from one file's CAR)
+and :func:`read_car_range` a CAR of a range (the SDK's verified ``cat``). All therefore
+keep the same rules: file nodes only, every child the size its parent declares, no path
+deeper than :data:`MAX_DAG_DEPTH`, no more blocks visited than :func:`visit_budget` allows
+and no more bytes of blocks read than :func:`read_budget` allows.
 Nothing here recurses, so a hostile DAG meets a named limit, never Python's stack (which
 py_ecc lets grow to 100,000 frames, past what the C stack holds).
 """
@@ -589,23 +589,55 @@ def assemble_file(
 ) -> int:
     """Write the file ``root`` from its blocks in DFS order (a CAR's), each checked as it comes.
 
-    :func:`read_nodes` over a CAR's stream of blocks, so the rules are those of
-    :func:`read_file`: each block was hashed against its own CID by whoever produced
-    ``blocks``; the reader checks that it is the next block of *this* file's DAG, so the
-    bytes written are exactly those ``root`` commits to, with bounded memory. A CAR carries
-    a repeated block (a run of zeros) only once, so the content each node holds is
-    remembered by its place in ``out`` (which must be readable) and an inner node by its
-    block, and a repeat is replayed from there. A file of more than
-    ``max_nodes`` distinct blocks is refused. Returns the bytes written.
+    :func:`write_file` over :func:`blocks_due`: each block was hashed against its own CID by
+    whoever produced ``blocks``, and must be the next block of *this* file's DAG, so the
+    bytes written are exactly those ``root`` commits to; no block may follow the file.
+    Returns the bytes written.
     """
-    source = _CarOrder(root, blocks, out, max_nodes)
+    written = write_file(root, blocks_due(root, blocks), out, progress, max_nodes=max_nodes)
+    if next(blocks, None) is not None:
+        raise UnixfsError(f"there are blocks beyond the file {root}")
+    return written
+
+
+def write_file(
+    root: CID,
+    take: GetBlock,
+    out: BinaryIO,
+    progress: Callable[[int], object],
+    *,
+    max_nodes: int = MAX_FILE_NODES,
+) -> int:
+    """Write the file ``root`` with bounded memory, asking ``take`` for each distinct block
+    once, in the order a CAR carries them (depth first).
+
+    :func:`read_nodes`, so the rules are those of :func:`read_file`. A CAR carries a
+    repeated block (a run of zeros) only once, so the content each node holds is remembered
+    by its place in ``out`` (which must be readable) and an inner node by its block, and a
+    repeat is replayed from there rather than asked for. A file of more than ``max_nodes``
+    distinct blocks is refused. Returns the bytes written.
+    """
+    source = _CarOrder(root, take, out, max_nodes)
     for piece in read_nodes(root, source.node):
         out.write(piece)
         source.written += len(piece)
         progress(len(piece))
-    if next(blocks, None) is not None:
-        raise UnixfsError(f"there are blocks beyond the file {root}")
     return source.written
+
+
+def blocks_due(root: CID, blocks: Iterator[Block]) -> GetBlock:
+    """``blocks`` as a source that must give each block in the order it is asked for: the
+    stream a CAR of ``root`` is, read by a walk that knows which block comes next."""
+
+    def take(cid: CID) -> bytes:
+        block = next(blocks, None)
+        if block is None:
+            raise UnixfsError(f"the blocks end before block {cid} of {root}")
+        if block.cid != cid:
+            raise UnixfsError(f"block {block.cid} came where {cid} of {root} is due")
+        return bytes(block.data)
+
+    return take
 
 
 def read_car_range(
@@ -622,23 +654,19 @@ def read_car_range(
     visits for the range, in that order, a repeated one once; so each unseen block asked for
     must be the next one, and a repeat comes from what was kept. A range's edge leaves are
     only partly in the answer, which is why blocks are kept whole here rather than replayed
-    from the output as :func:`assemble_file` does; their bytes together may not pass
+    from the output as :func:`write_file` does; their bytes together may not pass
     ``max_block_bytes``. Each block was hashed against its own CID by whoever produced
     ``blocks``; the reader's rules make them this file's, and no block may follow the range.
     """
     kept: dict[CID, bytes] = {}
     kept_bytes = 0
+    take = blocks_due(root, blocks)
 
     def node_of(cid: CID) -> FileNode:
         nonlocal kept_bytes
         data = kept.get(cid)
         if data is None:
-            block = next(blocks, None)
-            if block is None:
-                raise UnixfsError(f"the blocks end before block {cid} of {root}")
-            if block.cid != cid:
-                raise UnixfsError(f"block {block.cid} came where {cid} of {root} is due")
-            data = bytes(block.data)
+            data = take(cid)
             kept_bytes += len(data)
             if kept_bytes > max_block_bytes:
                 raise UnixfsError(
@@ -664,19 +692,19 @@ class _Replay(NamedTuple):
 class _CarOrder:
     """The nodes of one file from its blocks in the order a CAR of it carries them.
 
-    The reader asks for nodes in the order it writes the file, so the next unseen node asked
-    for must be the next block, and ``written`` (kept by the caller) is where that node's
-    own content goes. A node asked for again is not in the CAR again: it is rebuilt from
+    The reader asks for nodes in the order it writes the file, so each unseen node is taken
+    as the next block, and ``written`` (kept by the caller) is where that node's own
+    content goes. A node asked for again is not in the CAR again: it is rebuilt from
     ``out`` and what is kept for it: an inner node's block, decoded again, and for a leaf one
     integer keyed by its binary CID. What is kept grows with the file's distinct nodes, so
     their number is bounded: a 6 MB file chunked by 16 bytes is 400,000 of them.
     """
 
     def __init__(
-        self, root: CID, blocks: Iterator[Block], out: BinaryIO, max_nodes: int = MAX_FILE_NODES
+        self, root: CID, take: GetBlock, out: BinaryIO, max_nodes: int = MAX_FILE_NODES
     ) -> None:
         self.root = root
-        self.blocks = blocks
+        self.take = take
         self.out = out
         self.written = 0
         self.max_nodes = max_nodes
@@ -696,19 +724,15 @@ class _CarOrder:
         return self._next_node(cid)
 
     def _next_node(self, cid: CID) -> FileNode:
-        block = next(self.blocks, None)
-        if block is None:
-            raise UnixfsError(f"the blocks end before block {cid} of {self.root}")
-        if block.cid != cid:
-            raise UnixfsError(f"block {block.cid} came where {cid} of {self.root} is due")
+        data = self.take(cid)
         if len(self._inner) + len(self._leaves) >= self.max_nodes:
             raise UnixfsError(
                 f"{self.root} has more than {self.max_nodes} distinct blocks, more than a "
                 "download keeps track of (a file chunked into tiny pieces)"
             )
-        node = file_node(cid, block.data)
+        node = file_node(cid, data)
         if node.links:
-            self._inner[cid] = _Replay(self.written, len(node.data), bytes(block.data))
+            self._inner[cid] = _Replay(self.written, len(node.data), data)
         else:
             self._leaves[cid.binary] = self.written << 32 | len(node.data)
         return node
