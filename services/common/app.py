@@ -270,6 +270,9 @@ def create_app(
     app.state.authorizer = authorizer
     app.state.audience = audience
     app.state.background = background
+    app.state.on_stop = []
+    """What to call once the process is told to stop, before uvicorn waits for the requests
+    in flight (see ``runner.serve``): a long poll answers then, not after the drain timeout."""
     app.state.readiness_checks = [audience_known, background.all_running, *readiness_checks]
     _install_error_handlers(app, COMMON_ERRORS | (errors or ErrorMap({})))
     app.include_router(_framework_router(service, settings, audience))

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from robocloud.ledger.abi import ContractAbi, DecodedLog
+from services.common.changes import Changes
 from services.common.durable import open_sqlite, write_transaction
 from services.ledger.encoding import MAX_SQLITE_INTEGER, LogEntry
 
@@ -124,6 +125,10 @@ class LogFilter:
     block_hash: bytes | None = None
 
 
+MAX_WAITERS = 256
+"""Reads waiting at once for a new block (``wait_s``); beyond, a read answers at once."""
+
+
 class IndexLimitError(Exception):
     """A query matched more logs than one answer may hold, or ran past its time."""
 
@@ -132,6 +137,8 @@ class EventIndex:
     """SQLite-backed log index and contract-state projection."""
 
     def __init__(self, path: Path, registry: str, anchor_log: str) -> None:
+        self.changes = Changes(MAX_WAITERS)
+        """Advanced by each block indexed or rewound: what a read of new events waits on."""
         self._lock = threading.Lock()
         self._db = open_sqlite(path, SCHEMA, synchronous="NORMAL")
         self._migrate()
@@ -149,6 +156,7 @@ class EventIndex:
         }
 
     def close(self) -> None:
+        self.changes.close()
         with self._reader_lock:
             self._reader.close()
         with self._lock:
@@ -183,6 +191,7 @@ class EventIndex:
             for entry in logs:
                 self._insert(entry)
             self._db.execute("INSERT OR REPLACE INTO cursor VALUES (0, ?, ?)", (number, block_hash))
+        self.changes.advance()
 
     def rewind(self, to_block: int, block_hash: bytes) -> None:
         """Forget everything after block ``to_block`` (whose hash is ``block_hash``) when an
@@ -197,6 +206,7 @@ class EventIndex:
             self._db.execute(
                 "INSERT OR REPLACE INTO cursor VALUES (0, ?, ?)", (to_block, block_hash)
             )
+        self.changes.advance()
 
     @contextmanager
     def _transaction(self) -> Iterator[None]:

@@ -204,7 +204,7 @@ class Advertisement(Protocol):
 
 class LedgerReader(Protocol):
     def advertisements(
-        self, *, since: int, after_log_index: int | None, limit: int
+        self, *, since: int, after_log_index: int | None, limit: int, wait_s: float
     ) -> list[Any]: ...
 
     def robot(self, address: str) -> Any: ...
@@ -489,9 +489,11 @@ class KnowledgeBase:
 
     # ----- the ledger follower -----
 
-    def follow(self, connect_ledger: ConnectLedger, interval_s: float, batch: int = 1000) -> None:
+    def follow(
+        self, connect_ledger: ConnectLedger, interval_s: float, wait_s: float, batch: int = 1000
+    ) -> None:
         """Start following the ledger's advertisements in a background thread."""
-        self._follower = LedgerFollower(self, connect_ledger, interval_s, batch)
+        self._follower = LedgerFollower(self, connect_ledger, interval_s, batch, wait_s)
         self._follower.start()
 
     def follow_state(self) -> dict[str, Any]:
@@ -520,15 +522,29 @@ def type_iri(value: str, field: str) -> str:
 
 
 class LedgerFollower:
-    """Polls the ledger for advertisements and indexes each advertised description once."""
+    """Reads the ledger's advertisements and indexes each advertised description once.
+
+    Each read waits on the ledger up to ``wait_s`` for a new advertisement (a long poll), so
+    a description is indexed as soon as its advertisement is mined, and an idle follower
+    asks once every ``wait_s``; at most every ``interval_s`` when the ledger answers at once
+    (one that does not wait, or one that failed). The wait is cut short when a pending
+    description's retry falls due. Stopping does not wait for a read waiting on the ledger:
+    the read's answer is dropped, as nothing of it was indexed yet.
+    """
 
     def __init__(
-        self, knowledge: KnowledgeBase, connect: ConnectLedger, interval_s: float, batch: int
+        self,
+        knowledge: KnowledgeBase,
+        connect: ConnectLedger,
+        interval_s: float,
+        batch: int,
+        wait_s: float = 0.0,
     ) -> None:
         self.knowledge = knowledge
         self.connect = connect
         self.interval_s = interval_s
         self.batch = batch
+        self.wait_s = wait_s
         self.path = knowledge.root / "follow.json"
         self.state = FollowState.load(self.path)
         self.error: str | None = None
@@ -536,6 +552,8 @@ class LedgerFollower:
         self.clock: Callable[[], float] = time.time
         """Epoch seconds, saved as each retry's due time (so that a restart keeps backoffs)."""
         self._stop = threading.Event()
+        self._indexing = threading.Lock()
+        """Held while a round indexes what it read: ``stop`` waits for that, not for a read."""
         self._thread = threading.Thread(target=self._run, name="knowledge-follower", daemon=True)
 
     def start(self) -> None:
@@ -543,7 +561,8 @@ class LedgerFollower:
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=30)
+        with self._indexing:
+            pass
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -558,18 +577,26 @@ class LedgerFollower:
 
     def _run(self) -> None:
         while not self._stop.is_set():
+            started = time.monotonic()
             try:
-                more = self.poll()
+                more = self.poll(self.read_wait_s())
                 self.error = None
             except Exception as exc:  # the ledger or cas is down: say so, try again later
                 self.error = f"{type(exc).__name__}: {exc}"[:500]
                 log.warning("following the ledger's advertisements failed: %s", self.error)
                 more = False
             if not more:
-                self._stop.wait(self.interval_s)
+                self._stop.wait(max(0.0, self.interval_s - (time.monotonic() - started)))
 
-    def poll(self) -> bool:
-        """One round: read new advertisements, then retry the pending descriptions that are due.
+    def read_wait_s(self) -> float:
+        """``wait_s``, or less when a pending description's retry falls due sooner."""
+        retries = self.state.retries
+        dues = [retries[cid].due if cid in retries else 0.0 for cid in self.state.pending or []]
+        return max(0.0, min([self.wait_s, *(due - self.clock() for due in dues)]))
+
+    def poll(self, wait_s: float = 0.0) -> bool:
+        """One round: read new advertisements (waiting up to ``wait_s`` for one), then retry
+        the pending descriptions that are due.
 
         The position moves past an advertisement only once its description is indexed,
         refused or pending, so that no error while indexing one loses it. New advertisements
@@ -581,21 +608,30 @@ class LedgerFollower:
         advertisements than a batch is read in several.
         """
         state = self.state
-        state.pending, state.refused = state.pending or [], state.refused or {}
         with self.connect() as ledger:
             advertisements = ledger.advertisements(
                 since=state.block,
                 after_log_index=state.log_index if state.log_index >= 0 else None,
                 limit=self.batch,
+                wait_s=wait_s,
             )
-            nodes = _storage_nodes(
-                ledger,
-                {
-                    ad.advertiser
-                    for ad in advertisements
-                    if ad.description is not None and ad.description not in self.knowledge
-                },
-            )
+            with self._indexing:
+                if self._stop.is_set():
+                    return False
+                return self._take(ledger, advertisements)
+
+    def _take(self, ledger: LedgerReader, advertisements: list[Any]) -> bool:
+        """Index what a read brought and retry what is due; see :meth:`poll`."""
+        state = self.state
+        state.pending, state.refused = state.pending or [], state.refused or {}
+        nodes = _storage_nodes(
+            ledger,
+            {
+                ad.advertiser
+                for ad in advertisements
+                if ad.description is not None and ad.description not in self.knowledge
+            },
+        )
         with _RoundCas(self.knowledge.connect_cas) as cas:
             progressed = False
             for ad in advertisements:

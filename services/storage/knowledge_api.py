@@ -244,7 +244,7 @@ async def knowledge_running(app: FastAPI, settings: StorageSettings) -> AsyncIte
             with LedgerService(settings.ledger_url) as ledger:
                 yield ledger
 
-        knowledge.follow(connect_ledger, settings.knowledge_poll_s)
+        knowledge.follow(connect_ledger, settings.knowledge_poll_s, settings.knowledge_wait_s)
     try:
         yield
     finally:

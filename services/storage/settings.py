@@ -10,6 +10,7 @@ from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 
+from robocloud.ledger.client import MAX_WAIT_S
 from services.common.settings import ServiceSettings
 from services.storage.ingest import (
     KEEP_RESUMABLE_S,
@@ -100,7 +101,15 @@ class StorageSettings(ServiceSettings):
         default=True, description="index descriptions advertised on the ledger"
     )
     knowledge_poll_s: float = Field(
-        default=2.0, gt=0, description="how often the ledger's advertisements are read"
+        default=2.0,
+        gt=0,
+        description="the least time between two reads of the ledger's advertisements",
+    )
+    knowledge_wait_s: float = Field(
+        default=20.0,
+        ge=0,
+        le=MAX_WAIT_S,
+        description="how long one read waits on the ledger for a new advertisement",
     )
 
     def node_passphrase(self) -> str | None:

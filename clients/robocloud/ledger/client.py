@@ -51,6 +51,11 @@ from robocloud.ledger.transactions import (
     quantity,
 )
 
+MAX_WAIT_S = 25.0
+"""The longest a read of the ledger's advertisements may wait for a new one (``wait_s``):
+under this client's default read timeout (30 s), and under what proxies commonly allow an
+answer to take."""
+
 
 @dataclass(frozen=True)
 class ContractAddresses:
@@ -158,16 +163,23 @@ class LedgerService(ServiceClient):
         cid: str | None = None,
         advertiser: str | None = None,
         after_log_index: int | None = None,
+        wait_s: float = 0,
     ) -> list[IndexedAdvertisement]:
         """``GET /v1/advertisements``: Advertised events from block ``since`` on, oldest first;
         with ``after_log_index``, block ``since``'s only past that log index (the position of
         the last event read, so that a reader gets past a block with more than ``limit``).
+        With ``wait_s`` (at most ``MAX_WAIT_S``), a long poll: when there are none yet, the
+        ledger answers as soon as a block brings one, else with none after ``wait_s``.
 
         An answer with more than ``limit`` events, events out of order or not past the
         position asked for, or a malformed event is an ``InvalidAnswerError``: a follower
         that trusted it could skip advertisements for good.
         """
-        params: dict[str, str | int] = {"since": since, "limit": limit}
+        if not 0 <= wait_s <= MAX_WAIT_S:
+            raise ValueError(f"wait_s must be between 0 and {MAX_WAIT_S:g} s, not {wait_s}")
+        params: dict[str, str | int | float] = {"since": since, "limit": limit}
+        if wait_s:
+            params["wait_s"] = wait_s
         if after_log_index is not None:
             params["after_log_index"] = after_log_index
         if cid is not None:

@@ -2,14 +2,26 @@
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
 import pytest
 
+from robocloud.cid import CID
 from robocloud.identity import Identity
-from tests.integration.services.ledger.conftest import Service, faucet, head, rpc, start_ledger
+from robocloud.ledger import LedgerService
+from tests.integration.services.ledger.conftest import (
+    RobotFactory,
+    Service,
+    faucet,
+    head,
+    rpc,
+    start_ledger,
+)
+
+WAITED_FOR = "bafkreihdwdcefgh4dqkjv67uzcmw7ojee6xedzdetojuzjevtenxquvyku"
 
 
 def _balance(service: Service, address: str) -> int:
@@ -138,3 +150,48 @@ def test_a_position_that_is_not_a_log_index_is_refused_naming_it(
     )
     assert response.status_code == 422, response.text
     assert response.json()["error"]["details"]["errors"][0]["field"] == "query.after_log_index"
+
+
+def test_a_read_of_advertisements_waits_for_the_next_one(
+    service: Service, robot: RobotFactory
+) -> None:
+    """A follower asked every 2 s and found nothing most of the time (a line in the ledger's
+    log each time, forever). With ``wait_s`` the read waits for the block that brings an
+    advertisement and answers with it; with none, it answers empty once ``wait_s`` is over."""
+    advertiser = robot()
+    since = int(head(service.url)["number"]) + 1
+    with LedgerService(service.url) as reader, ThreadPoolExecutor(1) as pool:
+        waiting = pool.submit(reader.advertisements, since=since, wait_s=25)
+        time.sleep(0.5)  # the read is waiting: old ledgers answered it at once, empty
+        advertised = advertiser.advertise(CID.decode(WAITED_FOR).binary)
+        answer = waiting.result()
+        assert [(ad.tx_hash, ad.cid) for ad in answer] == [(advertised.tx_hash, WAITED_FOR)]
+
+        started = time.monotonic()
+        assert reader.advertisements(since=advertised.block_number + 1, wait_s=0.5) == []
+        assert time.monotonic() - started >= 0.5
+
+
+@pytest.mark.parametrize("value", ["-1", "25.5", "soon", "nan"])
+def test_a_wait_out_of_bounds_is_refused_naming_it(service: Service, value: str) -> None:
+    response = httpx.get(f"{service.url}/v1/advertisements", params={"wait_s": value})
+    assert response.status_code == 422, response.text
+    assert response.json()["error"]["details"]["errors"][0]["field"] == "query.wait_s"
+    with LedgerService(service.url) as reader, pytest.raises(ValueError, match="wait_s"):
+        reader.advertisements(wait_s=30)
+
+
+def test_a_waiting_read_is_answered_when_the_ledger_stops(tmp_path: Path) -> None:
+    """uvicorn lets the requests in flight finish before the app hears of a stop, 5 s at
+    most, then drops them: a waiting read is answered, empty, as soon as the ledger is told
+    to stop, and the ledger stops without waiting for it."""
+    process = start_ledger(tmp_path / "data")
+    try:
+        since = int(head(process.url)["number"]) + 1
+        with LedgerService(process.url, retries=0) as reader, ThreadPoolExecutor(1) as pool:
+            waiting = pool.submit(reader.advertisements, since=since, wait_s=25)
+            time.sleep(0.5)
+            process.stop()
+            assert waiting.result() == []
+    finally:
+        process.stop()

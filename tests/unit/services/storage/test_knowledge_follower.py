@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -54,6 +55,7 @@ class Ledger:
     def __init__(self) -> None:
         self.ads: list[Ad] = []
         self.roles: dict[str, tuple[str, ...]] = {}
+        self.waits: list[float] = []
 
     def robot(self, address: str) -> Robot | None:
         """As ``GET /v1/robots/{address}`` answers: None for one never registered."""
@@ -61,9 +63,11 @@ class Ledger:
         return None if roles is None else Robot(roles)
 
     def advertisements(
-        self, *, since: int, limit: int, after_log_index: int | None = None
+        self, *, since: int, limit: int, after_log_index: int | None = None, wait_s: float = 0
     ) -> list[Ad]:
-        """As the ledger's ``GET /v1/advertisements`` answers (the index's query)."""
+        """As the ledger's ``GET /v1/advertisements`` answers (the index's query), the wait
+        asked for noted and not waited."""
+        self.waits.append(wait_s)
         position = (since, -1 if after_log_index is None else after_log_index)
         return [ad for ad in self.ads if (ad.block_number, ad.log_index) > position][:limit]
 
@@ -125,7 +129,7 @@ def clock() -> Clock:
 
 
 def follower_of(
-    kb: KnowledgeBase, ledger: Ledger, clock: Clock, batch: int = 1000
+    kb: KnowledgeBase, ledger: Ledger, clock: Clock, batch: int = 1000, wait_s: float = 0.0
 ) -> LedgerFollower:
     """A follower of ``ledger`` feeding ``kb``, on ``clock``; a new one is a restart."""
 
@@ -133,7 +137,7 @@ def follower_of(
     def connect_ledger() -> Iterator[Ledger]:
         yield ledger
 
-    follower = LedgerFollower(kb, connect_ledger, 10.0, batch)
+    follower = LedgerFollower(kb, connect_ledger, 10.0, batch, wait_s)
     follower.clock = clock
     return follower
 
@@ -341,3 +345,66 @@ def test_a_place_saved_before_retries_were_kept_still_loads(tmp_path: Path) -> N
     assert FollowState.load(path) == FollowState(7, 2, ["bafyold"], {"x": "why"}, {})
     FollowState(7, 2, ["bafyold"], {}, {"bafyold": Retry(3, 12.5)}).save(path)
     assert FollowState.load(path).retries == {"bafyold": Retry(3, 12.5)}
+
+
+def test_a_read_waits_on_the_ledger_until_a_pending_retry_falls_due(
+    tmp_path: Path, cas: Cas, ledger: Ledger, clock: Clock
+) -> None:
+    """The follower asked the ledger every 2 s; it now asks it to wait for the next
+    advertisement, no longer than until the next pending description is due again."""
+    missing = bogus_cid(1)
+    follower = follower_of(knowledge_base(tmp_path, cas), ledger, clock, wait_s=20)
+    assert follower.read_wait_s() == 20
+    ledger.ads.append(Ad(1, 0, missing))
+    follower.poll(follower.read_wait_s())
+    due = follower.state.retries[missing].due
+    assert follower.read_wait_s() == pytest.approx(due - clock.now)
+    assert 0 < follower.read_wait_s() < 20
+    clock.now = due + 1
+    assert follower.read_wait_s() == 0
+    assert ledger.waits == [20]
+
+
+class WaitingLedger(Ledger):
+    """A ledger whose read of advertisements waits until ``answer`` is set (10 s at most)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reading = threading.Event()
+        self.answer = threading.Event()
+
+    def advertisements(
+        self, *, since: int, limit: int, after_log_index: int | None = None, wait_s: float = 0
+    ) -> list[Ad]:
+        self.reading.set()
+        self.answer.wait(10)
+        return super().advertisements(
+            since=since, limit=limit, after_log_index=after_log_index, wait_s=wait_s
+        )
+
+
+def test_stopping_does_not_wait_for_a_read_waiting_on_the_ledger(tmp_path: Path, cas: Cas) -> None:
+    """A read may wait on the ledger for 20 s; the storage node stopping waited for it (and a
+    follower of a ledger that never answered held the stop 30 s). It stops at once now, and
+    what the read brings afterwards is dropped, not indexed into a closed knowledge base."""
+    ledger = WaitingLedger()
+
+    @contextmanager
+    def connect_ledger() -> Iterator[Ledger]:
+        yield ledger
+
+    kb = knowledge_base(tmp_path, cas)
+    kb.follow(connect_ledger, 0.05, 20)
+    assert ledger.reading.wait(10)
+    ledger.ads.append(Ad(1, 0, cas.put("file")))
+
+    kb.close()
+
+    assert not ledger.answer.is_set()
+    ledger.answer.set()
+    follower = kb._follower
+    assert follower is not None
+    follower._thread.join(10)
+    assert not follower._thread.is_alive()
+    assert (follower.state.block, len(kb)) == (0, 0)
+    assert not (kb.root / "follow.json").exists()
