@@ -174,11 +174,21 @@ class _BlocksAsWalked:
         return block.data
 
 
+@dataclass(frozen=True)
+class _Written:
+    """An entry the walk wrote: where, what it holds (itself, or a directory's whole
+    subtree) and at which depth, so that a copy stays within the depth bound."""
+
+    path: Path
+    holds: Tree
+    depth: int
+
+
 class _TreeWalk:
     """A directory's entries written depth first into a local directory, within bounds.
 
-    A file whose CID the walk wrote before is copied from there: a CAR carries its blocks
-    once.
+    An entry whose CID the walk wrote before (a file, or a directory, no deeper than it was)
+    is copied from there: a CAR carries its blocks once.
     """
 
     def __init__(
@@ -189,7 +199,7 @@ class _TreeWalk:
         self.max_size = max_size
         self.max_entries = max_entries
         self.tree = Tree(0, 0, 0)
-        self._files: dict[CID, Path] = {}
+        self._written: dict[CID, _Written] = {}
 
     def directory(self, cid: CID, into: Path, depth: int) -> None:
         if depth > MAX_DAG_DEPTH:
@@ -218,10 +228,11 @@ class _TreeWalk:
             raise CasError(f"the directory {directory}: {exc}") from None
         if target.exists():
             raise CasError(f"the directory {directory} names {link.name!r} twice")
-        written = self._files.get(link.cid)
-        if written is not None:
+        written = self._written.get(link.cid)
+        if written is not None and depth <= written.depth:
             self._copy(link.cid, written, target)
             return
+        before = self.tree
         root = Block(link.cid, self.blocks.take(link.cid))
         try:
             _refuse_what_is_not_a_file(root)
@@ -232,6 +243,11 @@ class _TreeWalk:
             self.directory(link.cid, target, depth + 1)
         else:
             self._file(root, target)
+        now = self.tree
+        holds = Tree(
+            now.files - before.files, now.directories - before.directories, now.size - before.size
+        )
+        self._written[link.cid] = _Written(target, holds, depth)
 
     def _file(self, root: Block, target: Path) -> None:
         left = self.max_size - self.tree.size
@@ -244,18 +260,20 @@ class _TreeWalk:
         with written_whole(target, overwrite=False) as out:
             capped = _CappedWriter(out, root.cid, left)
             size = write_file(root.cid, self.blocks.take, capped, self.progress)
-        self._files[root.cid] = target
         self._count(files=1, size=size)
 
-    def _copy(self, cid: CID, written: Path, target: Path) -> None:
-        size = written.stat().st_size
+    def _copy(self, cid: CID, written: _Written, target: Path) -> None:
+        holds = written.holds
         left = self.max_size - self.tree.size
-        if size > left:
-            raise ContentTooLargeError(cid, left, size)
-        with written.open("rb") as source, written_whole(target, overwrite=False) as out:
-            shutil.copyfileobj(source, out)
-        self.progress(size)
-        self._count(files=1, size=size)
+        if holds.size > left:
+            raise ContentTooLargeError(cid, left, holds.size)
+        self._count(holds.files, holds.directories, holds.size)
+        if written.path.is_dir():
+            shutil.copytree(written.path, target)
+        else:
+            with written.path.open("rb") as source, written_whole(target, overwrite=False) as out:
+                shutil.copyfileobj(source, out)
+        self.progress(holds.size)
 
     def _count(self, files: int = 0, directories: int = 0, size: int = 0) -> None:
         tree = self.tree

@@ -195,14 +195,15 @@ def test_get_fetches_a_whole_tree_in_one_request(
 ) -> None:
     """A directory of 40 files came back as 80 requests (each file's root block, then its
     CAR): 2.2 s for 1,000 files on loopback, far longer to a distant gateway. One CAR of the
-    whole tree now brings it. A file the tree holds twice is in that CAR once and is copied
-    from the first; a block the CAR carried once and the walk needs again (the empty
-    directory, twice in the tree) is fetched alone."""
+    whole tree now brings it. An entry the tree holds twice (a file, a directory, an empty
+    one) is in that CAR once and is copied from the first; a block the CAR carried once and
+    another file needs again (a chunk two files share) is fetched alone."""
+    shared = bytes(range(256)) * 1024  # one chunk
     files = {f"a/file-{n:02d}.txt": f"file {n}\n".encode() * (n + 1) for n in range(40)}
-    files |= {"b/same.bin": bytes(range(256)) * 1200, "c/copy.bin": bytes(range(256)) * 1200}
+    files |= {"b/same.bin": shared + b"b", "c/same.bin": shared + b"b", "d/other.bin": shared}
     root = write_tree(tmp_path / "tree", files)
     (root / "a" / "empty").mkdir()
-    (root / "d").mkdir()
+    (root / "e").mkdir()
     directory = cas.add_directory(root)
     counting = CountingTransport()
 
@@ -210,12 +211,30 @@ def test_get_fetches_a_whole_tree_in_one_request(
         tree = client.get_tree(directory, tmp_path / "out")
 
     assert tree_of(tmp_path / "out") == tree_of(root)
-    assert (tree.files, tree.directories) == (42, 6)
+    assert (tree.files, tree.directories) == (43, 7)
     assert tree.size == sum(len(data) for data in files.values())
     assert counting.sent == [
         f"/ipfs/{directory}?format=car&dag-scope=all",
-        f"/ipfs/{EMPTY_DIRECTORY}?format=raw",
+        f"/ipfs/{CID.from_block(shared)}?format=raw",
     ]
+
+
+def test_a_copied_entry_counts_against_the_bounds(cas: Cas, tmp_path: Path) -> None:
+    """What a copy holds is counted as if it had been fetched: a directory held twice does
+    not pass the entry bound or the size bound by being copied."""
+    files = {"a/one.bin": b"1" * 1000, "a/two.bin": b"2" * 1000, "b/x.txt": b"x"}
+    root = write_tree(
+        tmp_path / "tree", files | {"c/one.bin": b"1" * 1000, "c/two.bin": b"2" * 1000}
+    )
+    directory = cas.add_directory(root)
+    with pytest.raises(CasError, match="more than 8 entries"):
+        cas.get_tree(directory, tmp_path / "out", max_entries=8)
+    with pytest.raises(ContentTooLargeError, match="declares 2000 bytes, more than .* 1999 bytes"):
+        cas.get_tree(directory, tmp_path / "out", max_size=4000)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["tree"]
+    assert cas.get_tree(directory, tmp_path / "out", max_entries=9, max_size=4001) == Tree(
+        5, 4, 4001
+    )
 
 
 LIED_TREE = {
