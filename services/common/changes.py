@@ -36,10 +36,12 @@ class Changes:
         return self._version
 
     def advance(self) -> None:
-        """Something changed: wake every wait (from any thread)."""
+        """Something changed: wake every wait (from any thread). A wait that begins meanwhile
+        sees the new version once it is registered, so none is missed when none is woken."""
         with self._lock:
             self._version += 1
-        self._wake()
+        if self._waiters:
+            self._wake()
 
     def close(self) -> None:
         """Answer every wait now and each one after it at once (from any thread, or a signal

@@ -521,6 +521,9 @@ def type_iri(value: str, field: str) -> str:
         raise InvalidTypeParameter(field, value) from None
 
 
+STOP_TIMEOUT_S = 30.0
+
+
 class LedgerFollower:
     """Reads the ledger's advertisements and indexes each advertised description once.
 
@@ -560,9 +563,11 @@ class LedgerFollower:
         self._thread.start()
 
     def stop(self) -> None:
+        """Stop, letting a round that is indexing finish, for ``STOP_TIMEOUT_S`` at most: a
+        round of many fetches from a slow cas may take longer."""
         self._stop.set()
-        with self._indexing:
-            pass
+        if self._indexing.acquire(timeout=STOP_TIMEOUT_S):
+            self._indexing.release()
 
     def describe(self) -> dict[str, Any]:
         return {
