@@ -34,15 +34,14 @@ class _Server(uvicorn.Server):
     """uvicorn's server, calling the app's ``on_stop`` callbacks when a signal stops it:
     uvicorn drains the requests in flight before the app's lifespan hears of the stop."""
 
+    def __init__(self, config: uvicorn.Config, on_stop: list[Callable[[], None]]) -> None:
+        super().__init__(config)
+        self.on_stop = on_stop
+
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         super().handle_exit(sig, frame)
-        for callback in self._on_stop:
+        for callback in list(self.on_stop):
             callback()
-
-    @property
-    def _on_stop(self) -> list[Callable[[], None]]:
-        app = self.config.app
-        return list(getattr(app.state, "on_stop", [])) if isinstance(app, FastAPI) else []
 
 
 def serve(app: FastAPI, settings: ServiceSettings) -> None:
@@ -71,7 +70,7 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
         server_header=False,
         timeout_graceful_shutdown=5,
     )
-    _Server(config).run()
+    _Server(config, app.state.on_stop).run()
 
 
 def run_service(
