@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import anyio
 import httpx
 import pytest
 
 from robocloud.cid import CID
 from robocloud.identity import Identity
 from robocloud.ledger import LedgerService
+from services.ledger.index import MAX_WAITERS
 from tests.integration.services.ledger.conftest import (
     RobotFactory,
     Service,
@@ -195,3 +198,41 @@ def test_a_waiting_read_is_answered_when_the_ledger_stops(tmp_path: Path) -> Non
             assert waiting.result() == []
     finally:
         process.stop()
+
+
+def test_reads_past_the_waiting_bound_answer_at_once_and_the_ledger_goes_on(
+    service: Service, robot: RobotFactory
+) -> None:
+    """A waiting read holds a connection and nothing else (no thread): past 256 at once, a
+    read answers at once as if it had not asked to wait, and the ledger answers other
+    requests while they wait."""
+    advertiser = robot()
+    since = int(head(service.url)["number"]) + 1
+    extra = 10
+
+    async def read(client: httpx.AsyncClient) -> list[dict[str, object]]:
+        answer = await client.get("/v1/advertisements", params={"since": since, "wait_s": 25})
+        assert answer.status_code == 200, answer.text
+        rows: list[dict[str, object]] = answer.json()["advertisements"]
+        return rows
+
+    async def crowd() -> tuple[list[list[dict[str, object]]], list[list[dict[str, object]]]]:
+        limits = httpx.Limits(max_connections=MAX_WAITERS + extra)
+        async with httpx.AsyncClient(base_url=service.url, limits=limits, timeout=60) as client:
+            reads = [asyncio.create_task(read(client)) for _ in range(MAX_WAITERS + extra)]
+            with anyio.fail_after(20):
+                while sum(task.done() for task in reads) < extra:
+                    await asyncio.sleep(0.05)
+            await asyncio.sleep(0.5)
+            early = [task.result() for task in reads if task.done()]
+            latest = await client.get("/v1/blocks/latest")
+            assert int(latest.json()["number"]) == since - 1
+            await anyio.to_thread.run_sync(advertiser.advertise, CID.decode(WAITED_FOR).binary)
+            with anyio.fail_after(20):
+                answered = await asyncio.gather(*reads)
+            return early, [rows for rows in answered if rows]
+
+    early, woken = anyio.run(crowd)
+    assert early == [[]] * extra
+    assert len(woken) == MAX_WAITERS
+    assert {rows[0]["cid"] for rows in woken} == {WAITED_FOR}
