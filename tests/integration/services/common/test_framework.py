@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -30,7 +33,7 @@ from robocloud.identity import Identity
 from robocloud.signing import EMPTY_SHA256, sign_request
 from tests.conftest import ServiceFactory
 from tests.integration.services.common.test_hostile_requests import serving_line
-from tests.procs import ServiceProcess
+from tests.procs import REPO, ServiceProcess
 
 BODY = b'{"challenge":"c-1"}'
 LIMIT = 4096
@@ -317,3 +320,23 @@ def test_each_service_starts_and_answers_whoami(
             "auth": "signed",
             "challenge": None,
         }
+
+
+def test_a_service_that_cannot_start_exits_with_a_failure(tmp_path: Path) -> None:
+    """On a port another socket holds, uvicorn cannot start: the process says so by its exit
+    code (3, uvicorn's), so that a supervisor or a container restarts it or reports it, not
+    0 as if it had been stopped. The runner serves through its own ``uvicorn.Server``, no
+    longer ``uvicorn.run``, which checked that too."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        service = ServiceProcess("cas", tmp_path / "data", port=taken.getsockname()[1])
+        process = subprocess.run(
+            [sys.executable, "-m", "services.cas"],
+            env=service.env,
+            cwd=REPO,
+            capture_output=True,
+            timeout=60,
+        )
+    assert process.returncode == 3, process.stderr.decode()[-2000:]
+    assert b"address already in use" in process.stderr.lower()
