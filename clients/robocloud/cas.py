@@ -30,7 +30,6 @@ from robocloud.dagpb import Link
 from robocloud.directory import (
     BuiltDirectory,
     DirectoryBuilder,
-    GetBlock,
     NotADirectory,
     PathError,
     check_name,
@@ -48,6 +47,7 @@ from robocloud.unixfs import (
     PROFILES,
     READ_ALLOWANCE,
     SYMLINK,
+    GetBlock,
     Importer,
     ImportParams,
     UnixfsError,

@@ -20,7 +20,7 @@ sum over entries of ``len(name) + len(cid bytes)``, or, for the ``unixfs-v1-2025
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import mmh3
@@ -32,6 +32,7 @@ from robocloud.unixfs import (
     HAMT_SHARD,
     MAX_DAG_DEPTH,
     MURMUR3_X64_64,
+    GetBlock,
     UnixfsData,
     UnixfsError,
     decode_node,
@@ -46,8 +47,6 @@ HASH_BITS = 64
 (no rehash, unlike js-ipfs-unixfs), so neither building nor resolving goes deeper."""
 MAX_NAME_BYTES = 255
 """What POSIX file systems allow for one path segment; longer names are refused."""
-
-GetBlock = Callable[[CID], bytes]
 
 
 class PathError(UnixfsError):

@@ -19,11 +19,12 @@ from pathlib import Path
 from robocloud.car import ByteSource, CarError, CarReader, write_car
 from robocloud.cid import CID, DAG_PB, IDENTITY, RAW, Block
 from robocloud.dagpb import Link
-from robocloud.directory import GetBlock, PathError, Resolved, list_entries, resolve
+from robocloud.directory import PathError, Resolved, list_entries, resolve
 from robocloud.unixfs import (
     FILE,
     LINKING_CODECS,
     RAW_TYPE,
+    GetBlock,
     UnixfsError,
     decode_node,
     file_range_blocks,
