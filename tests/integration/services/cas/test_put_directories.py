@@ -206,6 +206,7 @@ def test_get_fetches_a_whole_tree_in_one_request(
     (root / "a" / "empty").mkdir()
     (root / "e").mkdir()
     directory = cas.add_directory(root)
+    assert str(directory) == reference_cid(root)
     counting = CountingTransport()
 
     with Cas(cas_service.url, retries=0, transport=counting) as client:
