@@ -3,9 +3,9 @@
 Prints ratios (sha256sum's time over ours: 1.0x means as fast as hashing the file once);
 the issue asks for add >= 0.5x and cat >= 1.0x. Also prints the gateway's peak RSS while it
 adds a larger file (the issue: under 300 MB for 1 GiB), ``put DIR`` and ``get DIR`` of many
-small files: files per second and the ratio to the same bytes as one file, and
+small files: files per second and the ratio to the same bytes as one file,
 ``dag/import`` of a CAR of new content, its root pinned and not (``pin-roots=false`` walks no
-DAG).
+DAG), and ``robocloud get`` of a small file, start included.
 
     python bench/cas.py [--size-mib 256] [--rss-mib 1024] [--rounds 3] [--dir-files 10000]
 """
@@ -124,6 +124,22 @@ def bench_directory(cas: Cas, work: Path, count: int, rounds: int) -> None:
     )
 
 
+def bench_cli_get(cas: Cas, work: Path, rounds: int) -> None:
+    """``robocloud get`` of a 4 KiB file, run as a robot's script runs it: a fresh process
+    each time, so the command's start (its imports) counts; against an empty interpreter's
+    start and the SDK's get of the same file in this process."""
+    cid = cas.add_bytes(os.urandom(4096))
+    command = [str(Path(sys.executable).with_name("robocloud")), "get", str(cid), "--force"]
+    command += ["-o", str(work / "cli-got.bin"), "--cas", cas.base_url]
+    cli = best_of(rounds, lambda: subprocess.run(command, check=True, capture_output=True))
+    empty = best_of(rounds, lambda: subprocess.run([sys.executable, "-c", "pass"], check=True))
+    in_process = best_of(rounds, lambda: cas.get_to_file(cid, work / "sdk-got.bin"))
+    print(
+        f"CLI get of a 4 KiB file              {cli:7.3f} s   {cli / empty:5.1f}x an empty "
+        f"python start ({empty:.3f} s); the SDK's get in process {in_process:.4f} s"
+    )
+
+
 def new_car_body(size: int) -> tuple[bytes, str]:
     """A ``dag/import`` body: one CAR of ``size`` new random bytes as kubo chunks them."""
     blocks, root = import_bytes(os.urandom(size))
@@ -188,6 +204,7 @@ def main() -> None:
             print(f"gateway peak RSS after the runs above: {rss:.0f} MiB")
             bench_import(service.url, size, args.rounds, baseline)
             bench_directory(cas, work, args.dir_files, args.rounds)
+            bench_cli_get(cas, work, args.rounds)
         large = random_file(work / "large.bin", args.rss_mib * MIB)
         data.unlink()
         fresh = ServiceProcess("cas", work / "cas-rss", {"ROBOCLOUD_LOG_LEVEL": "WARNING"})

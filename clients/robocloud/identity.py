@@ -11,8 +11,6 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from eth_utils.address import to_checksum_address
-
 from robocloud import bounded_json
 from robocloud.bounded_json import JsonError
 from robocloud.errors import KeystoreError
@@ -102,6 +100,8 @@ class Identity:
         address = keystore.get("address")
         if not isinstance(address, str):
             raise KeystoreError(f"{path} has no address field")
+        from eth_utils.address import to_checksum_address  # on first use, as in _account
+
         try:
             return str(to_checksum_address("0x" + address.removeprefix("0x")))
         except ValueError as exc:

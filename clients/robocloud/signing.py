@@ -20,8 +20,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qsl, quote, unquote
 
-from eth_utils.address import to_checksum_address
-
 from robocloud import bounded_json
 from robocloud.errors import FormatError, SignatureError
 
@@ -336,4 +334,4 @@ def verify_request(
             "signature does not match the request and the address header",
             HEADER_SIGNATURE,
         )
-    return VerifiedRequest(to_checksum_address(address), timestamp, nonce, content_sha256, audience)
+    return VerifiedRequest(recovered, timestamp, nonce, content_sha256, audience)

@@ -9,8 +9,10 @@ keeps ``docs/cli.md`` in step.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import TYPE_CHECKING
 
 from rich.text import Text
 
@@ -27,13 +29,9 @@ from robocloud.errors import (
     TransportError,
     TransportTimeoutError,
 )
-from robocloud.ledger.errors import (
-    FeeLimitError,
-    RevertError,
-    RpcError,
-    TransactionMismatchError,
-    TransactionTimeoutError,
-)
+
+if TYPE_CHECKING:
+    from robocloud.ledger.errors import RevertError, RpcError
 
 MAX_MESSAGE = 400
 """Characters of a message printed; a hostile service may answer a megabyte of text."""
@@ -104,29 +102,14 @@ def failure_of(exc: BaseException) -> Failure:
         return _transport(exc)
     if isinstance(exc, ApiError):
         return _api(exc)
-    if isinstance(exc, RpcError):
-        return Failure(ExitCode.REFUSED, str(exc), _rpc_hint(exc))
-    if isinstance(exc, RevertError):
-        return Failure(ExitCode.REFUSED, str(exc), _revert_hint(exc))
-    if isinstance(exc, TransactionTimeoutError):
-        return Failure(
-            ExitCode.UNAVAILABLE, str(exc), "it may still be mined; look the hash up later"
-        )
+    ledger = _ledger_failure(exc)
+    if ledger is not None:
+        return ledger
     if isinstance(exc, RedirectError):
         return Failure(
             ExitCode.INVALID_ANSWER,
             str(exc),
             "if the service moved, point its ROBOCLOUD_*_URL (or URL option) at where it is now",
-        )
-    if isinstance(exc, FeeLimitError):
-        return Failure(
-            ExitCode.ERROR, str(exc), "raise that limit only for a node and a chain you trust"
-        )
-    if isinstance(exc, TransactionMismatchError):
-        return Failure(
-            ExitCode.INVALID_ANSWER,
-            str(exc),
-            f"the transaction was sent and may be mined: look {exc.tx_hash} up on a node you trust",
         )
     if isinstance(exc, NoSuchPathError):
         return Failure(ExitCode.USAGE, str(exc), "name a path the directory holds")
@@ -145,6 +128,44 @@ def failure_of(exc: BaseException) -> Failure:
             "nothing was written; the service is broken or is not a robocloud service",
         )
     return Failure(ExitCode.ERROR, str(exc) or type(exc).__name__)
+
+
+def _ledger_failure(exc: BaseException) -> Failure | None:
+    """The failure for one of the ledger's errors, or None for any other exception.
+
+    A command that never loaded the ledger cannot have raised its errors, and importing them
+    here would load the ledger package and its eth-abi (``main.py``) just to print a failed
+    ``get``.
+    """
+    if "robocloud.ledger.errors" not in sys.modules:
+        return None
+    from robocloud.ledger.errors import (
+        FeeLimitError,
+        RevertError,
+        RpcError,
+        TransactionMismatchError,
+        TransactionTimeoutError,
+    )
+
+    if isinstance(exc, RpcError):
+        return Failure(ExitCode.REFUSED, str(exc), _rpc_hint(exc))
+    if isinstance(exc, RevertError):
+        return Failure(ExitCode.REFUSED, str(exc), _revert_hint(exc))
+    if isinstance(exc, TransactionTimeoutError):
+        return Failure(
+            ExitCode.UNAVAILABLE, str(exc), "it may still be mined; look the hash up later"
+        )
+    if isinstance(exc, FeeLimitError):
+        return Failure(
+            ExitCode.ERROR, str(exc), "raise that limit only for a node and a chain you trust"
+        )
+    if isinstance(exc, TransactionMismatchError):
+        return Failure(
+            ExitCode.INVALID_ANSWER,
+            str(exc),
+            f"the transaction was sent and may be mined: look {exc.tx_hash} up on a node you trust",
+        )
+    return None
 
 
 def _transport(exc: TransportError) -> Failure:

@@ -1,5 +1,10 @@
 """The root ``robocloud`` command; each area registers its commands from its own module.
 
+The root loads a command's module only when that command runs (``COMMAND_AREAS``): each
+area imports what it needs, and the ledger's eth-abi, the knowledge base's rdflib and
+eth-utils together took about 0.3 s, which ``robocloud get`` paid on every run although it
+needs none of them. ``--help`` lists every command and so loads every area.
+
 ``RobocloudGroup.invoke`` is the one place a command's failure becomes a one-line message and
 an exit code (``exits.py``): every SDK error is a ``RobocloudError``, local files raise
 ``OSError``, and neither prints a traceback. It is also where the recursion limit is put
@@ -11,24 +16,67 @@ kills the process instead of raising ``RecursionError``.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import sys
 from typing import Any
 
 import typer
 from typer.core import TyperGroup
+from typer.main import get_group
 
 import robocloud
-from robocloud.cli import admin, cas, ingest, keys, knowledge, ledger, storage, system, verify
 from robocloud.cli.exits import ExitCode, exit_codes_help, failure_of, report
 from robocloud.errors import RobocloudError
 
 RECURSION_LIMIT = 1000
 """CPython's own default: deep enough for any command, shallow enough for the C stack."""
 
+COMMAND_AREAS: dict[str, str] = {
+    "status": "system",
+    "whoami": "system",
+    "put": "cas",
+    "get": "cas",
+    "cat": "cas",
+    "pin": "cas",
+    "unpin": "cas",
+    "pins": "cas",
+    "pinned": "cas",
+    "register": "ledger",
+    "advertise": "ledger",
+    "robot": "ledger",
+    "query": "storage",
+    "export": "storage",
+    "intervals": "storage",
+    "ingest": "ingest",
+    "job": "ingest",
+    "bind": "ingest",
+    "verify": "verify",
+    "describe": "knowledge",
+    "sparql": "knowledge",
+    "keys": "keys",
+    "admin": "admin",
+    "templates": "storage",
+}
+"""Each top-level command and the ``robocloud.cli`` module whose ``register`` adds it, in the
+order ``--help`` lists them."""
+
 
 class RobocloudGroup(TyperGroup):
-    """The root group: runs a command under a sane recursion limit and reports its failure."""
+    """The root group: loads a command's area on first use, runs the command under a sane
+    recursion limit and reports its failure."""
+
+    def list_commands(self, ctx: Any) -> list[str]:
+        return list(COMMAND_AREAS)
+
+    def get_command(self, ctx: Any, cmd_name: str) -> Any:
+        """The command, its area loaded first; for a name of none, every area is loaded,
+        so that typer's "Did you mean" has every command to choose from."""
+        if cmd_name not in self.commands:
+            area = COMMAND_AREAS.get(cmd_name)
+            for each in set(COMMAND_AREAS.values()) if area is None else {area}:
+                self.commands.update(area_commands(each))
+        return self.commands.get(cmd_name)
 
     def invoke(self, ctx: Any) -> Any:  # typer vendors click; its Context type is private
         previous = sys.getrecursionlimit()
@@ -44,6 +92,14 @@ class RobocloudGroup(TyperGroup):
             raise typer.Exit(int(failure.code)) from None
         finally:
             sys.setrecursionlimit(previous)
+
+
+def area_commands(area: str) -> dict[str, Any]:
+    """The click commands that the module ``robocloud.cli.<area>`` registers, by name."""
+    module = importlib.import_module(f"robocloud.cli.{area}")
+    commands = typer.Typer()
+    module.register(commands)
+    return dict(get_group(commands).commands)
 
 
 def _silence_stdout() -> None:
@@ -85,7 +141,3 @@ def root(
     ),
 ) -> None:
     """robocloud: share data, knowledge and computation between robots that need not trust."""
-
-
-for area in (keys, system, cas, ledger, admin, storage, ingest, verify, knowledge):
-    area.register(app)

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 import robocloud
 from robocloud.cli import app
 from robocloud.cli.exits import MEANINGS
-from robocloud.cli.main import RECURSION_LIMIT, RobocloudGroup
+from robocloud.cli.main import COMMAND_AREAS, RECURSION_LIMIT, RobocloudGroup, area_commands
 from robocloud.errors import InvalidAnswerError
 
 runner = CliRunner()
@@ -25,9 +25,11 @@ def leaf_commands() -> dict[str, typer.core.TyperCommand]:
     """Every command a user can run, by its full name (``keys new``)."""
     found = {}
     pending = [("", get_command(app))]
+    context = typer.Context(get_command(app))
     while pending:
         prefix, group = pending.pop()
-        for name, command in group.commands.items():  # type: ignore[attr-defined]
+        for name in group.list_commands(context):  # type: ignore[attr-defined]
+            command = group.get_command(context, name)  # type: ignore[attr-defined]
             if hasattr(command, "commands"):
                 pending.append((f"{prefix}{name} ", command))
             else:
@@ -128,6 +130,48 @@ def test_an_os_error_is_one_line_without_traceback(tmp_path: Path) -> None:
     assert result.stdout == ""
     assert result.stderr.startswith("error: [Errno 2] No such file or directory")
     assert result.stderr.count("\n") == 1
+
+
+def test_each_command_is_loaded_from_the_area_that_registers_it() -> None:
+    for area in set(COMMAND_AREAS.values()):
+        named = [name for name, its_area in COMMAND_AREAS.items() if its_area == area]
+        assert sorted(area_commands(area)) == sorted(named), area
+
+
+def test_help_lists_the_commands_in_the_order_of_the_map() -> None:
+    result = runner.invoke(app, ["--help"], env={"COLUMNS": "300"})
+    listed = re.findall(r"^│ (\w+) ", result.stdout, re.MULTILINE)
+    assert listed == list(COMMAND_AREAS)
+
+
+def test_a_mistyped_command_is_answered_with_the_ones_near_it() -> None:
+    result = runner.invoke(app, ["gett", "x"], env={"COLUMNS": "300"})
+    assert result.exit_code == 2
+    assert "No such command 'gett'. Did you mean 'get', 'ingest'?" in result.stderr
+
+
+def test_a_content_command_loads_neither_the_ledger_nor_the_knowledge_libraries(
+    tmp_path: Path,
+) -> None:
+    """eth-abi (the ledger package), rdflib (the knowledge base) and eth-utils took about
+    0.3 s of every command's start; ``get`` needs none of them, even to report a failure.
+    A command of the knowledge base then loads what it needs."""
+    probe = (
+        "import sys\n"
+        "from typer.testing import CliRunner\n"
+        "from robocloud.cli import app\n"
+        "cid = 'bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq'\n"
+        f"out = {str(tmp_path / 'out')!r}\n"
+        "got = CliRunner().invoke(app, ['get', cid, '-o', out, '--cas', 'http://127.0.0.1:9'])\n"
+        "heavy = ('eth_abi', 'eth_utils', 'rdflib', 'eth_account')\n"
+        "print(got.exit_code, [name for name in heavy if name in sys.modules])\n"
+        "assert CliRunner().invoke(app, ['sparql', '--help']).exit_code == 0\n"
+        "print([name for name in heavy if name in sys.modules])\n"
+    )
+    shown = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert shown.stdout.splitlines() == ["3 []", "['eth_abi', 'eth_utils', 'rdflib']"]
 
 
 def test_a_command_that_signs_nothing_loads_no_signing_library() -> None:
