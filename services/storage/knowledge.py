@@ -587,6 +587,8 @@ class LedgerFollower:
                 more = self.poll(self.read_wait_s())
                 self.error = None
             except Exception as exc:  # the ledger or cas is down: say so, try again later
+                if self._stop.is_set():
+                    return  # a read left waiting when the node stopped: its ledger went too
                 self.error = f"{type(exc).__name__}: {exc}"[:500]
                 log.warning("following the ledger's advertisements failed: %s", self.error)
                 more = False

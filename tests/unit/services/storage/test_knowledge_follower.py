@@ -408,3 +408,40 @@ def test_stopping_does_not_wait_for_a_read_waiting_on_the_ledger(tmp_path: Path,
     assert not follower._thread.is_alive()
     assert (follower.state.block, len(kb)) == (0, 0)
     assert not (kb.root / "follow.json").exists()
+
+
+class VanishingLedger(WaitingLedger):
+    """A ledger whose waiting read fails once answered: the service went away meanwhile."""
+
+    def advertisements(
+        self, *, since: int, limit: int, after_log_index: int | None = None, wait_s: float = 0
+    ) -> list[Ad]:
+        super().advertisements(
+            since=since, limit=limit, after_log_index=after_log_index, wait_s=wait_s
+        )
+        raise ConnectionError("the ledger closed the connection")
+
+
+def test_a_read_that_fails_after_the_stop_is_not_reported(
+    tmp_path: Path, cas: Cas, caplog: pytest.LogCaptureFixture
+) -> None:
+    """When a node stops, its ledger often stops too, and the read left waiting then fails:
+    the follower logged that failure as a warning after the node had stopped."""
+    ledger = VanishingLedger()
+
+    @contextmanager
+    def connect_ledger() -> Iterator[Ledger]:
+        yield ledger
+
+    kb = knowledge_base(tmp_path, cas)
+    kb.follow(connect_ledger, 0.05, 20)
+    assert ledger.reading.wait(10)
+    kb.close()
+    with caplog.at_level("WARNING", logger="robocloud.storage.knowledge"):
+        ledger.answer.set()
+        follower = kb._follower
+        assert follower is not None
+        follower._thread.join(10)
+    assert not follower._thread.is_alive()
+    assert [record.getMessage() for record in caplog.records] == []
+    assert follower.error is None
