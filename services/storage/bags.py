@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import bz2
 import heapq
+import re
 from collections import Counter
 from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from enum import Enum
-from functools import partial
+from functools import cache, partial
 from itertools import pairwise
 from operator import itemgetter
 from pathlib import Path
@@ -628,7 +629,9 @@ def _bad_ros1_chunk(reader: Any) -> int | None:
 def parse_definition(msgtype: str, definition: str, fmt: str) -> dict[str, Any]:
     """rosbags' field definitions for ``msgtype`` and its dependencies, from bag text."""
     if fmt == "msg":
-        return dict(get_types_from_msg(definition, msgtype))
+        return service_event_types(msgtype, definition) or dict(
+            get_types_from_msg(definition, msgtype)
+        )
     types: dict[str, Any] = {}
     if definition.startswith(f"{IDL_SEPARATOR}IDL: "):
         for part in definition.split(IDL_SEPARATOR)[1:]:
@@ -637,6 +640,58 @@ def parse_definition(msgtype: str, definition: str, fmt: str) -> dict[str, Any]:
     else:
         types.update(get_types_from_idl(definition))
     return types
+
+
+SERVICE_EVENT = re.compile(r"(?P<package>[^/]+)/srv/(?P<service>\w+)_Event")
+"""The type of a service-introspection topic (``/<service>/_service_event``, ROS 2 Iron on)."""
+SERVICE_HEADER = re.compile(rf"{IDL_SEPARATOR}SRV: [^\n]*\n")
+
+
+def service_event_types(msgtype: str, definition: str) -> dict[str, Any] | None:
+    """The types of a service's introspection events, when the bag holds the service's
+    definition (``request --- response``) in place of the event's.
+
+    rosbag2 writes service-event topics so (ros2/rosbag2#2365, open): the text, perhaps
+    headed ``SRV: <service>``, parses as no message, and rosbags, rosbag2's own MCAP readers
+    and mcap's decoders all refuse it, so every recorded service call was undecodable. The
+    event is ROS 2's generated ``<Name>_Event``: ``service_msgs/msg/ServiceEventInfo info``,
+    ``<Name>_Request[<=1] request``, ``<Name>_Response[<=1] response``, and
+    ``ServiceEventInfo`` comes from rosbags' typestore (the same in Iron, Jazzy and Kilted).
+    None for any other type or definition, the event's own included.
+    """
+    named = SERVICE_EVENT.fullmatch(msgtype)
+    own, separator, dependencies = SERVICE_HEADER.sub("", definition, count=1).partition(
+        "\n" + IDL_SEPARATOR
+    )
+    lines = own.splitlines()
+    if named is None or "---" not in lines:
+        return None
+    cut = lines.index("---")
+    service = msgtype.removesuffix("_Event")
+    types: dict[str, Any] = dict(_service_event_info())
+    for part, fields in (("Request", lines[:cut]), ("Response", lines[cut + 1 :])):
+        parsed_as = f"{named['package']}/msg/{named['service']}_{part}"
+        text = "\n".join(fields) + ("\n" + separator + dependencies if separator else "")
+        parsed = dict(get_types_from_msg(text, parsed_as))
+        types[f"{service}_{part}"] = parsed.pop(parsed_as)
+        types.update(parsed)
+    types[msgtype] = (
+        [],
+        [
+            ("info", (Nodetype.NAME, "service_msgs/msg/ServiceEventInfo")),
+            ("request", (Nodetype.SEQUENCE, ((Nodetype.NAME, f"{service}_Request"), 1))),
+            ("response", (Nodetype.SEQUENCE, ((Nodetype.NAME, f"{service}_Response"), 1))),
+        ],
+    )
+    return types
+
+
+@cache
+def _service_event_info() -> dict[str, Any]:
+    """``service_msgs/msg/ServiceEventInfo`` and the type it holds, as rosbags defines them."""
+    store = bundled_typestore(Stores.ROS2_JAZZY)
+    names = ("service_msgs/msg/ServiceEventInfo", "builtin_interfaces/msg/Time")
+    return {name: store.fielddefs[name] for name in names}
 
 
 def unrolled_elements(types: Mapping[str, Any]) -> int:

@@ -283,6 +283,15 @@ def _name_drafts_apart(reports: list[TopicReport]) -> None:
         report.draft = {**report.draft, "name": name}
 
 
+def _unbound(connection: BagConnection) -> str:
+    """Why a topic bound to no template is skipped, and why it has no draft when its type
+    cannot be decoded: binding it would fail the job (``message_type_undefined``)."""
+    unbound = "no template is bound to this topic or message type"
+    if connection.problem is None:
+        return unbound
+    return f"{unbound}, and its type cannot be decoded: {connection.problem}"
+
+
 def _draft(connection: BagConnection) -> dict[str, Any] | None:
     """The draft template a connection's definition gives, when it gives one."""
     if connection.typestore is None:
@@ -800,7 +809,7 @@ class IngestJobs:
                 continue
             template_id = self.bindings.resolve(connection.topic, connection.msgtype)
             if template_id is None:
-                report.skipped = "no template is bound to this topic or message type"
+                report.skipped = _unbound(connection)
                 report.draft = _draft(connection)
                 report.fits = self._approved_like(report.draft)
                 continue

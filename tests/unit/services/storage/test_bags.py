@@ -32,6 +32,7 @@ from services.storage.bags import (
     MissingDefinition,
     hollow_array,
     inflate_declared,
+    service_event_types,
 )
 from tests.bagfactory import (
     START_NS,
@@ -178,15 +179,10 @@ def test_undecodable_message_names_topic_type_and_time() -> None:
     assert "size mismatch" in str(caught.value)
 
 
-@pytest.mark.parametrize(
-    "relative",
-    [
-        "mcap/rosbag2_topics_and_service_events_mcap",
-        "rosbag2/rosbag2_topics_and_service_events_sqlite3",
-    ],
-)
-def test_one_unparsable_definition_disables_only_its_topics(relative: str) -> None:
-    with Bag.open(DATA / relative) as bag:
+def test_one_unusable_definition_disables_only_its_topics() -> None:
+    """The sqlite3 twin of the service-event bag carries no definition of its events, and
+    rosbags' typestore has none: those topics alone cannot be decoded."""
+    with Bag.open(DATA / "rosbag2/rosbag2_topics_and_service_events_sqlite3") as bag:
         problems = {c.topic: c.problem for c in bag.connections}
         good = list(decoded(bag, topics=["/test_topic1", "/test_topic2"]))
         with pytest.raises(MissingDefinition) as caught:
@@ -196,6 +192,86 @@ def test_one_unparsable_definition_disables_only_its_topics(relative: str) -> No
     assert "test_msgs/srv/BasicTypes_Event" in problems["/test_service1/_service_event"]
     assert len(good) == 2
     assert caught.value.topic.startswith("/test_service")
+
+
+def test_recorded_service_calls_decode_from_the_services_definition() -> None:
+    """rosbag2 records a service's introspection events with the service's definition
+    (``int64 a / int64 b / --- / int64 sum``) as their schema, which parses as no message:
+    the calls were undecodable. Decoded as ROS 2's generated event type, the recording's
+    three calls add up, each request and its response paired by sequence number, and every
+    message's CDR is consumed exactly (rosbags checks its size)."""
+    with Bag.open(DATA / "mcap/rosbag2_cpp_topics_and_services.mcap") as bag:
+        problems = {c.topic: c.problem for c in bag.connections}
+        events = [message for _, _, message in decoded(bag, ["/add_two_ints/_service_event"])]
+    assert problems["/add_two_ints/_service_event"] is None
+    requests = {e["info"]["sequence_number"]: e["request"] for e in events if e["request"]}
+    responses = {e["info"]["sequence_number"]: e["response"] for e in events if e["response"]}
+    assert requests == {1: [{"a": 1, "b": 3}], 2: [{"a": 2, "b": 3}], 3: [{"a": 3, "b": 3}]}
+    assert {n: [{"sum": r[0]["a"] + r[0]["b"]}] for n, r in requests.items()} == responses
+    received, sent = 1, 2  # service_msgs/msg/ServiceEventInfo REQUEST_RECEIVED, RESPONSE_SENT
+    assert [e["info"]["event_type"] for e in events] == [received, sent] * 3
+    assert {len(e["info"]["client_gid"]) for e in events} == {16}
+
+
+def test_a_services_events_of_every_field_type_decode() -> None:
+    """test_msgs' BasicTypes service (every primitive type, a string) as a client and a
+    server recorded it: each call's request and response, by sequence number."""
+    with Bag.open(DATA / "mcap/rosbag2_topics_and_service_events_mcap") as bag:
+        events = [(topic, message) for topic, _, message in decoded(bag)]
+    calls = Counter(
+        (topic, e["info"]["sequence_number"], e["info"]["event_type"])
+        for topic, e in events
+        if topic.endswith("/_service_event")
+    )
+    sent, received = 0, 3  # REQUEST_SENT, RESPONSE_RECEIVED: the client's side
+    assert calls == {
+        (f"/test_service{n}/_service_event", call, kind): 1
+        for n in (1, 2)
+        for call in (1, 2)
+        for kind in (sent, received)
+    }
+    request = next(e["request"][0] for _, e in events if e.get("request"))
+    numbers = [f"{kind}{bits}_value" for bits in (8, 16, 32, 64) for kind in ("int", "uint")]
+    expected = ["bool_value", "byte_value", "char_value", "float32_value", "float64_value"]
+    assert sorted(request) == sorted([*expected, *numbers, "string_value"])
+
+
+def test_a_service_definition_bare_or_headed_gives_one_event_type() -> None:
+    """Bare, as rosbag2 wrote it in Iron and Jazzy, or headed ``SRV:``, as rosbag2 writes it
+    since (ros2/rosbag2#2365); ``ServiceEventInfo`` as rosbags defines it."""
+    event = "example_interfaces/srv/AddTwoInts_Event"
+    bare = "int64 a\nint64 b\n---\nint64 sum\n"
+    headed = f"{'=' * 80}\nSRV: example_interfaces/srv/AddTwoInts\n{bare}"
+    types = service_event_types(event, bare)
+    assert types is not None
+    assert service_event_types(event, headed) == types
+    store = get_typestore(Stores.EMPTY)
+    store.register(types)
+    info = get_typestore(Stores.ROS2_JAZZY).fielddefs["service_msgs/msg/ServiceEventInfo"]
+    assert store.fielddefs["service_msgs/msg/ServiceEventInfo"] == info
+    request = store.fielddefs["example_interfaces/srv/AddTwoInts_Request"]
+    response = store.fielddefs["example_interfaces/srv/AddTwoInts_Response"]
+    assert [name for name, _ in request[1]] == ["a", "b"]
+    assert [name for name, _ in response[1]] == ["sum"]
+    assert [name for name, _ in store.fielddefs[event][1]] == ["info", "request", "response"]
+
+
+@pytest.mark.parametrize(
+    ("msgtype", "definition"),
+    [
+        ("example_interfaces/msg/AddTwoInts", "int64 a\n---\nint64 sum\n"),
+        (
+            "example_interfaces/srv/AddTwoInts_Event",
+            "service_msgs/ServiceEventInfo info\n"
+            "example_interfaces/srv/AddTwoInts_Request[<=1] request\n",
+        ),
+    ],
+    ids=["not-an-event", "the-events-own"],
+)
+def test_only_an_event_given_its_services_definition_is_rebuilt(
+    msgtype: str, definition: str
+) -> None:
+    assert service_event_types(msgtype, definition) is None
 
 
 def test_message_type_without_definition(tmp_path: Path) -> None:

@@ -239,6 +239,53 @@ def test_a_tf_bag_s_frame_ids_are_found_by_keyword(node: Node, tmp_path: Path) -
         assert frame in frames | {t["header"]["frame_id"] for t in record["transforms"]}, frame
 
 
+def test_recorded_service_calls_are_drafted_and_ingested(node: Node, tmp_path: Path) -> None:
+    """A service's introspection events, recorded with the service's definition, had no
+    draft and no records; drafted and bound, each call becomes a record."""
+    path = Path(shutil.copy(SHARED_DATA / "mcap/rosbag2_cpp_topics_and_services.mcap", tmp_path))
+    first = node.jobs.wait(node.jobs.submit(path, "upload:s", authorship()).id, 60)
+    [report] = [t for t in first.topics if t.topic == "/add_two_ints/_service_event"]
+    assert report.skipped == "no template is bound to this topic or message type"
+    assert report.draft is not None
+    assert report.draft["fields"]["request"] == {"array": {"container": {"a": "int", "b": "int"}}}
+    version = node.catalog.create(report.draft, author=node.author)
+    node.catalog.submit(version.id, author=node.author)
+    node.catalog.review(version.id, "approve", reviewer=node.author)
+    node.bindings.bind(template_id=version.id, msgtype="example_interfaces/srv/AddTwoInts_Event")
+    path = Path(shutil.copy(SHARED_DATA / "mcap/rosbag2_cpp_topics_and_services.mcap", tmp_path))
+    job = node.jobs.wait(node.jobs.submit(path, "upload:s2", authorship("nonce-1")).id, 60)
+    assert (job.status, job.records_committed) == ("succeeded", 6), job.error
+    calls = [node.store.get(f"add_two_ints_event-1-{n}").record["data"] for n in range(6)]
+    assert [c["request"] or c["response"] for c in calls] == [
+        [{"a": 1, "b": 3}],
+        [{"sum": 4}],
+        [{"a": 2, "b": 3}],
+        [{"sum": 5}],
+        [{"a": 3, "b": 3}],
+        [{"sum": 6}],
+    ]
+
+
+def test_an_unbound_topic_that_cannot_be_decoded_says_why(node: Node, tmp_path: Path) -> None:
+    """Such a topic has no draft, and binding it would fail the job: the report said only
+    that no template was bound, as for any topic."""
+    path = Path(
+        shutil.copytree(
+            SHARED_DATA / "rosbag2/rosbag2_topics_and_service_events_sqlite3", tmp_path / "bag"
+        )
+    )
+    job = node.jobs.wait(node.jobs.submit(path, "upload:u", authorship()).id, 60)
+    assert job.status == "succeeded", job.error
+    reports = {t.topic: t for t in job.topics}
+    assert reports["/test_service1/_service_event"].skipped == (
+        "no template is bound to this topic or message type, and its type cannot be decoded: "
+        "the bag carries no definition of test_msgs/srv/BasicTypes_Event and rosbags' "
+        "ros2_humble typestore has none either"
+    )
+    assert reports["/test_service1/_service_event"].draft is None
+    assert reports["/test_topic1"].skipped == "no template is bound to this topic or message type"
+
+
 def test_distinct_drafts_of_one_name_are_named_apart(node: Node, tmp_path: Path) -> None:
     """A draft is named after its type's last part: ``sensor_msgs/msg/Imu`` and
     ``my_msgs/msg/Imu`` both drafted ``imu``, and ``--drafts`` (one file a name) kept one.

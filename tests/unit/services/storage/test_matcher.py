@@ -161,6 +161,7 @@ def test_every_type_in_the_real_recordings_drafts_a_valid_template() -> None:
                 drafted.add(connection.msgtype)
     assert {"sensor_msgs/msg/MultiEchoLaserScan", "nav_msgs/msg/Odometry"} <= drafted
     assert {"test_msgs/msg/Arrays", "rcl_interfaces/msg/ParameterEvent"} <= drafted
+    assert {"example_interfaces/srv/AddTwoInts_Event", "test_msgs/srv/BasicTypes_Event"} <= drafted
     assert len(drafted) >= 12
 
 
