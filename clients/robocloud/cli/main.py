@@ -32,6 +32,9 @@ from robocloud.errors import RobocloudError
 RECURSION_LIMIT = 1000
 """CPython's own default: deep enough for any command, shallow enough for the C stack."""
 
+MARKUP_MODE = "markdown"
+"""Help text is Markdown: a paragraph's lines wrap as one, ``code`` shows as code."""
+
 COMMAND_AREAS: dict[str, str] = {
     "status": "system",
     "whoami": "system",
@@ -95,9 +98,10 @@ class RobocloudGroup(TyperGroup):
 
 
 def area_commands(area: str) -> dict[str, Any]:
-    """The click commands that the module ``robocloud.cli.<area>`` registers, by name."""
+    """The click commands that the module ``robocloud.cli.<area>`` registers, by name,
+    rendering their help as the root does (a command takes its app's markup mode)."""
     module = importlib.import_module(f"robocloud.cli.{area}")
-    commands = typer.Typer()
+    commands = typer.Typer(rich_markup_mode=MARKUP_MODE)
     module.register(commands)
     return dict(get_group(commands).commands)
 
@@ -119,7 +123,7 @@ app = typer.Typer(
     epilog=f"Exit codes (docs/cli.md):\n\n{exit_codes_help()}",
     no_args_is_help=True,
     add_completion=False,
-    rich_markup_mode="markdown",
+    rich_markup_mode=MARKUP_MODE,
     pretty_exceptions_show_locals=False,
 )
 

@@ -144,6 +144,15 @@ def test_help_lists_the_commands_in_the_order_of_the_map() -> None:
     assert listed == list(COMMAND_AREAS)
 
 
+def test_every_command_renders_its_help_as_markdown() -> None:
+    """Loaded apart from the root, the commands had lost its markup mode: a paragraph of
+    help kept its source's line breaks, ragged at 80 columns, and ``--drafts`` showed its
+    backquotes."""
+    assert {command.rich_markup_mode for command in leaf_commands().values()} == {"markdown"}
+    shown = runner.invoke(app, ["get", "--help"], env={"COLUMNS": "80"}).stdout
+    assert "leaves nothing behind. A directory's entries are checked" in shown
+
+
 def test_a_mistyped_command_is_answered_with_the_ones_near_it() -> None:
     result = runner.invoke(app, ["gett", "x"], env={"COLUMNS": "300"})
     assert result.exit_code == 2
