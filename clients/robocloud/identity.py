@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -111,9 +112,17 @@ class Identity:
 def _account() -> type[Account]:
     """eth-account's ``Account``, imported on first use: the import takes about a second
     (eth-keyfile loads py_ecc's BLS pairing tables), which every command paid before, even
-    those that never touch a key (``get``, ``cat``, ``verify``, ``query``, ``--help``)."""
+    those that never touch a key (``get``, ``cat``, ``verify``, ``query``, ``--help``).
+
+    py_ecc raises the interpreter's recursion limit to 100,000 as it loads; imported this
+    late, inside a command that the CLI runs under CPython's 1,000 (``cli/main.py``), it left
+    the rest of that command to overflow the C stack where it should raise
+    ``RecursionError``. The limit the program had is put back.
+    """
+    limit = sys.getrecursionlimit()
     from eth_account import Account
 
+    sys.setrecursionlimit(limit)
     return Account
 
 

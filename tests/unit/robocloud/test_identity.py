@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -110,3 +112,19 @@ def test_a_save_that_fails_midway_leaves_no_keystore_behind(
     assert list(tmp_path.iterdir()) == []
     Identity.generate().save(path, "pass", scrypt_n=FAST_SCRYPT)
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
+
+
+def test_loading_the_signing_library_keeps_the_recursion_limit() -> None:
+    """Loaded on first use, inside a CLI command run under CPython's 1,000, eth-account's
+    py_ecc raised the limit to 100,000 for the rest of that command."""
+    probe = (
+        "import sys\n"
+        "from robocloud.identity import Identity\n"
+        "sys.setrecursionlimit(1000)\n"
+        "Identity.generate()\n"
+        "print('py_ecc' in sys.modules, sys.getrecursionlimit())\n"
+    )
+    shown = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert shown.stdout.split() == ["True", "1000"]
