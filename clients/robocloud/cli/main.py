@@ -19,7 +19,7 @@ import contextlib
 import importlib
 import os
 import sys
-from typing import Any
+from typing import Any, Final
 
 import typer
 from typer.core import TyperGroup
@@ -32,7 +32,7 @@ from robocloud.errors import RobocloudError
 RECURSION_LIMIT = 1000
 """CPython's own default: deep enough for any command, shallow enough for the C stack."""
 
-MARKUP_MODE = "markdown"
+MARKUP_MODE: Final = "markdown"
 """Help text is Markdown: a paragraph's lines wrap as one, ``code`` shows as code."""
 
 COMMAND_AREAS: dict[str, str] = {
