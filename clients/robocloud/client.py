@@ -62,6 +62,10 @@ IDEMPOTENT_METHODS = frozenset({"GET", "HEAD", "OPTIONS", "PUT", "DELETE"})
 _UNSIGNED_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 MAX_ANSWER_BYTES = 64 << 20
 """The most a non-streamed answer may hold; a larger one is refused as it arrives."""
+MAX_WAIT_S = 25.0
+"""The longest a long poll may ask a service to wait (``wait_s``: the ledger's new
+advertisements, an ingest job's next change): under this client's default read timeout
+(30 s), and under what proxies commonly allow an answer to take."""
 MAX_ERROR_BYTES = 1 << 20
 """The most of an error answer read from a streamed response (its JSON error is small)."""
 ANSWER_DEADLINE_FACTOR = 4

@@ -15,7 +15,7 @@ from urllib.parse import quote
 
 from robocloud.cas import Cas
 from robocloud.cid import CID
-from robocloud.client import FileBody, ServiceClient
+from robocloud.client import MAX_WAIT_S, FileBody, ServiceClient
 from robocloud.errors import InvalidAnswerError, RobocloudError
 from robocloud.partial import free_space_beside, written_whole
 
@@ -42,8 +42,9 @@ def _job(answer: Any) -> dict[str, Any]:
         counts.append(answer["records"]["committed"])
         if not isinstance(answer["id"], str) or not isinstance(answer["status"], str):
             raise TypeError("id or status is not text")
+        counts.append(answer["updated_ns"])
         if any(isinstance(count, bool) or not isinstance(count, int) for count in counts):
-            raise TypeError("a message or record count is not an integer")
+            raise TypeError("a message or record count, or updated_ns, is not an integer")
         topics = answer["topics"]
         if not isinstance(topics, list) or not all(isinstance(t, dict) for t in topics):
             raise TypeError("topics is not a list of objects")
@@ -102,8 +103,19 @@ class Ingest(ServiceClient):
             return self.from_cas(cas.add_directory(bag))
         return self.upload(bag)
 
-    def job(self, job_id: str) -> dict[str, Any]:
-        return _job_of(job_id, self.get_json(f"/v1/jobs/{quote(job_id, safe='')}"))
+    def job(self, job_id: str, *, after_ns: int | None = None, wait_s: float = 0) -> dict[str, Any]:
+        """An ingest job. With ``after_ns`` (its ``updated_ns`` as last read) and ``wait_s``
+        (at most ``MAX_WAIT_S``), a long poll: the node answers as soon as the job changes
+        or is finished, else with it unchanged after ``wait_s``."""
+        if not 0 <= wait_s <= MAX_WAIT_S:
+            raise ValueError(f"wait_s must be between 0 and {MAX_WAIT_S:g} s, not {wait_s}")
+        params: dict[str, int | float] = {}
+        if after_ns is not None:
+            params["after_ns"] = after_ns
+        if wait_s:
+            params["wait_s"] = wait_s
+        path = f"/v1/jobs/{quote(job_id, safe='')}"
+        return _job_of(job_id, self.get_json(path, params=params or None))
 
     def wait(
         self,
@@ -113,16 +125,24 @@ class Ingest(ServiceClient):
         poll_s: float = 0.25,
         timeout_s: float = WAIT_TIMEOUT_S,
     ) -> dict[str, Any]:
-        """Poll a job until it succeeds or fails, or ``timeout_s`` passes; its last state
-        (whose status is then still ``queued``, ``staging`` or ``committing``)."""
+        """Follow a job until it succeeds or fails, or ``timeout_s`` passes; its last state
+        (whose status is then still ``queued``, ``staging`` or ``committing``).
+
+        Each read waits on the node for the job's next change (a long poll), so a job queued
+        behind others or committing a long batch costs a request every ``MAX_WAIT_S``, and
+        its end is seen at once; reads are at least ``poll_s`` apart all the same, however
+        often the job changes (or a node that does not wait answers)."""
         deadline = time.monotonic() + timeout_s
+        job = self.job(job_id)
         while True:
-            job = self.job(job_id)
             if on_progress is not None:
                 on_progress(job)
-            if job["status"] in FINISHED or time.monotonic() > deadline:
+            left = deadline - time.monotonic()
+            if job["status"] in FINISHED or left <= 0:
                 return job
-            time.sleep(min(poll_s, max(deadline - time.monotonic(), 0.0)))
+            asked = time.monotonic()
+            job = self.job(job_id, after_ns=job["updated_ns"], wait_s=min(MAX_WAIT_S, left))
+            time.sleep(max(0.0, min(asked + poll_s, deadline) - time.monotonic()))
 
     def resume(self, job_id: str) -> dict[str, Any]:
         return _job_of(job_id, self.post_json(f"/v1/jobs/{quote(job_id, safe='')}/resume"))

@@ -18,8 +18,12 @@ from __future__ import annotations
 
 import asyncio
 import threading
+from collections.abc import Awaitable, Callable
+from typing import TypeVar
 
 import anyio
+
+T = TypeVar("T")
 
 
 class Changes:
@@ -77,3 +81,18 @@ class Changes:
         for woken in self._waiters:
             if not woken.done():
                 woken.set_result(None)
+
+
+async def long_poll(
+    read: Callable[[], Awaitable[T]], ready: Callable[[T], bool], changes: Changes, wait_s: float
+) -> T:
+    """``read``'s answer once ``ready`` holds for it, read again after each change, or its
+    answer as it is once ``wait_s`` is over (at once while too many others wait, or once
+    ``changes`` is closed)."""
+    deadline = anyio.current_time() + wait_s
+    while True:
+        seen = changes.version
+        answer = await read()
+        left = deadline - anyio.current_time()
+        if ready(answer) or left <= 0 or not await changes.wait_past(seen, left):
+            return answer

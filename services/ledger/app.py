@@ -9,7 +9,7 @@ require registration (it runs with ``AnySigner`` whatever ``ROBOCLOUD_AUTH`` say
 from __future__ import annotations
 
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from functools import partial
 from typing import Any
@@ -20,13 +20,13 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 import services.ledger
+from robocloud.client import MAX_WAIT_S
 from robocloud.ledger import ContractAddresses
-from robocloud.ledger.client import MAX_WAIT_S
 from robocloud.signing import chain_deployment_id
 from services.common.app import create_app
 from services.common.auth import SignedAddress
 from services.common.bodies import SMALL_JSON_BODY, read_json
-from services.common.changes import Changes
+from services.common.changes import long_poll
 from services.common.errors import Forbidden, Unavailable
 from services.common.slots import Slots
 from services.ledger import views
@@ -55,20 +55,6 @@ async def _read(view: Callable[..., dict[str, Any]], *args: Any) -> dict[str, An
     anchor unfiltered) and the index's lock, held while a block is indexed, kept the event
     loop and every other request waiting."""
     return await anyio.to_thread.run_sync(lambda: view(*args))
-
-
-async def _waiting_for_some(
-    read: Callable[[], Awaitable[dict[str, Any]]], key: str, changes: Changes, wait_s: float
-) -> dict[str, Any]:
-    """``read``'s answer once its list ``key`` holds something, reading again after each
-    change of the index, or its empty answer once ``wait_s`` is over."""
-    deadline = anyio.current_time() + wait_s
-    while True:
-        seen = changes.version
-        answer = await read()
-        left = deadline - anyio.current_time()
-        if answer[key] or left <= 0 or not await changes.wait_past(seen, left):
-            return answer
 
 
 def _ledger(request: Request) -> Ledger:
@@ -142,7 +128,9 @@ def _router() -> APIRouter:
         read = partial(
             _read, views.advertisements, ledger, cid, advertiser, since, limit, after_log_index
         )
-        return await _waiting_for_some(read, "advertisements", ledger.index.changes, wait_s)
+        return await long_poll(
+            read, lambda answer: bool(answer["advertisements"]), ledger.index.changes, wait_s
+        )
 
     @router.get("/v1/anchors")
     async def anchors(

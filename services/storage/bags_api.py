@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import AsyncIterator, Iterator
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, BinaryIO, Literal
 
@@ -13,16 +14,19 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
 from robocloud.cid import CID, parse_cid
+from robocloud.client import MAX_WAIT_S
+from robocloud.ingest import FINISHED
 from robocloud.semantic import MCAP_MEDIA_TYPE
 from services.common.bodies import SMALL_JSON_BODY, bounded_stream, json_body, media_type
-from services.common.errors import UnsupportedMediaType
+from services.common.changes import long_poll
+from services.common.errors import Unprocessable, UnsupportedMediaType
 from services.common.pipeline import batched, entered_in_worker_thread, in_worker_thread
 from services.common.responses import stream_in_turn
 from services.common.slots import Slots
 from services.storage.bags import SUFFIXES, detect_format
 from services.storage.casbags import BagBounds, fetch_bag
 from services.storage.export import Encoder, JsonLinesEncoder, McapEncoder
-from services.storage.ingest import IngestJobs
+from services.storage.ingest import IngestJobs, Job
 from services.storage.matcher import Bindings
 from services.storage.queries import Page, QueryEngine
 from services.storage.records_api import RecordFilters, authorship_of, in_query_slot
@@ -31,6 +35,8 @@ if TYPE_CHECKING:
     from hashlib import _Hash as Hash
 
 router = APIRouter(tags=["ingest"])
+MAX_UPDATED_NS = 2**63 - 1
+"""A job's ``updated_ns`` (nanoseconds since the epoch) fits in a signed 64-bit integer."""
 JSON = "application/json"
 EXPORT_PAGE = 1000
 EXPORT_FORMATS = {
@@ -128,9 +134,39 @@ async def _received_bag(request: Request, spool: Path, cid: CID | None) -> tuple
 
 
 @router.get("/v1/jobs/{job_id}")
-async def get_job(request: Request, job_id: str) -> dict[str, Any]:
-    """An ingest job: status, messages done of total, topics and what became of them."""
-    job = await anyio.to_thread.run_sync(lambda: _jobs(request).get(job_id))
+async def get_job(
+    request: Request,
+    job_id: str,
+    after_ns: int | None = Query(
+        default=None,
+        ge=0,
+        le=MAX_UPDATED_NS,
+        description="with `wait_s`: the job's `updated_ns` as last read",
+    ),
+    wait_s: float = Query(
+        default=0,
+        ge=0,
+        le=MAX_WAIT_S,
+        description="wait up to this long for the job to change past `after_ns`",
+    ),
+) -> dict[str, Any]:
+    """An ingest job: status, messages done of total, topics and what became of them. With
+    ``wait_s`` and ``after_ns``, a long poll: the answer comes as soon as the job changes
+    (its ``updated_ns`` passes ``after_ns``) or when it is finished, else after ``wait_s``
+    as it is (at once while too many others wait, or once the node stops)."""
+    if wait_s and after_ns is None:
+        raise Unprocessable(
+            "wait_s needs after_ns, the job's updated_ns as last read",
+            details={"errors": [{"field": "query.after_ns", "message": "required with wait_s"}]},
+        )
+    jobs = _jobs(request)
+
+    def changed(job: Job) -> bool:
+        return after_ns is None or job.updated_ns > after_ns or job.status in FINISHED
+
+    job = await long_poll(
+        partial(anyio.to_thread.run_sync, partial(jobs.get, job_id)), changed, jobs.changes, wait_s
+    )
     return job.to_json()
 
 

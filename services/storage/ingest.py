@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Any, Literal, Protocol
 
 from robocloud.templates import TemplateInvalid, parse_template
+from services.common.changes import Changes
 from services.common.disk import DiskReserve
 from services.common.durable import atomic_write, fsync_dir
 from services.storage.bags import Bag, BagConnection
@@ -89,6 +90,9 @@ KEEP_RESUMABLE_S = 7 * 24 * 3600.0
 INCOMING = "incoming"
 """Under the jobs' root: bags on their way in, each in a directory of its own
 (:meth:`IngestJobs.incoming`)."""
+MAX_JOB_WAITERS = 256
+"""Requests waiting on a job's next change at once (``GET /v1/jobs/{id}?wait_s=``); more
+answer at once, as without a wait."""
 
 
 class JobNotFound(LookupError):
@@ -427,6 +431,8 @@ class IngestJobs:
         self._saving = threading.Lock()
         """Held, before :attr:`_lock`, from a change to its save, so that job.json is
         written in the order its changes were made."""
+        self.changes = Changes(MAX_JOB_WAITERS)
+        """Advanced at every change of any job: what a reader's long poll of one waits on."""
         self._queue: queue.Queue[str | None] = queue.Queue()
         self._due: list[tuple[int, str, Due]] = []
         """What the worker thread does to a finished job at a time: publish a succeeded
@@ -459,6 +465,7 @@ class IngestJobs:
         self._worker.start()
 
     def close(self) -> None:
+        self.changes.close()
         self._queue.put(None)
         self._worker.join()
         self.ingested.close()
@@ -600,6 +607,7 @@ class IngestJobs:
     def _save(self, job: Job) -> None:
         job.updated_ns = time.time_ns()
         self._write(job, _job_document(job))
+        self.changes.advance()
 
     def _write(self, job: Job, document: bytes) -> None:
         atomic_write(self.root / job.id / "job.json", document)
@@ -615,6 +623,7 @@ class IngestJobs:
                 document = _job_document(job) if save else None
             if document is not None:
                 self._write(job, document)
+        self.changes.advance()
 
     def _work(self) -> None:
         """Run queued jobs one at a time, for the service's lifetime. A job whose failure

@@ -10,7 +10,7 @@ from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 
-from robocloud.ledger.client import MAX_WAIT_S
+from robocloud.client import MAX_WAIT_S
 from services.common.settings import ServiceSettings
 from services.storage.ingest import (
     KEEP_RESUMABLE_S,

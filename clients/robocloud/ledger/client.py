@@ -19,7 +19,7 @@ from eth_utils.address import is_address, to_checksum_address
 from eth_utils.crypto import keccak
 
 from robocloud.cid import parse_cid
-from robocloud.client import Closeable, ServiceClient
+from robocloud.client import MAX_WAIT_S, Closeable, ServiceClient
 from robocloud.config import deployment_chain
 from robocloud.errors import InvalidAnswerError, MissingIdentityError, NotFoundError
 from robocloud.identity import Identity
@@ -50,11 +50,6 @@ from robocloud.ledger.transactions import (
     check_chain,
     quantity,
 )
-
-MAX_WAIT_S = 25.0
-"""The longest a read of the ledger's advertisements may wait for a new one (``wait_s``):
-under this client's default read timeout (30 s), and under what proxies commonly allow an
-answer to take."""
 
 
 @dataclass(frozen=True)

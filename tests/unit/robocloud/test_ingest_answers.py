@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,7 @@ JOB: dict[str, Any] = {
     "records": {"staged": 1, "committed": 1},
     "topics": [],
     "error": None,
+    "updated_ns": 1,
 }
 
 
@@ -76,9 +78,19 @@ JOB: dict[str, Any] = {
         {**JOB, "topics": "none"},
         {**JOB, "status": "failed"},
         {**JOB, "id": 7},
+        {**JOB, "updated_ns": "1"},
         [JOB],
     ],
-    ids=["no-status", "no-messages", "count-text", "topics-text", "failed-no-error", "id", "list"],
+    ids=[
+        "no-status",
+        "no-messages",
+        "count-text",
+        "topics-text",
+        "failed-no-error",
+        "id",
+        "updated-text",
+        "list",
+    ],
 )
 def test_a_malformed_job_is_an_invalid_answer(job: Any) -> None:
     with (
@@ -109,6 +121,36 @@ def test_a_binding_that_is_not_an_object_is_an_invalid_answer(answer: bytes) -> 
         pytest.raises(InvalidAnswerError, match="not an object"),
     ):
         ingest.bind("imu@1", topic="/imu")
+
+
+def test_waiting_asks_for_the_jobs_next_change_and_paces_a_node_that_answers_at_once() -> None:
+    """Each read after the first is a long poll past the job's ``updated_ns``; a node that
+    does not wait (an older one) is still asked at most every ``poll_s``."""
+    queued = {**JOB, "status": "queued", "updated_ns": 7}
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(queued))) as server,
+        Ingest(server.url, retries=0) as ingest,
+    ):
+        started = time.monotonic()
+        last = ingest.wait("j1", poll_s=0.2, timeout_s=1.0)
+        took = time.monotonic() - started
+    assert last["status"] == "queued"
+    paths = [exchange.path for exchange in server.exchanges]
+    assert paths[0] == "/v1/jobs/j1"
+    assert all(path.startswith("/v1/jobs/j1?after_ns=7&wait_s=") for path in paths[1:])
+    assert float(paths[1].rsplit("=", 1)[1]) <= 1.0
+    assert 3 <= len(paths) <= 1 + took / 0.2 + 1
+
+
+@pytest.mark.parametrize("wait_s", [-1, 25.5])
+def test_a_wait_past_the_bound_is_refused_before_asking(wait_s: float) -> None:
+    with (
+        scripted_server(lambda _: json_reply(json.dumps(JOB))) as server,
+        Ingest(server.url) as ingest,
+        pytest.raises(ValueError, match="wait_s must be between 0 and 25 s"),
+    ):
+        ingest.job("j1", after_ns=1, wait_s=wait_s)
+    assert server.exchanges == []
 
 
 def test_a_job_id_is_one_path_segment() -> None:

@@ -11,7 +11,9 @@ import os
 import signal
 import socket
 import struct
+import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -110,6 +112,79 @@ def test_ingest_a_bag_and_export_it(
     answered = httpx.get(f"{storage.url}/v1/export", params=params, timeout=30)
     assert answered.headers["content-type"] == "application/vnd.mcap"
     assert answered.content == mcap_path.read_bytes()
+
+
+def test_a_job_waiting_its_turn_is_read_once_until_it_changes(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    """A robot following its job asked four times a second, a line in the node's log each
+    time, for as long as the job ran or waited its turn. Each read is now a long poll
+    answered when the job changes: a job queued behind a long one is read when it comes and
+    when its turn does, however long it waits, and its end is seen as it comes."""
+    long_bag = write_bag(tmp_path / "long.bag", "ros1", 20_000, image_every=1_000_000)
+    bag = write_bag(tmp_path / "run.bag", "ros1", 50)
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        imu = approve(client, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        first = ingest.upload(long_bag)
+        second = ingest.upload(bag)
+        seen: list[tuple[float, dict[str, Any]]] = []
+        done = ingest.wait(second["id"], lambda job: seen.append((time.monotonic(), job)))
+        first_done = ingest.job(first["id"])
+    assert (first_done["status"], done["status"]) == ("succeeded", "succeeded"), done["error"]
+    queued = [at for at, job in seen if job["status"] == "queued"]
+    turn_at, turn = next((at, job) for at, job in seen if job["status"] != "queued")
+    assert turn["updated_ns"] >= first_done["updated_ns"]  # its turn came after the first
+    assert turn_at - queued[0] > 1.0  # long enough for polls four times a second
+    assert len(queued) <= 2  # when it came, and when the worker took it
+    updates = [job["updated_ns"] for _, job in seen]
+    assert updates == sorted(set(updates))  # no read without a change
+
+
+def test_a_read_waiting_on_a_job_is_answered_when_the_node_stops(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    """uvicorn lets requests in flight finish, 5 s at most, before the app hears of a stop:
+    a read waiting on a job queued behind a long one is answered, unchanged, as soon as the
+    node is told to stop."""
+    long_bag = write_bag(tmp_path / "long.bag", "ros1", 20_000, image_every=1_000_000)
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        imu = approve(client, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        ingest.upload(long_bag)
+        queued = ingest.upload(write_bag(tmp_path / "run.bag", "ros1", 50))
+    with Ingest(storage.url, retries=0) as reader, ThreadPoolExecutor(1) as pool:
+        waiting = pool.submit(reader.job, queued["id"], after_ns=queued["updated_ns"], wait_s=25)
+        time.sleep(0.5)
+        assert not waiting.done()
+        assert storage.process is not None
+        storage.process.terminate()
+        stopped_at = time.monotonic()
+        answer = waiting.result(timeout=20)
+        answered_s = time.monotonic() - stopped_at
+    assert (answer["status"], answer["updated_ns"]) == ("queued", queued["updated_ns"])
+    assert answered_s < 3
+
+
+@pytest.mark.parametrize(
+    ("params", "field"),
+    [
+        ({"wait_s": "25.5", "after_ns": "1"}, "query.wait_s"),
+        ({"wait_s": "-1", "after_ns": "1"}, "query.wait_s"),
+        ({"wait_s": "soon", "after_ns": "1"}, "query.wait_s"),
+        ({"wait_s": "5"}, "query.after_ns"),
+        ({"wait_s": "5", "after_ns": "-1"}, "query.after_ns"),
+        ({"wait_s": "5", "after_ns": str(2**63)}, "query.after_ns"),
+    ],
+)
+def test_a_jobs_wait_out_of_bounds_is_refused_naming_it(
+    storage: ServiceProcess, params: dict[str, str], field: str
+) -> None:
+    started = time.monotonic()
+    response = httpx.get(f"{storage.url}/v1/jobs/{'0' * 24}", params=params, timeout=30)
+    assert response.status_code == 422, response.text
+    assert response.json()["error"]["details"]["errors"][0]["field"] == field
+    assert time.monotonic() - started < 5
 
 
 def test_bad_bags_fail_without_records(

@@ -43,6 +43,7 @@ def storage_node(
         "records": {"staged": 0, "committed": 0},
         "topics": topics,
         "error": None,
+        "updated_ns": 1,
     }
     return lambda _: json_reply(json.dumps(job))
 

@@ -27,6 +27,7 @@ def job(status: str, **fields: Any) -> dict[str, Any]:
         "topics": [{**topic, "skipped": None}],
         "error": None,
         "dataset": None,
+        "updated_ns": 1,
         **fields,
     }
 
@@ -37,7 +38,7 @@ def serving(*states: dict[str, Any]) -> Any:
     answers = list(states)
 
     def script(exchange: Exchange) -> Reply:
-        if exchange.path == "/v1/jobs/j1":
+        if exchange.path.split("?")[0] == "/v1/jobs/j1":
             state = answers.pop(0) if len(answers) > 1 else answers[0]
             return json_reply(json.dumps(state))
         if exchange.path == "/v1/jobs/j1/resume" and exchange.method == "POST":

@@ -45,6 +45,7 @@ def storage_node(exchange: Exchange) -> Reply:
             "records": {"staged": 1, "committed": 1},
             "topics": [topic],
             "error": None,
+            "updated_ns": 1,
         }
         return json_reply(json.dumps(job))
     return json_reply(b'{"error":{"code":"not_found","message":"no"}}', 404)

@@ -8,7 +8,7 @@ import threading
 import anyio
 import pytest
 
-from services.common.changes import Changes
+from services.common.changes import Changes, long_poll
 
 pytestmark = pytest.mark.anyio
 
@@ -70,3 +70,38 @@ async def test_closing_answers_every_wait_and_each_one_after() -> None:
             threading.Thread(target=changes.close).start()
         assert answers == [False, False]
         assert not await changes.wait_past(seen, 20)
+
+
+async def test_a_long_poll_reads_again_after_each_change_until_its_answer_is_ready() -> None:
+    """Changes of anything (another job's progress) wake the poll; it answers only once
+    what it reads is ready, and reads nothing more meanwhile."""
+    changes = Changes(max_waiters=4)
+    state = {"value": 0}
+    reads: list[int] = []
+
+    async def read() -> int:
+        reads.append(state["value"])
+        return state["value"]
+
+    def change_to(value: int) -> None:
+        state["value"] = value
+        changes.advance()
+
+    for delay, value in ((0.1, 1), (0.2, 2), (0.3, 3)):
+        threading.Timer(delay, change_to, (value,)).start()
+    with anyio.fail_after(10):
+        assert await long_poll(read, lambda value: value >= 3, changes, 20) == 3
+    assert reads[0] == 0
+    assert reads[-1] == 3
+    assert reads == sorted(set(reads))  # a read only after a change
+
+
+async def test_a_long_poll_answers_as_it_reads_once_its_wait_is_over() -> None:
+    changes = Changes(max_waiters=4)
+
+    async def read() -> str:
+        return "queued"
+
+    started = anyio.current_time()
+    assert await long_poll(read, lambda _: False, changes, 0.2) == "queued"
+    assert anyio.current_time() - started >= 0.2
