@@ -220,7 +220,7 @@ def _open_ingest(
         keep_resumable_s=settings.storage_keep_resumable_s,
         disk_reserve=app.state.disk_reserve,
     )
-    app.state.on_stop.append(app.state.ingest_jobs.changes.close)
+    app.state.on_stop.append(app.state.ingest_jobs.stop_waits)
 
 
 def build_app(settings: StorageSettings) -> FastAPI:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import AsyncIterator, Iterator
-from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, BinaryIO, Literal
 
@@ -26,7 +25,7 @@ from services.common.slots import Slots
 from services.storage.bags import SUFFIXES, detect_format
 from services.storage.casbags import BagBounds, fetch_bag
 from services.storage.export import Encoder, JsonLinesEncoder, McapEncoder
-from services.storage.ingest import IngestJobs, Job
+from services.storage.ingest import IngestJobs
 from services.storage.matcher import Bindings
 from services.storage.queries import Page, QueryEngine
 from services.storage.records_api import RecordFilters, authorship_of, in_query_slot
@@ -161,12 +160,15 @@ async def get_job(
         )
     jobs = _jobs(request)
 
-    def changed(job: Job) -> bool:
-        return after_ns is None or job.updated_ns > after_ns or job.status in FINISHED
+    async def peek() -> tuple[int, str]:
+        return jobs.peek(job_id)
 
-    job = await long_poll(
-        partial(anyio.to_thread.run_sync, partial(jobs.get, job_id)), changed, jobs.changes, wait_s
-    )
+    def changed(seen: tuple[int, str]) -> bool:
+        updated_ns, status = seen
+        return after_ns is None or updated_ns > after_ns or status in FINISHED
+
+    await long_poll(peek, changed, jobs.changes_of(job_id), wait_s)
+    job = await anyio.to_thread.run_sync(jobs.get, job_id)
     return job.to_json()
 
 

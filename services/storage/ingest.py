@@ -90,9 +90,10 @@ KEEP_RESUMABLE_S = 7 * 24 * 3600.0
 INCOMING = "incoming"
 """Under the jobs' root: bags on their way in, each in a directory of its own
 (:meth:`IngestJobs.incoming`)."""
-MAX_JOB_WAITERS = 256
-"""Requests waiting on a job's next change at once (``GET /v1/jobs/{id}?wait_s=``); more
-answer at once, as without a wait."""
+MAX_WAITERS_PER_JOB = 16
+"""Requests waiting on one job's next change at once (``GET /v1/jobs/{id}?wait_s=``); more
+answer at once, as without a wait. Only a job still queued or running has waits, so the
+node holds at most this many times its pending jobs (``max_pending``)."""
 
 
 class JobNotFound(LookupError):
@@ -431,8 +432,9 @@ class IngestJobs:
         self._saving = threading.Lock()
         """Held, before :attr:`_lock`, from a change to its save, so that job.json is
         written in the order its changes were made."""
-        self.changes = Changes(MAX_JOB_WAITERS)
-        """Advanced at every change of any job: what a reader's long poll of one waits on."""
+        self._changes: dict[str, Changes] = {}
+        """Each job's changes, for the long polls of it (:meth:`changes_of`)."""
+        self._waits_stopped = False
         self._queue: queue.Queue[str | None] = queue.Queue()
         self._due: list[tuple[int, str, Due]] = []
         """What the worker thread does to a finished job at a time: publish a succeeded
@@ -465,7 +467,7 @@ class IngestJobs:
         self._worker.start()
 
     def close(self) -> None:
-        self.changes.close()
+        self.stop_waits()
         self._queue.put(None)
         self._worker.join()
         self.ingested.close()
@@ -569,6 +571,36 @@ class IngestJobs:
         self._queue.put(job_id)
         return self.get(job_id)
 
+    def changes_of(self, job_id: str) -> Changes:
+        """What a long poll of ``job_id`` waits on: advanced at each change of that job
+        alone, as one ``Changes`` for every job woke every wait at each progress report of
+        any bag (docs/storage.md has the figures). Like :meth:`peek`, read without the lock
+        on the event loop; a job's entry goes when the job is forgotten."""
+        self.peek(job_id)
+        changes = self._changes.get(job_id)
+        if changes is None:
+            changes = self._changes.setdefault(job_id, Changes(MAX_WAITERS_PER_JOB))
+            if self._waits_stopped:
+                changes.close()
+        return changes
+
+    def stop_waits(self) -> None:
+        """Answer every long poll now and each later one at once (the node is stopping)."""
+        self._waits_stopped = True
+        for changes in list(self._changes.values()):
+            changes.close()
+
+    def peek(self, job_id: str) -> tuple[int, Status]:
+        """A job's ``updated_ns`` and status, cheap enough for every wake of every long poll:
+        read on the event loop without the lock (each one attribute, which a writer sets
+        whole), where :meth:`get` deep-copies the job (its topics and their drafts) under
+        it. 256 waits woken at every progress report of another job's bag would have
+        copied their own job each time."""
+        job = self._jobs.get(job_id)
+        if job is None:
+            raise JobNotFound(job_id)
+        return job.updated_ns, job.status
+
     def get(self, job_id: str) -> Job:
         with self._lock:
             job = self._jobs.get(job_id)
@@ -602,12 +634,15 @@ class IngestJobs:
         ]
         for job_id in finished[: max(0, len(finished) - self.keep_finished)]:
             del self._jobs[job_id]
+            forgotten = self._changes.pop(job_id, None)
+            if forgotten is not None:
+                forgotten.close()
             shutil.rmtree(self.root / job_id, ignore_errors=True)
 
     def _save(self, job: Job) -> None:
         job.updated_ns = time.time_ns()
         self._write(job, _job_document(job))
-        self.changes.advance()
+        self._advance(job.id)
 
     def _write(self, job: Job, document: bytes) -> None:
         atomic_write(self.root / job.id / "job.json", document)
@@ -623,7 +658,12 @@ class IngestJobs:
                 document = _job_document(job) if save else None
             if document is not None:
                 self._write(job, document)
-        self.changes.advance()
+        self._advance(job.id)
+
+    def _advance(self, job_id: str) -> None:
+        changes = self._changes.get(job_id)
+        if changes is not None:
+            changes.advance()
 
     def _work(self) -> None:
         """Run queued jobs one at a time, for the service's lifetime. A job whose failure

@@ -3,6 +3,7 @@ back with the mcap library; bad bags, unsigned writes and unknown jobs."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import hashlib
 import io
@@ -17,6 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import anyio
 import httpx
 import pytest
 from mcap.reader import make_reader
@@ -33,6 +35,7 @@ from robocloud.ledger import LedgerService
 from robocloud.storage import Storage as StorageClient
 from robocloud.unixfs import import_bytes
 from services.storage.bags import MAX_CHUNK_BYTES
+from services.storage.ingest import MAX_WAITERS_PER_JOB
 from services.storage.matcher import draft_template
 from tests.bagfactory import (
     START_NS,
@@ -164,6 +167,47 @@ def test_a_read_waiting_on_a_job_is_answered_when_the_node_stops(
         answered_s = time.monotonic() - stopped_at
     assert (answer["status"], answer["updated_ns"]) == ("queued", queued["updated_ns"])
     assert answered_s < 3
+
+
+def test_waits_past_a_jobs_bound_answer_at_once_and_the_rest_when_it_changes(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> None:
+    """Waits on one job are bounded (``MAX_WAITERS_PER_JOB``): past them a read answers at
+    once, as if it had not asked to wait; the others answer when the job's turn comes."""
+    long_bag = write_bag(tmp_path / "long.bag", "ros1", 20_000, image_every=1_000_000)
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        imu = approve(client, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        ingest.upload(long_bag)
+        queued = ingest.upload(write_bag(tmp_path / "run.bag", "ros1", 50))
+    extra = 4
+    params = {"after_ns": queued["updated_ns"], "wait_s": 25}
+
+    async def read(client: httpx.AsyncClient) -> dict[str, Any]:
+        answer = await client.get(f"/v1/jobs/{queued['id']}", params=params)
+        assert answer.status_code == 200, answer.text
+        job: dict[str, Any] = answer.json()
+        return job
+
+    async def crowd() -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        limits = httpx.Limits(max_connections=MAX_WAITERS_PER_JOB + extra)
+        async with httpx.AsyncClient(base_url=storage.url, limits=limits, timeout=60) as client:
+            reads = [asyncio.create_task(read(client)) for _ in range(MAX_WAITERS_PER_JOB + extra)]
+            with anyio.fail_after(20):
+                while sum(task.done() for task in reads) < extra:
+                    await asyncio.sleep(0.05)
+            await asyncio.sleep(0.3)
+            early = [task.result() for task in reads if task.done()]
+            with anyio.fail_after(120):
+                answered = await asyncio.gather(*reads)
+            return early, [job for job in answered if job not in early]
+
+    early, woken = anyio.run(crowd)
+    assert [(job["status"], job["updated_ns"]) for job in early] == [
+        ("queued", queued["updated_ns"])
+    ] * extra
+    assert len(woken) == MAX_WAITERS_PER_JOB
+    assert all(job["updated_ns"] > queued["updated_ns"] for job in woken)
 
 
 @pytest.mark.parametrize(
