@@ -594,8 +594,7 @@ class IngestJobs:
         """A job's ``updated_ns`` and status, cheap enough for every wake of every long poll:
         read on the event loop without the lock (each one attribute, which a writer sets
         whole), where :meth:`get` deep-copies the job (its topics and their drafts) under
-        it. 256 waits woken at every progress report of another job's bag would have
-        copied their own job each time."""
+        it, which waits woken at each progress report would have done each time."""
         job = self._jobs.get(job_id)
         if job is None:
             raise JobNotFound(job_id)
