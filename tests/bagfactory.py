@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from mcap.writer import Writer as McapWriter
 from rosbags.rosbag1 import Writer as Rosbag1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer
@@ -312,3 +313,16 @@ def fanout_store(width: int, levels: int, base: Stores = Stores.EMPTY) -> Any:
     floats = "\n".join(f"float64 x{n}" for n in range(width))
     store.register(get_types_from_msg(floats, f"fan_msgs/msg/Level{levels}"))
     return store
+
+
+def ros2_mcap(path: Path, *channels: tuple[str, str, str, bytes]) -> Path:
+    """An MCAP of one CDR message on each ``(topic, type, definition, message)``."""
+    with path.open("wb") as stream:
+        writer = McapWriter(stream)
+        writer.start(profile="ros2", library="test")
+        for time_ns, (topic, msgtype, definition, message) in enumerate(channels, 1):
+            schema = writer.register_schema(msgtype, "ros2msg", definition.encode())
+            channel = writer.register_channel(topic, "cdr", schema)
+            writer.add_message(channel, time_ns, message, time_ns)
+        writer.finish()
+    return path

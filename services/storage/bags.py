@@ -71,6 +71,14 @@ held the ingest thread and took the service's memory. No type in rosbags' typest
 one; a real definition's few (``Point[4] corners``) cost about a millisecond each."""
 
 
+MAX_TYPE_DEPTH = 64
+"""Message types held inside one another, from a topic's type. rosbags builds a type's
+(de)serializers by recursion into the types its fields hold: a definition of 600 types
+chained (65 kB), or of one type holding itself (ROS has no recursive messages), raised
+RecursionError, which failed the whole bag's job. Real definitions nest a handful
+(``nav_msgs/msg/Odometry``: 4)."""
+
+
 MAX_TOPICS = 4096
 """Topics (a topic and its type) one bag may hold. Each costs the ingest thread a typestore
 entry and a draft or a plan, and the job's report its line, saved with the job at every step:
@@ -806,17 +814,56 @@ def _reachable(types: Mapping[str, Any], msgtype: str) -> list[str]:
     found = [msgtype] if msgtype in types else []
     seen = set(found)
     for name in found:
-        for _, (nodetype, detail) in types[name][1]:
-            if nodetype == Nodetype.NAME:
-                element = detail
-            elif nodetype in (Nodetype.ARRAY, Nodetype.SEQUENCE) and detail[0][0] == Nodetype.NAME:
-                element = detail[0][1]
-            else:
-                continue
-            if element in types and element not in seen:
-                seen.add(element)
-                found.append(element)
+        for held in _held_types(types, name):
+            if held not in seen:
+                seen.add(held)
+                found.append(held)
     return found
+
+
+def _held_types(types: Mapping[str, Any], name: str) -> Iterator[str]:
+    """The types of ``types`` that the fields of type ``name`` hold, alone or in arrays."""
+    for _, (nodetype, detail) in types[name][1]:
+        if nodetype == Nodetype.NAME:
+            held = detail
+        elif nodetype in (Nodetype.ARRAY, Nodetype.SEQUENCE) and detail[0][0] == Nodetype.NAME:
+            held = detail[0][1]
+        else:
+            continue
+        if held in types:
+            yield held
+
+
+def nesting_problem(types: Mapping[str, Any], msgtype: str) -> str | None:
+    """Why rosbags cannot build ``msgtype`` from ``types``: a type holds itself (directly or
+    through others), or types hold one another more than :data:`MAX_TYPE_DEPTH` deep. None
+    when neither. Walked without recursion, each type once, its depth remembered for the
+    other paths that reach it."""
+    if msgtype not in types:
+        return None
+    below: dict[str, int] = {}
+    """Each finished type's longest chain of types, itself included."""
+    path = [msgtype]
+    pending = [_held_types(types, msgtype)]
+    while pending:
+        held = next(pending[-1], None)
+        if held is None:
+            pending.pop()
+            name = path.pop()
+            below[name] = 1 + max((below[each] for each in _held_types(types, name)), default=0)
+            continue
+        if held in path:
+            cycle = " -> ".join([*path[path.index(held) :], held])
+            return f"the bag's definition has a type holding itself ({cycle}): no ROS message can"
+        if len(path) + below.get(held, 1) > MAX_TYPE_DEPTH:
+            return (
+                f"the bag's definition nests types more than {MAX_TYPE_DEPTH} deep "
+                f"(from {msgtype} through {held})"
+            )
+        if held not in below:
+            path.append(held)
+            pending.append(_held_types(types, held))
+    return None
 
 
 DefinitionKey = tuple[str, str, str, str | None]
@@ -877,7 +924,10 @@ def _typestore_from_bag(
             connection.msgtype, connection.definition, connection.definition_format
         )
         hollow = hollow_array(types, connection.msgtype, ros1=ros1)
-        if hollow is not None:
+        nesting = nesting_problem(types, connection.msgtype)
+        if nesting is not None:
+            result = nesting
+        elif hollow is not None:
             result = _hollow_problem(hollow, ros1=ros1)
         else:
             elements = unrolled_elements(types)

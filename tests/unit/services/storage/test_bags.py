@@ -7,7 +7,9 @@ import json
 import resource
 import shutil
 import struct
+import sys
 from collections import Counter
+from collections.abc import Iterator
 from itertools import islice
 from pathlib import Path
 from typing import Any
@@ -22,6 +24,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from services.storage.bags import (
     MAX_CHUNK_BYTES,
     MAX_TOPICS,
+    MAX_TYPE_DEPTH,
     MAX_UNROLLED,
     Bag,
     BagCorrupt,
@@ -38,6 +41,7 @@ from tests.bagfactory import (
     START_NS,
     TOPICS,
     BagKind,
+    ros2_mcap,
     write_bag,
     write_mcap_bomb,
     write_ros1_big_chunk,
@@ -234,6 +238,78 @@ def test_a_services_events_of_every_field_type_decode() -> None:
     numbers = [f"{kind}{bits}_value" for bits in (8, 16, 32, 64) for kind in ("int", "uint")]
     expected = ["bool_value", "byte_value", "char_value", "float32_value", "float64_value"]
     assert sorted(request) == sorted([*expected, *numbers, "string_value"])
+
+
+SEPARATOR = "=" * 80 + "\n"
+GOOD_STRING = (
+    "/ok",
+    "std_msgs/msg/String",
+    "string data\n",
+    b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00",
+)
+
+
+def chained_types(count: int) -> str:
+    """A definition of ``pkg/msg/T0`` holding ``T1``, which holds ``T2``... ``count`` types."""
+    sections = [f"{SEPARATOR}MSG: pkg/T{n}\npkg/T{n + 1} next\n" for n in range(1, count - 1)]
+    return "".join(["pkg/T1 next\n", *sections, f"{SEPARATOR}MSG: pkg/T{count - 1}\nint32 x\n"])
+
+
+@pytest.mark.parametrize(
+    ("definition", "cycle"),
+    [
+        ("pkg/Foo[] children\nint32 x\n", "pkg/msg/Foo -> pkg/msg/Foo"),
+        (f"pkg/Bar bar\n{SEPARATOR}MSG: pkg/Bar\npkg/Foo[<=2] foo\n", "Foo -> pkg/msg/Bar -> "),
+    ],
+    ids=["itself", "through-another"],
+)
+def test_a_type_holding_itself_disables_only_its_topic(
+    tmp_path: Path, definition: str, cycle: str
+) -> None:
+    """rosbags follows such a type without end: a 300-byte bag failed its whole job with
+    ``RecursionError``."""
+    path = ros2_mcap(
+        tmp_path / "loop.mcap", ("/loop", "pkg/msg/Foo", definition, bytes(12)), GOOD_STRING
+    )
+    with Bag.open(path) as bag:
+        problems = {c.topic: c.problem for c in bag.connections}
+        good = list(decoded(bag, ["/ok"]))
+    assert "a type holding itself" in (problems["/loop"] or "")
+    assert cycle in (problems["/loop"] or "")
+    assert problems["/ok"] is None
+    assert [message for _, _, message in good] == [{"data": "hi"}]
+
+
+@pytest.fixture
+def service_recursion_limit() -> Iterator[None]:
+    """The storage service's recursion limit, where this test process has py_ecc's."""
+    previous = sys.getrecursionlimit()
+    sys.setrecursionlimit(1000)
+    yield
+    sys.setrecursionlimit(previous)
+
+
+@pytest.mark.usefixtures("service_recursion_limit")
+def test_types_nested_past_the_bound_disable_only_their_topic(tmp_path: Path) -> None:
+    """600 types chained, 65 kB of definition, raised ``RecursionError`` in rosbags and
+    failed the whole bag; as deep as the bound, they decode under the service's limit."""
+    path = ros2_mcap(
+        tmp_path / "deep.mcap",
+        ("/deep", "pkg/msg/T0", chained_types(600), bytes(8)),
+        ("/bound", "pkg/msg/T0", chained_types(MAX_TYPE_DEPTH), b"\x00\x01\x00\x00*\x00\x00\x00"),
+        GOOD_STRING,
+    )
+    with Bag.open(path) as bag:
+        problems = {c.topic: c.problem for c in bag.connections}
+        [(_, _, message)] = decoded(bag, ["/bound"])
+    assert problems["/deep"] == (
+        f"the bag's definition nests types more than {MAX_TYPE_DEPTH} deep "
+        f"(from pkg/msg/T0 through pkg/msg/T{MAX_TYPE_DEPTH})"
+    )
+    assert (problems["/bound"], problems["/ok"]) == (None, None)
+    for _ in range(MAX_TYPE_DEPTH - 1):
+        message = message["next"]
+    assert message == {"x": 42}
 
 
 def test_a_service_definition_bare_or_headed_gives_one_event_type() -> None:

@@ -35,6 +35,7 @@ from tests.bagfactory import (
     TOPICS,
     BagKind,
     camera_run,
+    ros2_mcap,
     typestore_for,
     write_bag,
     write_flags_bag,
@@ -284,6 +285,29 @@ def test_an_unbound_topic_that_cannot_be_decoded_says_why(node: Node, tmp_path: 
     )
     assert reports["/test_service1/_service_event"].draft is None
     assert reports["/test_topic1"].skipped == "no template is bound to this topic or message type"
+
+
+def test_a_type_holding_itself_is_one_topic_skipped_not_a_failed_job(
+    node: Node, tmp_path: Path
+) -> None:
+    """A 300-byte bag whose one definition holds itself failed its job whole with
+    ``RecursionError``, its good topic with it."""
+    text = node.approve("std_msgs/msg/String")
+    node.bindings.bind(template_id=text, msgtype="std_msgs/msg/String")
+    path = ros2_mcap(
+        tmp_path / "loop.mcap",
+        ("/loop", "pkg/msg/Foo", "pkg/Foo[] children\n", bytes(8)),
+        ("/ok", "std_msgs/msg/String", "string data\n", b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00"),
+    )
+    job = node.jobs.wait(node.jobs.submit(path, "upload:loop", authorship()).id, 60)
+    assert (job.status, job.records_committed) == ("succeeded", 1), job.error
+    [loop] = [report for report in job.topics if report.topic == "/loop"]
+    assert loop.skipped == (
+        "no template is bound to this topic or message type, and its type cannot be decoded: "
+        "the bag's definition has a type holding itself (pkg/msg/Foo -> pkg/msg/Foo): "
+        "no ROS message can"
+    )
+    assert node.store.get("string-1-0").record["data"] == {"data": "hi"}
 
 
 def test_distinct_drafts_of_one_name_are_named_apart(node: Node, tmp_path: Path) -> None:
