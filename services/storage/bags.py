@@ -71,6 +71,13 @@ held the ingest thread and took the service's memory. No type in rosbags' typest
 one; a real definition's few (``Point[4] corners``) cost about a millisecond each."""
 
 
+MAX_DEFINITION_BYTES = 4 * 1024**2
+"""Bytes of definition text one bag's distinct definitions may hold in all. rosbags parses
+about a megabyte a second (pure Python), on the ingest thread: nothing bounded a
+definition, so one of 64 MiB in a bag of no message would hold the thread for a minute.
+The largest in the recordings under shared/data is 5.8 kB (``ParameterEvent`` with what it
+holds); a bag of a hundred topics of distinct types holds a few hundred kB."""
+
 MAX_TYPE_DEPTH = 64
 """Message types held inside one another, from a topic's type. rosbags builds a type's
 (de)serializers by recursion into the types its fields hold: a definition of 600 types
@@ -393,10 +400,17 @@ class Bag:
                 path=self.path,
             )
         fallback = self._fallback_store()
-        unrolled = UnrollBudget()
+        unrolled, text = unroll_budget(), text_budget()
         for connection in self.connections:
             digest = self._digests[(connection.topic, connection.msgtype)]
-            _prepare(connection, digest, ros1=self._is_ros1, fallback=fallback, unrolled=unrolled)
+            _prepare(
+                connection,
+                digest,
+                ros1=self._is_ros1,
+                fallback=fallback,
+                unrolled=unrolled,
+                text=text,
+            )
 
     def _fallback_store(self) -> tuple[str, Typestore]:
         store = FALLBACK_STORES[0 if self._is_ros1 else 1]
@@ -872,30 +886,45 @@ ROS 1 bag (None in ROS 2): what a definition gives depends on both (the md5sum's
 :func:`hollow_array`'s rules)."""
 
 
-class UnrollBudget:
-    """What is left of one bag's :data:`MAX_UNROLLED`: each distinct definition is charged
-    once, in the order of its connections, before rosbags generates code for it, so a bag
-    gives the same connections the same problems whatever a cache of another bag holds."""
+class DefinitionBudget:
+    """What is left of one bag's bound on its definitions (:data:`MAX_UNROLLED` elements,
+    :data:`MAX_DEFINITION_BYTES` of text): each distinct definition is charged once, in the
+    order of its connections, before rosbags works on it, so a bag gives the same
+    connections the same problems whatever a cache of another bag holds."""
 
-    def __init__(self, limit: int = MAX_UNROLLED) -> None:
+    def __init__(self, limit: int, what: str, why: str) -> None:
         self.limit = limit
         self.left = limit
+        self.what = what
+        self.why = why
         self._charged: set[DefinitionKey] = set()
 
-    def refusal(self, key: DefinitionKey, elements: int) -> str | None:
-        """Charge a definition's unrolled ``elements`` unless it was; the problem if they
-        do not fit."""
+    def refusal(self, key: DefinitionKey, amount: int) -> str | None:
+        """Charge a definition's ``amount`` unless it was; the problem if it does not fit."""
         if key in self._charged:
             return None
-        if elements > self.left:
+        if amount > self.left:
             return (
-                f"the bag's definition holds {elements} elements of fixed-size arrays of "
-                f"strings or messages, more than the {self.left} left of the {self.limit} a "
-                "bag's definitions may hold (rosbags generates code for each)"
+                f"the bag's definition holds {amount} {self.what}, more than the {self.left} "
+                f"left of the {self.limit} a bag's definitions may hold ({self.why})"
             )
-        self.left -= elements
+        self.left -= amount
         self._charged.add(key)
         return None
+
+
+def unroll_budget() -> DefinitionBudget:
+    return DefinitionBudget(
+        MAX_UNROLLED,
+        "elements of fixed-size arrays of strings or messages",
+        "rosbags generates code for each",
+    )
+
+
+def text_budget() -> DefinitionBudget:
+    return DefinitionBudget(
+        MAX_DEFINITION_BYTES, "bytes of text", "rosbags parses about a megabyte a second"
+    )
 
 
 _STORES: dict[DefinitionKey, tuple[Typestore | str, int]] = {}
@@ -903,17 +932,27 @@ _STORES: dict[DefinitionKey, tuple[Typestore | str, int]] = {}
 
 
 def _typestore_from_bag(
-    connection: BagConnection, digest: str, *, ros1: bool, unrolled: UnrollBudget
+    connection: BagConnection,
+    digest: str,
+    *,
+    ros1: bool,
+    unrolled: DefinitionBudget,
+    text: DefinitionBudget,
 ) -> Typestore | str:
-    """A typestore holding only this definition (cached per text); an error text if it fails,
-    holds an array a decode cannot bound (:func:`hollow_array`) or would unroll more than
-    ``unrolled`` has left."""
+    """A typestore holding only this definition (cached per text); an error text if it is
+    longer than ``text`` has left, fails, holds an array a decode cannot bound
+    (:func:`hollow_array`) or types in one another without end or past
+    :data:`MAX_TYPE_DEPTH` (:func:`nesting_problem`), or would unroll more than ``unrolled``
+    has left."""
     key = (
         connection.msgtype,
         connection.definition_format,
         connection.definition,
         digest if ros1 else None,
     )
+    too_long = text.refusal(key, len(connection.definition.encode()))
+    if too_long is not None:
+        return too_long
     cached = _STORES.get(key)
     if cached is not None:
         return unrolled.refusal(key, cached[1]) or cached[0]
@@ -969,10 +1008,11 @@ def _prepare(
     *,
     ros1: bool,
     fallback: tuple[str, Typestore],
-    unrolled: UnrollBudget,
+    unrolled: DefinitionBudget,
+    text: DefinitionBudget,
 ) -> None:
     if connection.definition_format != "none" and connection.definition.strip():
-        found = _typestore_from_bag(connection, digest, ros1=ros1, unrolled=unrolled)
+        found = _typestore_from_bag(connection, digest, ros1=ros1, unrolled=unrolled, text=text)
         if isinstance(found, str):
             connection.problem = found
             return

@@ -23,6 +23,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from services.storage.bags import (
     MAX_CHUNK_BYTES,
+    MAX_DEFINITION_BYTES,
     MAX_TOPICS,
     MAX_TYPE_DEPTH,
     MAX_UNROLLED,
@@ -310,6 +311,32 @@ def test_types_nested_past_the_bound_disable_only_their_topic(tmp_path: Path) ->
     for _ in range(MAX_TYPE_DEPTH - 1):
         message = message["next"]
     assert message == {"x": 42}
+
+
+def test_definitions_past_the_bags_text_bound_disable_only_their_topics(tmp_path: Path) -> None:
+    """Nothing bounded a definition's text, which rosbags parses at about a megabyte a
+    second on the ingest thread: each distinct definition is charged to the bag's
+    ``MAX_DEFINITION_BYTES`` before it is parsed, and the one past them is not parsed."""
+    comment = "# " + "x" * 1000 + "\n"
+    large = "int32 x\n" + comment * (MAX_DEFINITION_BYTES // len(comment) // 2 + 1)
+    message = b"\x00\x01\x00\x00*\x00\x00\x00"
+    path = ros2_mcap(
+        tmp_path / "large.mcap",
+        ("/first", "pkg/msg/First", large, message),
+        ("/second", "pkg/msg/Second", large, message),
+        GOOD_STRING,
+    )
+    with Bag.open(path) as bag:
+        problems = {c.topic: c.problem for c in bag.connections}
+        first = [message for _, _, message in decoded(bag, ["/first", "/ok"])]
+    left = MAX_DEFINITION_BYTES - len(large)
+    assert problems["/second"] == (
+        f"the bag's definition holds {len(large)} bytes of text, more than the {left} left "
+        f"of the {MAX_DEFINITION_BYTES} a bag's definitions may hold (rosbags parses about a "
+        "megabyte a second)"
+    )
+    assert (problems["/first"], problems["/ok"]) == (None, None)
+    assert first == [{"x": 42}, {"data": "hi"}]
 
 
 def test_a_service_definition_bare_or_headed_gives_one_event_type() -> None:
