@@ -86,6 +86,12 @@ RecursionError, which failed the whole bag's job. Real definitions nest a handfu
 (``nav_msgs/msg/Odometry``: 4)."""
 
 
+MAX_NAME = 1024
+"""Characters of a topic's or a message type's name. The job's report names each topic and
+type, and is written again at each step of the job: a type name of a megabyte made a
+report of a megabyte, and a bag may hold 4,096 of them. ROS names are far shorter (records
+hold a topic of at most 256 characters; a longer one is skipped alone)."""
+
 MAX_TOPICS = 4096
 """Topics (a topic and its type) one bag may hold. Each costs the ingest thread a typestore
 entry and a draft or a plan, and the job's report its line, saved with the job at every step:
@@ -399,6 +405,14 @@ class Bag:
                 f"holds {len(self.connections)} topics, more than the {MAX_TOPICS} a bag may",
                 path=self.path,
             )
+        for connection in self.connections:
+            longest = max(len(connection.topic), len(connection.msgtype))
+            if longest > MAX_NAME:
+                raise BagUnreadable(
+                    f"holds a topic or type name of {longest} characters, more than the "
+                    f"{MAX_NAME} a bag's names may have",
+                    path=self.path,
+                )
         fallback = self._fallback_store()
         unrolled, text = unroll_budget(), text_budget()
         for connection in self.connections:

@@ -24,6 +24,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from services.storage.bags import (
     MAX_CHUNK_BYTES,
     MAX_DEFINITION_BYTES,
+    MAX_NAME,
     MAX_TOPICS,
     MAX_TYPE_DEPTH,
     MAX_UNROLLED,
@@ -453,6 +454,25 @@ def test_a_bag_of_more_topics_than_a_bag_may_hold_is_refused_at_open(tmp_path: P
         Bag.open(path)
     assert str(refused.value) == (
         f"many.bag: holds {MAX_TOPICS + 1} topics, more than the {MAX_TOPICS} a bag may"
+    )
+
+
+@pytest.mark.parametrize(
+    ("topic", "msgtype"),
+    [("/t", "pkg/msg/" + "A" * (MAX_NAME - 7)), ("/" + "t" * MAX_NAME, "std_msgs/msg/String")],
+    ids=["type", "topic"],
+)
+def test_a_bag_with_a_name_past_the_bound_is_refused_at_open(
+    tmp_path: Path, topic: str, msgtype: str
+) -> None:
+    """A type name of a megabyte made a job's report of a megabyte, written again at each
+    step of the job, and a bag may hold 4,096 of them."""
+    path = ros2_mcap(tmp_path / "long.mcap", (topic, msgtype, "int32 x\n", bytes(8)), GOOD_STRING)
+    with pytest.raises(BagUnreadable) as refused:
+        Bag.open(path)
+    assert str(refused.value) == (
+        f"long.mcap: holds a topic or type name of {MAX_NAME + 1} characters, more than the "
+        f"{MAX_NAME} a bag's names may have"
     )
 
 
