@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 import stat
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from robocloud.errors import KeystoreError
 from robocloud.identity import Identity
+from tests.fresh_interpreter import printed_by
 
 FAST_SCRYPT = 2**10  # the default 2**18 costs about a second; the format is the same
 
@@ -124,7 +123,4 @@ def test_loading_the_signing_library_keeps_the_recursion_limit() -> None:
         "Identity.generate()\n"
         "print('py_ecc' in sys.modules, sys.getrecursionlimit())\n"
     )
-    shown = subprocess.run(
-        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120
-    )
-    assert shown.stdout.split() == ["True", "1000"]
+    assert printed_by(probe).split() == ["True", "1000"]

@@ -6,22 +6,18 @@ Checked in a fresh interpreter, since this test process has long imported everyt
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 
 import robocloud
+from tests.fresh_interpreter import printed_by
 
 HEAVY = ("httpx", "eth_account", "eth_utils", "py_ecc", "rich", "typer")
 
 
 def modules_loaded_by(statement: str) -> list[str]:
     code = f"import sys\n{statement}\nprint(__import__('json').dumps(sorted(sys.modules)))"
-    done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
-    )
-    loaded: list[str] = json.loads(done.stdout.splitlines()[-1])
+    loaded: list[str] = json.loads(printed_by(code).splitlines()[-1])
     return loaded
 
 

@@ -117,6 +117,18 @@ def test_ingest_a_bag_and_export_it(
     assert answered.content == mcap_path.read_bytes()
 
 
+def queued_behind_a_long_job(
+    storage: ServiceProcess, identity: Identity, tmp_path: Path
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A job of 20,000 IMU messages (about 5 s), and a small one queued behind it."""
+    long_bag = write_bag(tmp_path / "long.bag", "ros1", 20_000, image_every=1_000_000)
+    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
+        imu = approve(client, "sensor_msgs/msg/Imu")
+        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
+        first = ingest.upload(long_bag)
+        return first, ingest.upload(write_bag(tmp_path / "run.bag", "ros1", 50))
+
+
 def test_a_job_waiting_its_turn_is_read_once_until_it_changes(
     storage: ServiceProcess, identity: Identity, tmp_path: Path
 ) -> None:
@@ -124,13 +136,8 @@ def test_a_job_waiting_its_turn_is_read_once_until_it_changes(
     time, for as long as the job ran or waited its turn. Each read is now a long poll
     answered when the job changes: a job queued behind a long one is read when it comes and
     when its turn does, however long it waits, and its end is seen as it comes."""
-    long_bag = write_bag(tmp_path / "long.bag", "ros1", 20_000, image_every=1_000_000)
-    bag = write_bag(tmp_path / "run.bag", "ros1", 50)
-    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
-        imu = approve(client, "sensor_msgs/msg/Imu")
-        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
-        first = ingest.upload(long_bag)
-        second = ingest.upload(bag)
+    first, second = queued_behind_a_long_job(storage, identity, tmp_path)
+    with Ingest(storage.url, identity) as ingest:
         seen: list[tuple[float, dict[str, Any]]] = []
         done = ingest.wait(second["id"], lambda job: seen.append((time.monotonic(), job)))
         first_done = ingest.job(first["id"])
@@ -150,12 +157,7 @@ def test_a_read_waiting_on_a_job_is_answered_when_the_node_stops(
     """uvicorn lets requests in flight finish, 5 s at most, before the app hears of a stop:
     a read waiting on a job queued behind a long one is answered, unchanged, as soon as the
     node is told to stop."""
-    long_bag = write_bag(tmp_path / "long.bag", "ros1", 20_000, image_every=1_000_000)
-    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
-        imu = approve(client, "sensor_msgs/msg/Imu")
-        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
-        ingest.upload(long_bag)
-        queued = ingest.upload(write_bag(tmp_path / "run.bag", "ros1", 50))
+    _, queued = queued_behind_a_long_job(storage, identity, tmp_path)
     with Ingest(storage.url, retries=0) as reader, ThreadPoolExecutor(1) as pool:
         waiting = pool.submit(reader.job, queued["id"], after_ns=queued["updated_ns"], wait_s=25)
         time.sleep(0.5)
@@ -174,12 +176,7 @@ def test_waits_past_a_jobs_bound_answer_at_once_and_the_rest_when_it_changes(
 ) -> None:
     """Waits on one job are bounded (``MAX_WAITERS_PER_JOB``): past them a read answers at
     once, as if it had not asked to wait; the others answer when the job's turn comes."""
-    long_bag = write_bag(tmp_path / "long.bag", "ros1", 20_000, image_every=1_000_000)
-    with Storage(storage.url, identity) as client, Ingest(storage.url, identity) as ingest:
-        imu = approve(client, "sensor_msgs/msg/Imu")
-        ingest.bind(imu, msgtype="sensor_msgs/msg/Imu")
-        ingest.upload(long_bag)
-        queued = ingest.upload(write_bag(tmp_path / "run.bag", "ros1", 50))
+    _, queued = queued_behind_a_long_job(storage, identity, tmp_path)
     extra = 4
     params = {"after_ns": queued["updated_ns"], "wait_s": 25}
 

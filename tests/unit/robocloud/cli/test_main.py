@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from robocloud.cli import app
 from robocloud.cli.exits import MEANINGS
 from robocloud.cli.main import COMMAND_AREAS, RECURSION_LIMIT, RobocloudGroup, area_commands
 from robocloud.errors import InvalidAnswerError
+from tests.fresh_interpreter import printed_by
 
 runner = CliRunner()
 DOCS = Path(__file__).resolve().parents[4] / "docs" / "cli.md"
@@ -177,10 +177,7 @@ def test_a_content_command_loads_neither_the_ledger_nor_the_knowledge_libraries(
         "assert CliRunner().invoke(app, ['sparql', '--help']).exit_code == 0\n"
         "print([name for name in heavy if name in sys.modules])\n"
     )
-    shown = subprocess.run(
-        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120
-    )
-    assert shown.stdout.splitlines() == ["3 []", "['eth_abi', 'eth_utils', 'rdflib']"]
+    assert printed_by(probe).splitlines() == ["3 []", "['eth_abi', 'eth_utils', 'rdflib']"]
 
 
 def test_a_command_that_signs_nothing_loads_no_signing_library() -> None:
@@ -197,7 +194,4 @@ def test_a_command_that_signs_nothing_loads_no_signing_library() -> None:
         "Identity.generate()\n"
         "print('eth_account' in sys.modules)\n"
     )
-    shown = subprocess.run(
-        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120
-    )
-    assert shown.stdout.split() == ["False", "True"]
+    assert printed_by(probe).split() == ["False", "True"]

@@ -8,8 +8,8 @@ import errno
 import json
 import os
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -128,16 +128,21 @@ def clock() -> Clock:
     return Clock(1_800_000_000.0)
 
 
-def follower_of(
-    kb: KnowledgeBase, ledger: Ledger, clock: Clock, batch: int = 1000, wait_s: float = 0.0
-) -> LedgerFollower:
-    """A follower of ``ledger`` feeding ``kb``, on ``clock``; a new one is a restart."""
+def connecting_to(ledger: Ledger) -> Callable[[], AbstractContextManager[Ledger]]:
+    """What a follower connects with: ``ledger`` itself, each time."""
 
     @contextmanager
     def connect_ledger() -> Iterator[Ledger]:
         yield ledger
 
-    follower = LedgerFollower(kb, connect_ledger, 10.0, batch, wait_s)
+    return connect_ledger
+
+
+def follower_of(
+    kb: KnowledgeBase, ledger: Ledger, clock: Clock, batch: int = 1000, wait_s: float = 0.0
+) -> LedgerFollower:
+    """A follower of ``ledger`` feeding ``kb``, on ``clock``; a new one is a restart."""
+    follower = LedgerFollower(kb, connecting_to(ledger), 10.0, batch, wait_s)
     follower.clock = clock
     return follower
 
@@ -388,13 +393,8 @@ def test_stopping_does_not_wait_for_a_read_waiting_on_the_ledger(tmp_path: Path,
     follower of a ledger that never answered held the stop 30 s). It stops at once now, and
     what the read brings afterwards is dropped, not indexed into a closed knowledge base."""
     ledger = WaitingLedger()
-
-    @contextmanager
-    def connect_ledger() -> Iterator[Ledger]:
-        yield ledger
-
     kb = knowledge_base(tmp_path, cas)
-    kb.follow(connect_ledger, 0.05, 20)
+    kb.follow(connecting_to(ledger), 0.05, 20)
     assert ledger.reading.wait(10)
     ledger.ads.append(Ad(1, 0, cas.put("file")))
 
@@ -428,13 +428,8 @@ def test_a_read_that_fails_after_the_stop_is_not_reported(
     """When a node stops, its ledger often stops too, and the read left waiting then fails:
     the follower logged that failure as a warning after the node had stopped."""
     ledger = VanishingLedger()
-
-    @contextmanager
-    def connect_ledger() -> Iterator[Ledger]:
-        yield ledger
-
     kb = knowledge_base(tmp_path, cas)
-    kb.follow(connect_ledger, 0.05, 20)
+    kb.follow(connecting_to(ledger), 0.05, 20)
     assert ledger.reading.wait(10)
     kb.close()
     with caplog.at_level("WARNING", logger="robocloud.storage.knowledge"):
