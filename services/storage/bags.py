@@ -680,7 +680,7 @@ def parse_definition(msgtype: str, definition: str, fmt: str) -> dict[str, Any]:
 
 SERVICE_EVENT = re.compile(r"(?P<package>[^/]+)/srv/(?P<service>\w+)_Event")
 """The type of a service-introspection topic (``/<service>/_service_event``, ROS 2 Iron on)."""
-SERVICE_HEADER = re.compile(rf"{IDL_SEPARATOR}SRV: [^\n]*\n")
+SERVICE_HEADER = re.compile(rf"\A{IDL_SEPARATOR}SRV: [^\n]*\n")
 
 
 def service_event_types(msgtype: str, definition: str) -> dict[str, Any] | None:
