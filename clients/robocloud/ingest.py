@@ -133,16 +133,19 @@ class Ingest(ServiceClient):
         its end is seen at once; reads are at least ``poll_s`` apart all the same, however
         often the job changes (or a node that does not wait answers)."""
         deadline = time.monotonic() + timeout_s
+        asked = time.monotonic()
         job = self.job(job_id)
         while True:
             if on_progress is not None:
                 on_progress(job)
-            left = deadline - time.monotonic()
-            if job["status"] in FINISHED or left <= 0:
+            if job["status"] in FINISHED or time.monotonic() >= deadline:
                 return job
-            asked = time.monotonic()
-            job = self.job(job_id, after_ns=job["updated_ns"], wait_s=min(MAX_WAIT_S, left))
             time.sleep(max(0.0, min(asked + poll_s, deadline) - time.monotonic()))
+            asked = time.monotonic()
+            if asked >= deadline:
+                return job
+            wait_s = min(MAX_WAIT_S, deadline - asked)
+            job = self.job(job_id, after_ns=job["updated_ns"], wait_s=wait_s)
 
     def resume(self, job_id: str) -> dict[str, Any]:
         return _job_of(job_id, self.post_json(f"/v1/jobs/{quote(job_id, safe='')}/resume"))
