@@ -153,21 +153,25 @@ async def get_job(
     ``wait_s`` and ``after_ns``, a long poll: the answer comes as soon as the job changes
     (its ``updated_ns`` passes ``after_ns``) or when it is finished, else after ``wait_s``
     as it is (at once while too many others wait, or once the node stops)."""
-    if wait_s and after_ns is None:
-        raise Unprocessable(
-            "wait_s needs after_ns, the job's updated_ns as last read",
-            details={"errors": [{"field": "query.after_ns", "message": "required with wait_s"}]},
-        )
     jobs = _jobs(request)
+    if wait_s:
+        if after_ns is None:
+            raise Unprocessable(
+                "wait_s needs after_ns, the job's updated_ns as last read",
+                details={
+                    "errors": [{"field": "query.after_ns", "message": "required with wait_s"}]
+                },
+            )
+        seen_ns = after_ns
 
-    async def peek() -> tuple[int, str]:
-        return jobs.peek(job_id)
+        async def peek() -> tuple[int, str]:
+            return jobs.peek(job_id)
 
-    def changed(seen: tuple[int, str]) -> bool:
-        updated_ns, status = seen
-        return after_ns is None or updated_ns > after_ns or status in FINISHED
+        def changed(seen: tuple[int, str]) -> bool:
+            updated_ns, status = seen
+            return updated_ns > seen_ns or status in FINISHED
 
-    await long_poll(peek, changed, jobs.changes_of(job_id), wait_s)
+        await long_poll(peek, changed, jobs.changes_of(job_id), wait_s)
     job = await anyio.to_thread.run_sync(jobs.get, job_id)
     return job.to_json()
 

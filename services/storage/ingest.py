@@ -575,7 +575,8 @@ class IngestJobs:
         """What a long poll of ``job_id`` waits on: advanced at each change of that job
         alone, as one ``Changes`` for every job woke every wait at each progress report of
         any bag (docs/storage.md has the figures). Like :meth:`peek`, read without the lock
-        on the event loop; a job's entry goes when the job is forgotten."""
+        on the event loop; made by the first read that waits, it goes when the job is
+        forgotten."""
         self.peek(job_id)
         changes = self._changes.get(job_id)
         if changes is None:

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import asyncio
 import time
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import anyio
@@ -23,6 +23,7 @@ from tests.integration.services.ledger.conftest import (
     rpc,
     start_ledger,
 )
+from tests.long_polls import crowd_of_waits
 
 WAITED_FOR = "bafkreihdwdcefgh4dqkjv67uzcmw7ojee6xedzdetojuzjevtenxquvyku"
 
@@ -210,29 +211,14 @@ def test_reads_past_the_waiting_bound_answer_at_once_and_the_ledger_goes_on(
     since = int(head(service.url)["number"]) + 1
     extra = 10
 
-    async def read(client: httpx.AsyncClient) -> list[dict[str, object]]:
-        answer = await client.get("/v1/advertisements", params={"since": since, "wait_s": 25})
-        assert answer.status_code == 200, answer.text
-        rows: list[dict[str, object]] = answer.json()["advertisements"]
-        return rows
+    async def advertise(client: httpx.AsyncClient) -> None:
+        latest = await client.get("/v1/blocks/latest")
+        assert int(latest.json()["number"]) == since - 1
+        await anyio.to_thread.run_sync(advertiser.advertise, CID.decode(WAITED_FOR).binary)
 
-    async def crowd() -> tuple[list[list[dict[str, object]]], list[list[dict[str, object]]]]:
-        limits = httpx.Limits(max_connections=MAX_WAITERS + extra)
-        async with httpx.AsyncClient(base_url=service.url, limits=limits, timeout=60) as client:
-            reads = [asyncio.create_task(read(client)) for _ in range(MAX_WAITERS + extra)]
-            with anyio.fail_after(20):
-                while sum(task.done() for task in reads) < extra:
-                    await asyncio.sleep(0.05)
-            await asyncio.sleep(0.5)
-            early = [task.result() for task in reads if task.done()]
-            latest = await client.get("/v1/blocks/latest")
-            assert int(latest.json()["number"]) == since - 1
-            await anyio.to_thread.run_sync(advertiser.advertise, CID.decode(WAITED_FOR).binary)
-            with anyio.fail_after(20):
-                answered = await asyncio.gather(*reads)
-            return early, [rows for rows in answered if rows]
-
-    early, woken = anyio.run(crowd)
-    assert early == [[]] * extra
+    params = {"since": since, "wait_s": 25}
+    crowd = partial(crowd_of_waits, service.url, "/v1/advertisements", params)
+    early, woken = anyio.run(crowd, MAX_WAITERS, extra, advertise)
+    assert [body["advertisements"] for body in early] == [[]] * extra
     assert len(woken) == MAX_WAITERS
-    assert {rows[0]["cid"] for rows in woken} == {WAITED_FOR}
+    assert {body["advertisements"][0]["cid"] for body in woken} == {WAITED_FOR}

@@ -3,7 +3,6 @@ back with the mcap library; bad bags, unsigned writes and unknown jobs."""
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import hashlib
 import io
@@ -15,6 +14,7 @@ import struct
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +48,7 @@ from tests.bagfactory import (
 )
 from tests.conftest import ServiceFactory
 from tests.integration.services.common.test_framework import signed_headers
+from tests.long_polls import crowd_of_waits
 from tests.procs import SHARED_DATA, ServiceProcess, memory_kib
 from tests.raw_http import read_answer
 from tests.waiting import wait_for
@@ -179,27 +180,8 @@ def test_waits_past_a_jobs_bound_answer_at_once_and_the_rest_when_it_changes(
     _, queued = queued_behind_a_long_job(storage, identity, tmp_path)
     extra = 4
     params = {"after_ns": queued["updated_ns"], "wait_s": 25}
-
-    async def read(client: httpx.AsyncClient) -> dict[str, Any]:
-        answer = await client.get(f"/v1/jobs/{queued['id']}", params=params)
-        assert answer.status_code == 200, answer.text
-        job: dict[str, Any] = answer.json()
-        return job
-
-    async def crowd() -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-        limits = httpx.Limits(max_connections=MAX_WAITERS_PER_JOB + extra)
-        async with httpx.AsyncClient(base_url=storage.url, limits=limits, timeout=60) as client:
-            reads = [asyncio.create_task(read(client)) for _ in range(MAX_WAITERS_PER_JOB + extra)]
-            with anyio.fail_after(20):
-                while sum(task.done() for task in reads) < extra:
-                    await asyncio.sleep(0.05)
-            await asyncio.sleep(0.3)
-            early = [task.result() for task in reads if task.done()]
-            with anyio.fail_after(120):
-                answered = await asyncio.gather(*reads)
-            return early, [job for job in answered if job not in early]
-
-    early, woken = anyio.run(crowd)
+    crowd = partial(crowd_of_waits, storage.url, f"/v1/jobs/{queued['id']}", params)
+    early, woken = anyio.run(crowd, MAX_WAITERS_PER_JOB, extra)
     assert [(job["status"], job["updated_ns"]) for job in early] == [
         ("queued", queued["updated_ns"])
     ] * extra
