@@ -11,10 +11,11 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any, TypeVar
 
 import anyio
-from fastapi import Request
+from fastapi import Query, Request
 from pydantic import BaseModel, ValidationError
 
 from robocloud import bounded_json
+from robocloud.client import MAX_WAIT_S
 from services.common.errors import PayloadTooLarge, Unprocessable, UnsupportedMediaType
 
 M = TypeVar("M", bound=BaseModel)
@@ -36,6 +37,12 @@ def field_errors(exc: ValidationError, prefix: str = "body") -> list[dict[str, A
         }
         for error in exc.errors()
     ]
+
+
+def wait_parameter(description: str) -> Any:
+    """A long poll's ``wait_s`` query parameter (``changes.long_poll``): from 0, an answer at
+    once, to ``MAX_WAIT_S``; out of bounds, a 422 naming ``query.wait_s``."""
+    return Query(default=0, ge=0, le=MAX_WAIT_S, description=description)
 
 
 def media_type(request: Request) -> str:

@@ -20,12 +20,11 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 import services.ledger
-from robocloud.client import MAX_WAIT_S
 from robocloud.ledger import ContractAddresses
 from robocloud.signing import chain_deployment_id
 from services.common.app import create_app
 from services.common.auth import SignedAddress
-from services.common.bodies import SMALL_JSON_BODY, read_json
+from services.common.bodies import SMALL_JSON_BODY, read_json, wait_parameter
 from services.common.changes import long_poll
 from services.common.errors import Forbidden, Unavailable
 from services.common.slots import Slots
@@ -114,11 +113,8 @@ def _router() -> APIRouter:
             le=UINT64_MAX,
             description="block `since`'s events only past this log index (a saved position)",
         ),
-        wait_s: float = Query(
-            default=0,
-            ge=0,
-            le=MAX_WAIT_S,
-            description="when there are none yet, wait up to this long for a block bringing one",
+        wait_s: float = wait_parameter(
+            "when there are none yet, wait up to this long for a block bringing one"
         ),
     ) -> dict[str, Any]:
         """Advertised events, oldest first, by CID and/or advertiser. With ``wait_s``, a

@@ -13,10 +13,15 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
 from robocloud.cid import CID, parse_cid
-from robocloud.client import MAX_WAIT_S
 from robocloud.ingest import FINISHED
 from robocloud.semantic import MCAP_MEDIA_TYPE
-from services.common.bodies import SMALL_JSON_BODY, bounded_stream, json_body, media_type
+from services.common.bodies import (
+    SMALL_JSON_BODY,
+    bounded_stream,
+    json_body,
+    media_type,
+    wait_parameter,
+)
 from services.common.changes import long_poll
 from services.common.errors import Unprocessable, UnsupportedMediaType
 from services.common.pipeline import batched, entered_in_worker_thread, in_worker_thread
@@ -142,12 +147,7 @@ async def get_job(
         le=MAX_UPDATED_NS,
         description="with `wait_s`: the job's `updated_ns` as last read",
     ),
-    wait_s: float = Query(
-        default=0,
-        ge=0,
-        le=MAX_WAIT_S,
-        description="wait up to this long for the job to change past `after_ns`",
-    ),
+    wait_s: float = wait_parameter("wait up to this long for the job to change past `after_ns`"),
 ) -> dict[str, Any]:
     """An ingest job: status, messages done of total, topics and what became of them. With
     ``wait_s`` and ``after_ns``, a long poll: the answer comes as soon as the job changes
