@@ -14,6 +14,8 @@ as its size.
 
 from __future__ import annotations
 
+import functools
+import os
 import ssl
 import time
 import urllib.request
@@ -180,15 +182,21 @@ class DeadlineTransport(httpx.HTTPTransport):
     through the HTTP(S) proxy at ``proxy``, if there is one.
 
     httpx builds its connection pool with no way to name a network backend, so the pool is
-    built again here with httpx's defaults and this module's backend (httpcore's public
-    ``network_backend`` argument).
+    built here with httpx's defaults and this module's backend (httpcore's public
+    ``network_backend`` argument). ``HTTPTransport.__init__`` is not called: all it does is
+    build a pool of its own, and with it a TLS context (20 ms of loading CA certificates), only
+    for this one to replace it; its methods use nothing but ``_pool``.
+
+    The TLS context is the process's one (:func:`tls_context`), and only a transport that
+    may speak TLS to its service (``tls``: the service's URL is ``https``) asks for it. A
+    transport made without it that is sent to an ``https`` URL all the same still verifies:
+    httpcore then makes its own default context, certifi's authorities.
     """
 
-    def __init__(self, proxy: str | None = None) -> None:
-        super().__init__()
+    def __init__(self, proxy: str | None = None, *, tls: bool = True) -> None:
         limits = httpx.Limits(max_connections=100, max_keepalive_connections=20)
         pool_options: dict[str, Any] = {
-            "ssl_context": httpx.create_ssl_context(),
+            "ssl_context": tls_context() if tls else None,
             "max_connections": limits.max_connections,
             "max_keepalive_connections": limits.max_keepalive_connections,
             "keepalive_expiry": limits.keepalive_expiry,
@@ -212,6 +220,21 @@ class DeadlineTransport(httpx.HTTPTransport):
         )
 
 
+def tls_context() -> ssl.SSLContext:
+    """The TLS context every SDK client shares: httpx's default (certificates verified against
+    ``SSL_CERT_FILE`` or ``SSL_CERT_DIR`` when set, else certifi's), made once for each value
+    of those variables instead of once a client. Loading the authorities took 20 ms, twice a
+    client, which every command and every service's connection to another paid."""
+    return _tls_context_for(os.environ.get("SSL_CERT_FILE"), os.environ.get("SSL_CERT_DIR"))
+
+
+@functools.cache
+def _tls_context_for(cert_file: str | None, cert_dir: str | None) -> ssl.SSLContext:
+    """httpx reads the two variables itself; they are this cache's key so that a context
+    never outlives the authorities it was made from."""
+    return httpx.create_ssl_context()
+
+
 def transport_for(base_url: str) -> httpx.BaseTransport:
     """The transport of an SDK client of ``base_url``.
 
@@ -221,12 +244,13 @@ def transport_for(base_url: str) -> httpx.BaseTransport:
     still times between reads.
     """
     url = httpx.URL(base_url)
+    tls = url.scheme == "https"
     proxies = urllib.request.getproxies()
     proxy = proxies.get(url.scheme) or proxies.get("all")
     if not proxy or urllib.request.proxy_bypass(url.host):
-        return DeadlineTransport()
+        return DeadlineTransport(tls=tls)
     if "://" not in proxy:
         proxy = f"http://{proxy}"
     if not proxy.startswith(("http://", "https://")):
-        return httpx.HTTPTransport(proxy=proxy)
-    return DeadlineTransport(proxy)
+        return httpx.HTTPTransport(proxy=proxy, verify=tls_context())
+    return DeadlineTransport(proxy, tls=tls)
