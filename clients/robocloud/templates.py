@@ -642,6 +642,17 @@ class RecordEncoder:
         )
 
 
+def record_topic(topic: str) -> str:
+    """The topic as records hold it: ROS 1 bags may name topics without the leading ``/``,
+    and a binding, a query or a dataset's description naming such a topic means the same."""
+    return topic if topic.startswith("/") else f"/{topic}"
+
+
+def recordable_topic(topic: str) -> bool:
+    """Whether a record can hold ``topic``: a ROS name of at most 256 characters."""
+    return TOPIC.fullmatch(record_topic(topic)) is not None
+
+
 def check_envelope(record: Any) -> str:
     """Check a record's keys other than ``data``; return its template id."""
     if not isinstance(record, dict):

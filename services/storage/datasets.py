@@ -30,6 +30,7 @@ from robocloud.semantic import (
     dataset_description,
     robot_iri,
 )
+from robocloud.templates import record_topic
 from services.storage.anchoring import EpochStore
 from services.storage.identity import NodeIdentity
 from services.storage.ingest import DatasetUnpublishable, Job
@@ -92,7 +93,9 @@ class DatasetPublisher:
                     bag_cid,
                     producer=robot_iri(chain_id, str(job.author["signer"])),
                     ingestion=ingestion,
-                    topics=sorted({t.topic for t in job.topics if t.template is not None}),
+                    topics=sorted(
+                        {record_topic(t.topic) for t in job.topics if t.template is not None}
+                    ),
                     title=f"ROS bag {bag_cid}",
                 )
                 check_bounds(description)

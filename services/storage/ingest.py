@@ -44,7 +44,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
-from robocloud.templates import TemplateInvalid, parse_template
+from robocloud.templates import TemplateInvalid, parse_template, recordable_topic
 from services.common.changes import Changes
 from services.common.disk import DiskReserve
 from services.common.durable import atomic_write, fsync_dir
@@ -56,7 +56,6 @@ from services.storage.matcher import (
     BlobSink,
     DraftError,
     draft_template,
-    recordable_topic,
 )
 from services.storage.recordlog import RecordLogs
 from services.storage.recordstore import Authorship, RecordStore, record_id

@@ -38,7 +38,6 @@ from robocloud.templates import (
     MAX_DESCRIPTION,
     MAX_FIELDS,
     MAX_NESTING,
-    TOPIC,
     ArrayOf,
     Container,
     FieldType,
@@ -46,6 +45,8 @@ from robocloud.templates import (
     Template,
     finite_floats,
     parse_template_id,
+    record_topic,
+    recordable_topic,
 )
 from services.common.durable import atomic_write
 
@@ -519,13 +520,3 @@ def check_binding(*, template_id: str, topic: str | None, msgtype: str | None) -
         raise BindingRefused("topic", f"{topic[:300]!r} is not a ROS topic name")
     if msgtype is not None and not MSGTYPE.fullmatch(msgtype):
         raise BindingRefused("msgtype", f"{msgtype[:300]!r} is not a ROS message type")
-
-
-def record_topic(topic: str) -> str:
-    """The topic as records hold it: ROS 1 bags may name topics without the leading ``/``."""
-    return topic if topic.startswith("/") else f"/{topic}"
-
-
-def recordable_topic(topic: str) -> bool:
-    """Whether a record can hold ``topic``: a ROS name of at most 256 characters."""
-    return TOPIC.fullmatch(record_topic(topic)) is not None

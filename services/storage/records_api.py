@@ -19,7 +19,7 @@ from pydantic import BaseModel, Field
 from robocloud import bounded_json
 from robocloud.errors import FormatError
 from robocloud.signing import HEADER_SIGNATURE, canonical_request
-from robocloud.templates import load_template_document
+from robocloud.templates import load_template_document, record_topic, recordable_topic
 from services.common.auth import SignedAddress, require_role, verified_request
 from services.common.bodies import INLINE_JSON_BYTES, json_body, media_type
 from services.common.errors import BadRequest, Forbidden, PayloadTooLarge, UnsupportedMediaType
@@ -346,6 +346,16 @@ def _rendered(stored: StoredRecord, meta: bool = False) -> dict[str, Any]:
     return rendered
 
 
+def topic_filter(topic: str | None) -> str | None:
+    """A query's ``topic`` as records hold it: the bag's own name works, with or without the
+    leading ``/`` that a ROS 1 bag may leave out (as a binding's does)."""
+    if topic is None:
+        return None
+    if not recordable_topic(topic):
+        raise QueryInvalid("topic", f"{topic[:80]!r} is not a ROS topic name")
+    return record_topic(topic)
+
+
 def robot_filter(robot: str | None) -> str | None:
     """A query's ``robot`` as a checksummed address (records, intervals, export)."""
     if robot is None:
@@ -368,7 +378,8 @@ class RecordFilters:
         where: Annotated[list[str] | None, Query(description="field op value, AND")] = None,
         keywords: Annotated[str | None, Query(max_length=1024)] = None,
     ) -> None:
-        self.template, self.topic, self.robot = template, topic, robot_filter(robot)
+        self.template, self.robot = template, robot_filter(robot)
+        self.topic = topic_filter(topic)
         self.start, self.end, self.keywords = start, end, keywords
         self.where = tuple(where or ())
 

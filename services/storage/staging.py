@@ -42,7 +42,14 @@ from typing import IO, Any
 
 import orjson
 
-from robocloud.templates import MAX_T, RecordInvalid, Template, check_envelope, parse_template
+from robocloud.templates import (
+    MAX_T,
+    RecordInvalid,
+    Template,
+    check_envelope,
+    parse_template,
+    record_topic,
+)
 from robocloud.unixfs import import_bytes
 from services.common.disk import ReserveReached
 from services.common.errors import disk_full
@@ -63,7 +70,6 @@ from services.storage.matcher import (
     ConversionError,
     Converter,
     compile_converter,
-    record_topic,
 )
 from services.storage.recordstore import ArrayOffload, OffloadFailed, SpooledRecords
 from services.storage.segments import DocumentForm, PreparedDocuments

@@ -38,8 +38,10 @@ from services.storage.bags import MAX_CHUNK_BYTES
 from services.storage.ingest import MAX_WAITERS_PER_JOB
 from services.storage.matcher import draft_template
 from tests.bagfactory import (
+    PERIOD_NS,
     START_NS,
     fanout_store,
+    imu,
     typestore_for,
     write_bag,
     write_flags_bag,
@@ -576,6 +578,44 @@ def ingestions(storage: ServiceProcess, bag_cid: str) -> list[tuple[str, int, in
         )
         for row in answer["results"]["bindings"]
     ]
+
+
+def test_a_ros1_bag_naming_topics_without_a_slash_is_published_with_its_records_topics(
+    service_factory: ServiceFactory, identity: Identity, tmp_path: Path
+) -> None:
+    """evo's example bag (SOURCES.md) names its topics ``groundtruth`` and ``ORB-SLAM``. Its
+    records hold ``/groundtruth``, but the dataset's description named ``groundtruth``,
+    which the knowledge base's shape refuses: the records were stored and the dataset never
+    published. Its topics are now named as its records hold them, and found so."""
+    _, storage = publishing_node(service_factory)
+    store = typestore_for("ros1")
+    bag = tmp_path / "relative.bag"
+    with Rosbag1Writer(bag) as writer:
+        connection = writer.add_connection("imu", "sensor_msgs/msg/Imu", typestore=store)
+        for index in range(5):
+            t_ns = START_NS + index * PERIOD_NS
+            raw = store.serialize_ros1(imu(store, index, t_ns), "sensor_msgs/msg/Imu")
+            writer.write(connection, t_ns, raw)
+    with StorageClient(storage.url, identity) as records, Ingest(storage.url, identity) as ingest:
+        template = approve(records, "sensor_msgs/msg/Imu")
+        ingest.bind(template, topic="imu")
+        job = ingest.wait(ingest.upload(bag)["id"], timeout_s=180)
+        assert job["status"] == "succeeded", job["error"]
+        assert [(t["topic"], t["template"]) for t in job["topics"]] == [("imu", template)]
+        assert set(job["dataset"]) == {"cid", "description", "tx"}, job["dataset"]
+        found = records.query(template=template, topic="imu").records
+    assert [item.record["topic"] for item in found] == ["/imu"] * 5
+    query = f"""
+        PREFIX rc: <https://w3id.org/robocloud#>
+        SELECT ?topic WHERE {{ <ipfs://{job["dataset"]["cid"]}> rc:topic ?topic }}
+    """
+    answer = httpx.get(
+        f"{storage.url}/v1/knowledge/sparql",
+        params={"query": query},
+        headers={"Accept": "application/sparql-results+json"},
+        timeout=30,
+    ).json()
+    assert [row["topic"]["value"] for row in answer["results"]["bindings"]] == ["/imu"]
 
 
 def test_a_bag_ingested_again_for_a_topic_bound_since_keeps_each_jobs_counts_and_epoch(

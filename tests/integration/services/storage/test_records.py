@@ -264,6 +264,25 @@ def test_queries_and_intervals_over_http(storage: ServiceProcess, identity: Iden
         assert missing.value.status == 404
 
 
+def test_a_topic_is_asked_as_its_bag_names_it_with_or_without_the_leading_slash(
+    storage: ServiceProcess, identity: Identity
+) -> None:
+    """A ROS 1 bag may name a topic ``state``; its records hold ``/state``, as a binding of
+    ``state`` means ``/state``. Asking for ``state`` once found nothing, silently."""
+    with Storage(storage.url, identity) as client:
+        _approved(client)
+        client.append([_record(identity.address, t, "idle") for t in range(3)])
+        for topic in ("/state", "state"):
+            found = client.query(template="state@1", topic=topic).records
+            assert [item.record["t"] for item in found] == [0, 1, 2], topic
+        assert client.query(template="state@1", topic="/other").records == []
+        for hopeless in ("two words", "/state?"):
+            with pytest.raises(BadRequestError) as refused:
+                client.query(template="state@1", topic=hopeless)
+            assert refused.value.details == {"parameter": "topic", "reason": "invalid_query"}
+            assert "is not a ROS topic name" in str(refused.value)
+
+
 def test_large_arrays_go_to_cas(service_factory: ServiceFactory, identity: Identity) -> None:
     cas = service_factory("cas")
     storage = service_factory(

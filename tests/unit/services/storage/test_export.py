@@ -15,12 +15,12 @@ from fastapi import FastAPI
 from mcap.reader import make_reader
 
 from robocloud.identity import Identity
-from robocloud.templates import Template, parse_template, validate_record
+from robocloud.templates import Template, parse_template, record_topic, validate_record
 from services.common.slots import Slots
 from services.storage import bags_api, queries
 from services.storage.bags import Bag
 from services.storage.export import Encoder, JsonLinesEncoder, McapEncoder, record_schema
-from services.storage.matcher import compile_converter, draft_template, record_topic
+from services.storage.matcher import compile_converter, draft_template
 from services.storage.queries import Page, QueryEngine, RecordQuery
 from services.storage.recordstore import RecordStore
 from tests.bagfactory import write_bag
