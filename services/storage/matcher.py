@@ -9,7 +9,9 @@ nanoseconds), so that any JSON reader gets them right:
 
 - a message's top-level ``std_msgs/Header`` is not copied: its stamp becomes the record's
   ``t`` (the bag's receive time when the stamp is zero) and its ``frame_id`` the string field
-  ``frame_id``; ROS 1's ``seq`` is dropped;
+  ``frame_id``; ROS 1's ``seq`` is dropped, from every other header too: a publisher's
+  counter that ROS 2's header no longer has, so a draft that kept it (``tf2_msgs/TFMessage``'s
+  ``transforms[].header.seq``) bound no ROS 2 recording of the same type;
 - any other ``time`` stays exact as a container ``{sec, nanosec}``;
 - a ``duration`` becomes ``int`` nanoseconds, refused beyond 2**53.
 
@@ -194,6 +196,8 @@ def _draft_type(
         inner: dict[str, Any] = {}
         for ros_name, inner_desc in store.fielddefs[detail][1]:
             budget.take(f"{path}.{ros_name}")
+            if detail == HEADER and ros_name == "seq":
+                continue
             kind = _draft_type(
                 store,
                 msgtype,
