@@ -56,7 +56,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -548,14 +548,14 @@ def _ingest(
     work: Path,
     logs: Any,
     notify: Callable[[int], None] | None,
-    add_blob: Callable[[bytes], str] | None = None,
+    add_blobs: Callable[[Sequence[bytes]], list[str]] | None = None,
 ) -> tuple[int, float]:
     """One ingest job of ``bag`` into a fresh record store over ``logs``: its records, and
     the seconds from the job's submission to its end.
 
     The node is opened first, as a running service has it: templates approved and bound, the
-    server its staging processes fork from loaded. Image bytes go through ``add_blob`` (a cas
-    client's ``add_bytes``), or are only hashed into their CID when it is None."""
+    server its staging processes fork from loaded. Image bytes go through ``add_blobs`` (a cas
+    client's ``add_blobs``), or are only hashed into their CID when it is None."""
     from robocloud.identity import Identity
     from robocloud.unixfs import import_bytes
     from services.storage.catalog import Catalog
@@ -576,7 +576,7 @@ def _ingest(
         catalog.submit(version.id, author=author)
         catalog.review(version.id, "approve", reviewer=author)
         bindings.bind(template_id=version.id, msgtype=msgtype)
-    blobs = CasBlobs(add_blob or (lambda data: str(import_bytes(data)[1])))
+    blobs = CasBlobs(add_blobs or (lambda new: [str(import_bytes(data)[1]) for data in new]))
     workers = StorageSettings.model_fields["storage_ingest_workers"].get_default(
         call_default_factory=True
     )
@@ -725,7 +725,7 @@ def bench_bigbag_ingest(bag: Path, work: Path) -> Result:
         logs = RecordLogs(work / "logs")
         with Cas(cas.url, Identity.generate()) as client, StagingMemory() as staging:
             count, seconds = _ingest(
-                bag, work, logs, None, lambda data: str(client.add_bytes(data))
+                bag, work, logs, None, lambda new: [str(cid) for cid in client.add_blobs(new)]
             )
         logs.close()
         assert cas.process is not None

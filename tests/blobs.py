@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from robocloud.unixfs import import_bytes
 
 
@@ -13,3 +15,6 @@ class MemoryBlobs:
         _, cid = import_bytes(data)
         self.files[str(cid)] = data
         return str(cid)
+
+    def put_many(self, blobs: Sequence[bytes]) -> list[str]:
+        return [self.put(data) for data in blobs]

@@ -173,7 +173,6 @@ def _open_ingest(
     app: FastAPI, settings: StorageSettings, node: StorageNode, knowledge: KnowledgeBase
 ) -> None:
     data_dir = settings.resolved_data_dir()
-    offload = _cas_offload(node, settings)
     clients: dict[str, Cas] = {}
 
     def cas() -> Cas:
@@ -206,7 +205,7 @@ def _open_ingest(
         app.state.records,
         app.state.record_logs,
         app.state.bindings,
-        lambda: CasBlobs(offload),
+        lambda: CasBlobs(lambda blobs: [str(cid) for cid in cas().add_blobs(blobs)]),
         batch_records=settings.storage_ingest_batch_records,
         staging_workers=settings.storage_ingest_workers,
         parallel_from_messages=settings.storage_ingest_parallel_messages,

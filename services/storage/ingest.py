@@ -53,7 +53,7 @@ from services.storage.catalog import CatalogError
 from services.storage.ingested import IngestedBags, IngestedRow, IngestedTopic
 from services.storage.matcher import (
     Bindings,
-    BlobSink,
+    BlobBatchSink,
     DraftError,
     draft_template,
 )
@@ -378,7 +378,7 @@ class IngestJobs:
         store: RecordStore,
         logs: RecordLogs,
         bindings: Bindings,
-        blobs: Callable[[], BlobSink],
+        blobs: Callable[[], BlobBatchSink],
         *,
         batch_records: int = 5000,
         staging_workers: int = 1,

@@ -26,12 +26,12 @@ from typing import Any, NamedTuple
 
 import orjson
 
-from robocloud import jcs
 from robocloud.proofs import RecordId
 from robocloud.templates import (
     ArrayOf,
     RecordInvalid,
     Template,
+    canonical_part,
     canonical_record,
     check_envelope,
     parse_template_id,
@@ -167,8 +167,10 @@ def _certainly_inline(values: list[Any], limit: int) -> bool:
     return all(type(value) in (int, float, bool) for value in values)
 
 
-def _array_leaves(template: Template) -> list[list[str]]:
-    return [path.split(".") for path, kind in template.leaves() if isinstance(kind, ArrayOf)]
+def _array_leaves(template: Template) -> list[tuple[list[str], ArrayOf]]:
+    return [
+        (path.split("."), kind) for path, kind in template.leaves() if isinstance(kind, ArrayOf)
+    ]
 
 
 def _replaced(data: dict[str, Any], parts: list[str], value: Any) -> dict[str, Any]:
@@ -200,13 +202,13 @@ class ArrayOffload:
         if len(canonical) <= self.inline_bytes:
             return EncodedRecord(template.id, record, canonical)
         data = record["data"]
-        for parts in _array_leaves(template):
+        for parts, kind in _array_leaves(template):
             value: Any = data
             for part in parts:
                 value = value[part]
             if not isinstance(value, list) or _certainly_inline(value, self.inline_bytes):
                 continue
-            encoded = jcs.canonical(value)
+            encoded = canonical_part(value, kind)
             if len(encoded) <= self.inline_bytes:
                 continue
             path = "data." + ".".join(parts)

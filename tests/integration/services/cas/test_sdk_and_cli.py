@@ -239,17 +239,38 @@ def test_cat_believes_no_claim_that_a_range_is_past_the_end() -> None:
             assert client.cat(ROOT, len(DATA)) == b""
 
 
-def test_add_refuses_a_wrong_answer(tmp_path: Path) -> None:
-    lie = b'{"Name":"f","Hash":"bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"}\n'
+OTHER_CID = "bafkreide5semuafsnds3ugrvm6fbwuyw2ijpj43gwjdxemstjkfozi37hq"
+
+
+@pytest.mark.parametrize(
+    ("lie", "message"),
+    [
+        (f'{{"Name":"0","Hash":"{OTHER_CID}"}}\n', "but the file's CID is"),
+        (f'{{"Name":"f","Hash":"{OTHER_CID}"}}\n', "names no file 0"),
+    ],
+    ids=["other-cid", "other-name"],
+)
+def test_add_refuses_a_wrong_answer(lie: str, message: str) -> None:
+    """Bytes go up as files named by their place (``add_blobs``), each named in the answer."""
     audience = b'{"audience":"cas@local","service":"cas","deployment":"local"}'
 
     def answer(path: str) -> tuple[int, str, bytes]:
-        return 200, "application/json", audience if path == "/v1/audience" else lie
+        return 200, "application/json", audience if path == "/v1/audience" else lie.encode()
 
     for url in gateway_answering(answer):
         client = Cas(url, Identity.generate(), retries=0)
-        with client, pytest.raises(CasError, match="but the file's CID is"):
+        with client, pytest.raises(CasError, match=message):
             client.add_bytes(b"not hello world")
+
+
+def test_many_blobs_go_up_in_one_add_each_pinned(cas: Cas) -> None:
+    blobs = [b"first", b"", b"first", bytes(range(256)) * 2000]
+    cids = cas.add_blobs(blobs)
+    assert cids == [import_bytes(blob)[1] for blob in blobs]
+    assert cids[0] == cids[2]
+    assert [cas.get(cid) for cid in cids] == blobs
+    assert {str(cid) for cid in cids} <= cas.pins().keys()
+    assert cas.add_blobs([]) == []
 
 
 def test_add_directory_refuses_a_wrong_root(tmp_path: Path) -> None:
