@@ -7,7 +7,7 @@ Each engineer's routes sit in their own module (``records_api``, ``bags_api``,
 from __future__ import annotations
 
 import re
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Iterator, Sequence
 from contextlib import asynccontextmanager, contextmanager
 from typing import Any
 
@@ -127,10 +127,10 @@ def _cas_offload(node: StorageNode, settings: StorageSettings) -> Offload:
     """Large arrays go to cas signed by the node's own key, the one the ledger registered."""
     clients: dict[str, Cas] = {}
 
-    def offload(data: bytes) -> str:
+    def offload(blobs: Sequence[bytes]) -> list[str]:
         if "cas" not in clients:
             clients["cas"] = Cas(settings.cas_url, node.identity.identity, retries=1)
-        return str(clients["cas"].add_bytes(data))
+        return [str(cid) for cid in clients["cas"].add_blobs(blobs)]
 
     return offload
 

@@ -56,8 +56,8 @@ KEYWORD_TEXTS_HELD = 262_144
 """Keyword texts held for the keyword thread at most (a few MB); past it, the thread reads
 them from the segments, as for live records."""
 
-Offload = Callable[[bytes], str]
-"""Stores bytes in cas and returns their CID (text)."""
+Offload = Callable[[Sequence[bytes]], list[str]]
+"""Stores blobs in cas and returns their CIDs (text), in order."""
 
 
 @dataclass(frozen=True)
@@ -183,6 +183,10 @@ def _replaced(data: dict[str, Any], parts: list[str], value: Any) -> dict[str, A
     return copy
 
 
+Checked = tuple[Template, dict[str, Any], bytes]
+"""A record checked against its template, and its canonical bytes."""
+
+
 @dataclass(frozen=True)
 class ArrayOffload:
     """Where a record's large arrays go: arrays whose canonical bytes exceed ``inline_bytes``
@@ -195,13 +199,34 @@ class ArrayOffload:
     def encoded(
         self, template: Template, record: dict[str, Any], canonical: bytes, position: int = 0
     ) -> EncodedRecord:
-        """The record with every array larger than the inline bound replaced by its cas CID.
+        """:meth:`encoded_all` of one record, ``position`` of its batch."""
+        (one,) = self.encoded_all([(template, record, canonical)], first=position)
+        return one
+
+    def encoded_all(self, records: Sequence[Checked], first: int = 0) -> list[EncodedRecord]:
+        """Each record with every array larger than the inline bound replaced by its cas
+        CID, the arrays of all of them stored in one call of ``offload``: a batch of laser
+        scans posted to ``/v1/records`` was one signed ``add`` an array.
 
         A record whose canonical bytes fit under the bound holds no such array. Raises
-        :class:`OffloadFailed` naming record ``position`` of its batch and the field."""
+        :class:`OffloadFailed` naming the first record with such an array (its position in
+        the batch, counted from ``first``) and the array's field: nothing is stored then."""
+        large = [self._large_arrays(*checked) for checked in records]
+        blobs = [encoded for arrays in large for _, encoded in arrays]
+        cids = iter(self._stored(blobs, large, first) if blobs else [])
+        return [
+            _with_cids(checked, arrays, cids)
+            for checked, arrays in zip(records, large, strict=True)
+        ]
+
+    def _large_arrays(
+        self, template: Template, record: dict[str, Any], canonical: bytes
+    ) -> list[tuple[list[str], bytes]]:
+        """The path and canonical bytes of each array of ``record`` past the bound."""
         if len(canonical) <= self.inline_bytes:
-            return EncodedRecord(template.id, record, canonical)
+            return []
         data = record["data"]
+        found = []
         for parts, kind in _array_leaves(template):
             value: Any = data
             for part in parts:
@@ -209,20 +234,37 @@ class ArrayOffload:
             if not isinstance(value, list) or _certainly_inline(value, self.inline_bytes):
                 continue
             encoded = canonical_part(value, kind)
-            if len(encoded) <= self.inline_bytes:
-                continue
-            path = "data." + ".".join(parts)
-            if self.offload is None:
-                raise OffloadFailed(position, path, "this node has no cas to store arrays in")
-            try:
-                cid = self.offload(encoded)
-            except Exception as exc:
-                raise OffloadFailed(position, path, str(exc)) from exc
-            data = _replaced(data, parts, cid)
-        if data is record["data"]:
-            return EncodedRecord(template.id, record, canonical)
-        stored = {**record, "data": data}
-        return EncodedRecord(template.id, stored, canonical_record(stored))
+            if len(encoded) > self.inline_bytes:
+                found.append((parts, encoded))
+        return found
+
+    def _stored(
+        self, blobs: list[bytes], large: list[list[tuple[list[str], bytes]]], first: int
+    ) -> list[str]:
+        position, parts = next(
+            (first + n, arrays[0][0]) for n, arrays in enumerate(large) if arrays
+        )
+        path = "data." + ".".join(parts)
+        if self.offload is None:
+            raise OffloadFailed(position, path, "this node has no cas to store arrays in")
+        try:
+            return self.offload(blobs)
+        except Exception as exc:
+            raise OffloadFailed(position, path, str(exc)) from exc
+
+
+def _with_cids(
+    checked: Checked, arrays: list[tuple[list[str], bytes]], cids: Iterator[str]
+) -> EncodedRecord:
+    """The record with each of ``arrays`` replaced by the next of ``cids``."""
+    template, record, canonical = checked
+    if not arrays:
+        return EncodedRecord(template.id, record, canonical)
+    data = record["data"]
+    for parts, _ in arrays:
+        data = _replaced(data, parts, next(cids))
+    stored = {**record, "data": data}
+    return EncodedRecord(template.id, stored, canonical_record(stored))
 
 
 YOUNG_COLLECTION_EVERY = 1_000_000
@@ -337,10 +379,7 @@ class RecordStore:
         :class:`OffloadFailed` when cas cannot take a large array.
         """
         checked = [self._checked(position, record) for position, record in enumerate(records)]
-        return [
-            self.arrays.encoded(template, record, canonical, position)
-            for position, (template, record, canonical) in enumerate(checked)
-        ]
+        return self.arrays.encoded_all(checked)
 
     def encode_of(self, template: Template, record: Any) -> EncodedRecord:
         """:meth:`encode` of one record of ``template``, which the caller already holds

@@ -563,7 +563,7 @@ def _stage_task(task: WindowTask, parent: Connection) -> None:
                 for key, document in documents.items()
             }
             blobs = CasBlobs(_forwarded(parent))
-            arrays = ArrayOffload(task.inline_bytes, blobs.put if task.offload else None)
+            arrays = ArrayOffload(task.inline_bytes, blobs.put_many if task.offload else None)
 
             def progress(count: int) -> None:
                 parent.send(("progress", count))

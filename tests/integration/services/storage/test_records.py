@@ -298,6 +298,44 @@ def test_large_arrays_go_to_cas(service_factory: ServiceFactory, identity: Ident
         assert json.loads(gateway.get(stored)) == ranges
 
 
+def _adds(cas: ServiceProcess) -> int:
+    """The ``add`` requests cas has answered, from its metrics."""
+    metrics = httpx.get(f"{cas.url}/metrics", timeout=10).text
+    return sum(
+        int(float(line.rsplit(" ", 1)[1]))
+        for line in metrics.splitlines()
+        if line.startswith("robocloud_http_requests_total") and 'route="/api/v0/add"' in line
+    )
+
+
+def test_a_batchs_large_arrays_go_to_cas_in_one_exchange_or_none(
+    service_factory: ServiceFactory, identity: Identity
+) -> None:
+    """Twenty records of a large array each were twenty signed ``add``s; one now. With cas
+    gone, the batch is refused naming its first large array, and nothing is stored."""
+    cas = service_factory("cas")
+    storage = service_factory(
+        "storage", {"ROBOCLOUD_CAS_URL": cas.url, "ROBOCLOUD_STORAGE_ARRAY_INLINE_BYTES": "256"}
+    )
+    scans = [[t + n / 4 for n in range(500)] for t in range(20)]
+    with Storage(storage.url, identity) as client:
+        _approved(client)
+        before = _adds(cas)
+        ids = client.append([_record(identity.address, t, ranges=scans[t]) for t in range(20)])
+        assert _adds(cas) == before + 1
+        stored = [client.record(record_id).record["data"]["ranges"] for record_id in ids]
+        with Cas(cas.url) as gateway:
+            assert [json.loads(gateway.get(cid)) for cid in stored] == scans
+        cas.stop()
+        batch = [_record(identity.address, 100, ranges=[1.0])]
+        batch += [_record(identity.address, 101 + t, ranges=scans[t]) for t in range(3)]
+        with pytest.raises(ApiError) as refused:
+            client.append(batch)
+        assert (refused.value.status, refused.value.code) == (502, "cas_unavailable")
+        assert refused.value.details == {"index": 1, "field": "data.ranges"}
+        assert len(client.query(template="state@1", limit=100).records) == 20
+
+
 WRITER = """
 import json, sys
 from robocloud.identity import Identity

@@ -526,7 +526,7 @@ def test_a_laser_scans_arrays_go_to_cas_a_batch_at_a_time(node: Node, tmp_path: 
     past the inline bound, and each array went to cas in a signed ``add`` of its own (5 ms),
     which took most of the job's time. They go a batch at a time, each before any record."""
     node.blobs = CountingBlobs()
-    node.store.arrays = ArrayOffload(node.store.arrays.inline_bytes, node.blobs.put)
+    node.store.arrays = ArrayOffload(node.store.arrays.inline_bytes, node.blobs.put_many)
     recording = SHARED_DATA / "rosbag1" / "cartographer_b0-2014-07-21-12-42-53-tiny.bag"
     scan = "sensor_msgs/msg/MultiEchoLaserScan"
     with Bag.open(recording) as opened:
