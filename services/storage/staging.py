@@ -72,7 +72,7 @@ from services.storage.matcher import (
     Converter,
     compile_converter,
 )
-from services.storage.recordstore import ArrayOffload, OffloadFailed, SpooledRecords
+from services.storage.recordstore import ArrayOffload, Offload, OffloadFailed, SpooledRecords
 from services.storage.segments import DocumentForm, PreparedDocuments
 
 PROGRESS_EVERY = 1000
@@ -474,8 +474,6 @@ message, and one signed ``add`` each (5 ms) cost more than staging the messages 
 BLOB_BATCH_BYTES = 4 * 1024 * 1024
 """Bytes of blobs the service holds before it stores them (a blob larger goes alone)."""
 
-AddMany = Callable[[Sequence[bytes]], list[str]]
-
 
 class CasBlobs:
     """Image and file bytes into cas, each distinct content uploaded once per job.
@@ -484,7 +482,7 @@ class CasBlobs:
     makes the CID of bytes seen before known without asking cas again.
     """
 
-    def __init__(self, add: AddMany, remembered: int = 4096) -> None:
+    def __init__(self, add: Offload, remembered: int = 4096) -> None:
         self._add = add
         self._remembered = remembered
         self._known: OrderedDict[bytes, str] = OrderedDict()
@@ -507,7 +505,7 @@ class CasBlobs:
         return [cids[key] for key in keys]
 
 
-def _forwarded(parent: Connection) -> AddMany:
+def _forwarded(parent: Connection) -> Offload:
     """A worker's way to cas: the CIDs computed here, the bytes sent to the parent."""
 
     def add(blobs: Sequence[bytes]) -> list[str]:
