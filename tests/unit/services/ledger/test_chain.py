@@ -3,6 +3,8 @@ blocks that survive a reopen and a kill -9 with the same head hash."""
 
 from __future__ import annotations
 
+import itertools
+import statistics
 import textwrap
 import time
 from pathlib import Path
@@ -272,7 +274,9 @@ def test_the_gap_closer_is_answered_in_time_and_reads_go_on(
     was answered, in one turn of the chain's lock: 64 of 2^24 gas held its sender's answer
     and every read about four minutes. Now the answer waits ``PROMOTION_IN_ANSWER_S`` at
     most (none here), the waiting ones are mined after it, one block a turn, and each read
-    goes first."""
+    goes first: between two reads, one block is mined. A reader the scheduler leaves out for
+    a while (a busy machine) sees two now and then, so the typical step is what counts;
+    all the blocks in one turn, or two a turn, make every step larger."""
     monkeypatch.setattr(chain_module, "PROMOTION_IN_ANSWER_S", 0.0)
     operator, robot = keys(), Identity.generate()
     chain = EmbeddedChain(tmp_path / "chain.sqlite", operator.genesis_state())
@@ -286,13 +290,14 @@ def test_the_gap_closer_is_answered_in_time_and_reads_go_on(
     address = bytes.fromhex(robot.address[2:])
     assert chain.nonce(address, "latest") < 2 + waiting, "the answer waited for the rest"
     last = first_block + waiting
-    reads = 0
+    seen = [chain.head().block_number]
     deadline = time.monotonic() + 120
-    while chain.head().block_number < last:
+    while seen[-1] < last:
         assert time.monotonic() < deadline, "the waiting transactions were not all mined"
         chain.balance(address, "latest")
-        reads += 1
-    assert reads >= waiting - 1, "reads did not go on between the blocks"
+        seen.append(chain.head().block_number)
+    steps = [after - before for before, after in itertools.pairwise(seen) if after > before]
+    assert statistics.median(steps) <= 1, f"reads did not go on between the blocks: {steps}"
     assert chain.nonce(address, "latest") == 2 + waiting
     chain.close()
 
