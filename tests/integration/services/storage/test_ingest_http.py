@@ -563,12 +563,6 @@ def ingestions(storage: ServiceProcess, bag_cid: str) -> list[tuple[str, int, in
                 rc:tmtRoot ?root
         }} ORDER BY ?job
     """
-    answer = httpx.get(
-        f"{storage.url}/v1/knowledge/sparql",
-        params={"query": query},
-        headers={"Accept": "application/sparql-results+json"},
-        timeout=30,
-    ).json()
     return [
         (
             row["job"]["value"],
@@ -576,8 +570,20 @@ def ingestions(storage: ServiceProcess, bag_cid: str) -> list[tuple[str, int, in
             int(row["epoch"]["value"]),
             row["root"]["value"],
         )
-        for row in answer["results"]["bindings"]
+        for row in sparql_rows(storage, query)
     ]
+
+
+def sparql_rows(storage: ServiceProcess, query: str) -> list[dict[str, Any]]:
+    """The bindings of a SELECT on the node's knowledge base, as SPARQL JSON results."""
+    answer = httpx.get(
+        f"{storage.url}/v1/knowledge/sparql",
+        params={"query": query},
+        headers={"Accept": "application/sparql-results+json"},
+        timeout=30,
+    ).json()
+    rows: list[dict[str, Any]] = answer["results"]["bindings"]
+    return rows
 
 
 def test_a_ros1_bag_naming_topics_without_a_slash_is_published_with_its_records_topics(
@@ -609,13 +615,7 @@ def test_a_ros1_bag_naming_topics_without_a_slash_is_published_with_its_records_
         PREFIX rc: <https://w3id.org/robocloud#>
         SELECT ?topic WHERE {{ <ipfs://{job["dataset"]["cid"]}> rc:topic ?topic }}
     """
-    answer = httpx.get(
-        f"{storage.url}/v1/knowledge/sparql",
-        params={"query": query},
-        headers={"Accept": "application/sparql-results+json"},
-        timeout=30,
-    ).json()
-    assert [row["topic"]["value"] for row in answer["results"]["bindings"]] == ["/imu"]
+    assert [row["topic"]["value"] for row in sparql_rows(storage, query)] == ["/imu"]
 
 
 def test_a_bag_ingested_again_for_a_topic_bound_since_keeps_each_jobs_counts_and_epoch(

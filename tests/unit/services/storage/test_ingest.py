@@ -95,9 +95,11 @@ class Node:
         self.jobs = self.open_jobs(staging_workers=workers)
 
     def approve(self, msgtype: str) -> str:
-        version = self.catalog.create(
-            draft_template(typestore_for("sqlite3"), msgtype), author=self.author
-        )
+        return self.approved(draft_template(typestore_for("sqlite3"), msgtype))
+
+    def approved(self, document: dict[str, Any]) -> str:
+        """The id of ``document`` created, submitted and approved by this node's author."""
+        version = self.catalog.create(document, author=self.author)
         self.catalog.submit(version.id, author=self.author)
         self.catalog.review(version.id, "approve", reviewer=self.author)
         return version.id
@@ -231,17 +233,15 @@ def test_a_tf_bag_s_frame_ids_are_found_by_keyword(node: Node, tmp_path: Path) -
     with Bag.open(recording) as bag:
         [typestore] = {connection.typestore for connection in bag.connections}
     tfm = "tf2_msgs/msg/TFMessage"
-    version = node.catalog.create(draft_template(typestore, tfm), author=node.author)
-    node.catalog.submit(version.id, author=node.author)
-    node.catalog.review(version.id, "approve", reviewer=node.author)
-    node.bindings.bind(template_id=version.id, msgtype=tfm)
+    version_id = node.approved(draft_template(typestore, tfm))
+    node.bindings.bind(template_id=version_id, msgtype=tfm)
     bag_copy = Path(shutil.copy(recording, tmp_path / "tf.bag"))
     job = node.jobs.wait(node.jobs.submit(bag_copy, "upload:tf", authorship()).id, 60)
     assert (job.status, job.records_committed) == ("succeeded", 518), job.error
     node.store.index_keywords()
     assert {"base_link", "odom"} <= holding.keys()
     for frame, count in holding.items():
-        found = node.store.keywords.search([frame.lower()], version.id)[version.id]
+        found = node.store.keywords.search([frame.lower()], version_id)[version_id]
         assert len(found) == count, frame
         record = node.store.get(f"tf_message-1-{min(found)}").record["data"]
         frames = {t["child_frame_id"] for t in record["transforms"]}
@@ -257,10 +257,8 @@ def test_recorded_service_calls_are_drafted_and_ingested(node: Node, tmp_path: P
     assert report.skipped == "no template is bound to this topic or message type"
     assert report.draft is not None
     assert report.draft["fields"]["request"] == {"array": {"container": {"a": "int", "b": "int"}}}
-    version = node.catalog.create(report.draft, author=node.author)
-    node.catalog.submit(version.id, author=node.author)
-    node.catalog.review(version.id, "approve", reviewer=node.author)
-    node.bindings.bind(template_id=version.id, msgtype="example_interfaces/srv/AddTwoInts_Event")
+    version_id = node.approved(report.draft)
+    node.bindings.bind(template_id=version_id, msgtype="example_interfaces/srv/AddTwoInts_Event")
     path = Path(shutil.copy(SHARED_DATA / "mcap/rosbag2_cpp_topics_and_services.mcap", tmp_path))
     job = node.jobs.wait(node.jobs.submit(path, "upload:s2", authorship("nonce-1")).id, 60)
     assert (job.status, job.records_committed) == ("succeeded", 6), job.error
@@ -532,10 +530,8 @@ def test_a_laser_scans_arrays_go_to_cas_a_batch_at_a_time(node: Node, tmp_path: 
     with Bag.open(recording) as opened:
         [typestore] = {c.typestore for c in opened.connections if c.msgtype == scan}
         scans = sum(c.count for c in opened.connections if c.msgtype == scan)
-    version = node.catalog.create(draft_template(typestore, scan), author=node.author)
-    node.catalog.submit(version.id, author=node.author)
-    node.catalog.review(version.id, "approve", reviewer=node.author)
-    node.bindings.bind(template_id=version.id, msgtype=scan)
+    version_id = node.approved(draft_template(typestore, scan))
+    node.bindings.bind(template_id=version_id, msgtype=scan)
     copy = Path(shutil.copy(recording, tmp_path / "scans.bag"))
     job = node.jobs.wait(node.jobs.submit(copy, "upload:scans", authorship()).id, 120)
     assert (job.status, job.records_committed) == ("succeeded", scans), job.error
@@ -545,7 +541,7 @@ def test_a_laser_scans_arrays_go_to_cas_a_batch_at_a_time(node: Node, tmp_path: 
     most = math.ceil(stored / BLOB_BATCH_COUNT) + math.ceil(size / BLOB_BATCH_BYTES)
     assert 1 < len(node.blobs.exchanges) <= most, node.blobs.exchanges
     assert max(node.blobs.exchanges) <= BLOB_BATCH_COUNT
-    ranges = node.store.get(record_id(version.id, 0)).record["data"]["ranges"]
+    ranges = node.store.get(record_id(version_id, 0)).record["data"]["ranges"]
     assert json.loads(node.blobs.files[ranges])[0]["echoes"]
 
 
@@ -647,10 +643,8 @@ def test_a_damaged_mcap_chunk_fails_the_job_as_bag_corrupt(
     with Bag.open(copy) as intact:
         bound = {c.msgtype: c.typestore for c in intact.connections if c.typestore and c.count}
     for msgtype, store in bound.items():
-        version = node.catalog.create(draft_template(store, msgtype), author=node.author)
-        node.catalog.submit(version.id, author=node.author)
-        node.catalog.review(version.id, "approve", reviewer=node.author)
-        node.bindings.bind(template_id=version.id, msgtype=msgtype)
+        version_id = node.approved(draft_template(store, msgtype))
+        node.bindings.bind(template_id=version_id, msgtype=msgtype)
     storage = copy / "wbag_2.mcap"
     damaged = bytearray(storage.read_bytes())
     damaged[4000:4016] = bytes(16)
@@ -884,11 +878,7 @@ def test_a_staging_process_silent_past_the_stall_bound_fails_its_job(
         lambda: node.blobs,
         stall_s=5.0,
     )
-    seq = node.catalog.create(
-        {"name": "flag_seq", "version": 1, "fields": {"seq": "int"}}, author=node.author
-    ).id
-    node.catalog.submit(seq, author=node.author)
-    node.catalog.review(seq, "approve", reviewer=node.author)
+    seq = node.approved({"name": "flag_seq", "version": 1, "fields": {"seq": "int"}})
     node.bindings.bind(template_id=seq, topic="/flags")
     slow = write_flags_bag(tmp_path / "slow.bag", 8 * 1024**2)
     failed = node.jobs.wait(node.jobs.submit(slow, "upload:s", authorship()).id, 60)
