@@ -248,9 +248,12 @@ class ArrayOffload:
         if self.offload is None:
             raise OffloadFailed(position, path, "this node has no cas to store arrays in")
         try:
-            return self.offload(blobs)
+            cids = self.offload(blobs)
         except Exception as exc:
             raise OffloadFailed(position, path, str(exc)) from exc
+        if len(cids) != len(blobs):
+            raise OffloadFailed(position, path, f"{len(blobs)} arrays stored as {len(cids)}")
+        return cids
 
 
 def _with_cids(
