@@ -580,7 +580,9 @@ def _ingest(
     workers = StorageSettings.model_fields["storage_ingest_workers"].get_default(
         call_default_factory=True
     )
-    jobs = IngestJobs(root / "jobs", store, logs, bindings, lambda: blobs, staging_workers=workers)
+    jobs = IngestJobs(
+        root / "jobs", store, logs, bindings, lambda: blobs.put_many, staging_workers=workers
+    )
     signer = Authorship(
         signer=author,
         audience="storage@local",

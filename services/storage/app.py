@@ -205,7 +205,7 @@ def _open_ingest(
         app.state.records,
         app.state.record_logs,
         app.state.bindings,
-        lambda: CasBlobs(lambda blobs: [str(cid) for cid in cas().add_blobs(blobs)]),
+        lambda: CasBlobs(lambda blobs: [str(cid) for cid in cas().add_blobs(blobs)]).put_many,
         batch_records=settings.storage_ingest_batch_records,
         staging_workers=settings.storage_ingest_workers,
         parallel_from_messages=settings.storage_ingest_parallel_messages,

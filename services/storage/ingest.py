@@ -53,12 +53,11 @@ from services.storage.catalog import CatalogError
 from services.storage.ingested import IngestedBags, IngestedRow, IngestedTopic
 from services.storage.matcher import (
     Bindings,
-    BlobBatchSink,
     DraftError,
     draft_template,
 )
 from services.storage.recordlog import RecordLogs
-from services.storage.recordstore import Authorship, RecordStore, record_id
+from services.storage.recordstore import Authorship, Offload, RecordStore, record_id
 from services.storage.staging import (
     STALL_S,
     IngestFailed,
@@ -378,7 +377,7 @@ class IngestJobs:
         store: RecordStore,
         logs: RecordLogs,
         bindings: Bindings,
-        blobs: Callable[[], BlobBatchSink],
+        blobs: Callable[[], Offload],
         *,
         batch_records: int = 5000,
         staging_workers: int = 1,

@@ -27,7 +27,7 @@ import json
 import math
 import re
 import threading
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -102,13 +102,6 @@ class BlobSink(Protocol):
     """Where ``image`` and ``file`` bytes go; returns the CID string a record holds."""
 
     def put(self, data: bytes) -> str: ...
-
-
-class BlobBatchSink(Protocol):
-    """Where the service stores the blobs its staging processes made, many in one exchange;
-    their CID strings in order."""
-
-    def put_many(self, blobs: Sequence[bytes]) -> list[str]: ...
 
 
 def draft_name(msgtype: str) -> str:

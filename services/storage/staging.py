@@ -66,7 +66,6 @@ from services.storage.bags import (
 )
 from services.storage.matcher import (
     BindingInvalid,
-    BlobBatchSink,
     BlobSink,
     ConversionError,
     Converter,
@@ -620,8 +619,8 @@ class BlobBatches:
     job's records are committed after its staging, so every blob is in cas before a record
     that names it."""
 
-    def __init__(self, sink: BlobBatchSink) -> None:
-        self._sink = sink
+    def __init__(self, store: Offload) -> None:
+        self._store = store
         self._cids: list[str] = []
         self._blobs: list[bytes] = []
         self._bytes = 0
@@ -640,7 +639,7 @@ class BlobBatches:
             return
         self._cids, self._blobs, self._bytes = [], [], 0
         try:
-            stored = self._sink.put_many(blobs)
+            stored = self._store(blobs)
         except Exception as exc:
             size = sum(len(data) for data in blobs)
             raise IngestFailed(
@@ -703,7 +702,7 @@ class StagingProcesses:
         self,
         plans: Plans,
         windows: int,
-        blobs: BlobBatchSink,
+        blobs: Offload,
         progress: Callable[[int], None],
         alongside: Callable[[], None],
         stall_s: float = STALL_S,

@@ -82,7 +82,7 @@ class Node:
             self.store,
             self.logs,
             self.bindings,
-            lambda: self.blobs,
+            lambda: self.blobs.put_many,
             batch_records=batch_records,
             staging_workers=staging_workers,
             parallel_from_messages=0,
@@ -877,7 +877,7 @@ def test_a_staging_process_silent_past_the_stall_bound_fails_its_job(
         node.store,
         node.logs,
         node.bindings,
-        lambda: node.blobs,
+        lambda: node.blobs.put_many,
         stall_s=5.0,
     )
     seq = node.approved({"name": "flag_seq", "version": 1, "fields": {"seq": "int"}})
